@@ -1,0 +1,99 @@
+"""Events the bus adapters feed to the streamer core, and actions the core returns.
+
+Pure data (frozen dataclasses), no I/O: the master-side adapter (`bus.network`) turns received frames
+and timer ticks into these events; the streamer core (`streamer.core`) consumes them and returns
+actions; the adapter turns `Send` actions back into frames. Times are seconds on whatever clock the
+runtime uses (wall clock in real time, a virtual clock in tests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+# ---- events (bus -> streamer) -------------------------------------------------------------------
+@dataclass(frozen=True)
+class Sync:
+    """The master sent SYNC number `count` (0, 1, 2, ...) at time `t`."""
+
+    count: int
+    t: float
+
+
+@dataclass(frozen=True)
+class BufferStatus:
+    """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02."""
+
+    node: int
+    statusword: int
+    buffer_status: int
+    free_size: int
+    t: float
+
+
+@dataclass(frozen=True)
+class PositionFeedback:
+    """TPDO2 of one drive: position actual 0x6064 and position demand 0x6062, counts."""
+
+    node: int
+    position_actual: int
+    position_demand: int
+    t: float
+
+
+@dataclass(frozen=True)
+class Emcy:
+    node: int
+    code: int
+    register: int
+    data: bytes
+    t: float
+
+
+@dataclass(frozen=True)
+class HeartbeatLost:
+    node: int
+    t: float
+
+
+@dataclass(frozen=True)
+class Bootup:
+    """A boot-up message (heartbeat with state 0) from a node: it rebooted."""
+
+    node: int
+    t: float
+
+
+@dataclass(frozen=True)
+class Cancel:
+    t: float
+
+
+@dataclass(frozen=True)
+class SendFailed:
+    """The bus refused a frame (bus-off, buffer full...). `reason` says what the adapter saw."""
+
+    reason: str
+    t: float
+
+
+@dataclass(frozen=True)
+class AdapterError:
+    """An exception in a bus callback or adapter thread, turned into an event instead of being swallowed."""
+
+    where: str
+    reason: str
+    t: float
+
+
+Event = Sync | BufferStatus | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed | AdapterError
+
+
+# ---- actions (streamer -> bus) ------------------------------------------------------------------
+@dataclass(frozen=True)
+class Send:
+    cob_id: int
+    data: bytes
+
+
+Action = Send

@@ -1,0 +1,1 @@
+"""Pure math, no I/O: cell configs and jobs -> time-optimal trajectories -> PVT points."""

@@ -1,0 +1,309 @@
+"""Cell configuration: the axes of one CAN bus, their scaling and limits, and the runtime settings.
+
+A cell is loaded from TOML (see configs/demo.toml and docs/formats.md). Every section and key is
+checked on load: unknown keys, wrong types, NaN and impossible limits raise `PlanningError(CONFIG or
+LIMITS)` naming the field, so a typo in a config fails at start-up instead of mid-motion.
+
+Units: user units (rad or mm) for positions, user units/s, /s^2, /s^3 for the limits; the drive's
+own units (counts, rpm) only where the drive has them (`max_profile_velocity_rpm` = 0x607F).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from planner.errors import CONFIG, LIMITS, PlanningError
+
+
+def _number(section: str, key: str, value: Any, *, positive: bool = False, integer: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise PlanningError(CONFIG, f"{section}.{key} must be a number, got {value!r}", path=f"{section}.{key}")
+    if integer and not isinstance(value, int):
+        raise PlanningError(CONFIG, f"{section}.{key} must be an integer, got {value!r}", path=f"{section}.{key}")
+    if not math.isfinite(value):
+        raise PlanningError(LIMITS, f"{section}.{key} is {value}", path=f"{section}.{key}")
+    if positive and value <= 0:
+        raise PlanningError(LIMITS, f"{section}.{key} must be > 0, got {value}", path=f"{section}.{key}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class AxisConfig:
+    """One drive axis. Limits are in user units; the drive's own limits in its units."""
+
+    name: str
+    node_id: int
+    counts_per_unit: float  # position counts (quadcounts) per user unit, gear included
+    counts_per_rev: int  # motor quadcounts per revolution (velocity on the wire is rpm)
+    velocity: float  # user units/s
+    acceleration: float  # user units/s^2
+    jerk: float  # user units/s^3 (move jobs and stops)
+    position_min: float  # user units (0x607D:01)
+    position_max: float  # user units (0x607D:02)
+    max_profile_velocity_rpm: float  # 0x607F
+    max_acceleration: float  # 0x60C5 in user units/s^2
+
+    def __post_init__(self) -> None:
+        where = f"axis '{self.name}'"
+        if not self.name or not isinstance(self.name, str):
+            raise PlanningError(CONFIG, f"axis name must be a non-empty string, got {self.name!r}", path="axis.name")
+        if not (1 <= self.node_id <= 127):
+            raise PlanningError(CONFIG, f"node_id of {where} must be 1..127, got {self.node_id}", path="axis.node_id")
+        for f in fields(self):
+            if f.name in ("name", "node_id"):
+                continue
+            v = getattr(self, f.name)
+            if not math.isfinite(v):
+                raise PlanningError(LIMITS, f"{f.name} of {where} is {v}", path=f"axis.{f.name}")
+        for key in ("counts_per_unit", "counts_per_rev", "velocity", "acceleration", "jerk",
+                    "max_profile_velocity_rpm", "max_acceleration"):
+            if getattr(self, key) <= 0:
+                raise PlanningError(LIMITS, f"{key} of {where} must be > 0, got {getattr(self, key)}",
+                                    path=f"axis.{key}")
+        if self.position_min >= self.position_max:
+            raise PlanningError(
+                LIMITS,
+                f"position_min {self.position_min} of {where} is not below position_max {self.position_max}",
+                path="axis.position_min",
+            )
+        if self.acceleration > self.max_acceleration:
+            raise PlanningError(
+                LIMITS,
+                f"acceleration {self.acceleration} of {where} exceeds the drive's max_acceleration "
+                f"{self.max_acceleration} (0x60C5)",
+                path="axis.acceleration",
+            )
+        if self.velocity_rpm(self.velocity) > self.max_profile_velocity_rpm:
+            raise PlanningError(
+                LIMITS,
+                f"velocity {self.velocity} of {where} is {self.velocity_rpm(self.velocity):.1f} rpm, above the "
+                f"drive's max_profile_velocity_rpm {self.max_profile_velocity_rpm} (0x607F)",
+                path="axis.velocity",
+            )
+
+    # unit conversions (user units <-> drive units)
+    def to_counts(self, user: float) -> float:
+        return user * self.counts_per_unit
+
+    def velocity_rpm(self, user_per_s: float) -> float:
+        """User units/s -> rpm of the motor shaft."""
+        return user_per_s * self.counts_per_unit * 60.0 / self.counts_per_rev
+
+    def rpm_to_user(self, rpm: float) -> float:
+        return rpm * self.counts_per_rev / (60.0 * self.counts_per_unit)
+
+    @property
+    def max_profile_velocity(self) -> float:
+        """The drive's 0x607F in user units/s."""
+        return self.rpm_to_user(self.max_profile_velocity_rpm)
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    interface: str = "virtual"
+    channel: str = "pvt"
+    bitrate: int = 1_000_000
+
+
+@dataclass(frozen=True)
+class DriveSettings:
+    """Settings the master writes to every drive (seed 000 4.3.6 defaults)."""
+
+    underflow_warning: int = 4  # 0x20C4:02
+    overflow_warning: int = 60  # 0x20C4:03
+    heartbeat_ms: int = 100  # 0x1017 producer time the master configures
+    heartbeat_timeout_ms: int = 350  # consumer timeout on the master side
+    following_error_counts: int = 20_000  # 0x6065
+    profile_deceleration: float = 0.0  # 0x6084 in user units/s^2 for halt; 0 = use axis acceleration
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.underflow_warning < self.overflow_warning <= 64):
+            raise PlanningError(
+                CONFIG,
+                f"watermarks must satisfy 0 <= underflow_warning ({self.underflow_warning}) < "
+                f"overflow_warning ({self.overflow_warning}) <= 64",
+                path="drive.underflow_warning",
+            )
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    mode: str = "peer"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    telemetry_hz: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise PlanningError(CONFIG, f"zenoh.mode must be peer, client or router, got {self.mode!r}",
+                                path="zenoh.mode")
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    name: str
+    sync_period_ms: int
+    axes: tuple[AxisConfig, ...]
+    bus: BusConfig = field(default_factory=BusConfig)
+    drive: DriveSettings = field(default_factory=DriveSettings)
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    source: str = ""  # file the config was loaded from, for messages and default store location
+
+    def __post_init__(self) -> None:
+        if not (1 <= self.sync_period_ms <= 255):
+            raise PlanningError(CONFIG, f"cell.sync_period_ms must be 1..255, got {self.sync_period_ms}",
+                                path="cell.sync_period_ms")
+        if not self.axes:
+            raise PlanningError(CONFIG, "a cell needs at least one [[axis]]", path="axis")
+        names = [a.name for a in self.axes]
+        ids = [a.node_id for a in self.axes]
+        for label, values in (("name", names), ("node_id", ids)):
+            dup = {v for v in values if values.count(v) > 1}
+            if dup:
+                raise PlanningError(CONFIG, f"duplicate axis {label} {sorted(dup)!r}", path=f"axis.{label}")
+
+    @property
+    def sync_period_s(self) -> float:
+        return self.sync_period_ms / 1000.0
+
+    def axis(self, name: str) -> AxisConfig:
+        for a in self.axes:
+            if a.name == name:
+                return a
+        raise PlanningError("AXIS_ID", f"unknown axis {name!r} (cell has {[a.name for a in self.axes]})",
+                            path="axes")
+
+    def axis_names(self) -> tuple[str, ...]:
+        return tuple(a.name for a in self.axes)
+
+    def with_axes(self, n: int) -> CellConfig:
+        """The first n axes, or more axes made by repeating the configured ones with new names and ids."""
+        if n < 1 or n > 127:
+            raise PlanningError(CONFIG, f"axis count must be 1..127, got {n}", path="axes")
+        out = []
+        for i in range(n):
+            base = self.axes[i % len(self.axes)]
+            if i < len(self.axes):
+                out.append(base)
+            else:
+                used = {a.node_id for a in out} | {a.node_id for a in self.axes}
+                nid = next(k for k in range(1, 128) if k not in used)
+                out.append(_replace(base, name=f"{base.name}_{i // len(self.axes)}", node_id=nid))
+        return _replace(self, axes=tuple(out))
+
+
+def _replace(obj: Any, **changes: Any) -> Any:
+    import dataclasses
+
+    return dataclasses.replace(obj, **changes)
+
+
+def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
+    raw = data.get(key, {})
+    if not isinstance(raw, Mapping):
+        raise PlanningError(CONFIG, f"[{path}] must be a table, got {type(raw).__name__}", path=path)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise PlanningError(CONFIG, f"unknown key(s) {unknown} in [{path}] (known: {sorted(known)})",
+                            path=f"{path}.{unknown[0]}")
+    kwargs: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.name not in raw:
+            continue
+        v = raw[f.name]
+        if f.type in ("int",) or f.type is int:
+            v = int(_number(path, f.name, v, integer=True))
+        elif f.type in ("float",) or f.type is float:
+            v = _number(path, f.name, v)
+        elif "tuple" in str(f.type):
+            if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
+                raise PlanningError(CONFIG, f"{path}.{f.name} must be a list of strings", path=f"{path}.{f.name}")
+            v = tuple(v)
+        elif not isinstance(v, str):
+            raise PlanningError(CONFIG, f"{path}.{f.name} must be a string, got {v!r}", path=f"{path}.{f.name}")
+        kwargs[f.name] = v
+    return cls(**kwargs)
+
+
+_AXIS_REQUIRED = [f.name for f in fields(AxisConfig)]
+
+
+def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
+    """Build a validated CellConfig from parsed TOML."""
+    allowed = {"cell", "axis", "bus", "drive", "zenoh"}
+    unknown = sorted(set(data) - allowed)
+    if unknown:
+        raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})", path=unknown[0])
+    cell = data.get("cell")
+    if not isinstance(cell, Mapping):
+        raise PlanningError(CONFIG, "missing [cell] table", path="cell")
+    extra = sorted(set(cell) - {"name", "sync_period_ms"})
+    if extra:
+        raise PlanningError(CONFIG, f"unknown key(s) {extra} in [cell]", path=f"cell.{extra[0]}")
+    name = cell.get("name")
+    if not isinstance(name, str) or not name or "/" in name or "*" in name:
+        raise PlanningError(CONFIG, f"cell.name must be a non-empty string without '/' or '*', got {name!r}",
+                            path="cell.name")
+    period = int(_number("cell", "sync_period_ms", cell.get("sync_period_ms", 10), integer=True))
+    raw_axes = data.get("axis")
+    if not isinstance(raw_axes, list) or not raw_axes:
+        raise PlanningError(CONFIG, "a cell needs at least one [[axis]] table", path="axis")
+    axes = []
+    for i, ax in enumerate(raw_axes):
+        p = f"axis[{i}]"
+        if not isinstance(ax, Mapping):
+            raise PlanningError(CONFIG, f"{p} must be a table", path=p)
+        missing = [k for k in _AXIS_REQUIRED if k not in ax]
+        unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED))
+        if missing:
+            raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}", path=f"{p}.{missing[0]}")
+        if unknown_k:
+            raise PlanningError(CONFIG, f"{p} has unknown key(s) {unknown_k}", path=f"{p}.{unknown_k[0]}")
+        if not isinstance(ax["name"], str):
+            raise PlanningError(CONFIG, f"{p}.name must be a string", path=f"{p}.name")
+        kw: dict[str, Any] = {"name": ax["name"]}
+        for k in _AXIS_REQUIRED[1:]:
+            integer = k in ("node_id", "counts_per_rev")
+            val = _number(p, k, ax[k], integer=integer)
+            kw[k] = int(val) if integer else val
+        try:
+            axes.append(AxisConfig(**kw))
+        except PlanningError as e:
+            raise PlanningError(e.code, e.message, path=e.path.replace("axis.", f"{p}.")) from None
+    return CellConfig(
+        name=name,
+        sync_period_ms=period,
+        axes=tuple(axes),
+        bus=_section(data, "bus", BusConfig, "bus"),
+        drive=_section(data, "drive", DriveSettings, "drive"),
+        zenoh=_section(data, "zenoh", ZenohSettings, "zenoh"),
+        source=source,
+    )
+
+
+def load_cell(path: str | Path) -> CellConfig:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise PlanningError(CONFIG, f"cell config {str(p)!r} not found", path="config") from None
+    except tomllib.TOMLDecodeError as e:
+        raise PlanningError(CONFIG, f"cell config {str(p)!r} is not valid TOML: {e}", path="config") from None
+    return cell_from_dict(data, source=str(p))
+
+
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs" / "demo.toml"
+
+
+def default_config_path() -> Path:
+    """configs/demo.toml of the source tree, or the copy installed as package data."""
+    if DEFAULT_CONFIG.exists():
+        return DEFAULT_CONFIG
+    packaged = Path(__file__).resolve().parent / "data" / "demo.toml"
+    return packaged

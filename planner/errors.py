@@ -1,0 +1,78 @@
+"""Errors with a stable machine-readable code.
+
+Every rejection the product makes (a bad job, an infeasible plan, a value that does not fit its wire
+field) is a `PlanningError` carrying:
+
+- `code`: one of the stable strings below; clients switch on it, so it never changes meaning;
+- `path`: the offending field as a dotted/indexed path ("waypoints[7][2]", "axis[2].velocity"),
+  or "" when no single field is to blame;
+- a message that names the axis and the value.
+
+The planner never returns None for failure and never lets a raw toppra/ruckig/numpy exception escape.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+# Stable codes (documented in docs/formats.md and docs/api.md).
+INFEASIBLE = "INFEASIBLE"
+LIMITS = "LIMITS"
+LIMITS_EXCEED_DRIVE = "LIMITS_EXCEED_DRIVE"
+NONFINITE = "NONFINITE"
+AXIS_COUNT = "AXIS_COUNT"
+AXIS_ID = "AXIS_ID"
+DEGENERATE = "DEGENERATE"
+NON_MONOTONIC = "NON_MONOTONIC"
+POSITION_LIMIT = "POSITION_LIMIT"
+ENCODING_RANGE = "ENCODING_RANGE"
+SCHEMA = "SCHEMA"
+TYPE = "TYPE"
+CONFIG = "CONFIG"
+
+CODES = frozenset(
+    {
+        INFEASIBLE,
+        LIMITS,
+        LIMITS_EXCEED_DRIVE,
+        NONFINITE,
+        AXIS_COUNT,
+        AXIS_ID,
+        DEGENERATE,
+        NON_MONOTONIC,
+        POSITION_LIMIT,
+        ENCODING_RANGE,
+        SCHEMA,
+        TYPE,
+        CONFIG,
+    }
+)
+
+
+class PlanningError(ValueError):
+    """A rejected job, config or plan. `code` is stable; `path` names the field; `detail` is extra data."""
+
+    def __init__(self, code: str, message: str, *, path: str = "", detail: dict[str, Any] | None = None):
+        if code not in CODES:
+            raise ValueError(f"unknown error code {code!r}")
+        super().__init__(message)
+        self.code = code
+        self.path = path
+        self.message = message
+        self.detail = dict(detail or {})
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"code": self.code, "path": self.path, "message": self.message}
+        if self.detail:
+            out["detail"] = self.detail
+        return out
+
+    def __repr__(self) -> str:
+        return f"PlanningError({self.code!r}, {self.message!r}, path={self.path!r})"
+
+
+class EncodingRangeError(PlanningError):
+    """A value does not fit its wire field (int32 position, int24 velocity, uint8 time)."""
+
+    def __init__(self, message: str, *, path: str = "", detail: dict[str, Any] | None = None):
+        super().__init__(ENCODING_RANGE, message, path=path, detail=detail)

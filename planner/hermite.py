@@ -1,0 +1,123 @@
+"""The drive's cubic interpolation between two PVT reference points (seed 000, section 4.2.3).
+
+This module is the single definition of what a drive does with the PVT records it is sent. The
+encoder uses it to verify its output against the plan at every millisecond; the simulated drive uses
+it to produce its position demand (0x6062). Both must agree to the count, so there is one formula.
+
+The seed writes the segment polynomial in the time `tau = t - t0` measured from the segment END
+(t0 is the end time, so tau runs from -T to 0), anchored at the end point:
+
+    d = P[n]                c = V[n]
+    b = T^-2 * (-3 * (P[n] - P[n-1]) + T * (2 * V[n] + V[n-1]))
+    a = T^-3 * (-2 * (P[n] - P[n-1]) + T * (V[n] + V[n-1]))
+    P(tau) = a tau^3 + b tau^2 + c tau + d,   V(tau) = 3a tau^2 + 2b tau + c,   A(tau) = 6a tau + 2b
+
+The signs above differ from the seed's extracted text, which prints `b = T^-2 (3 dP + T (V[n] + 2 V[n-1]))`
+and `a = T^-3 (2 dP + T (V[n] + V[n-1]))`. Taken literally those do not pass through P[n-1] (the
+minus signs were lost when the PDF was turned into text). The seed's own definition wins: "two
+triplicates deliver two abscissas and four corresponding ordinates, permitting an interpolation
+polynomial of third order unambiguously computed" -- the unique cubic with P(-T) = P[n-1],
+V(-T) = V[n-1], P(0) = P[n], V(0) = V[n] is the one above (tests/planner/test_hermite.py checks both
+the coefficients of a hand-computed example and the four interpolation conditions).
+
+Units on the drive: position in counts, time in ms, velocity in rpm of the motor shaft, so the
+polynomial works in counts/ms with v = rpm * counts_per_rev / 60000. The position demand is the
+polynomial rounded half away from zero to whole counts at every 1 ms tick tau = k - T, k = 1..T; at
+k = T it is exactly P[n].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+MS_PER_MINUTE = 60_000.0
+
+
+def rpm_to_counts_per_ms(rpm: float, counts_per_rev: float) -> float:
+    """Velocity in drive units (rpm of the motor shaft) to counts per millisecond."""
+    return rpm * counts_per_rev / MS_PER_MINUTE
+
+
+def counts_per_ms_to_rpm(counts_per_ms: float, counts_per_rev: float) -> float:
+    return counts_per_ms * MS_PER_MINUTE / counts_per_rev
+
+
+def coefficients(
+    p_prev: float, v_prev: float, p_end: float, v_end: float, time_ms: float
+) -> tuple[float, float, float, float]:
+    """(a, b, c, d) of the seed's polynomial for one segment; velocities in counts/ms, tau in ms."""
+    t = float(time_ms)
+    dp = p_end - p_prev
+    d = float(p_end)
+    c = float(v_end)
+    b = (-3.0 * dp + t * (2.0 * v_end + v_prev)) / (t * t)
+    a = (-2.0 * dp + t * (v_end + v_prev)) / (t * t * t)
+    return a, b, c, d
+
+
+def evaluate(coeffs: tuple[float, float, float, float], tau: float) -> tuple[float, float, float]:
+    """Position (counts), velocity (counts/ms) and acceleration (counts/ms^2) at tau in [-T, 0]."""
+    a, b, c, d = coeffs
+    return (
+        ((a * tau + b) * tau + c) * tau + d,
+        (3.0 * a * tau + 2.0 * b) * tau + c,
+        6.0 * a * tau + 2.0 * b,
+    )
+
+
+def round_counts(x: float) -> int:
+    """The drive's position demand: half away from zero, to whole counts."""
+    return int(math.floor(x + 0.5)) if x >= 0 else -int(math.floor(-x + 0.5))
+
+
+def round_counts_array(x: NDArray[np.float64]) -> NDArray[np.int64]:
+    return (np.sign(x) * np.floor(np.abs(x) + 0.5)).astype(np.int64)
+
+
+def segment_demand(p_prev: int, v_prev: float, p_end: int, v_end: float, time_ms: int) -> list[int]:
+    """Position demand at each 1 ms tick k = 1..T of one segment (velocities in counts/ms)."""
+    coeffs = coefficients(p_prev, v_prev, p_end, v_end, time_ms)
+    return [round_counts(evaluate(coeffs, k - time_ms)[0]) for k in range(1, time_ms + 1)]
+
+
+def reconstruct(
+    positions: NDArray[np.int64] | NDArray[np.float64],
+    velocities_counts_per_ms: NDArray[np.float64],
+    dt_ms: NDArray[np.int64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Vectorised drive reconstruction of one axis over the whole trajectory.
+
+    `positions` and `velocities_counts_per_ms` have one entry per knot (N+1), `dt_ms` one per segment
+    (N). Returns unrounded position, velocity (counts/ms) and acceleration (counts/ms^2) sampled at
+    every ms from t = 0 to t = sum(dt_ms), i.e. sum(dt_ms) + 1 samples. Where a segment ends at a
+    knot, the sample is that knot (the next segment's tau = -T equals it by construction).
+    """
+    p = np.asarray(positions, dtype=np.float64)
+    v = np.asarray(velocities_counts_per_ms, dtype=np.float64)
+    dt = np.asarray(dt_ms, dtype=np.int64)
+    n_seg = dt.shape[0]
+    if p.shape != (n_seg + 1,) or v.shape != (n_seg + 1,):
+        raise ValueError(f"need {n_seg + 1} knots for {n_seg} segments, got {p.shape} and {v.shape}")
+    total = int(dt.sum())
+    if n_seg == 0:
+        return p[:1].copy(), v[:1].copy(), np.zeros(1)
+    t = dt.astype(np.float64)
+    dp = p[1:] - p[:-1]
+    a = (-2.0 * dp + t * (v[1:] + v[:-1])) / t**3
+    b = (-3.0 * dp + t * (2.0 * v[1:] + v[:-1])) / t**2
+    seg = np.repeat(np.arange(n_seg), dt)  # segment of every tick 1..total
+    ends = np.cumsum(dt)
+    tau = (np.arange(1, total + 1) - ends[seg]).astype(np.float64)  # in [-T+1, 0]
+    aa, bb, cc, dd = a[seg], b[seg], v[1:][seg], p[1:][seg]
+    pos = np.empty(total + 1)
+    vel = np.empty(total + 1)
+    acc = np.empty(total + 1)
+    pos[0], vel[0] = p[0], v[0]
+    acc[0] = 6.0 * a[0] * (-t[0]) + 2.0 * b[0]
+    pos[1:] = ((aa * tau + bb) * tau + cc) * tau + dd
+    vel[1:] = (3.0 * aa * tau + 2.0 * bb) * tau + cc
+    acc[1:] = 6.0 * aa * tau + 2.0 * bb
+    return pos, vel, acc

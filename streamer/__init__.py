@@ -1,0 +1,1 @@
+"""The runtime: FIFO feeders, the multi-axis coordinator, the job service, the Zenoh API, client and CLI."""
