@@ -5,12 +5,16 @@ CiA 301 predefined connection set, per node id n (1..127):
     SYNC          0x080               DLC 0 (no counter)
     EMCY          0x080 + n           DLC 8: error code u16, error register u8, 5 manufacturer bytes
     TPDO1         0x180 + n           statusword 0x6041 u16 | buffer status 0x20C4:01 u16 |
-                                      free buffer size 0x60C4:02 u32          (transmission type 1: every SYNC)
-    RPDO1         0x200 + n           controlword 0x6040 u16                  (transmission type 1: applied at next SYNC)
+                                      free buffer size 0x60C4:02 u32
+                                      (transmission type 1: every SYNC)
+    RPDO1         0x200 + n           controlword 0x6040 u16
+                                      (transmission type 1: applied at next SYNC)
     TPDO2         0x280 + n           position actual 0x6064 i32 | position demand 0x6062 i32   (type 1)
-    RPDO2         0x300 + n           PVT record 0x20C1 (8 bytes)             (transmission type 255: on reception)
+    RPDO2         0x300 + n           PVT record 0x20C1 (8 bytes)
+                                      (transmission type 255: on reception)
     SDO tx / rx   0x580 + n / 0x600 + n
-    Heartbeat     0x700 + n           DLC 1: NMT state (0x00 boot-up, 0x04 stopped, 0x05 operational, 0x7F pre-op)
+    Heartbeat     0x700 + n           DLC 1: NMT state
+                                      (0x00 boot-up, 0x04 stopped, 0x05 operational, 0x7F pre-op)
 
 TPDO1 carries the true FIFO fill every cycle (DESIGN.md: map 0x60C4:02 so the streamer sees it).
 All values little-endian.
@@ -60,7 +64,8 @@ def heartbeat_id(node: int) -> int:
 class CobClass(NamedTuple):
     """What a COB-ID is, and for which node (0 for broadcast objects)."""
 
-    kind: str  # "NMT", "SYNC", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"
+    # "NMT", "SYNC", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"
+    kind: str
     node: int
 
 

@@ -22,13 +22,19 @@ class Sync:
 
 @dataclass(frozen=True)
 class BufferStatus:
-    """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02."""
+    """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02.
+
+    `sync_count` is the number of the SYNC this TPDO answers, when the adapter knows it (it does: it sent
+    that SYNC). With None the streamer attributes it to the last `Sync` it was fed, which is only right
+    when no TPDO arrives after the next SYNC.
+    """
 
     node: int
     statusword: int
     buffer_status: int
     free_size: int
     t: float
+    sync_count: int | None = None
 
 
 @dataclass(frozen=True)
@@ -39,6 +45,7 @@ class PositionFeedback:
     position_actual: int
     position_demand: int
     t: float
+    sync_count: int | None = None  # the SYNC this TPDO answers (see BufferStatus)
 
 
 @dataclass(frozen=True)
@@ -86,7 +93,18 @@ class AdapterError:
     t: float
 
 
-Event = Sync | BufferStatus | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed | AdapterError
+@dataclass(frozen=True)
+class BusLoad:
+    """The adapter's measured bus load (all senders, frame bits / bitrate) over its last window, 0..1+."""
+
+    load: float
+    t: float
+
+
+Event = (
+    Sync | BufferStatus | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed
+    | AdapterError | BusLoad
+)
 
 
 # ---- actions (streamer -> bus) ------------------------------------------------------------------

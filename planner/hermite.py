@@ -70,17 +70,31 @@ def evaluate(coeffs: tuple[float, float, float, float], tau: float) -> tuple[flo
 
 def round_counts(x: float) -> int:
     """The drive's position demand: half away from zero, to whole counts."""
-    return int(math.floor(x + 0.5)) if x >= 0 else -int(math.floor(-x + 0.5))
+    return math.floor(x + 0.5) if x >= 0 else -math.floor(-x + 0.5)
 
 
 def round_counts_array(x: NDArray[np.float64]) -> NDArray[np.int64]:
     return (np.sign(x) * np.floor(np.abs(x) + 0.5)).astype(np.int64)
 
 
+def demand_from_coefficients(coeffs: tuple[float, float, float, float], time_ms: int) -> list[int]:
+    """Position demand at each tick tau = k - T, k = 1..T, of a segment with these coefficients.
+
+    The drive's inner loop, so it is written out: the same float evaluation order as `evaluate`
+    (((a*tau + b)*tau + c)*tau + d) and the same rounding as `round_counts`, without a call per tick.
+    """
+    a, b, c, d = coeffs
+    floor = math.floor
+    out = []
+    for tau in range(1 - time_ms, 1):
+        x = ((a * tau + b) * tau + c) * tau + d
+        out.append(floor(x + 0.5) if x >= 0 else -floor(-x + 0.5))
+    return out
+
+
 def segment_demand(p_prev: int, v_prev: float, p_end: int, v_end: float, time_ms: int) -> list[int]:
     """Position demand at each 1 ms tick k = 1..T of one segment (velocities in counts/ms)."""
-    coeffs = coefficients(p_prev, v_prev, p_end, v_end, time_ms)
-    return [round_counts(evaluate(coeffs, k - time_ms)[0]) for k in range(1, time_ms + 1)]
+    return demand_from_coefficients(coefficients(p_prev, v_prev, p_end, v_end, time_ms), time_ms)
 
 
 def reconstruct(

@@ -1,0 +1,76 @@
+"""Errors of the bus layer, each with a stable machine-readable code.
+
+`BusError` is what the master-side adapter raises when the wire does not do what the product needs: a
+drive that does not answer (`NO_RESPONSE`), refuses a write (`SDO_ABORT`), reads back a different
+value (`VERIFY`), a bus that cannot be opened (`BUS_OPEN`) or refuses a frame (`SEND_FAILED`).
+The message always names the node and the object ("node 3 did not answer reading 0x1000:00").
+
+`ProtocolError` is what the pure codecs raise for a frame that cannot be decoded (wrong length,
+unknown state byte, ...). It is also a `ValueError`, so code written against the plain `ValueError`
+of `bus.cob` keeps working.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+# Stable codes.
+BUS_OPEN = "BUS_OPEN"
+NO_RESPONSE = "NO_RESPONSE"
+SDO_ABORT = "SDO_ABORT"
+VERIFY = "VERIFY"
+SEND_FAILED = "SEND_FAILED"
+CLOSED = "CLOSED"
+PROTOCOL = "PROTOCOL"
+CALLBACK = "CALLBACK"
+CONFIG = "CONFIG"
+
+CODES = frozenset({BUS_OPEN, NO_RESPONSE, SDO_ABORT, VERIFY, SEND_FAILED, CLOSED, PROTOCOL, CALLBACK, CONFIG})
+
+
+class BusError(Exception):
+    """A failure on the wire. `code` is stable; `node` and `obj` say where (0 / None when not applicable)."""
+
+    def __init__(
+        self,
+        code: str,
+        message: str,
+        *,
+        node: int = 0,
+        obj: tuple[int, int] | None = None,
+        detail: dict[str, Any] | None = None,
+    ):
+        if code not in CODES:
+            raise ValueError(f"unknown bus error code {code!r}")
+        super().__init__(message)
+        self.code = code
+        self.message = message
+        self.node = node
+        self.obj = obj
+        self.detail = dict(detail or {})
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"code": self.code, "message": self.message, "node": self.node}
+        if self.obj is not None:
+            out["object"] = f"0x{self.obj[0]:04X}:{self.obj[1]:02X}"
+        if self.detail:
+            out["detail"] = self.detail
+        return out
+
+    def __repr__(self) -> str:
+        return f"BusError({self.code!r}, {self.message!r}, node={self.node})"
+
+
+class ProtocolError(BusError, ValueError):
+    """A frame that does not decode (wrong DLC, unknown enumeration value, ...)."""
+
+    def __init__(self, message: str, *, cob_id: int | None = None, detail: dict[str, Any] | None = None):
+        d = dict(detail or {})
+        if cob_id is not None:
+            d["cob_id"] = cob_id
+        super().__init__(PROTOCOL, message, detail=d)
+        self.cob_id = cob_id
+
+
+def format_object(index: int, subindex: int) -> str:
+    return f"0x{index:04X}:{subindex:02X}"

@@ -1,0 +1,439 @@
+"""The master-side bus adapter: python-can + canopen in, `bus.events` out, `Send` actions back out.
+
+What it owns: one python-can bus (opened from `BusConfig`, default the `virtual` interface, unless
+one is given), a canopen `Network` with one `RemoteNode` per axis (for SDO only), the SYNC producer
+(python-can `send_periodic`, which is the kernel's broadcast manager on socketcan), a receive
+listener and a monitor thread.
+
+What it does:
+- `configure_drives()`: every drive over SDO from the profile (`DriveProfile.configuration`: mode 7,
+  sub-mode -1, watermarks, limits, PDO mappings and transmission types, heartbeat producer), read back
+  and compared, then NMT start. A drive that does not answer, refuses a write or reads back another
+  value raises `BusError` (NO_RESPONSE / SDO_ABORT / VERIFY) naming the node and the object.
+- Received frames become events, in bus order, on the receive thread: TPDO1 -> BufferStatus,
+  TPDO2 -> PositionFeedback, EMCY -> Emcy (code 0x0000 is CiA 301 "error reset", sent after a fault
+  reset), boot-up -> Bootup, our own SYNC (received back: the bus is opened with
+  `receive_own_messages`) -> Sync(count, t) with count 0, 1, 2, ... from `start_sync`, followed by
+  BusLoad (worst-case frame bits of everything seen since the previous SYNC, all senders, over
+  max(measured interval, SYNC period)). TPDO events carry `sync_count`, the SYNC they answer.
+- The monitor thread: heartbeat consumer (HeartbeatLost once per loss, re-armed by the next
+  heartbeat, armed for a node when it is configured) and a check that SYNC echoes arrive.
+- A malformed frame or an exception anywhere in the adapter's callbacks becomes an `AdapterError`
+  event. An exception raised by a subscriber callback is kept and re-raised (`BusError(CALLBACK)`) by
+  the next `send`, `check` or `close`: nothing is swallowed.
+
+Callbacks run on the adapter's threads, one at a time (a lock serialises them); a runtime typically
+puts the events on a queue. A callback must not block on the bus (no `read`/`write`/`configure_*`
+from inside it: the SDO answer would arrive on the very thread the callback is holding). Timestamps
+are the python-can frame timestamps (`time.time()` base on the virtual and socketcan interfaces);
+`now()` gives the same clock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import can
+import canopen
+from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
+
+from bus import cob, codec
+from bus.errors import (
+    BUS_OPEN,
+    CALLBACK,
+    CLOSED,
+    CONFIG,
+    NO_RESPONSE,
+    SDO_ABORT,
+    SEND_FAILED,
+    VERIFY,
+    BusError,
+    ProtocolError,
+)
+from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, Sync
+from bus.profile import EPOS_IPM, DriveProfile, SdoWrite
+from planner.config import AxisConfig, BusConfig, CellConfig
+
+EventCallback = Callable[[Event], None]
+MONITOR_PERIOD_S = 0.02
+NOTIFIER_CYCLE_S = 0.1  # canopen's default 1 s makes every close() wait up to 1 s
+
+
+def open_bus(bus_config: BusConfig, **extra: Any) -> can.BusABC:
+    """A python-can bus from `BusConfig` (interface, channel, bitrate). Raises BusError(BUS_OPEN)."""
+    if bus_config.interface == "udp_multicast":
+        raise BusError(BUS_OPEN, "the udp_multicast interface is not allowed (it leaves the host)")
+    try:
+        return can.Bus(interface=bus_config.interface, channel=bus_config.channel, bitrate=bus_config.bitrate,
+                       **extra)
+    except Exception as e:  # python-can raises many types (CanInterfaceNotImplementedError, OSError, ...)
+        raise BusError(BUS_OPEN, f"cannot open CAN bus {bus_config.interface}:{bus_config.channel}: {e}",
+                       detail={"interface": bus_config.interface, "channel": str(bus_config.channel)}) from e
+
+
+class _MasterListener(can.Listener):
+    def __init__(self, adapter: MasterAdapter):
+        self.adapter = adapter
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.adapter._on_message(msg)
+
+    def on_error(self, exc: Exception) -> None:
+        self.adapter._emit(AdapterError("receive", f"{type(exc).__name__}: {exc}", self.adapter.now()))
+
+    def stop(self) -> None:
+        pass
+
+
+class MasterAdapter:
+    """Callback-based master: `on_event(cb)`, `configure_drives()`, `send()`, `start_sync()`, `close()`."""
+
+    def __init__(
+        self,
+        bus_config: BusConfig | None,
+        cell: CellConfig,
+        *,
+        profile: DriveProfile = EPOS_IPM,
+        bus: can.BusABC | None = None,
+        sdo_timeout_s: float = 0.3,
+        sdo_attempts: int = 1,
+        eds_path: str | None = None,
+        clock: Callable[[], float] = time.time,
+    ):
+        self.cell = cell
+        self.bus_config = bus_config or cell.bus
+        self.profile = profile
+        self.clock = clock
+        self.nodes = frozenset(a.node_id for a in cell.axes)
+        self.failures: list[BusError] = []
+        self._callbacks: list[EventCallback] = []
+        self._emit_lock = threading.RLock()
+        self._closed = False
+        self._own_bus = bus is None
+        self._bus = bus if bus is not None else open_bus(self.bus_config, receive_own_messages=True)
+        self._network = canopen.Network(self._bus)
+        self._network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
+        listeners: list[Any] = self._network.listeners
+        listeners.append(_MasterListener(self))
+        path = eds_path or profile.eds_path
+        self.remote: dict[int, canopen.RemoteNode] = {}
+        for axis in cell.axes:
+            node = canopen.RemoteNode(axis.node_id, canopen.objectdictionary.import_od(path, axis.node_id))
+            node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
+            node.sdo.MAX_RETRIES = max(1, sdo_attempts)  # canopen: attempts; 0 would retry forever
+            self._network.add_node(node)
+            self.remote[axis.node_id] = node
+        self._sync_task: Any = None
+        self._sync_count = 0
+        self._sync_started_at: float | None = None
+        self._sync_period_s = cell.sync_period_s
+        self._sync_echo_warned = False
+        self._last_sync_t: float | None = None
+        self._window_bits = 0
+        self._bitrate = max(1, int(self.bus_config.bitrate))
+        self._hb_last: dict[int, float] = {}
+        self._hb_armed: set[int] = set()
+        self._hb_lost: set[int] = set()
+        self._hb_timeout_s = cell.drive.heartbeat_timeout_ms / 1000.0
+        self._stop = threading.Event()
+        self._network.connect()
+        self._monitor = threading.Thread(target=self._run_monitor, name="pvt-master-monitor", daemon=True)
+        self._monitor.start()
+
+    # ---- public API ---------------------------------------------------------------------------------
+    def now(self) -> float:
+        return self.clock()
+
+    def on_event(self, callback: EventCallback) -> None:
+        """Subscribe to every event (called on the adapter's threads, one event at a time)."""
+        self._callbacks.append(callback)
+
+    def add_listener(self, listener: can.Listener) -> None:
+        """Also hand every received frame (own frames included) to a python-can `Listener` (a trace
+        tap, a logger), on the receive thread, after the adapter's own processing."""
+        self._check_open()
+        notifier = self._network.notifier
+        if notifier is None:  # pragma: no cover - connect() always creates it
+            raise BusError(CLOSED, "the bus adapter has no running notifier")
+        notifier.add_listener(listener)
+
+    def configure_drives(self, *, start: bool = True) -> None:
+        """Configure and verify every drive of the cell over SDO, then (if `start`) NMT start them."""
+        self._check_open()
+        for axis in self.cell.axes:
+            self.configure_drive(axis)
+        if start:
+            for axis in self.cell.axes:
+                self.nmt(codec.NmtCommand.START, axis.node_id)
+
+    def configure_drive(self, axis: AxisConfig) -> None:
+        node = self._remote(axis.node_id)
+        self.nmt(codec.NmtCommand.ENTER_PRE_OPERATIONAL, axis.node_id)
+        self.read(axis.node_id, self.profile.obj("device_type").index)
+        writes = self.profile.configuration(axis, self.cell.drive, self.cell.sync_period_ms)
+        for w in writes:
+            self._write(node, w)
+        final: dict[tuple[int, int], SdoWrite] = {}
+        for w in writes:
+            if w.verify:
+                final[(w.index, w.sub)] = w
+            else:
+                final.pop((w.index, w.sub), None)
+        for w in final.values():
+            got = self.read(axis.node_id, w.index, w.sub)
+            if got != w.value:
+                raise BusError(VERIFY, f"node {axis.node_id} reads back {got} from {w.ref} ({w.what}), "
+                               f"wrote {w.value}", node=axis.node_id, obj=(w.index, w.sub),
+                               detail={"wrote": w.value, "read": got})
+        with self._emit_lock:
+            self._hb_armed.add(axis.node_id)
+            self._hb_last[axis.node_id] = self.now()
+            self._hb_lost.discard(axis.node_id)
+
+    def enable_drives(self, *, timeout_s: float = 1.0) -> None:
+        """Bring every drive to operation enabled with the ip buffer cleared and enabled (over SDO):
+        fault reset if faulted, shutdown 0x0006, switch on + enable operation 0x000F (bit 4 low, so the
+        streamer's start is a rising edge), buffer clear 0x60C4:06 = 0 then enable = 1. Verified by
+        reading the statusword and 0x20C4:01 back; raises BusError naming the node otherwise."""
+        cw = self.profile.obj("controlword")
+        sw = self.profile.obj("statusword")
+        clear = self.profile.obj("buffer_clear")
+        S = codec.Cia402State
+        for axis in self.cell.axes:
+            n = axis.node_id
+            state = codec.state_from_statusword(self.read(n, sw.index, sw.sub))
+            commands: list[codec.Command] = []
+            if state == S.FAULT:
+                commands += [codec.Command.DISABLE_VOLTAGE, codec.Command.FAULT_RESET]
+            elif state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
+                commands.append(codec.Command.DISABLE_VOLTAGE)  # quick stop active, fault reaction
+            if state != S.OPERATION_ENABLED:
+                commands.append(codec.Command.SHUTDOWN)
+            commands.append(codec.Command.ENABLE_OPERATION)  # in OE: bit 4 low (ends an old ip run)
+            for command in commands:
+                self.write(n, cw.index, cw.sub, command.value)
+            deadline = self.now() + timeout_s
+            while True:
+                state = codec.state_from_statusword(self.read(n, sw.index, sw.sub))
+                if state == codec.Cia402State.OPERATION_ENABLED:
+                    break
+                if self.now() > deadline:
+                    raise BusError(VERIFY, f"node {n} is {state.value!r}, not operation enabled, after "
+                                   f"0x0006/0x000F on 0x6040", node=n, obj=(sw.index, sw.sub))
+                time.sleep(0.005)
+            self.write(n, clear.index, clear.sub, 0)
+            self.write(n, clear.index, clear.sub, 1)
+            bs = self.profile.obj("buffer_status")
+            status = codec.decode_buffer_status(self.read(n, bs.index, bs.sub))
+            if not status.buffer_enabled or status.any_error:
+                raise BusError(VERIFY, f"node {n}: ip buffer not enabled and clean after 0x60C4:06 = 0, 1 "
+                               f"({status})", node=n, obj=(clear.index, clear.sub))
+
+    def read(self, node_id: int, index: int, sub: int = 0) -> int:
+        """SDO upload of an integer object. Raises BusError naming node and object."""
+        var = self._sdo_var(self._remote(node_id), index, sub)
+        try:
+            value = var.raw
+        except SdoCommunicationError as e:
+            raise BusError(NO_RESPONSE, f"node {node_id} did not answer reading 0x{index:04X}:{sub:02X}: {e}",
+                           node=node_id, obj=(index, sub)) from None
+        except SdoAbortedError as e:
+            raise BusError(SDO_ABORT, f"node {node_id} refused reading 0x{index:04X}:{sub:02X}: "
+                           f"abort 0x{e.code:08X} ({e})", node=node_id, obj=(index, sub),
+                           detail={"abort_code": e.code}) from None
+        if not isinstance(value, int):
+            raise BusError(CONFIG, f"0x{index:04X}:{sub:02X} of node {node_id} is not an integer object",
+                           node=node_id, obj=(index, sub))
+        return value
+
+    def write(self, node_id: int, index: int, sub: int, value: int) -> None:
+        self._write(self._remote(node_id), SdoWrite(index, sub, value, "write"))
+
+    def nmt(self, command: codec.NmtCommand, node_id: int = 0) -> None:
+        frame = codec.nmt_frame(command, node_id)
+        self.send(frame.cob_id, frame.data)
+
+    def send(self, cob_id: int, data: bytes) -> None:
+        """Send one frame now. Raises BusError(SEND_FAILED) when the bus refuses it (the caller emits
+        SendFailed), BusError(CLOSED) after close, BusError(CALLBACK) for a pending callback failure."""
+        self._check_open()
+        self.check()
+        try:
+            self._network.send_message(cob_id, bytes(data))
+        except Exception as e:
+            raise BusError(SEND_FAILED,
+                           f"bus refused frame 0x{cob_id:03X} [{len(data)}]: {type(e).__name__}: {e}",
+                           detail={"cob_id": cob_id}) from None
+
+    def start_sync(self, period_s: float | None = None) -> None:
+        """Start the SYNC producer (python-can periodic send) at `period_s` (default: the cell's)."""
+        self._check_open()
+        self.stop_sync()
+        period = self.cell.sync_period_s if period_s is None else float(period_s)
+        if not period > 0:
+            raise BusError(CONFIG, f"SYNC period must be > 0, got {period}")
+        frame = codec.sync_frame()
+        msg = can.Message(arbitration_id=frame.cob_id, data=frame.data, is_extended_id=False)
+        with self._emit_lock:
+            self._sync_count = 0
+            self._last_sync_t = None
+            self._sync_period_s = period
+            self._sync_started_at = self.now()
+            self._sync_echo_warned = False
+        try:
+            self._sync_task = self._bus.send_periodic(msg, period)
+        except Exception as e:
+            raise BusError(SEND_FAILED, f"cannot start SYNC producer: {type(e).__name__}: {e}") from None
+
+    def stop_sync(self) -> None:
+        task, self._sync_task = self._sync_task, None
+        with self._emit_lock:
+            self._sync_started_at = None
+        if task is not None:
+            task.stop()
+
+    @property
+    def sync_running(self) -> bool:
+        return self._sync_task is not None
+
+    def check(self) -> None:
+        """Raise the first exception a subscriber callback raised (kept, never dropped)."""
+        if self.failures:
+            raise self.failures[0]
+
+    def close(self, *, check: bool = True) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.stop_sync()
+        self._stop.set()
+        self._monitor.join(timeout=5.0)
+        if self._own_bus:
+            self._network.disconnect()
+        elif self._network.notifier is not None:
+            self._network.notifier.stop(self._network.NOTIFIER_SHUTDOWN_TIMEOUT)
+        if check:
+            self.check()
+
+    def __enter__(self) -> MasterAdapter:
+        return self
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(check=exc_type is None)
+
+    # ---- internals ----------------------------------------------------------------------------------
+    def _check_open(self) -> None:
+        if self._closed:
+            raise BusError(CLOSED, "the bus adapter is closed")
+
+    def _remote(self, node_id: int) -> canopen.RemoteNode:
+        try:
+            return self.remote[node_id]
+        except KeyError:
+            raise BusError(CONFIG, f"node {node_id} is not an axis of cell {self.cell.name!r}",
+                           node=node_id) from None
+
+    @staticmethod
+    def _sdo_var(node: canopen.RemoteNode, index: int, sub: int) -> Any:
+        node_id = int(node.id or 0)
+        try:
+            obj = node.sdo[index]
+            if isinstance(node.object_dictionary[index], canopen.objectdictionary.ODVariable):
+                return obj
+            return obj[sub]
+        except KeyError:
+            raise BusError(CONFIG,
+                           f"0x{index:04X}:{sub:02X} is not in the object dictionary of node {node_id}",
+                           node=node_id, obj=(index, sub)) from None
+
+    def _write(self, node: canopen.RemoteNode, w: SdoWrite) -> None:
+        node_id = int(node.id or 0)
+        var = self._sdo_var(node, w.index, w.sub)
+        try:
+            var.raw = w.value
+        except SdoCommunicationError as e:
+            raise BusError(NO_RESPONSE, f"node {node_id} did not answer writing {w.ref} ({w.what}): {e}",
+                           node=node_id, obj=(w.index, w.sub)) from None
+        except SdoAbortedError as e:
+            raise BusError(SDO_ABORT, f"node {node_id} refused {w.ref} = {w.value} ({w.what}): abort "
+                           f"0x{e.code:08X} ({e})", node=node_id, obj=(w.index, w.sub),
+                           detail={"abort_code": e.code, "value": w.value}) from None
+        except (ValueError, TypeError) as e:
+            raise BusError(CONFIG, f"value {w.value} does not fit {w.ref} ({w.what}) of node {node_id}: {e}",
+                           node=node_id, obj=(w.index, w.sub)) from None
+
+    def _emit(self, event: Event) -> None:
+        with self._emit_lock:
+            for cb in list(self._callbacks):
+                try:
+                    cb(event)
+                except Exception as e:
+                    self.failures.append(BusError(
+                        CALLBACK, f"event callback {cb!r} raised {type(e).__name__}: {e} on {event!r}",
+                        detail={"event": repr(event)}))
+
+    def _on_message(self, msg: can.Message) -> None:
+        cob_id = msg.arbitration_id
+        t = msg.timestamp
+        try:
+            if msg.is_error_frame:
+                self._emit(AdapterError("receive", "CAN error frame", t))
+                return
+            if msg.is_remote_frame or msg.is_extended_id:
+                return
+            with self._emit_lock:
+                self._window_bits += codec.frame_bits(min(8, msg.dlc))
+                if cob_id == cob.SYNC_COB_ID:
+                    count = self._sync_count
+                    self._sync_count += 1
+                    self._emit(Sync(count, t))
+                    last, self._last_sync_t = self._last_sync_t, t
+                    if last is not None:
+                        # everything seen since the previous SYNC, this SYNC included, over the cycle;
+                        # a SYNC that comes early (sender jitter) still counts a whole period
+                        window = max(t - last, self._sync_period_s)
+                        self._emit(BusLoad(self._window_bits / (self._bitrate * window), t))
+                    self._window_bits = 0
+                    return
+            if not msg.is_rx:
+                return  # our own frame, received back
+            data = bytes(msg.data)
+            kind, node = cob.classify(cob_id)
+            if kind == "HEARTBEAT" and node in self.nodes:
+                with self._emit_lock:
+                    self._hb_last[node] = t
+                    self._hb_lost.discard(node)
+            sync_count = self._sync_count - 1 if self._sync_count else None
+            event = self.profile.frame_to_event(cob_id, data, t, self.nodes, sync_count)
+            if event is not None:
+                self._emit(event)
+        except ProtocolError as e:
+            self._emit(AdapterError(f"decode 0x{cob_id:03X}", str(e), t))
+        except Exception as e:
+            self._emit(AdapterError(f"receive 0x{cob_id:03X}", f"{type(e).__name__}: {e}", t))
+
+    def _run_monitor(self) -> None:
+        while not self._stop.wait(min(MONITOR_PERIOD_S, self._hb_timeout_s / 4)):
+            try:
+                now = self.now()
+                lost: list[int] = []
+                with self._emit_lock:
+                    for node in sorted(self._hb_armed - self._hb_lost):
+                        if now - self._hb_last.get(node, now) > self._hb_timeout_s:
+                            self._hb_lost.add(node)
+                            lost.append(node)
+                    started = self._sync_started_at
+                    no_echo = (started is not None and self._sync_count == 0 and not self._sync_echo_warned
+                               and now - started > max(0.25, 5 * self._sync_period_s))
+                    if no_echo:
+                        self._sync_echo_warned = True
+                for node in lost:
+                    self._emit(HeartbeatLost(node, now))
+                if no_echo:
+                    self._emit(AdapterError("sync", "no SYNC received back: the interface does not deliver "
+                                            "own messages (receive_own_messages), so no Sync events", now))
+            except Exception as e:
+                self._emit(AdapterError("monitor", f"{type(e).__name__}: {e}", self.now()))

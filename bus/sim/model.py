@@ -1,0 +1,1306 @@
+"""The simulated EPOS-like drive as a pure state machine: frames and time in, frames out.
+
+What it owns: one drive's object dictionary (bus/sim/od.py), NMT state and heartbeat producer, the
+CiA 402 power state machine (bus.codec.TRANSITIONS), interpolated position mode with maxon's PVT
+FIFO (seed 000 chapter 4, seed 001), the position controller and motor (bus/sim/motor.py), PDOs and
+EMCYs. No sleeps, no wall clock, no canopen, no threads: every entry point takes the time `t`
+(seconds, any monotonic origin) and returns the frames the drive sends in response.
+
+What it is fed:
+- `power_on(t)`: boot (boot-up message, NMT pre-operational).
+- `on_frame(cob_id, data, t)`: NMT, SYNC, RPDOs (checked against the current mapping), heartbeats
+  of a monitored producer (0x1016). SDO frames are not handled here: the canopen LocalNode adapter
+  (bus/sim/node.py) serves SDO through `sdo_read`/`sdo_write`, and a virtual-time runtime calls those
+  (or `configure_for_ipm`) directly.
+- `on_sync(t)`: the drive clock. The drive is locked to SYNC: on each SYNC it (1) runs the control
+  ticks of the period that just ended (0x1006 / 1 ms ticks; the interpolator advances only while ip
+  mode is active), (2) applies what synchronous RPDOs delivered since the last SYNC (the controlword
+  of the synchronous start, seed 001), (3) sends its synchronous TPDOs in PDO-number order (TPDO1
+  then TPDO2), so they report the state after steps 1-2.
+- `advance(t)`: timers between frames: heartbeat production, SYNC loss while ip mode is active
+  (no SYNC within 1.5 periods -> EMCY 0x8780 + fault), heartbeat consumer timeout (EMCY 0x8130).
+  `next_deadline()` says when it next has something to do.
+
+The IPM FIFO follows the project's agreed semantics (briefs/common.md): the interpolator's segment
+target is the FIFO head, popped when its segment completes; activation (controlword bit 4 rising
+edge in operation enabled, mode 7) needs >= 2 records or raises the underflow error; a completed
+segment with nothing behind it raises the underflow error; a head with time 0 ends interpolation
+without error; a record arriving at a full FIFO raises the overflow error. Errors send an EMCY whose
+manufacturer bytes 0-1 carry 0x20C4:01, and start the fault reaction (quick-stop ramp, then Fault).
+
+The per-tick loop (`_integrate`) is the hot spot: it runs on locals, and work that does not need to
+be per tick is done per segment (the demand list comes from planner.hermite.segment_demand, the very
+function the encoder verifies with; velocity/acceleration limit crossings are found once per segment
+and scheduled as events).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import struct
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from enum import Enum
+
+from bus import codec
+from bus.codec import (
+    BS_ACCELERATION_ERROR,
+    BS_ACCELERATION_WARNING,
+    BS_BUFFER_ENABLED,
+    BS_IP_ACTIVE,
+    BS_OVERFLOW_ERROR,
+    BS_OVERFLOW_WARNING,
+    BS_UNDERFLOW_ERROR,
+    BS_UNDERFLOW_WARNING,
+    BS_VELOCITY_ERROR,
+    BS_VELOCITY_WARNING,
+    CW_ENABLE_IP,
+    CW_FAULT_RESET,
+    CW_HALT,
+    Cia402State,
+    Command,
+    Frame,
+    Internal,
+    InvalidTransition,
+    NmtCommand,
+    NmtState,
+)
+from bus.errors import ProtocolError
+from bus.profile import EPOS_IPM, DriveProfile
+from bus.sim import od as odm
+from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
+from bus.sim.od import Key, SdoAbort
+from planner import hermite, record
+from planner.config import AxisConfig, DriveSettings
+from planner.record import PvtRecord
+
+ST = Cia402State
+IP_MODE = 7
+SUPPORTED_MODES = frozenset({0, IP_MODE})
+QUICK_STOP_OPTIONS = frozenset({0, 1, 2, 5, 6})
+MAX_RAMP_TICKS = 600_000  # a stop ramp longer than 10 min of drive time ends with an abrupt stop
+COAST_STOP_COUNTS_PER_MS = 1e-4  # below this a coasting motor is taken as standing still
+
+_EMCY_REGISTER = {
+    codec.EMCY_FOLLOWING_ERROR: codec.ER_GENERIC | codec.ER_DEVICE_PROFILE,
+    codec.EMCY_IP_BUFFER: codec.ER_GENERIC | codec.ER_DEVICE_PROFILE,
+    codec.EMCY_SYNC_LOST: codec.ER_GENERIC | codec.ER_COMMUNICATION,
+    codec.EMCY_HEARTBEAT: codec.ER_GENERIC | codec.ER_COMMUNICATION,
+    codec.EMCY_PDO_LENGTH: codec.ER_GENERIC | codec.ER_COMMUNICATION,
+    codec.EMCY_PDO_LENGTH_EXCEEDED: codec.ER_GENERIC | codec.ER_COMMUNICATION,
+    codec.EMCY_IP_VELOCITY: codec.ER_GENERIC | codec.ER_MANUFACTURER,
+    codec.EMCY_IP_ACCELERATION: codec.ER_GENERIC | codec.ER_MANUFACTURER,
+}
+
+
+class Source(Enum):
+    """Where the position demand comes from while a demand list is being played."""
+
+    SEGMENT = "ip segment"
+    HALT = "halt ramp"
+    QUICK_STOP = "quick stop ramp"
+    FAULT = "fault reaction ramp"
+
+
+@dataclass
+class DriveCounters:
+    """Introspection for tests and reports (not part of the drive's object dictionary)."""
+
+    syncs: int = 0
+    ticks: int = 0
+    records_received: int = 0
+    records_rejected: int = 0
+    segments_completed: int = 0
+    activations: int = 0
+    underflow_warnings: int = 0  # rising edges of 0x20C4:01 bit 0 seen at SYNC
+    overflow_warnings: int = 0  # rising edges of bit 1 seen at SYNC
+    velocity_warnings: int = 0  # segments whose velocity exceeded 0x6081
+    acceleration_warnings: int = 0  # segments whose acceleration exceeded 0x6083
+    emcy_sent: int = 0
+    faults: int = 0
+    sync_gaps: int = 0
+    pdo_length_errors: int = 0
+    ignored_commands: int = 0
+    pdo_writes_rejected: int = 0
+
+
+@dataclass(frozen=True)
+class FaultRecord:
+    t: float
+    code: int
+    name: str
+    buffer_status: int
+    state: Cia402State
+
+
+@dataclass
+class _RxPdo:
+    number: int
+    cob_id: int
+    synchronous: bool
+    length: int
+    keys: tuple[Key, ...]
+    unpacker: struct.Struct
+    is_record: bool
+
+
+@dataclass
+class _TxPdo:
+    number: int
+    cob_id: int
+    trans_type: int
+    build: Callable[[], bytes]
+    sync_count: int = 0
+    last: bytes | None = field(default=None)
+
+
+def _builder(packer: struct.Struct, getters: tuple[Callable[[], int], ...]) -> Callable[[], bytes]:
+    """payload = packer.pack(getter values), unrolled for the usual 1-3 entries (per-SYNC hot path)."""
+    pack = packer.pack
+    if len(getters) == 1:
+        (g0,) = getters
+        return lambda: pack(g0())
+    if len(getters) == 2:
+        g0, g1 = getters
+        return lambda: pack(g0(), g1())
+    if len(getters) == 3:
+        g0, g1, g2 = getters
+        return lambda: pack(g0(), g1(), g2())
+    return lambda: pack(*[g() for g in getters])
+
+
+def _first_violation(
+    values: Callable[[int], float], ticks: int, limit: float, candidates: Iterable[int]
+) -> int:
+    """First tick k in 1..ticks with |values(k)| > limit, or 0. `candidates` contain the maximiser."""
+    if max(abs(values(k)) for k in candidates) <= limit:
+        return 0
+    for k in range(1, ticks + 1):
+        if abs(values(k)) > limit:
+            return k
+    return 0  # pragma: no cover - the candidates found one
+
+
+class DriveModel:
+    """One simulated drive. See the module docstring for what it is fed and what it returns."""
+
+    def __init__(
+        self,
+        node_id: int,
+        axis: AxisConfig | None = None,
+        settings: DriveSettings | None = None,
+        *,
+        counts_per_rev: int | None = None,
+        motor: MotorParams = DEFAULT_MOTOR,
+        initial_position: float = 0.0,
+        sync_gap_factor: float = 1.5,
+        profile: DriveProfile = EPOS_IPM,
+    ):
+        if not 1 <= node_id <= 127:
+            raise ValueError(f"node id must be 1..127, got {node_id}")
+        if axis is not None and axis.node_id != node_id:
+            raise ValueError(f"axis {axis.name!r} has node id {axis.node_id}, not {node_id}")
+        if not (math.isfinite(sync_gap_factor) and sync_gap_factor > 1.0):
+            raise ValueError(f"sync_gap_factor must be > 1, got {sync_gap_factor}")
+        self.node_id = node_id
+        self.axis = axis
+        self.settings = settings or DriveSettings()
+        self.profile = profile
+        self._fifo_depth = profile.fifo_depth
+        self.motor = motor
+        self.counts_per_rev = int(counts_per_rev or (axis.counts_per_rev if axis else 8192))
+        self.sync_gap_factor = float(sync_gap_factor)
+        self._c = LoopConstants.build(motor, self.counts_per_rev)
+        self._rpm_to_cpms = self.counts_per_rev / hermite.MS_PER_MINUTE
+        self.counters = DriveCounters()
+        self.fault_log: list[FaultRecord] = []
+        self.disturbance_current_a = 0.0  # external load, as motor current (tests: a blocked axis)
+        # plant and controller state
+        self._pos = float(initial_position)
+        self._vel = 0.0
+        self._integ = 0.0
+        self._dterm = 0.0
+        self._eprev = 0.0
+        self._current = 0.0
+        self._demand = hermite.round_counts(self._pos)
+        self._powered = False
+        self._fe_tripped = False
+        # demand source
+        self._src: list[int] | None = None
+        self._src_i = 0
+        self._src_kind = Source.SEGMENT
+        self._next_event = 0
+        self._seg_events: list[tuple[int, int]] = []
+        self._seg_coeffs = (0.0, 0.0, 0.0, 0.0)
+        self._seg_target: PvtRecord | None = None
+        self._ramp_v0 = 0.0
+        self._ramp_dec = 0.0
+        # drive state
+        self._nmt = NmtState.BOOTUP  # = not powered yet
+        self._state = ST.NOT_READY_TO_SWITCH_ON
+        self._cw = 0
+        self._fifo: deque[PvtRecord] = deque()
+        self._buffer_enabled = False
+        self._ip_active = False
+        self._latched = 0
+        self._prev_warn = 0
+        self._error_code = 0
+        self._error_register = 0
+        self._pending_sync: dict[int, list[tuple[Key, int]]] = {}
+        self._od: dict[Key, int] = {}
+        self._rx_by_cob: dict[int, _RxPdo] = {}
+        self._tx_sync: list[_TxPdo] = []
+        self._tx_event: list[_TxPdo] = []
+        self.pdo_config_version = 0
+        # timers
+        self._t_now = 0.0
+        self._t_last_sync: float | None = None
+        self._tick_acc_us = 0
+        self._hb_next: float | None = None
+        self._hb_rx_last: float | None = None
+        self._out: list[Frame] = []
+        self._dynamic: dict[Key, Callable[[], int]] = {
+            (0x1001, 0): lambda: self._error_register,
+            (0x603F, 0): lambda: self._error_code,
+            (0x6041, 0): self._get_statusword,
+            (0x6061, 0): lambda: self._mode,
+            (0x6062, 0): lambda: self._demand,
+            (0x6064, 0): self._get_position_actual,
+            (0x606C, 0): lambda: self.velocity_actual_rpm_int,
+            (0x6078, 0): lambda: max(-32768, min(32767, round(self._current * 1000.0))),
+            (0x60F4, 0): lambda: self._demand - self._get_position_actual(),
+            (0x20C4, 1): self._get_buffer_status,
+            (0x60C4, 2): lambda: self._fifo_depth - len(self._fifo),
+            (0x60C4, 4): lambda: len(self._fifo),
+            (0x6040, 0): lambda: self._cw,
+        }
+        self._handlers: dict[Key, Callable[[int], None]] = self._build_handlers()
+        self._reset_application(first=True)
+
+    # ============================================================================================
+    # public entry points
+
+    def power_on(self, t: float) -> list[Frame]:
+        """Boot: send the boot-up message and enter NMT pre-operational."""
+        self._t_now = t
+        self._out = []
+        if self._nmt == NmtState.BOOTUP:
+            self._boot(t)
+        return self._out
+
+    def on_frame(self, cob_id: int, data: bytes, t: float) -> list[Frame]:
+        """A frame seen on the bus. Returns the frames the drive sends in response."""
+        self._t_now = t
+        self._out = []
+        if self._nmt == NmtState.BOOTUP:
+            return self._out
+        if cob_id == 0:
+            self._on_nmt(data, t)
+        elif cob_id == self._sync_cob:
+            self._sync(t)
+        elif cob_id in self._rx_by_cob:
+            if self._nmt == NmtState.OPERATIONAL:
+                self._on_rpdo(self._rx_by_cob[cob_id], bytes(data), t)
+        elif cob_id == self._hb_consumer_cob and len(data) >= 1:
+            self._hb_rx_last = t
+        self._flush_event_tpdos()
+        return self._out
+
+    def on_sync(self, t: float) -> list[Frame]:
+        """A SYNC: run the period's ticks, apply synchronous RPDOs, send synchronous TPDOs."""
+        self._t_now = t
+        self._out = []
+        if self._nmt != NmtState.BOOTUP:
+            self._sync(t)
+            self._flush_event_tpdos()
+        return self._out
+
+    def advance(self, t: float) -> list[Frame]:
+        """Timers up to time `t`: heartbeat producer, SYNC loss, heartbeat consumer."""
+        self._t_now = t
+        self._out = []
+        if self._nmt == NmtState.BOOTUP:
+            return self._out
+        if self._hb_next is not None and t >= self._hb_next:
+            self._out.append(codec.heartbeat_frame(self.node_id, self._nmt))
+            period = self._od[(0x1017, 0)] / 1000.0
+            self._hb_next += period
+            if self._hb_next <= t:
+                self._hb_next = t + period
+        sync_deadline = self._sync_deadline()
+        if sync_deadline is not None and t > sync_deadline:
+            self.counters.sync_gaps += 1
+            self._fault(codec.EMCY_SYNC_LOST, 0, t)
+        hb_deadline = self._hb_consumer_deadline()
+        if hb_deadline is not None and t > hb_deadline:
+            self._hb_rx_last = None
+            self._fault(codec.EMCY_HEARTBEAT, 0, t)
+        self._flush_event_tpdos()
+        return self._out
+
+    def next_deadline(self) -> float | None:
+        """The earliest time `advance` has something to do, or None."""
+        if self._nmt == NmtState.BOOTUP:
+            return None
+        candidates = (self._hb_next, self._sync_deadline(), self._hb_consumer_deadline())
+        times = [x for x in candidates if x is not None]
+        return min(times) if times else None
+
+    def sdo_read(self, index: int, sub: int) -> int:
+        """SDO upload of an integer object (raises SdoAbort like the drive's SDO server)."""
+        s = odm.spec(index, sub)
+        if not s.readable:
+            raise SdoAbort(odm.ABORT_WRITE_ONLY, f"0x{index:04X}:{sub:02X} is write-only")
+        if s.dtype == odm.DataType.VISIBLE_STRING:
+            raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS,
+                           f"0x{index:04X}:{sub:02X} is a string (served by the EDS)")
+        getter = self._dynamic.get((index, sub))
+        return getter() if getter is not None else self._od[(index, sub)]
+
+    def sdo_write(self, index: int, sub: int, value: int, t: float | None = None) -> list[Frame]:
+        """SDO download of an integer object: access, range and device-state checks, then its effect.
+        Raises SdoAbort with the CiA 301 code the drive would answer with."""
+        if t is not None:
+            self._t_now = t
+        s = odm.spec(index, sub)
+        if not s.writable:
+            raise SdoAbort(odm.ABORT_READ_ONLY, f"0x{index:04X}:{sub:02X} is read-only")
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SdoAbort(odm.ABORT_TYPE_LENGTH, f"0x{index:04X}:{sub:02X} takes an integer, got {value!r}")
+        odm.check_value(s, value)
+        self._out = []
+        self._write(s.key, value, via_sdo=True)
+        self._flush_event_tpdos()
+        return self._out
+
+    def configure_for_ipm(
+        self,
+        sync_period_ms: int,
+        axis: AxisConfig | None = None,
+        settings: DriveSettings | None = None,
+        *,
+        start: bool = True,
+        t: float | None = None,
+    ) -> list[Frame]:
+        """Apply the very writes the master sends over SDO (`profile.configuration`), then NMT start.
+
+        For virtual-time runtimes that bypass SDO. Boots the drive first if it was not powered on.
+        """
+        axis = axis or self.axis
+        if axis is None:
+            raise ValueError("configure_for_ipm needs an AxisConfig (constructor or argument)")
+        settings = settings or self.settings
+        if t is not None:
+            self._t_now = t
+        out: list[Frame] = []
+        if self._nmt == NmtState.BOOTUP:
+            out += self.power_on(self._t_now)
+        for w in self.profile.configuration(axis, settings, sync_period_ms):
+            out += self.sdo_write(w.index, w.sub, w.value)
+        if start:
+            out += self.on_frame(0, bytes((NmtCommand.START, self.node_id)), self._t_now)
+        return out
+
+    # ---- introspection ---------------------------------------------------------------------------
+    @property
+    def state(self) -> Cia402State:
+        return self._state
+
+    @property
+    def nmt_state(self) -> NmtState:
+        return self._nmt
+
+    @property
+    def controlword(self) -> int:
+        return self._cw
+
+    @property
+    def mode(self) -> int:
+        return self._mode
+
+    @property
+    def ip_active(self) -> bool:
+        return self._ip_active
+
+    @property
+    def buffer_enabled(self) -> bool:
+        return self._buffer_enabled
+
+    @property
+    def fifo_fill(self) -> int:
+        return len(self._fifo)
+
+    @property
+    def free_size(self) -> int:
+        return self.profile.fifo_depth - len(self._fifo)
+
+    @property
+    def fifo_records(self) -> tuple[PvtRecord, ...]:
+        return tuple(self._fifo)
+
+    @property
+    def position_demand(self) -> int:
+        return self._demand
+
+    @property
+    def position_actual(self) -> int:
+        return self._get_position_actual()
+
+    @property
+    def position_actual_exact(self) -> float:
+        return self._pos
+
+    @property
+    def velocity_actual_rpm(self) -> float:
+        return self._vel / self._rpm_to_cpms
+
+    @property
+    def velocity_actual_rpm_int(self) -> int:
+        return round(self._vel / self._rpm_to_cpms)
+
+    @property
+    def demand_velocity_rpm(self) -> float:
+        return self._demand_velocity() / self._rpm_to_cpms
+
+    @property
+    def current_a(self) -> float:
+        return self._current
+
+    @property
+    def following_error(self) -> int:
+        return self._demand - self.position_actual
+
+    @property
+    def error_code(self) -> int:
+        return self._error_code
+
+    @property
+    def drive_time_ms(self) -> int:
+        return self.counters.ticks
+
+    @property
+    def sync_cob_id(self) -> int:
+        return self._sync_cob
+
+    @property
+    def buffer_status(self) -> int:
+        return self._get_buffer_status()
+
+    @property
+    def statusword(self) -> int:
+        return self._get_statusword()
+
+    def _get_position_actual(self) -> int:
+        x = self._pos
+        return math.floor(x + 0.5) if x >= 0 else -math.floor(-x + 0.5)
+
+    def _get_buffer_status(self) -> int:
+        bs = self._latched
+        if self._buffer_enabled:
+            bs |= BS_BUFFER_ENABLED
+            fill = len(self._fifo)
+            if fill < self._uw:
+                bs |= BS_UNDERFLOW_WARNING
+            if fill > self._ow:
+                bs |= BS_OVERFLOW_WARNING
+        if self._ip_active:
+            bs |= BS_IP_ACTIVE
+        return bs
+
+    def _get_statusword(self) -> int:
+        sw = self._state.statusword_bits | codec.SW_REMOTE
+        if self._powered:
+            sw |= codec.SW_VOLTAGE_ENABLED
+        if self._ip_active:
+            sw |= codec.SW_IP_ACTIVE
+        if self._target_reached():
+            sw |= codec.SW_TARGET_REACHED
+        return sw
+
+    def rx_cob_ids(self) -> frozenset[int]:
+        """COB-IDs this drive consumes (NMT, SYNC, enabled RPDOs, monitored heartbeat)."""
+        ids = {0, self._sync_cob, *self._rx_by_cob}
+        if self._hb_consumer_cob:
+            ids.add(self._hb_consumer_cob)
+        return frozenset(ids)
+
+    # ============================================================================================
+    # NMT and resets
+
+    def _boot(self, t: float) -> None:
+        self._out.append(codec.heartbeat_frame(self.node_id, NmtState.BOOTUP))
+        self._nmt = NmtState.PRE_OPERATIONAL
+        self._restart_heartbeat(t)
+
+    def _on_nmt(self, data: bytes, t: float) -> None:
+        try:
+            command, node = codec.decode_nmt(data)
+        except ProtocolError:
+            return
+        if node not in (0, self.node_id):
+            return
+        if command == NmtCommand.START:
+            self._nmt = NmtState.OPERATIONAL
+        elif command == NmtCommand.STOP:
+            self._nmt = NmtState.STOPPED
+        elif command == NmtCommand.ENTER_PRE_OPERATIONAL:
+            self._nmt = NmtState.PRE_OPERATIONAL
+        elif command == NmtCommand.RESET_NODE:
+            self._reset_application()
+            self._boot(t)
+        elif command == NmtCommand.RESET_COMMUNICATION:
+            self._reset_communication()
+            self._boot(t)
+        for p in self._tx_event:
+            p.last = None  # an event TPDO is sent again once operational
+
+    def _reset_application(self, first: bool = False) -> None:
+        """Power-on / NMT reset node: every object to its default, the drive to switch on disabled."""
+        self._od = odm.defaults(self.node_id)
+        self._fifo.clear()
+        self._buffer_enabled = False
+        self._ip_active = False
+        self._latched = 0
+        self._prev_warn = 0
+        self._error_code = 0
+        self._error_register = 0
+        self._cw = 0
+        self._pending_sync.clear()
+        self._power_off()
+        self._state = ST.NOT_READY_TO_SWITCH_ON
+        self._state = codec.next_state(self._state, Internal.INIT_DONE)
+        self._t_last_sync = None
+        self._tick_acc_us = 0
+        self._hb_rx_last = None
+        self._refresh_caches()
+        self._rebuild_pdos()
+        if not first:
+            self._nmt = NmtState.BOOTUP
+
+    def _reset_communication(self) -> None:
+        defaults = odm.defaults(self.node_id)
+        for key, value in defaults.items():
+            if 0x1000 <= key[0] < 0x2000:
+                self._od[key] = value
+        self._pending_sync.clear()
+        self._t_last_sync = None
+        self._hb_rx_last = None
+        self._refresh_caches()
+        self._rebuild_pdos()
+        self._nmt = NmtState.BOOTUP
+
+    def _restart_heartbeat(self, t: float) -> None:
+        period_ms = self._od[(0x1017, 0)]
+        self._hb_next = t + period_ms / 1000.0 if period_ms else None
+
+    def _sync_deadline(self) -> float | None:
+        if not self._ip_active or not self._period_us or self._t_last_sync is None:
+            return None
+        return self._t_last_sync + self.sync_gap_factor * self._period_us * 1e-6
+
+    def _hb_consumer_deadline(self) -> float | None:
+        if not self._hb_consumer_cob or self._hb_rx_last is None:
+            return None
+        return self._hb_rx_last + self._hb_consumer_timeout_s
+
+    # ============================================================================================
+    # object dictionary writes
+
+    def _refresh_caches(self) -> None:
+        od = self._od
+        self._uw = od[(0x20C4, 2)]
+        self._ow = od[(0x20C4, 3)]
+        few = od[(0x6065, 0)]
+        self._fe_window = math.inf if few == 0xFFFFFFFF else float(few)
+        pw = od[(0x6067, 0)]
+        self._pos_window = math.inf if pw == 0xFFFFFFFF else float(pw)
+        self._mode = od[(0x6060, 0)]
+        self._period_us = od[(0x1006, 0)]
+        self._sync_cob = od[(0x1005, 0)] & 0x7FF
+        self._emcy_cob = od[(0x1014, 0)]
+        hb = od[(0x1016, 1)]
+        hb_node = (hb >> 16) & 0x7F
+        hb_ms = hb & 0xFFFF
+        self._hb_consumer_cob = 0x700 + hb_node if hb_node and hb_ms else 0
+        self._hb_consumer_timeout_s = hb_ms / 1000.0
+        self._qs_option = od[(0x605A, 0)]
+        self._v_limit_min = min(self._rpm_limit((0x6081, 0)), self._rpm_limit((0x607F, 0)))
+        self._a_limit_min = min(self._acc_limit((0x6083, 0)), self._acc_limit((0x60C5, 0)))
+
+    def _rpm_limit(self, key: Key) -> float:
+        """A velocity object (rpm) as counts/ms."""
+        return self._od[key] * self._rpm_to_cpms
+
+    def _acc_limit(self, key: Key) -> float:
+        """An acceleration object (rpm/s) as counts/ms^2."""
+        return self._od[key] * self._rpm_to_cpms / 1000.0
+
+    def _write(self, key: Key, value: int, via_sdo: bool) -> None:
+        handler = self._handlers.get(key)
+        if handler is not None:
+            if key == (0x20C1, 0) and via_sdo and not self._buffer_enabled:
+                raise SdoAbort(odm.ABORT_DEVICE_STATE, "interpolation buffer access is disabled (0x60C4:06)")
+            handler(value)
+        else:
+            self._od[key] = value
+            self._refresh_caches()
+
+    def _build_handlers(self) -> dict[Key, Callable[[int], None]]:
+        h: dict[Key, Callable[[int], None]] = {
+            (0x6040, 0): self._apply_controlword,
+            (0x6060, 0): self._write_mode,
+            (0x20C1, 0): lambda v: self._append_record(record.unpack(v.to_bytes(8, "little"))),
+            (0x60C4, 6): self._write_buffer_clear,
+            (0x60C4, 4): lambda v: None,  # "writing to this object has no effect" (seed 000 4.3.6.5)
+            (0x1017, 0): self._write_heartbeat_producer,
+            (0x1005, 0): self._write_sync_cob,
+            (0x605A, 0): self._write_quick_stop_option,
+            (0x1016, 1): self._write_heartbeat_consumer,
+        }
+        for n in range(4):
+            for base, direction in ((0x1400, "rx"), (0x1800, "tx")):
+                h[(base + n, 1)] = self._pdo_cob_writer(base + n)
+                h[(base + n, 2)] = self._pdo_type_writer(base + n, direction)
+            for base, direction in ((0x1600, "rx"), (0x1A00, "tx")):
+                comm = (0x1400 if direction == "rx" else 0x1800) + n
+                h[(base + n, 0)] = self._pdo_count_writer(base + n, comm, direction)
+                for k in range(1, odm.MAX_PDO_ENTRIES + 1):
+                    h[(base + n, k)] = self._pdo_entry_writer(base + n, k, comm, direction)
+        return h
+
+    def _store(self, key: Key, value: int) -> None:
+        self._od[key] = value
+        self._refresh_caches()
+
+    def _write_mode(self, value: int) -> None:
+        if value not in SUPPORTED_MODES:
+            raise SdoAbort(odm.ABORT_INVALID_VALUE, f"mode of operation {value} is not supported (0x6502)")
+        old = self._mode
+        self._store((0x6060, 0), value)
+        if value == IP_MODE and old != IP_MODE:
+            self._fifo.clear()  # seed 000 table 4-26 transition I: ip mode selected -> clear data buffer
+        if old == IP_MODE and value != IP_MODE:
+            self._stop_interpolation()  # table 4-26 II; the demand holds where it is
+
+    def _write_buffer_clear(self, value: int) -> None:
+        if value == 0:
+            self._fifo.clear()
+            self._buffer_enabled = False
+            self._latched &= ~codec.BS_ERRORS
+        else:
+            self._buffer_enabled = True
+
+    def _write_heartbeat_producer(self, value: int) -> None:
+        self._store((0x1017, 0), value)
+        self._restart_heartbeat(self._t_now)
+
+    def _write_heartbeat_consumer(self, value: int) -> None:
+        self._store((0x1016, 1), value)
+        self._hb_rx_last = None
+
+    def _write_sync_cob(self, value: int) -> None:
+        if value & (1 << 30):
+            raise SdoAbort(odm.ABORT_INVALID_VALUE, "the drive cannot produce SYNC (0x1005 bit 30)")
+        if value & (1 << 29):
+            raise SdoAbort(odm.ABORT_INVALID_VALUE, "29-bit COB-IDs are not supported")
+        self._store((0x1005, 0), value)
+
+    def _write_quick_stop_option(self, value: int) -> None:
+        if value not in QUICK_STOP_OPTIONS:
+            raise SdoAbort(odm.ABORT_INVALID_VALUE, f"quick stop option code {value} not supported")
+        self._store((0x605A, 0), value)
+
+    # ---- PDO configuration (CiA 301 7.5.2.35-38)
+    def _pdo_cob_writer(self, comm: int) -> Callable[[int], None]:
+        def write(value: int) -> None:
+            old = self._od[(comm, 1)]
+            if value & (1 << 29):
+                raise SdoAbort(odm.ABORT_INVALID_VALUE, "29-bit COB-IDs are not supported")
+            if not old & odm.PDO_DISABLED and not value & odm.PDO_DISABLED and (old ^ value) & 0x7FF:
+                raise SdoAbort(odm.ABORT_INVALID_VALUE,
+                               f"0x{comm:04X}:01 cannot change the COB-ID of a valid PDO")
+            self._od[(comm, 1)] = value
+            self._rebuild_pdos()
+
+        return write
+
+    def _pdo_type_writer(self, comm: int, direction: str) -> Callable[[int], None]:
+        def write(value: int) -> None:
+            if not (value <= 240 or value in (254, 255)):
+                raise SdoAbort(odm.ABORT_INVALID_VALUE,
+                               f"{direction}PDO transmission type {value} not supported")
+            self._od[(comm, 2)] = value
+            self._rebuild_pdos()
+
+        return write
+
+    def _check_mapping_editable(self, mapping: int, comm: int) -> None:
+        if not self._od[(comm, 1)] & odm.PDO_DISABLED:
+            raise SdoAbort(odm.ABORT_PARAMETER_INCOMPATIBLE,
+                           f"0x{mapping:04X}: set 0x{comm:04X}:01 bit 31 (PDO invalid) before remapping")
+
+    def _check_entry(self, word: int, direction: str) -> int:
+        if word == 0:
+            return 0
+        index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
+        s = odm.OBJECTS.get((index, sub))
+        if s is None or not s.pdo or bits != s.dtype.bits:
+            raise SdoAbort(odm.ABORT_CANNOT_MAP, f"0x{index:04X}:{sub:02X} ({bits} bits) cannot be mapped")
+        if (direction == "rx" and not s.writable) or (direction == "tx" and not s.readable):
+            raise SdoAbort(odm.ABORT_CANNOT_MAP,
+                           f"0x{index:04X}:{sub:02X} cannot be mapped into a {direction}PDO")
+        return bits
+
+    def _pdo_count_writer(self, mapping: int, comm: int, direction: str) -> Callable[[int], None]:
+        def write(value: int) -> None:
+            self._check_mapping_editable(mapping, comm)
+            total = 0
+            for k in range(1, value + 1):
+                word = self._od[(mapping, k)]
+                if word == 0:
+                    raise SdoAbort(odm.ABORT_CANNOT_MAP, f"0x{mapping:04X}:{k:02X} is empty")
+                total += self._check_entry(word, direction)
+            if total > 64:
+                raise SdoAbort(odm.ABORT_PDO_LENGTH, f"0x{mapping:04X}: {total} bits exceed 64")
+            self._od[(mapping, 0)] = value
+            self._rebuild_pdos()
+
+        return write
+
+    def _pdo_entry_writer(self, mapping: int, k: int, comm: int, direction: str) -> Callable[[int], None]:
+        def write(value: int) -> None:
+            self._check_mapping_editable(mapping, comm)
+            if self._od[(mapping, 0)] != 0:
+                raise SdoAbort(odm.ABORT_PARAMETER_INCOMPATIBLE,
+                               f"0x{mapping:04X}:00 must be 0 while entries are written")
+            self._check_entry(value, direction)
+            self._od[(mapping, k)] = value
+
+        return write
+
+    def _getter(self, key: Key) -> Callable[[], int]:
+        dyn = self._dynamic.get(key)
+        if dyn is not None:
+            return dyn
+        od = self._od
+        return lambda: od[key]
+
+    def _rebuild_pdos(self) -> None:
+        od = self._od
+        rx: dict[int, _RxPdo] = {}
+        tx_sync: list[_TxPdo] = []
+        tx_event: list[_TxPdo] = []
+        for n in range(4):
+            cob = od[(0x1400 + n, 1)]
+            count = od[(0x1600 + n, 0)]
+            if not cob & odm.PDO_DISABLED and count:
+                words = [od[(0x1600 + n, k)] for k in range(1, count + 1)]
+                keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
+                fmt = "<" + "".join(odm.OBJECTS[k].dtype.struct_code for k in keys)
+                st = struct.Struct(fmt)
+                rx[cob & 0x7FF] = _RxPdo(n + 1, cob & 0x7FF, od[(0x1400 + n, 2)] <= 240, st.size, keys, st,
+                                         keys == ((0x20C1, 0),))
+            cob = od[(0x1800 + n, 1)]
+            count = od[(0x1A00 + n, 0)]
+            if not cob & odm.PDO_DISABLED and count:
+                words = [od[(0x1A00 + n, k)] for k in range(1, count + 1)]
+                keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
+                fmt = "<" + "".join(odm.OBJECTS[k].dtype.struct_code for k in keys)
+                ttype = od[(0x1800 + n, 2)]
+                pdo = _TxPdo(n + 1, cob & 0x7FF, ttype,
+                             _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)))
+                (tx_sync if ttype <= 240 else tx_event).append(pdo)
+        self._rx_by_cob = rx
+        self._tx_sync = tx_sync
+        self._tx_event = tx_event
+        self.pdo_config_version += 1
+
+    # ============================================================================================
+    # PDO traffic
+
+    def _on_rpdo(self, pdo: _RxPdo, data: bytes, t: float) -> None:
+        if len(data) != pdo.length:
+            self.counters.pdo_length_errors += 1
+            code = codec.EMCY_PDO_LENGTH if len(data) < pdo.length else codec.EMCY_PDO_LENGTH_EXCEEDED
+            self._fault(code, 0, t)
+            return
+        if pdo.is_record and not pdo.synchronous:
+            self._append_record(record.unpack(data))
+            return
+        pairs = list(zip(pdo.keys, pdo.unpacker.unpack(data), strict=True))
+        if pdo.synchronous:
+            self._pending_sync[pdo.number] = pairs
+        else:
+            self._apply_pdo_pairs(pairs)
+
+    def _apply_pdo_pairs(self, pairs: list[tuple[Key, int]]) -> None:
+        for key, value in pairs:
+            try:
+                odm.check_value(odm.OBJECTS[key], value)
+                self._write(key, value, via_sdo=False)
+            except SdoAbort:
+                self.counters.pdo_writes_rejected += 1
+
+    def _transmit_sync_tpdos(self) -> None:
+        out = self._out
+        for p in self._tx_sync:
+            p.sync_count += 1
+            if p.trans_type == 0:
+                payload = p.build()
+                if payload != p.last:
+                    p.last = payload
+                    out.append(Frame(p.cob_id, payload))
+            elif p.sync_count >= p.trans_type:
+                p.sync_count = 0
+                out.append(Frame(p.cob_id, p.build()))
+
+    def _flush_event_tpdos(self) -> None:
+        if not self._tx_event or self._nmt != NmtState.OPERATIONAL:
+            return
+        for p in self._tx_event:
+            payload = p.build()
+            if payload != p.last:
+                p.last = payload
+                self._out.append(Frame(p.cob_id, payload))
+
+    # ============================================================================================
+    # SYNC: the drive clock
+
+    def _sync(self, t: float) -> None:
+        self.counters.syncs += 1
+        last = self._t_last_sync
+        period_us = self._period_us
+        if last is not None:
+            if period_us and self._ip_active and t - last > self.sync_gap_factor * period_us * 1e-6:
+                self.counters.sync_gaps += 1
+                self._fault(codec.EMCY_SYNC_LOST, 0, t)
+            self._tick_acc_us += period_us if period_us else max(0, round((t - last) * 1e6))
+        else:
+            self._tick_acc_us += period_us
+        self._t_last_sync = t
+        n, self._tick_acc_us = divmod(self._tick_acc_us, 1000)
+        if n:
+            self._run_ticks(n, t)
+        if self._pending_sync:
+            pending = self._pending_sync
+            self._pending_sync = {}
+            for number in sorted(pending):
+                self._apply_pdo_pairs(pending[number])
+        warn = self.buffer_status & (BS_UNDERFLOW_WARNING | BS_OVERFLOW_WARNING)
+        rising = warn & ~self._prev_warn
+        if rising & BS_UNDERFLOW_WARNING:
+            self.counters.underflow_warnings += 1
+        if rising & BS_OVERFLOW_WARNING:
+            self.counters.overflow_warnings += 1
+        self._prev_warn = warn
+        if self._nmt == NmtState.OPERATIONAL:
+            self._transmit_sync_tpdos()
+
+    def _run_ticks(self, n: int, t: float) -> None:
+        while n > 0:
+            src = self._src
+            if src is None:
+                if self._powered:
+                    done = self._integrate(itertools.repeat(self._demand, n))
+                elif self._vel != 0.0:
+                    done = self._coast(n)
+                else:
+                    self.counters.ticks += n
+                    return
+            else:
+                i = self._src_i
+                m = min(n, self._next_event - i)
+                if m <= 0:
+                    self._on_source_event(t)
+                    continue
+                done = self._integrate(src[i:i + m])
+                self._src_i = i + done
+            n -= done
+            if self._fe_tripped:
+                self._fe_tripped = False
+                self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
+                continue
+            if self._src is not None and self._src_i == self._next_event:
+                self._on_source_event(t)
+
+    def _integrate(self, demands: Iterable[int]) -> int:
+        """Run one tick of position control + plant per demand. Stops after a tick whose following
+        error exceeds 0x6065 (sets _fe_tripped). Returns the ticks run."""
+        c = self._c
+        kp, ki, kdf, kdg, imax = c.kp, c.ki, c.kd_f, c.kd_g, c.i_max
+        cou, phi, gam, psi, eta = c.coulomb_a, c.phi, c.gam, c.psi, c.eta
+        dist = self.disturbance_current_a
+        pos, vel, integ, dterm, ep = self._pos, self._vel, self._integ, self._dterm, self._eprev
+        few = self._fe_window if self._state is not ST.FAULT_REACTION_ACTIVE else math.inf
+        i = self._current
+        d = self._demand
+        done = 0
+        for d in demands:
+            e = d - pos
+            integ += ki * e
+            if integ > imax:
+                integ = imax
+            elif integ < -imax:
+                integ = -imax
+            dterm = kdf * dterm + kdg * (e - ep)
+            ep = e
+            i = kp * e + integ + dterm
+            if i > imax:
+                i = imax
+            elif i < -imax:
+                i = -imax
+            ie = i - dist
+            if vel > 0.0:
+                ie -= cou
+            elif vel < 0.0:
+                ie += cou
+            elif ie > cou:
+                ie -= cou
+            elif ie < -cou:
+                ie += cou
+            else:
+                ie = 0.0
+            nv = phi * vel + gam * ie
+            pos += psi * vel + eta * ie
+            if cou and ((vel > 0.0 and nv < 0.0) or (vel < 0.0 and nv > 0.0)):
+                nv = 0.0
+            vel = nv
+            done += 1
+            if e > few or e < -few:
+                self._fe_tripped = True
+                break
+        self._pos, self._vel, self._integ, self._dterm, self._eprev = pos, vel, integ, dterm, ep
+        self._current = i
+        self._demand = d
+        self.counters.ticks += done
+        return done
+
+    def _coast(self, n: int) -> int:
+        """Power stage off: the motor runs down on friction; the demand follows the actual position."""
+        c = self._c
+        cou, phi, gam, psi, eta = c.coulomb_a, c.phi, c.gam, c.psi, c.eta
+        dist = self.disturbance_current_a
+        pos, vel = self._pos, self._vel
+        done = 0
+        while done < n:
+            ie = -dist - (cou if vel > 0.0 else -cou)
+            nv = phi * vel + gam * ie
+            pos += psi * vel + eta * ie
+            done += 1
+            if (vel > 0.0 and nv <= 0.0) or (vel < 0.0 and nv >= 0.0) or abs(nv) < COAST_STOP_COUNTS_PER_MS:
+                vel = 0.0
+                break
+            vel = nv
+        self._pos, self._vel = pos, vel
+        self._current = 0.0
+        self._demand = hermite.round_counts(pos)
+        self.counters.ticks += done
+        return done
+
+    # ============================================================================================
+    # demand sources: ip segments and stop ramps
+
+    def _set_source(self, demands: list[int], kind: Source) -> None:
+        self._src = demands
+        self._src_i = 0
+        self._src_kind = kind
+        self._seg_events = []
+        self._next_event = len(demands)
+
+    def _on_source_event(self, t: float) -> None:
+        """The tick `_next_event` was just run: fire its limit events and/or complete the source."""
+        src = self._src
+        assert src is not None
+        k = self._src_i
+        while self._seg_events and self._seg_events[0][0] == k:
+            _, bit = self._seg_events.pop(0)
+            self._limit_event(bit, t)
+            if self._src is not src:
+                return  # an error aborted the trajectory
+        if k >= len(src):
+            self._source_done(t)
+        else:
+            self._next_event = self._seg_events[0][0] if self._seg_events else len(src)
+
+    def _limit_event(self, bit: int, t: float) -> None:
+        if bit == BS_VELOCITY_WARNING:
+            self.counters.velocity_warnings += 1
+            self._latched |= bit
+        elif bit == BS_ACCELERATION_WARNING:
+            self.counters.acceleration_warnings += 1
+            self._latched |= bit
+        elif bit == BS_VELOCITY_ERROR:
+            self._fault(codec.EMCY_IP_VELOCITY, bit, t)
+        elif bit == BS_ACCELERATION_ERROR:
+            self._fault(codec.EMCY_IP_ACCELERATION, bit, t)
+
+    def _source_done(self, t: float) -> None:
+        kind = self._src_kind
+        self._src = None
+        if kind == Source.SEGMENT:
+            self.counters.segments_completed += 1
+            target = self._seg_target
+            if self._fifo and self._fifo[0] is target:
+                self._fifo.popleft()
+            assert target is not None
+            self._next_segment(target, t)
+        elif kind == Source.QUICK_STOP:
+            if self._qs_option in (0, 1, 2):
+                self._transition(Internal.QUICK_STOP_DONE)
+        elif kind == Source.FAULT:
+            self._transition(Internal.FAULT_REACTION_DONE)
+
+    def _next_segment(self, prev: PvtRecord, t: float) -> None:
+        if not self._fifo:
+            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, t)
+            return
+        head = self._fifo[0]
+        if head.time_ms == 0:
+            self._fifo.popleft()
+            self._ip_active = False  # seed 000 4.3.6.1: time 0 -> interpolation inactive, no error
+            return
+        self._begin_segment(prev.position, prev.velocity * self._rpm_to_cpms, head)
+
+    def _begin_segment(self, p_prev: int, v_prev: float, target: PvtRecord) -> None:
+        n_ms = target.time_ms
+        v_end = target.velocity * self._rpm_to_cpms
+        coeffs = hermite.coefficients(p_prev, v_prev, target.position, v_end, n_ms)
+        self._set_source(hermite.demand_from_coefficients(coeffs, n_ms), Source.SEGMENT)
+        self._seg_target = target
+        self._seg_coeffs = coeffs
+        self._seg_events = self._limit_events(coeffs, n_ms)
+        if self._seg_events:
+            self._next_event = self._seg_events[0][0]
+
+    def _limit_events(self, coeffs: tuple[float, float, float, float], n_ms: int) -> list[tuple[int, int]]:
+        """Ticks (1..n_ms) at which the segment first exceeds 0x6081/0x607F (velocity) and
+        0x6083/0x60C5 (acceleration), as (tick, buffer status bit), sorted."""
+        a, b, c, _ = coeffs
+        # fast path: bounds on |V| and |A| over the whole segment below every limit -> no event
+        tau1 = 1.0 - n_ms
+        v_bound = max(abs((3.0 * a * tau1 + 2.0 * b) * tau1 + c), abs(c))
+        if a != 0.0:
+            tau_star = -b / (3.0 * a)
+            if tau1 < tau_star < 0.0:
+                v_bound = max(v_bound, abs((3.0 * a * tau_star + 2.0 * b) * tau_star + c))
+        a_bound = max(abs(6.0 * a * tau1 + 2.0 * b), abs(2.0 * b))
+        if v_bound <= self._v_limit_min and a_bound <= self._a_limit_min:
+            return []
+
+        def vel(k: int) -> float:
+            tau = k - n_ms
+            return (3.0 * a * tau + 2.0 * b) * tau + c
+
+        def acc(k: int) -> float:
+            return 6.0 * a * (k - n_ms) + 2.0 * b
+
+        cands = {1, n_ms}
+        if a != 0.0:
+            k_star = n_ms - b / (3.0 * a)
+            for k in (math.floor(k_star), math.ceil(k_star)):
+                if 1 <= k <= n_ms:
+                    cands.add(k)
+        events: list[tuple[int, int]] = []
+        for fn, limit_key, bit, cand in (
+            (vel, (0x6081, 0), BS_VELOCITY_WARNING, cands),
+            (vel, (0x607F, 0), BS_VELOCITY_ERROR, cands),
+            (acc, (0x6083, 0), BS_ACCELERATION_WARNING, {1, n_ms}),
+            (acc, (0x60C5, 0), BS_ACCELERATION_ERROR, {1, n_ms}),
+        ):
+            limit = self._rpm_limit(limit_key) if fn is vel else self._acc_limit(limit_key)
+            k = _first_violation(fn, n_ms, limit, cand)
+            if k:
+                events.append((k, bit))
+        events.sort()
+        return events
+
+    def _demand_velocity(self) -> float:
+        """The interpolator's current velocity demand, counts/ms."""
+        if self._src is None:
+            return 0.0
+        if self._src_kind == Source.SEGMENT:
+            return hermite.evaluate(self._seg_coeffs, float(self._src_i - len(self._src)))[1]
+        v = abs(self._ramp_v0) - self._ramp_dec * self._src_i
+        return math.copysign(max(0.0, v), self._ramp_v0)
+
+    def _start_ramp(self, kind: Source, dec_key: Key) -> None:
+        """Decelerate from the current demand velocity to standstill with `dec_key` (rpm/s)."""
+        v0 = self._demand_velocity()
+        dec = max(self._acc_limit(dec_key), 1e-9)
+        self._ip_active = False
+        p0 = float(self._demand)
+        demands: list[int] = []
+        if v0 != 0.0:
+            t_stop = abs(v0) / dec
+            steps = min(MAX_RAMP_TICKS, math.ceil(t_stop))
+            s = 1.0 if v0 > 0 else -1.0
+            for k in range(1, steps + 1):
+                tk = min(float(k), t_stop)
+                demands.append(hermite.round_counts(p0 + v0 * tk - s * dec * tk * tk / 2.0))
+        self._ramp_v0 = v0
+        self._ramp_dec = dec
+        self._set_source(demands, kind)
+        if not demands:
+            self._src = None
+            self._on_ramp_done_immediately(kind)
+
+    def _on_ramp_done_immediately(self, kind: Source) -> None:
+        if kind == Source.QUICK_STOP and self._qs_option in (0, 1, 2):
+            self._transition(Internal.QUICK_STOP_DONE)
+        elif kind == Source.FAULT:
+            self._transition(Internal.FAULT_REACTION_DONE)
+
+    def _stop_interpolation(self) -> None:
+        """ip mode disabled (bit 4 falling, mode change): the demand stays where it is."""
+        self._ip_active = False
+        if self._src is not None and self._src_kind == Source.SEGMENT:
+            self._src = None
+
+    # ============================================================================================
+    # FIFO
+
+    def _append_record(self, rec: PvtRecord) -> None:
+        self.counters.records_received += 1
+        if not self._buffer_enabled:
+            self.counters.records_rejected += 1
+            return
+        if len(self._fifo) >= self.profile.fifo_depth:
+            self.counters.records_rejected += 1
+            self._fault(codec.EMCY_IP_BUFFER, BS_OVERFLOW_ERROR, self._t_now)
+            return
+        self._fifo.append(rec)
+
+    def _activate(self) -> None:
+        """Controlword bit 4 rising edge in operation enabled, mode 7 (seed 000 table 4-26 III)."""
+        if len(self._fifo) < 2:
+            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, self._t_now)
+            return
+        self.counters.activations += 1
+        self._latched &= ~(BS_VELOCITY_WARNING | BS_ACCELERATION_WARNING)
+        self._ip_active = True
+        head = self._fifo[0]
+        if head.time_ms == 0:
+            self._fifo.popleft()
+            self._ip_active = False
+            return
+        self._begin_segment(self._demand, 0.0, head)
+
+    # ============================================================================================
+    # CiA 402 device control
+
+    def _apply_controlword(self, cw: int) -> None:
+        prev = self._cw
+        self._cw = cw
+        command = codec.decode_command(cw)
+        if command == Command.FAULT_RESET:
+            if not prev & CW_FAULT_RESET and self._state == ST.FAULT:
+                self._fault_reset()
+            return
+        state = self._state
+        try:
+            new = codec.next_state(state, command)
+        except InvalidTransition:
+            self.counters.ignored_commands += 1
+            new = state
+        if state == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED and self._qs_option not in (5, 6):
+            self.counters.ignored_commands += 1
+            new = state
+        if new != state:
+            self._enter(new)
+        if self._state != ST.OPERATION_ENABLED or self._mode != IP_MODE:
+            return
+        rising = cw & ~prev
+        falling = prev & ~cw
+        if cw & CW_HALT:
+            if self._ip_active or (self._src is not None and self._src_kind == Source.SEGMENT):
+                self._start_ramp(Source.HALT, (0x6084, 0))
+            return
+        if rising & CW_ENABLE_IP:
+            self._activate()
+        elif falling & CW_ENABLE_IP and self._ip_active:
+            self._stop_interpolation()
+
+    def _transition(self, trigger: Internal) -> None:
+        self._enter(codec.next_state(self._state, trigger))
+
+    def _enter(self, new: Cia402State) -> None:
+        old = self._state
+        self._state = new
+        if new.power_enabled and not old.power_enabled:
+            self._power_on_stage()
+        elif not new.power_enabled and old.power_enabled:
+            self._power_off()
+        if old == ST.OPERATION_ENABLED and new == ST.QUICK_STOP_ACTIVE:
+            if self._qs_option == 0:
+                self._transition(Internal.QUICK_STOP_DONE)
+            else:
+                self._start_ramp(Source.QUICK_STOP, (0x6084, 0) if self._qs_option in (1, 5) else (0x6085, 0))
+        elif old == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED:
+            self._src = None
+            self._ip_active = False
+
+    def _power_on_stage(self) -> None:
+        self._powered = True
+        self._demand = hermite.round_counts(self._pos)
+        self._integ = 0.0
+        self._dterm = 0.0
+        self._eprev = 0.0
+        self._src = None
+        self._ip_active = False
+
+    def _power_off(self) -> None:
+        self._powered = False
+        self._src = None
+        self._ip_active = False
+        self._current = 0.0
+        self._demand = hermite.round_counts(self._pos)
+
+    def _fault(self, code: int, bit: int, t: float) -> None:
+        """An error: latch its buffer status bit, send EMCY, start the fault reaction."""
+        self._latched |= bit
+        if self._state in (ST.FAULT_REACTION_ACTIVE, ST.FAULT):
+            return
+        self.counters.faults += 1
+        self._error_code = code
+        self._error_register |= _EMCY_REGISTER.get(code, codec.ER_GENERIC)
+        before = self._state
+        self._state = codec.next_state(self._state, Internal.FAULT_DETECTED)
+        self._ip_active = False  # the EMCY reports the buffer status of the aborted trajectory
+        bs = self._get_buffer_status()
+        self.fault_log.append(FaultRecord(t, code, codec.EMCY_NAMES.get(code, hex(code)), bs, before))
+        self._emit_emcy(code, bs)
+        was_powered = self._powered
+        if was_powered:
+            self._start_ramp(Source.FAULT, (0x6085, 0))
+        else:
+            self._transition(Internal.FAULT_REACTION_DONE)
+
+    def _fault_reset(self) -> None:
+        self._enter(codec.next_state(self._state, Command.FAULT_RESET))
+        self._latched = 0
+        self._error_code = 0
+        self._error_register = 0
+        self._emit_emcy(codec.EMCY_ERROR_RESET, self.buffer_status)
+
+    def _emit_emcy(self, code: int, buffer_status: int) -> None:
+        if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+            return
+        if self._emcy_cob & odm.PDO_DISABLED:
+            return
+        self.counters.emcy_sent += 1
+        self._out.append(Frame(self._emcy_cob & 0x7FF, codec.encode_emcy(
+            code, self._error_register, codec.emcy_manufacturer_bytes(buffer_status))))
+
+    def _target_reached(self) -> bool:
+        state = self._state
+        if state == ST.OPERATION_ENABLED:
+            if self._cw & CW_HALT:
+                return self._src is None
+            if self._ip_active or self._src is not None:
+                return False
+            return abs(self._demand - self._pos) <= self._pos_window
+        if state == ST.QUICK_STOP_ACTIVE:
+            return self._src is None
+        return False

@@ -1,0 +1,311 @@
+"""The object dictionary of the simulated EPOS-like IPM drive: one table, three uses.
+
+The table below is the single definition of every object the simulated drive has: its type, access,
+default and range (seed 000 section 4.3.6 for the IPM objects, CiA 301/402 for the rest; values the
+manuals leave open are chosen and listed in docs/drive-model.md). It is used
+
+- by `bus.sim.eds` to render configs/drives/epos-ipm.eds (a test checks the committed file matches),
+  which canopen loads as a `LocalNode` (the simulated drive) or a `RemoteNode` (the master);
+- by the pure `DriveModel` as its object store (`ObjectStore`), through which every SDO read/write
+  and every PDO-mapped write goes, with the same access and range checks a drive makes;
+- by the PDO mapping validation (size, mappability, direction).
+
+No I/O; `SdoAbort` carries the CiA 301 abort code the SDO server answers with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from types import MappingProxyType
+from typing import Literal
+
+# CiA 301 SDO abort codes used by the simulated drive
+ABORT_UNSUPPORTED_ACCESS = 0x06010000
+ABORT_WRITE_ONLY = 0x06010001
+ABORT_READ_ONLY = 0x06010002
+ABORT_NO_OBJECT = 0x06020000
+ABORT_CANNOT_MAP = 0x06040041
+ABORT_PDO_LENGTH = 0x06040042
+ABORT_PARAMETER_INCOMPATIBLE = 0x06040043
+ABORT_TYPE_LENGTH = 0x06070010
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_INVALID_VALUE = 0x06090030
+ABORT_VALUE_TOO_HIGH = 0x06090031
+ABORT_VALUE_TOO_LOW = 0x06090032
+ABORT_GENERAL = 0x08000000
+ABORT_DEVICE_STATE = 0x08000022
+
+
+class SdoAbort(Exception):
+    """An SDO request the drive refuses, with its CiA 301 abort code."""
+
+    def __init__(self, code: int, message: str):
+        super().__init__(f"SDO abort 0x{code:08X}: {message}")
+        self.code = code
+        self.message = message
+
+
+class DataType(IntEnum):
+    """CiA 301 data types (the EDS DataType codes)."""
+
+    BOOLEAN = 0x0001
+    INTEGER8 = 0x0002
+    INTEGER16 = 0x0003
+    INTEGER32 = 0x0004
+    UNSIGNED8 = 0x0005
+    UNSIGNED16 = 0x0006
+    UNSIGNED32 = 0x0007
+    VISIBLE_STRING = 0x0009
+    UNSIGNED64 = 0x001B
+
+    @property
+    def bits(self) -> int:
+        return _BITS[self]
+
+    @property
+    def signed(self) -> bool:
+        return self in (DataType.INTEGER8, DataType.INTEGER16, DataType.INTEGER32)
+
+    @property
+    def struct_code(self) -> str:
+        return _STRUCT[self]
+
+    def value_range(self) -> tuple[int, int]:
+        b = self.bits
+        if self.signed:
+            return -(1 << (b - 1)), (1 << (b - 1)) - 1
+        return 0, (1 << b) - 1
+
+
+_BITS = {
+    DataType.BOOLEAN: 8, DataType.INTEGER8: 8, DataType.INTEGER16: 16, DataType.INTEGER32: 32,
+    DataType.UNSIGNED8: 8, DataType.UNSIGNED16: 16, DataType.UNSIGNED32: 32, DataType.VISIBLE_STRING: 0,
+    DataType.UNSIGNED64: 64,
+}
+_STRUCT = {
+    DataType.BOOLEAN: "B", DataType.INTEGER8: "b", DataType.INTEGER16: "h", DataType.INTEGER32: "i",
+    DataType.UNSIGNED8: "B", DataType.UNSIGNED16: "H", DataType.UNSIGNED32: "I", DataType.VISIBLE_STRING: "",
+    DataType.UNSIGNED64: "Q",
+}
+
+Access = Literal["ro", "rw", "wo", "const"]
+Key = tuple[int, int]
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """One object dictionary entry (a VAR, or one sub-index of a RECORD/ARRAY)."""
+
+    index: int
+    sub: int
+    name: str
+    dtype: DataType
+    access: Access
+    default: int | str | None = None
+    low: int | None = None
+    high: int | None = None
+    pdo: bool = False
+    node_relative: bool = False  # default is $NODEID + default (COB-IDs)
+
+    @property
+    def key(self) -> Key:
+        return (self.index, self.sub)
+
+    @property
+    def readable(self) -> bool:
+        return self.access != "wo"
+
+    @property
+    def writable(self) -> bool:
+        return self.access in ("rw", "wo")
+
+    def default_for(self, node_id: int) -> int:
+        if not isinstance(self.default, int):
+            raise TypeError(f"0x{self.index:04X}:{self.sub:02X} has no integer default")
+        return self.default + (node_id if self.node_relative else 0)
+
+
+@dataclass(frozen=True)
+class GroupSpec:
+    """A RECORD (0x9) or ARRAY (0x8) object: its name; its entries are ObjectSpecs with sub >= 0."""
+
+    index: int
+    name: str
+    object_type: Literal[8, 9]
+
+
+U8, U16, U32, U64 = DataType.UNSIGNED8, DataType.UNSIGNED16, DataType.UNSIGNED32, DataType.UNSIGNED64
+I8, I16, I32 = DataType.INTEGER8, DataType.INTEGER16, DataType.INTEGER32
+STR = DataType.VISIBLE_STRING
+
+PDO_DISABLED = 1 << 31
+PDO_RTR_NOT_ALLOWED = 1 << 30
+MAX_PDO_ENTRIES = 8
+
+
+def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
+    o: list[ObjectSpec] = []
+    g: list[GroupSpec] = []
+
+    def var(index: int, name: str, dtype: DataType, access: Access, default: int | str | None = None,
+            low: int | None = None, high: int | None = None, pdo: bool = False, rel: bool = False) -> None:
+        o.append(ObjectSpec(index, 0, name, dtype, access, default, low, high, pdo, rel))
+
+    def group(index: int, name: str, kind: Literal[8, 9], entries: list[tuple[int, str, DataType, Access,
+              int | None, int | None, int | None, bool, bool]]) -> None:
+        g.append(GroupSpec(index, name, kind))
+        for sub, n, dt, acc, default, low, high, pdo, rel in entries:
+            o.append(ObjectSpec(index, sub, n, dt, acc, default, low, high, pdo, rel))
+
+    # ---- communication profile (CiA 301)
+    var(0x1000, "Device type", U32, "ro", 0x00020192)  # CiA 402 servo drive
+    var(0x1001, "Error register", U8, "ro", 0, pdo=True)
+    var(0x1005, "COB-ID SYNC", U32, "rw", 0x00000080)
+    var(0x1006, "Communication cycle period", U32, "rw", 0, 0, 255_000)  # us; 0 = not configured
+    var(0x1008, "Manufacturer device name", STR, "const", "EPOS-IPM simulated drive")
+    var(0x1014, "COB-ID EMCY", U32, "ro", 0x80, rel=True)
+    group(0x1016, "Consumer heartbeat time", 8, [
+        (0, "Number of entries", U8, "ro", 1, None, None, False, False),
+        (1, "Consumer heartbeat time 1", U32, "rw", 0, None, None, False, False),
+    ])
+    var(0x1017, "Producer heartbeat time", U16, "rw", 0)
+    group(0x1018, "Identity object", 9, [
+        (0, "Number of entries", U8, "ro", 4, None, None, False, False),
+        (1, "Vendor-ID", U32, "ro", 0x00000000, None, None, False, False),
+        (2, "Product code", U32, "ro", 0x49504D31, None, None, False, False),  # "IPM1"
+        (3, "Revision number", U32, "ro", 0x00010000, None, None, False, False),
+        (4, "Serial number", U32, "ro", 0x00000000, None, None, False, True),
+    ])
+    # PDO communication and mapping: EPOS-like factory defaults (all event driven, statusword/controlword
+    # first); the master remaps them to the product layout (bus/cob.py, bus/profile.py).
+    rx_defaults = [[0x60400010], [0x60400010, 0x60600008], [0x60400010], []]
+    tx_defaults = [[0x60410010], [0x60410010, 0x60610008], [0x60410010, 0x60640020], [0x60410010, 0x606C0020]]
+    for n in range(4):
+        rx_cob = 0x200 + 0x100 * n
+        tx_cob = 0x180 + 0x100 * n
+        rx_enabled = n < 3
+        group(0x1400 + n, f"Receive PDO {n + 1} parameter", 9, [
+            (0, "Highest sub-index supported", U8, "ro", 2, None, None, False, False),
+            (1, "COB-ID used by RPDO", U32, "rw", rx_cob | (0 if rx_enabled else PDO_DISABLED), None, None,
+             False, True),
+            (2, "Transmission type", U8, "rw", 255, None, None, False, False),
+        ])
+        entries: list[tuple[int, str, DataType, Access, int | None, int | None, int | None, bool, bool]] = [
+            (0, "Number of mapped objects", U8, "rw", len(rx_defaults[n]), 0, MAX_PDO_ENTRIES, False, False)]
+        for k in range(1, MAX_PDO_ENTRIES + 1):
+            d = rx_defaults[n][k - 1] if k <= len(rx_defaults[n]) else 0
+            entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
+        group(0x1600 + n, f"Receive PDO {n + 1} mapping", 9, entries)
+        group(0x1800 + n, f"Transmit PDO {n + 1} parameter", 9, [
+            (0, "Highest sub-index supported", U8, "ro", 5, None, None, False, False),
+            (1, "COB-ID used by TPDO", U32, "rw", tx_cob, None, None, False, True),
+            (2, "Transmission type", U8, "rw", 255, None, None, False, False),
+            (3, "Inhibit time", U16, "rw", 0, None, None, False, False),
+            (5, "Event timer", U16, "rw", 0, None, None, False, False),
+        ])
+        entries = [(0, "Number of mapped objects", U8, "rw", len(tx_defaults[n]), 0, MAX_PDO_ENTRIES, False,
+                    False)]
+        for k in range(1, MAX_PDO_ENTRIES + 1):
+            d = tx_defaults[n][k - 1] if k <= len(tx_defaults[n]) else 0
+            entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
+        group(0x1A00 + n, f"Transmit PDO {n + 1} mapping", 9, entries)
+
+    # ---- manufacturer specific (seed 000 4.3.6)
+    var(0x20C1, "Interpolation data record", U64, "wo", None, pdo=True)
+    group(0x20C4, "Interpolation status", 9, [
+        (0, "Number of entries", U8, "ro", 3, None, None, False, False),
+        (1, "Interpolation buffer status", U16, "ro", 0, None, None, True, False),
+        (2, "Interpolation buffer underflow warning", U16, "rw", 4, 0, 63, False, False),
+        (3, "Interpolation buffer overflow warning", U16, "rw", 60, 1, 64, False, False),
+    ])
+
+    # ---- device profile (CiA 402; seed 000 4.3.3-4.3.6)
+    var(0x603F, "Error code", U16, "ro", 0, pdo=True)
+    var(0x6040, "Controlword", U16, "rw", 0, pdo=True)
+    var(0x6041, "Statusword", U16, "ro", 0, pdo=True)
+    var(0x605A, "Quick stop option code", I16, "rw", 2, 0, 6)
+    var(0x6060, "Modes of operation", I8, "rw", 0, pdo=True)
+    var(0x6061, "Modes of operation display", I8, "ro", 0, pdo=True)
+    var(0x6062, "Position demand value", I32, "ro", 0, pdo=True)
+    var(0x6064, "Position actual value", I32, "ro", 0, pdo=True)
+    var(0x6065, "Following error window", U32, "rw", 2000, pdo=True)
+    var(0x6067, "Position window", U32, "rw", 100)
+    var(0x606C, "Velocity actual value", I32, "ro", 0, pdo=True)
+    var(0x6078, "Current actual value", I16, "ro", 0, pdo=True)
+    group(0x607D, "Software position limit", 8, [
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Min position limit", I32, "rw", -(2**31), None, None, False, False),
+        (2, "Max position limit", I32, "rw", 2**31 - 1, None, None, False, False),
+    ])
+    var(0x607F, "Max profile velocity", U32, "rw", 25000, pdo=True)
+    var(0x6081, "Profile velocity", U32, "rw", 1000, pdo=True)
+    var(0x6083, "Profile acceleration", U32, "rw", 10000, pdo=True)
+    var(0x6084, "Profile deceleration", U32, "rw", 10000, pdo=True)
+    var(0x6085, "Quick stop deceleration", U32, "rw", 10000, pdo=True)
+    var(0x60C0, "Interpolation sub mode select", I16, "rw", -1, -1, -1)
+    group(0x60C2, "Interpolation time period", 9, [
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Interpolation time period value", U8, "rw", 1, 1, 1, False, False),
+        (2, "Interpolation time index", I8, "rw", -3, -3, -3, False, False),
+    ])
+    group(0x60C4, "Interpolation data configuration", 9, [
+        (0, "Number of entries", U8, "ro", 6, None, None, False, False),
+        (1, "Maximum buffer size", U32, "ro", 64, None, None, False, False),
+        (2, "Actual buffer size", U32, "ro", 0, None, None, True, False),
+        (3, "Buffer organization", U8, "rw", 0, 0, 0, False, False),
+        (4, "Buffer position", U16, "rw", 0, 0, 64, False, False),
+        (5, "Size of data record", U8, "wo", 8, 8, 8, False, False),
+        (6, "Buffer clear", U8, "wo", 0, 0, 1, False, False),
+    ])
+    var(0x60C5, "Max acceleration", U32, "rw", 0xFFFFFFFF, pdo=True)
+    var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # bit 6: interpolated position mode
+    return o, g
+
+
+_OBJECTS, _GROUPS = _build()
+
+OBJECTS: MappingProxyType[Key, ObjectSpec] = MappingProxyType({s.key: s for s in _OBJECTS})
+GROUPS: MappingProxyType[int, GroupSpec] = MappingProxyType({gr.index: gr for gr in _GROUPS})
+INDICES: tuple[int, ...] = tuple(sorted({s.index for s in _OBJECTS}))
+
+
+def spec(index: int, sub: int) -> ObjectSpec:
+    """The spec of (index, sub). Raises SdoAbort with the CiA 301 code for a missing object/sub-index."""
+    s = OBJECTS.get((index, sub))
+    if s is None:
+        if any(k[0] == index for k in OBJECTS):
+            raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X} has no sub-index {sub}")
+        raise SdoAbort(ABORT_NO_OBJECT, f"object 0x{index:04X} does not exist")
+    return s
+
+
+def check_value(s: ObjectSpec, value: int) -> None:
+    """Type and EDS range checks of a value written to `s` (raises SdoAbort)."""
+    lo, hi = s.dtype.value_range()
+    if s.low is not None:
+        lo = max(lo, s.low)
+    if s.high is not None:
+        hi = min(hi, s.high)
+    if value > hi:
+        raise SdoAbort(ABORT_VALUE_TOO_HIGH, f"0x{s.index:04X}:{s.sub:02X} value {value} above {hi}")
+    if value < lo:
+        raise SdoAbort(ABORT_VALUE_TOO_LOW, f"0x{s.index:04X}:{s.sub:02X} value {value} below {lo}")
+
+
+def defaults(node_id: int) -> dict[Key, int]:
+    """Power-on values of every integer object for `node_id`."""
+    return {k: s.default_for(node_id) for k, s in OBJECTS.items() if isinstance(s.default, int)}
+
+
+def decode_value(s: ObjectSpec, data: bytes) -> int:
+    """Little-endian bytes of `s`'s type to an int. Raises SdoAbort on a length mismatch."""
+    if len(data) * 8 != s.dtype.bits:
+        raise SdoAbort(ABORT_TYPE_LENGTH, f"0x{s.index:04X}:{s.sub:02X} needs {s.dtype.bits // 8} bytes, "
+                       f"got {len(data)}")
+    return int.from_bytes(data, "little", signed=s.dtype.signed)
+
+
+def encode_value(s: ObjectSpec, value: int) -> bytes:
+    return int(value).to_bytes(s.dtype.bits // 8, "little", signed=s.dtype.signed)

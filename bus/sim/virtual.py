@@ -1,0 +1,121 @@
+"""The simulated drives of one cell in virtual time: frames in, frames out, no bus, no threads.
+
+A `VirtualCell` holds one `DriveModel` per axis of a `CellConfig`, boots them, and (by default)
+configures them exactly as the master would over SDO (`DriveModel.configure_for_ipm`, i.e. the
+profile's configuration list) and starts them (NMT operational). A virtual-time runtime then plays
+the bus: `deliver(cob_id, data, t)` hands a frame the master sent to the drives that consume that
+COB-ID and returns what they answer; `sync(t)` is a SYNC; `advance(t)` runs the drives' timers.
+Frames a drive sends are not seen by the other drives (they consume none of them in this product:
+no drive monitors another drive's heartbeat by default), which keeps routing O(1) per frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from bus import codec
+from bus.codec import Frame
+from bus.profile import EPOS_IPM, DriveProfile
+from bus.sim.model import DriveModel
+from bus.sim.motor import DEFAULT_MOTOR, MotorParams
+from planner.config import CellConfig
+
+
+class VirtualCell:
+    def __init__(
+        self,
+        cell: CellConfig,
+        *,
+        motor: MotorParams = DEFAULT_MOTOR,
+        configure: bool = True,
+        t0: float = 0.0,
+        initial_positions: Mapping[int, float] | None = None,
+        sync_gap_factor: float = 1.5,
+        profile: DriveProfile = EPOS_IPM,
+    ):
+        self.cell = cell
+        self.models: dict[int, DriveModel] = {}
+        self.boot_frames: list[Frame] = []
+        positions = dict(initial_positions or {})
+        for axis in cell.axes:
+            m = DriveModel(axis.node_id, axis, cell.drive, motor=motor,
+                           initial_position=positions.get(axis.node_id, 0.0),
+                           sync_gap_factor=sync_gap_factor, profile=profile)
+            self.boot_frames += m.power_on(t0)
+            if configure:
+                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=t0)
+            self.models[axis.node_id] = m
+        self._models = tuple(self.models.values())
+        self._routes: dict[int, tuple[DriveModel, ...]] = {}
+        self._versions: dict[int, int] = {}
+        self._rebuild_routes()
+
+    def model(self, node: int) -> DriveModel:
+        return self.models[node]
+
+    def _rebuild_routes(self) -> None:
+        routes: dict[int, list[DriveModel]] = {}
+        for m in self._models:
+            for cob_id in m.rx_cob_ids():
+                routes.setdefault(cob_id, []).append(m)
+            self._versions[m.node_id] = m.pdo_config_version
+        self._routes = {k: tuple(v) for k, v in routes.items()}
+
+    def deliver(self, cob_id: int, data: bytes, t: float) -> list[Frame]:
+        """A frame from the master: the drives that consume `cob_id` see it; returns their frames."""
+        out: list[Frame] = []
+        targets = self._models if cob_id == 0 else self._routes.get(cob_id, ())
+        changed = False
+        for m in targets:
+            out += m.on_frame(cob_id, data, t)
+            if m.pdo_config_version != self._versions[m.node_id]:
+                changed = True
+        if changed or cob_id == 0:
+            self._rebuild_routes()
+        return out
+
+    def sync(self, t: float) -> list[Frame]:
+        out: list[Frame] = []
+        for m in self._models:
+            out += m.on_sync(t)
+        return out
+
+    def advance(self, t: float) -> list[Frame]:
+        out: list[Frame] = []
+        for m in self._models:
+            out += m.advance(t)
+        return out
+
+    def next_deadline(self) -> float | None:
+        times = [d for d in (m.next_deadline() for m in self._models) if d is not None]
+        return min(times) if times else None
+
+    def enable_drives(self, t: float | None = None) -> list[Frame]:
+        """What `MasterAdapter.enable_drives` does over SDO: fault reset if faulted, 0x0006, 0x000F
+        (bit 4 low), buffer clear then enable. Raises RuntimeError if a drive does not get there."""
+        S = codec.Cia402State
+        out: list[Frame] = []
+        for node, m in self.models.items():
+            commands: list[codec.Command] = []
+            if m.state == S.FAULT:
+                commands += [codec.Command.DISABLE_VOLTAGE, codec.Command.FAULT_RESET]
+            elif m.state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE):
+                commands.append(codec.Command.DISABLE_VOLTAGE)
+            if m.state != S.OPERATION_ENABLED:
+                commands.append(codec.Command.SHUTDOWN)
+            commands.append(codec.Command.ENABLE_OPERATION)
+            for command in commands:
+                out += m.sdo_write(0x6040, 0, command.value, t)
+            out += m.sdo_write(0x60C4, 6, 0, t)
+            out += m.sdo_write(0x60C4, 6, 1, t)
+            if m.state != S.OPERATION_ENABLED or not m.buffer_enabled:
+                raise RuntimeError(f"drive {node} is {m.state.value!r} after the enable sequence")
+        return out
+
+    def sdo_read(self, node: int, index: int, sub: int) -> int:
+        return self.models[node].sdo_read(index, sub)
+
+    def sdo_write(self, node: int, index: int, sub: int, value: int, t: float | None = None) -> list[Frame]:
+        out = self.models[node].sdo_write(index, sub, value, t)
+        self._rebuild_routes()
+        return out

@@ -1,0 +1,75 @@
+"""`pvt sim` (streamer/cli_sim.py) and the simulator benchmark's scenario runner."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from dataclasses import replace
+from pathlib import Path
+
+import canopen
+import pytest
+from bus_testkit import remote_network, unique_channel, wait_until
+
+from benchmarks import bench_sim
+from bus.sim.eds import EDS_PATH
+from planner.config import load_cell
+from streamer import cli_sim
+
+DEMO = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="pvt")
+    cli_sim.add_parser(parser.add_subparsers(dest="command"))
+    return parser.parse_args(["sim", *argv])
+
+
+def test_parse_bus() -> None:
+    assert cli_sim.parse_bus("socketcan:vcan0", 500_000) == cli_sim.BusConfig("socketcan", "vcan0", 500_000)
+    assert cli_sim.parse_bus("pcan:PCAN_USBBUS1:x", 1).channel == "PCAN_USBBUS1:x"
+    with pytest.raises(ValueError):
+        cli_sim.parse_bus("vcan0", 1)
+
+
+def test_pvt_sim_serves_the_cell_until_stopped(capsys: pytest.CaptureFixture[str]) -> None:
+    channel = unique_channel("cli-sim")
+    args = parse(["--config", str(DEMO), "--bus", f"virtual:{channel}", "--bitrate", "500000"])
+    assert args.func is cli_sim.run
+    stop = threading.Event()
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(cli_sim.run(args, stop)))
+    thread.start()
+    try:
+        with remote_network(channel) as net:
+            node = net.add_node(6, str(EDS_PATH))
+            assert wait_until(lambda: _answers(node), 2.0)
+            assert node.sdo[0x6041].raw & 0x4F == 0x40
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)
+    assert result == [0]
+    out = capsys.readouterr().out
+    assert "6 drives" in out and "stopped" in out
+
+
+def _answers(node: canopen.RemoteNode) -> bool:
+    """The drives answer SDO once `pvt sim` has started them (until then the request times out)."""
+    try:
+        return bool(node.sdo[0x1000].raw == 0x00020192)
+    except canopen.SdoCommunicationError:
+        return False
+
+
+def test_pvt_sim_rejects_a_bad_config(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[cell]\nname = 'x'\n", encoding="utf-8")
+    assert cli_sim.run(parse(["--config", str(bad)])) == 2
+    assert "pvt sim:" in capsys.readouterr().err
+    assert cli_sim.run(parse(["--config", str(DEMO), "--bus", "udp_multicast:x", "--duration", "0"])) == 1
+
+
+def test_benchmark_scenario_runs_a_short_stream() -> None:
+    demo = load_cell(DEMO)
+    out = bench_sim.run(replace(demo.with_axes(2), sync_period_ms=5), 0.3)
+    assert out["ticks"] == 2 * 300 and out["ratio"] > 0
