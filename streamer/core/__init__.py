@@ -1,0 +1,43 @@
+"""The streamer core: pure state machines (no I/O, no clock) that stream PVT records to drive FIFOs.
+
+A runtime creates one `Coordinator(plan, settings, stop_planner)` per job and feeds it `bus.events`;
+each `handle(event)` returns the frames to send and the job's state changes. See coordinator.py for
+the life cycle and the contract with the runtime, feeder.py for the per-axis FIFO accounting and loss
+repair, schedule.py for the fill model, bus_load.py for the frame budget.
+"""
+
+from streamer.core.bus_load import frame_bits
+from streamer.core.coordinator import (
+    Coordinator,
+    JobReport,
+    JobState,
+    Reaction,
+    StateChange,
+    UnexpectedEvent,
+)
+from streamer.core.feeder import AxisTelemetry, FeederState, FifoFeeder, InvalidTransition
+from streamer.core.outcome import FAILURE_CODES, JobOutcome, JobResult
+from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
+from streamer.core.settings import StreamerSettings
+
+__all__ = [
+    "FAILURE_CODES",
+    "AxisTelemetry",
+    "Coordinator",
+    "FeederState",
+    "FifoFeeder",
+    "InvalidTransition",
+    "JobOutcome",
+    "JobReport",
+    "JobResult",
+    "JobState",
+    "PvtTrajectoryLike",
+    "Reaction",
+    "StateChange",
+    "StopPlanner",
+    "StopRequest",
+    "StreamPlan",
+    "StreamerSettings",
+    "UnexpectedEvent",
+    "frame_bits",
+]

@@ -1,0 +1,1029 @@
+"""Coordinator: the multi-axis job state machine of the PVT streamer (one object per job, no I/O).
+
+Owns one job: the shared timing of the record streams, one `FifoFeeder` per axis, the lockstep
+prefix (how many records every axis should have been sent), the per-SYNC frame budget, the
+synchronous start, finish, cancel and fault handling, and the job outcome. It is fed
+`bus.events` (Sync, BufferStatus, PositionFeedback, Emcy, HeartbeatLost, Bootup, Cancel, SendFailed,
+AdapterError, BusLoad) through `handle(event)`, which returns a `Reaction`: the `Send` frames to put
+on the bus now, in order, and the job state changes (the terminal one carries the `JobOutcome`).
+Dispatch is a table keyed by (job state, event type); a pair without an entry raises
+`UnexpectedEvent`.
+
+Contract with the runtime (the adapter that calls it):
+- feed `Sync(n)` after SYNC n is on the wire (or queued ahead of anything the core returns), and before
+  any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST);
+- feed TPDOs with `sync_count` set to the SYNC they answer (None = the last Sync fed);
+- send the returned frames at once, in order; they must reach the drives before the next SYNC;
+- the drives are operation enabled in mode 7 with the buffer cleared and enabled before the job
+  (the core verifies it on the first TPDOs and fails DRIVE_NOT_READY otherwise; the adapter does the
+  SDO setup). Optionally feed `BusLoad` (measured load, any sender) about once per SYNC.
+
+Job life cycle (JobState):
+  CONFIGURING  wait for the first TPDO1 + TPDO2 of every axis; check operation enabled, buffer enabled,
+               ip mode inactive, FIFO empty, position demand == the plan's knot 0 (START_MISMATCH).
+               Then controlword 0x000F (bit 4 low, so the start is a rising edge) to every axis;
+               priming begins with the next SYNC.
+  PRIMING      fill every FIFO to the priming level P = min(O, max(2, what the first cycle needs for
+               the lead time and the repair margin)), `prime_records_per_sync` records per axis per
+               cycle, each batch confirmed before the next (feeder.py).
+  STARTING     on the first SYNC at which every FIFO is confirmed primed, controlword 0x001F to every
+               axis in that one cycle; RPDO1 is synchronous, so all drives apply it, and enter ip mode
+               active, at the next SYNC s = the recorded start SYNC. Each drive must report ip mode
+               active at s (START_FAILED otherwise).
+  RUNNING      every SYNC the lockstep prefix K is raised by the top-up rule (schedule.py) within the
+               frame budget; every axis gets the records up to K when its TPDO1 confirms its previous
+               batch, never more than its free space nor above O. All axes share one grid, so the
+               records of one grid index go out in the same cycle (except an axis repairing a loss or
+               missing a TPDO: it catches up one record per cycle beyond the lockstep step, from the
+               budget's spare part, or faster when its fill needs it).
+  FINISHING    every end record (time 0) is confirmed queued; DONE when every drive reports ip mode
+               inactive and target reached (statusword bit 10) after the plan's end.
+  CANCELLING / HALTING  see cancel below; then CANCELLED.
+  DONE, CANCELLED, FAILED  terminal: every event is accepted and ignored, nothing is ever sent again;
+               a new job needs a new Coordinator.
+
+Frame budget: per SYNC cycle, bus_load_limit (70%) x bitrate x period minus the traffic the job
+causes anyway (SYNC, TPDO1 + TPDO2 per drive, heartbeats), in worst-case frame bits (bus_load.py).
+The lockstep grows at most as many records per axis per cycle as that allows; resends and catch-up
+use what this cycle's lockstep step leaves. The whole nominal schedule is dry-run at construction: if
+it cannot keep every FIFO >= min(U, records left), the job is FAILED at once with BUS_OVERLOAD (the
+budget is to blame) or BUFFER_UNDERFLOW (the plan is denser than the FIFO can buffer per SYNC), before
+anything is sent. At run time, a FIFO reported below min(U, records left) with no record of that axis
+missing, or on a bus whose measured load (BusLoad) is over the limit, fails BUS_OVERLOAD before the
+drive can underflow (records could not be sent in time). While records are missing (lost, being
+resent), the feeder's due-time check decides instead: resend while it can still arrive before the
+record is due, else predicted BUFFER_UNDERFLOW; a resend that is lost again at the last chance lets
+the drive underflow (its EMCY: BUFFER_UNDERFLOW), which is the price of repairing every loss the
+timing allows rather than giving up on the first one.
+
+Cancel: the stop follows a trajectory from the state at the end of what is already queued, K = the
+most records sent to any axis: the stop planner (a callable given to the constructor) is asked for a
+trajectory from knot K (positions, rpm velocities, Hermite accelerations of all axes); it is spliced
+in after record K of every axis (lagging axes first catch up to K), so all axes follow one jerk-limited
+stop on one grid, and nothing already in a FIFO has to be taken back (it cannot be: the FIFO has no
+delete). The stop begins after what is queued: at most about lead_ms + repair_syncs periods later.
+Halt (controlword 0x011F, bit 8) is the fallback, used only when no stop planner was given, the
+planner raised or returned a trajectory that does not start at knot K of every axis, or the stop
+cannot be streamed in time. It is not path-synchronous (each drive decelerates on its own profile
+deceleration 0x6084) and not jerk-limited, but acts at the next SYNC; after every drive reports
+standstill (bit 10) the core sends 0x000F (ip mode off, halt released) and the job is CANCELLED. A
+cancel before the start (CONFIGURING, PRIMING) cancels at once: nothing moved, nothing is sent (the
+runtime clears the buffers before the next job). A cancel when the plan's end is already queued lets
+the plan finish (it ends at rest) and reports CANCELLED.
+
+Fault: any EMCY from a job node (except code 0x0000, "no error"), a lost heartbeat, a boot-up, a buffer
+error bit or the statusword fault bit in a TPDO, TPDO1/TPDO2 missing for `tpdo_timeout_syncs` SYNCs,
+SendFailed or AdapterError, and every accounting failure of a feeder -> controlword 0x000B (quick stop)
+to every axis in that same reaction (unless nothing had been sent to the drives yet) and FAILED with
+the code, the node and a message. Then the core is poisoned (rule 4 of STYLE.md).
+
+Position demand check: every TPDO2 is compared with the demand the drive must have after the ms it
+interpolated, predicted from the queued records with planner.hermite (exact with counts_per_rev, at
+knots only without). A difference over demand_tolerance_counts is PROTOCOL (records executed out of
+order, twice or not at all: this is what catches two records of one batch swapped, which the fill
+cannot see), or START_MISMATCH before the start. Off while halting (no plan to compare with).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, NamedTuple
+
+from bus.cob import pack_controlword, rpdo1_id, rpdo2_id
+from bus.events import (
+    AdapterError,
+    Bootup,
+    BufferStatus,
+    BusLoad,
+    Cancel,
+    Emcy,
+    HeartbeatLost,
+    PositionFeedback,
+    Send,
+    SendFailed,
+    Sync,
+)
+from streamer.core import outcome as oc
+from streamer.core.bus_load import CONTROLWORD_FRAME_BITS, RECORD_FRAME_BITS, CycleBudget, cycle_budget
+from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder
+from streamer.core.outcome import JobOutcome, JobResult
+from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
+from streamer.core.schedule import (
+    FillPolicy,
+    consumed_at,
+    dry_run,
+    needed_fill,
+    priming_level,
+    segment_ends,
+    target_prefix,
+)
+from streamer.core.settings import StreamerSettings
+
+# controlwords (CiA 402, seed 000 4.3.4)
+CW_ENABLE_OPERATION = 0x000F  # operation enabled, ip mode bit 4 low
+CW_START_IP = 0x001F  # + bit 4: enable ip mode (rising edge starts interpolation)
+CW_HALT = 0x011F  # + bit 8: halt with profile deceleration
+CW_QUICK_STOP = 0x000B  # bit 2 low: quick stop
+
+# statusword / buffer status bits
+SW_FAULT = 0x0008
+SW_TARGET_REACHED = 0x0400
+SW_IP_ACTIVE = 0x1000
+SW_STATE_MASK, SW_OPERATION_ENABLED = 0x006F, 0x0027
+BS_UNDERFLOW_ERROR, BS_OVERFLOW_ERROR = 0x0100, 0x0200
+BS_VELOCITY_ERROR, BS_ACCELERATION_ERROR = 0x0400, 0x0800
+BS_ERRORS = 0x0F00
+BS_BUFFER_ENABLED = 0x4000
+BS_IP_ACTIVE = 0x8000
+
+
+class UnexpectedEvent(RuntimeError):
+    """The event has no entry in the dispatch table for the current state."""
+
+
+class JobState(Enum):
+    CONFIGURING = "configuring"
+    PRIMING = "priming"
+    STARTING = "starting"
+    RUNNING = "running"
+    FINISHING = "finishing"
+    CANCELLING = "cancelling"
+    HALTING = "halting"
+    DONE = "done"
+    CANCELLED = "cancelled"
+    FAILED = "failed"
+
+
+_J = JobState
+TERMINAL = frozenset({_J.DONE, _J.CANCELLED, _J.FAILED})
+_SENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING, _J.CANCELLING})
+_FEEDING = frozenset({FeederState.PRIMING, FeederState.STARTING, FeederState.STREAMING})
+_IN_MOTION = frozenset({_J.STARTING, _J.RUNNING, _J.FINISHING, _J.CANCELLING})
+_F = FeederState
+_ALL_PRIMED = frozenset({_F.PRIMED})
+_ALL_ACTIVE = frozenset({_F.STREAMING, _F.DRAINING, _F.FINISHED})
+_ALL_QUEUED = frozenset({_F.DRAINING, _F.FINISHED})
+_ALL_FINISHED = frozenset({_F.FINISHED})
+
+_JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
+    _J.CONFIGURING: frozenset({_J.PRIMING, _J.CANCELLED, _J.FAILED}),
+    _J.PRIMING: frozenset({_J.STARTING, _J.CANCELLED, _J.FAILED}),
+    _J.STARTING: frozenset({_J.RUNNING, _J.CANCELLING, _J.HALTING, _J.FAILED}),
+    _J.RUNNING: frozenset({_J.FINISHING, _J.CANCELLING, _J.HALTING, _J.FAILED}),
+    _J.FINISHING: frozenset({_J.DONE, _J.CANCELLING, _J.FAILED}),
+    _J.CANCELLING: frozenset({_J.CANCELLED, _J.FAILED}),
+    _J.HALTING: frozenset({_J.CANCELLED, _J.FAILED}),
+    _J.DONE: frozenset(),
+    _J.CANCELLED: frozenset(),
+    _J.FAILED: frozenset(),
+}
+
+# (state, event type) -> handler name. Built as data so the table is inspectable and testable.
+_EVENT_HANDLERS: dict[str, str] = {
+    "Sync": "_on_sync",
+    "BufferStatus": "_on_buffer_status",
+    "PositionFeedback": "_on_position",
+    "Emcy": "_on_emcy",
+    "HeartbeatLost": "_on_heartbeat_lost",
+    "Bootup": "_on_bootup",
+    "SendFailed": "_on_send_failed",
+    "AdapterError": "_on_adapter_error",
+    "BusLoad": "_on_bus_load",
+}
+_CANCEL_HANDLERS: dict[JobState, str] = {
+    _J.CONFIGURING: "_cancel_before_start",
+    _J.PRIMING: "_cancel_before_start",
+    _J.STARTING: "_cancel_in_motion",
+    _J.RUNNING: "_cancel_in_motion",
+    _J.FINISHING: "_cancel_after_end",
+    _J.CANCELLING: "_ignore",
+    _J.HALTING: "_ignore",
+}
+_EVENT_TYPES: dict[str, type] = {
+    "Sync": Sync,
+    "BufferStatus": BufferStatus,
+    "PositionFeedback": PositionFeedback,
+    "Emcy": Emcy,
+    "HeartbeatLost": HeartbeatLost,
+    "Bootup": Bootup,
+    "SendFailed": SendFailed,
+    "AdapterError": AdapterError,
+    "BusLoad": BusLoad,
+    "Cancel": Cancel,
+}
+
+
+def dispatch_table() -> dict[tuple[JobState, type], str]:
+    table: dict[tuple[JobState, type], str] = {}
+    for state in JobState:
+        for name, etype in _EVENT_TYPES.items():
+            if state in TERMINAL:
+                table[(state, etype)] = "_ignore"
+            elif name == "Cancel":
+                table[(state, etype)] = _CANCEL_HANDLERS[state]
+            else:
+                table[(state, etype)] = _EVENT_HANDLERS[name]
+    return table
+
+
+_DISPATCH = dispatch_table()
+
+
+@dataclass(frozen=True)
+class StateChange:
+    state: JobState
+    sync: int | None
+    t: float
+    outcome: JobOutcome | None = None
+
+
+class Reaction(NamedTuple):
+    """What one event produced: frames to send now (in order) and job state changes."""
+
+    sends: Sequence[Send]
+    changes: Sequence[StateChange]
+
+
+_NOTHING = Reaction((), ())
+
+
+@dataclass(frozen=True)
+class JobReport:
+    """The job's report hooks (the runtime adds what only the bus and the drives know)."""
+
+    state: str
+    outcome: JobOutcome | None
+    progress: float
+    sync_period_ms: int
+    priming_level: int
+    start_sync: int | None
+    end_sync: int | None
+    syncs: int
+    frames_sent: int
+    record_frames: int
+    control_frames: int
+    points: int  # records in the streams (all axes, end records included)
+    frames_per_point: float
+    bus_load_peak: float  # predicted from the budget's accounting (this job's traffic + SYNC/TPDOs)
+    measured_bus_load_peak: float | None  # from BusLoad events, when the runtime feeds them
+    duration_ms: int
+    cancel: dict[str, Any] = field(default_factory=dict)
+    axes: tuple[AxisTelemetry, ...] = ()
+
+
+class Coordinator:
+    """One streaming job over all axes. `handle(event) -> Reaction`; see the module docstring."""
+
+    def __init__(
+        self,
+        plan: StreamPlan | PvtTrajectoryLike,
+        settings: StreamerSettings,
+        stop_planner: StopPlanner | None = None,
+    ) -> None:
+        self._plan = plan if isinstance(plan, StreamPlan) else StreamPlan.from_trajectory(plan)
+        self._settings = s = settings
+        self._stop_planner = stop_planner
+        self._period = s.sync_period_ms
+        self._fifo = s.fifo_size
+        self._u = s.underflow_watermark
+        self._o = s.overflow_watermark
+        self._policy = FillPolicy(
+            s.sync_period_ms, s.underflow_watermark, s.overflow_watermark, s.lead_ms, s.repair_syncs
+        )
+        self._ends = segment_ends(self._plan.segment_ms)
+        self._t_end = self._ends[-1]
+        self._prime_level = priming_level(self._ends, self._policy)
+        n = self._plan.n_axes
+        self._budget: CycleBudget = cycle_budget(
+            n, s.sync_period_ms, s.bitrate, s.bus_load_limit, s.heartbeat_ms
+        )
+        self._step = self._budget.record_frames_per_axis(n)
+        self._feeders: list[FifoFeeder] = []
+        self._by_node: dict[int, FifoFeeder] = {}
+        self._cw: dict[int, dict[int, Send]] = {}
+        for axis, node in enumerate(self._plan.node_ids):
+            rid = rpdo2_id(node)
+            feeder = FifoFeeder(
+                axis,
+                node,
+                self._plan.start_positions[axis],
+                list(self._plan.records[axis]),
+                [Send(rid, frame) for frame in self._plan.frames[axis]],
+                sync_period_ms=s.sync_period_ms,
+                loss_confirm_syncs=s.loss_confirm_syncs,
+                repair_margin_ms=s.margin_ms,
+                counts_per_rev=s.counts_per_rev.get(node),
+            )
+            self._feeders.append(feeder)
+            self._by_node[node] = feeder
+            cid = rpdo1_id(node)
+            self._cw[node] = {
+                cw: Send(cid, pack_controlword(cw))
+                for cw in (CW_ENABLE_OPERATION, CW_START_IP, CW_HALT, CW_QUICK_STOP)
+            }
+        self._points = sum(len(f.sends) for f in self._feeders)
+        self._dispatch: dict[tuple[JobState, type], Callable[[Any], None]] = {
+            key: getattr(self, name) for key, name in _DISPATCH.items()
+        }
+        self._state = JobState.CONFIGURING
+        self._outcome: JobOutcome | None = None
+        self._out: list[Send] = []
+        self._changes: list[StateChange] = []
+        self._sync: int | None = None
+        self._first_sync: int | None = None
+        self._t = 0.0
+        self._last_sync_t: float | None = None
+        self._start_sync: int | None = None
+        self._halt_sync: int | None = None
+        self._lockstep = 0
+        self._lock_prev = 0
+        self._safe_prefix = 0  # records an axis needs now to keep its fill >= U for repair_syncs SYNCs
+        self._extra_bits = 0.0
+        self._cycle_used_bits = 0.0
+        self._bus_load_peak = 0.0
+        self._measured_peak: float | None = None
+        self._congested = False
+        self._emitted_any = False
+        self._frames_sent = 0
+        self._record_frames = 0
+        self._control_frames = 0
+        self._cancel_info: dict[str, Any] = {}
+        self._check_feasible()
+
+    # ---- public surface ---------------------------------------------------------------------------
+    def handle(self, event: object) -> Reaction:
+        """Feed one event; returns the frames to send now and the state changes it caused."""
+        fn = self._dispatch.get((self._state, type(event)))
+        if fn is None:
+            raise UnexpectedEvent(f"no transition for {type(event).__name__} in state {self._state.name}")
+        fn(event)
+        if not self._out and not self._changes:
+            return _NOTHING
+        reaction = Reaction(self._out, self._changes)
+        self._out = []
+        self._changes = []
+        return reaction
+
+    @property
+    def state(self) -> JobState:
+        return self._state
+
+    @property
+    def outcome(self) -> JobOutcome | None:
+        return self._outcome
+
+    @property
+    def start_sync(self) -> int | None:
+        return self._start_sync
+
+    @property
+    def priming_level(self) -> int:
+        return self._prime_level
+
+    @property
+    def node_ids(self) -> tuple[int, ...]:
+        return self._plan.node_ids
+
+    @property
+    def progress(self) -> float:
+        """Fraction of the (current, possibly stop-spliced) stream's duration interpolated so far."""
+        if self._state is JobState.DONE:
+            return 1.0
+        if self._start_sync is None or self._sync is None:
+            return 0.0
+        return min(1.0, max(0.0, self._elapsed(self._sync) / self._t_end))
+
+    def fifo_fills(self) -> dict[int, int | None]:
+        """Last reported fill per node (for live displays)."""
+        return {f.node_id: f.last_fill for f in self._feeders}
+
+    def telemetry(self) -> tuple[AxisTelemetry, ...]:
+        return tuple(f.telemetry() for f in self._feeders)
+
+    def report(self) -> JobReport:
+        ends = [f.end_sync for f in self._feeders if f.end_sync is not None]
+        syncs = 0 if self._sync is None or self._first_sync is None else self._sync - self._first_sync + 1
+        return JobReport(
+            state=self._state.value,
+            outcome=self._outcome,
+            progress=self.progress,
+            sync_period_ms=self._period,
+            priming_level=self._prime_level,
+            start_sync=self._start_sync,
+            end_sync=max(ends) if len(ends) == len(self._feeders) else None,
+            syncs=syncs,
+            frames_sent=self._frames_sent,
+            record_frames=self._record_frames,
+            control_frames=self._control_frames,
+            points=self._points,
+            frames_per_point=self._frames_sent / self._points if self._points else 0.0,
+            bus_load_peak=self._bus_load_peak,
+            measured_bus_load_peak=self._measured_peak,
+            duration_ms=self._t_end,
+            cancel=dict(self._cancel_info),
+            axes=self.telemetry(),
+        )
+
+    # ---- construction-time feasibility --------------------------------------------------------------
+    def _check_feasible(self) -> None:
+        n = len(self._feeders)
+        if self._step < 1:
+            self._fail(
+                oc.BUS_OVERLOAD,
+                f"{n} axes at {self._settings.bitrate} bit/s and {self._period} ms SYNC leave no room for "
+                f"one record per axis per SYNC under {self._settings.bus_load_limit:.0%} bus load",
+                None,
+                {"budget_bits": self._budget.streamer_bits},
+            )
+            return
+        short = dry_run(self._ends, self._policy, self._step, self._prime_level, 0)
+        if short is None:
+            return
+        unlimited = dry_run(self._ends, self._policy, self._fifo, self._prime_level, 0)
+        code = oc.BUS_OVERLOAD if unlimited is None else oc.BUFFER_UNDERFLOW
+        why = (
+            f"the bus budget ({self._step} records per axis per SYNC)"
+            if unlimited is None
+            else f"the FIFO (overflow watermark {self._o}) at a {self._period} ms SYNC"
+        )
+        self._fail(
+            code,
+            f"the plan cannot be streamed: {why} would leave {short.fill} records (< {short.needed}) at "
+            f"{short.elapsed_ms} ms",
+            None,
+            {"predicted": True, "elapsed_ms": short.elapsed_ms, "fill": short.fill},
+        )
+
+    # ---- helpers -----------------------------------------------------------------------------------
+    def _elapsed(self, sync: int) -> int:
+        s = self._start_sync
+        if s is None or sync <= s:
+            return 0
+        return (sync - s) * self._period
+
+    def _slack_ms(self, index: int) -> float:
+        """Time from the current SYNC until record `index` becomes the interpolation target."""
+        s = self._start_sync
+        if s is None or self._sync is None:
+            return float("inf")
+        due = s * self._period + (self._ends[index - 1] if index > 0 else 0)
+        return float(due - self._sync * self._period)
+
+    def _attribute(self, sync_count: int | None) -> int | None:
+        cur = self._sync
+        if cur is None:
+            return None  # no SYNC seen yet in this job: an answer to an earlier one, not ours
+        if sync_count is None:
+            return cur
+        if sync_count > cur:
+            raise ValueError(
+                f"TPDO answering SYNC {sync_count} fed before Sync({sync_count}) (last Sync {cur})"
+            )
+        return sync_count
+
+    def _set_state(self, new: JobState, outcome: JobOutcome | None = None) -> None:
+        if new not in _JOB_TRANSITIONS[self._state]:
+            raise UnexpectedEvent(f"job state {self._state.name} cannot go to {new.name}")
+        self._state = new
+        if outcome is not None:
+            self._outcome = outcome
+        self._changes.append(StateChange(new, self._sync, self._t, outcome))
+
+    def _emit_cw(self, feeder: FifoFeeder, controlword: int) -> None:
+        self._out.append(self._cw[feeder.node_id][controlword])
+        feeder.frames_sent += 1
+        self._cycle_used_bits += CONTROLWORD_FRAME_BITS
+        self._extra_bits -= CONTROLWORD_FRAME_BITS
+        self._frames_sent += 1
+        self._control_frames += 1
+        self._emitted_any = True
+
+    def _all_feeders(self, states: frozenset[FeederState]) -> bool:
+        return all(f.state in states for f in self._feeders)
+
+    def _finish(self, result: JobResult, message: str, detail: dict[str, Any] | None = None) -> None:
+        state = JobState.DONE if result is JobResult.DONE else JobState.CANCELLED
+        self._set_state(state, JobOutcome(result, None, None, message, self._sync, self._t, detail or {}))
+
+    def _fail(self, code: str, message: str, node: int | None, detail: dict[str, Any] | None = None) -> None:
+        if self._state in TERMINAL:
+            return
+        if self._emitted_any:
+            for f in self._feeders:
+                self._emit_cw(f, CW_QUICK_STOP)
+        for f in self._feeders:
+            if f.state is not FeederState.FAULTED:
+                f.fire(FeederInput.FAULT)
+        if node is not None and node in self._by_node:
+            self._by_node[node].errors.append(code)
+        self._set_state(
+            JobState.FAILED,
+            JobOutcome(JobResult.FAILED, code, node, message, self._sync, self._t, detail or {}),
+        )
+
+    # ---- event handlers ----------------------------------------------------------------------------
+    def _ignore(self, event: object) -> None:
+        return None
+
+    def _on_sync(self, ev: Sync) -> None:
+        m = ev.count
+        self._t = ev.t
+        prev = self._sync
+        if prev is None:
+            self._first_sync = m
+            for f in self._feeders:
+                f.last_tpdo1 = f.last_tpdo2 = m - 1
+        else:
+            if m <= prev:
+                raise ValueError(f"Sync count {m} after {prev}: counts must increase by one")
+            self._close_cycle()
+            if m != prev + 1:
+                self._sync = m
+                self._fail(
+                    oc.SYNC_LOST,
+                    f"SYNC count jumped from {prev} to {m}: {m - prev - 1} SYNC(s) missing",
+                    None,
+                    {"previous": prev, "count": m},
+                )
+                return
+            gap = self._settings.sync_gap_factor
+            if (
+                gap is not None
+                and self._last_sync_t is not None
+                and ev.t - self._last_sync_t > gap * self._period / 1000.0
+            ):
+                self._sync = m
+                self._fail(
+                    oc.SYNC_LOST,
+                    f"SYNC {m} came {1000.0 * (ev.t - self._last_sync_t):.1f} ms after the "
+                    f"previous one (period {self._period} ms)",
+                    None,
+                    {"gap_s": ev.t - self._last_sync_t},
+                )
+                return
+        self._sync = m
+        self._last_sync_t = ev.t
+        self._cycle_used_bits = 0.0
+        self._extra_bits = self._budget.streamer_bits
+        limit = m - self._settings.tpdo_timeout_syncs - 1
+        for f in self._feeders:
+            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit:
+                which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
+                self._fail(
+                    oc.TPDO_TIMEOUT,
+                    f"node {f.node_id}: no {which} for {self._settings.tpdo_timeout_syncs} "
+                    f"SYNCs (last answered SYNC {min(f.last_tpdo1, f.last_tpdo2)})",
+                    f.node_id,
+                )
+                return
+        st = self._state
+        if st is JobState.PRIMING:
+            if self._all_feeders(_ALL_PRIMED):
+                self._start(m)
+            else:
+                self._advance_lockstep(
+                    self._prime_level, min(self._step, self._settings.prime_records_per_sync)
+                )
+        elif st in _SENDING:
+            self._advance_lockstep(
+                target_prefix(self._ends, self._elapsed(m), self._elapsed(m + 1), self._policy), self._step
+            )
+            self._update_safe_prefix(m)
+        if st in _IN_MOTION and self._elapsed(m) > self._t_end + self._settings.finish_timeout_ms:
+            late = next(f for f in self._feeders if f.state is not FeederState.FINISHED)
+            self._fail(
+                oc.FINISH_TIMEOUT,
+                f"node {late.node_id}: no ip mode inactive + target reached "
+                f"{self._settings.finish_timeout_ms} ms after the plan's end",
+                late.node_id,
+            )
+        elif (
+            st is JobState.HALTING
+            and self._halt_sync is not None
+            and (m - self._halt_sync) * self._period > self._settings.finish_timeout_ms
+        ):
+            late = next(f for f in self._feeders if f.state is not FeederState.FINISHED)
+            self._fail(
+                oc.FINISH_TIMEOUT,
+                f"node {late.node_id}: no standstill {self._settings.finish_timeout_ms} ms after the halt",
+                late.node_id,
+            )
+
+    def _close_cycle(self) -> None:
+        load = (self._budget.fixed_bits + self._cycle_used_bits) / self._budget.cycle_bits
+        if load > self._bus_load_peak:
+            self._bus_load_peak = load
+
+    def _advance_lockstep(self, want: int, step: int) -> None:
+        old = self._lockstep
+        new = min(want, old + step) if want > old else old
+        self._lock_prev = old
+        self._lockstep = new
+        if new > old:
+            feeding = sum(1 for f in self._feeders if f.state in _FEEDING)
+            self._extra_bits -= feeding * (new - old) * RECORD_FRAME_BITS
+
+    def _start(self, m: int) -> None:
+        for f in self._feeders:
+            f.fire(FeederInput.START)
+            self._emit_cw(f, CW_START_IP)
+        self._start_sync = m + 1
+        self._set_state(JobState.STARTING)
+        self._advance_lockstep(target_prefix(self._ends, 0, 0, self._policy), self._step)
+        self._update_safe_prefix(m)
+
+    def _update_safe_prefix(self, m: int) -> None:
+        if self._start_sync is not None:
+            horizon = self._elapsed(m + 1) + self._policy.repair_syncs * self._period
+            self._safe_prefix = consumed_at(self._ends, horizon) + self._u
+
+    def _feed(self, f: FifoFeeder, fill: int, free: int) -> None:
+        if f.pending:
+            return
+        lo = f.confirmed
+        hi = min(self._lockstep, len(f.sends))
+        n = min(hi - lo, free, self._o - fill)
+        if n <= 0:
+            return
+        # keep batches as small as this cycle's lockstep step (>= 1): an axis behind the others (after a
+        # repair or a missed TPDO) catches up one record per cycle, not in one large batch whose partial
+        # loss could not be repaired, unless its fill needs more to stay >= U for repair_syncs SYNCs
+        cap = max(1, self._lockstep - self._lock_prev, self._safe_prefix - lo)
+        if n > cap:
+            n = cap
+        catch = min(n, self._lock_prev - lo)
+        if catch > 0:
+            afford = int(self._extra_bits // RECORD_FRAME_BITS)
+            if afford < catch:
+                n = afford  # only what the spare budget allows; the regular part must wait (order)
+            self._extra_bits -= min(catch, n) * RECORD_FRAME_BITS
+            if n <= 0:
+                return
+        sends = f.take(n, self._sync + 1 if self._sync is not None else 0)
+        self._out.extend(sends)
+        self._cycle_used_bits += n * RECORD_FRAME_BITS
+        self._frames_sent += n
+        self._record_frames += n
+        self._emitted_any = True
+
+    def _on_buffer_status(self, ev: BufferStatus) -> None:
+        f = self._by_node.get(ev.node)
+        if f is None:
+            return
+        m = self._attribute(ev.sync_count)
+        if m is None or m <= f.last_tpdo1:
+            return
+        f.last_tpdo1 = m
+        self._t = ev.t
+        sw, bs, node = ev.statusword, ev.buffer_status, f.node_id
+        fill = self._fifo - ev.free_size
+        if bs & BS_ERRORS:
+            if bs & BS_UNDERFLOW_ERROR:
+                code, what = oc.BUFFER_UNDERFLOW, "IP buffer underflow error"
+            elif bs & BS_OVERFLOW_ERROR:
+                code, what = oc.BUFFER_OVERFLOW, "IP buffer overflow error"
+            elif bs & BS_VELOCITY_ERROR:
+                code, what = oc.DRIVE_FAULT, "IP velocity error (0x607F exceeded)"
+            else:
+                code, what = oc.DRIVE_FAULT, "IP acceleration error (0x60C5 exceeded)"
+            self._fail(
+                code,
+                f"node {node}: {what} (buffer status 0x{bs:04X}) at SYNC {m}",
+                node,
+                {"buffer_status": bs, "statusword": sw},
+            )
+            return
+        if sw & SW_FAULT:
+            self._fail(
+                oc.DRIVE_FAULT,
+                f"node {node}: statusword 0x{sw:04X} reports a fault at SYNC {m}",
+                node,
+                {"statusword": sw},
+            )
+            return
+        if not 0 <= fill <= self._fifo:
+            self._fail(oc.PROTOCOL, f"node {node}: free size {ev.free_size} is outside 0..{self._fifo}", node)
+            return
+        if self._state is JobState.CONFIGURING:
+            f.first_status = (sw, bs, fill)
+            self._try_configure()
+            return
+        fs = f.state
+        if fs is FeederState.FINISHED or fs is FeederState.FAULTED:
+            return
+        if fs is FeederState.HALTING:
+            if self._halt_sync is not None and m > self._halt_sync and sw & SW_TARGET_REACHED:
+                f.fire(FeederInput.STOPPED)
+                f.end_sync = m
+                self._progress_job()
+            return
+        active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
+        s = self._start_sync
+        started = s is not None and m >= s
+        if not started:
+            if active:
+                self._fail(oc.PROTOCOL, f"node {node}: ip mode active at SYNC {m}, before the start", node)
+                return
+            elapsed = consumed = 0
+        else:
+            assert s is not None
+            elapsed = (m - s) * self._period
+            consumed = consumed_at(self._ends, elapsed)
+            if not active and elapsed < self._t_end:
+                if fs is FeederState.STARTING:
+                    self._fail(
+                        oc.START_FAILED,
+                        f"node {node}: ip mode not active at the start SYNC {s} (reported "
+                        f"at SYNC {m}, statusword 0x{sw:04X}, buffer status 0x{bs:04X})",
+                        node,
+                        {"start_sync": s},
+                    )
+                else:
+                    self._fail(
+                        oc.PROTOCOL,
+                        f"node {node}: ip mode inactive at SYNC {m}, {self._t_end - elapsed} ms "
+                        f"before the stream ends",
+                        node,
+                    )
+                return
+            if fs is FeederState.STARTING:
+                f.fire(FeederInput.ACTIVE)
+                f.start_sync = s
+                fs = FeederState.STREAMING
+        failure = f.account(m, consumed, fill, self._slack_ms, self._congested)
+        if failure is not None:
+            self._fail(failure.code, failure.message, node, failure.detail)
+            return
+        if started:
+            remaining = len(f.sends) - consumed
+            f.observe_fill(fill, bs, remaining >= self._u)
+            needed = needed_fill(self._u, remaining)
+            missing = f.repair_pending > 0 or f.suspect_sync is not None
+            # with records missing, the feeder's due-time check decides (resend in time, or predicted
+            # BUFFER_UNDERFLOW); otherwise a fill below U means records could not be sent in time
+            if fill < needed and (self._congested or not missing):
+                self._fail(
+                    oc.BUS_OVERLOAD,
+                    f"node {node}: FIFO down to {fill} records (< {needed}) at SYNC {m}: records could not "
+                    f"be delivered in time",
+                    node,
+                    {"fill": fill, "needed": needed, "congested": self._congested},
+                )
+                return
+        if fs is FeederState.PRIMING:
+            if not f.pending and f.confirmed >= self._prime_level:
+                f.fire(FeederInput.PRIMED)
+                fs = FeederState.PRIMED
+        elif fs is FeederState.STREAMING and not f.pending and f.confirmed >= len(f.sends):
+            f.fire(FeederInput.END_QUEUED)
+            fs = FeederState.DRAINING
+        if fs is FeederState.DRAINING:
+            if started and elapsed >= self._t_end and not active and sw & SW_TARGET_REACHED:
+                f.fire(FeederInput.STOPPED)
+                f.end_sync = m
+        elif fs in _FEEDING and self._state in _SENDING:
+            self._feed(f, fill, ev.free_size)
+        self._progress_job()
+
+    def _try_configure(self) -> None:
+        for f in self._feeders:
+            if f.first_status is None or f.first_demand is None:
+                return
+        tol = self._settings.start_tolerance_counts
+        for f in self._feeders:
+            assert f.first_status is not None and f.first_demand is not None
+            sw, bs, fill = f.first_status
+            node = f.node_id
+            why = ""
+            if sw & SW_STATE_MASK != SW_OPERATION_ENABLED:
+                why = f"not operation enabled (statusword 0x{sw:04X})"
+            elif not bs & BS_BUFFER_ENABLED:
+                why = f"IP buffer not enabled (buffer status 0x{bs:04X})"
+            elif bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
+                why = "ip mode already active"
+            elif fill != 0:
+                why = f"FIFO holds {fill} records (clear the buffer before a job)"
+            if why:
+                self._fail(
+                    oc.DRIVE_NOT_READY, f"node {node}: {why}", node, {"statusword": sw, "buffer_status": bs}
+                )
+                return
+            if abs(f.first_demand - f.start_position) > tol:
+                self._fail(
+                    oc.START_MISMATCH,
+                    f"node {node}: position demand {f.first_demand} counts is not the "
+                    f"plan's start {f.start_position} (off by {f.first_demand - f.start_position})",
+                    node,
+                    {"position_demand": f.first_demand, "plan_start": f.start_position},
+                )
+                return
+        for f in self._feeders:
+            f.fire(FeederInput.READY)
+            self._emit_cw(f, CW_ENABLE_OPERATION)
+        self._set_state(JobState.PRIMING)
+        # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
+        self._lock_prev = self._lockstep = 0
+
+    def _progress_job(self) -> None:
+        st = self._state
+        if st is JobState.STARTING and self._all_feeders(_ALL_ACTIVE):
+            self._set_state(JobState.RUNNING)
+            st = JobState.RUNNING
+        if st is JobState.RUNNING and self._all_feeders(_ALL_QUEUED):
+            self._set_state(JobState.FINISHING)
+            st = JobState.FINISHING
+        if st in (JobState.FINISHING, JobState.CANCELLING, JobState.HALTING) and self._all_feeders(
+            _ALL_FINISHED
+        ):
+            if st is JobState.FINISHING:
+                self._finish(JobResult.DONE, f"all {len(self._feeders)} axes finished the plan")
+            elif st is JobState.CANCELLING:
+                self._finish(
+                    JobResult.CANCELLED,
+                    "cancelled: " + str(self._cancel_info.get("summary", "")),
+                    dict(self._cancel_info),
+                )
+            else:
+                for f in self._feeders:
+                    self._emit_cw(f, CW_ENABLE_OPERATION)
+                self._finish(
+                    JobResult.CANCELLED,
+                    "cancelled: " + str(self._cancel_info.get("summary", "")),
+                    dict(self._cancel_info),
+                )
+
+    def _on_position(self, ev: PositionFeedback) -> None:
+        f = self._by_node.get(ev.node)
+        if f is None:
+            return
+        m = self._attribute(ev.sync_count)
+        if m is None or m <= f.last_tpdo2:
+            return
+        f.last_tpdo2 = m
+        self._t = ev.t
+        if self._state is JobState.CONFIGURING:
+            f.first_demand = ev.position_demand
+            self._try_configure()
+            return
+        if self._state is JobState.HALTING or f.state is FeederState.FAULTED:
+            return  # under halt each drive ramps down on its own: there is no plan to check against
+        s = self._start_sync
+        elapsed = 0 if s is None or m <= s else (m - s) * self._period
+        expected = f.expected_demand(elapsed, self._ends)
+        if expected is None:
+            return
+        err = abs(ev.position_demand - expected)
+        if err > f.max_demand_error:
+            f.max_demand_error = err
+        if err > self._settings.demand_tolerance_counts:
+            if s is None or m <= s:
+                self._fail(
+                    oc.START_MISMATCH,
+                    f"node {f.node_id}: position demand moved to {ev.position_demand} "
+                    f"before the start (plan start {expected})",
+                    f.node_id,
+                    {"position_demand": ev.position_demand, "expected": expected},
+                )
+            else:
+                self._fail(
+                    oc.PROTOCOL,
+                    f"node {f.node_id}: position demand {ev.position_demand} at SYNC {m} is "
+                    f"{err} counts from the plan's {expected}: records executed out of order, twice or "
+                    f"not at all",
+                    f.node_id,
+                    {"position_demand": ev.position_demand, "expected": expected, "sync": m},
+                )
+
+    def _on_emcy(self, ev: Emcy) -> None:
+        if ev.node not in self._by_node or ev.code == oc.EMCY_NO_ERROR:
+            return
+        self._t = ev.t
+        code, what = oc.classify_emcy(ev.code, ev.data)
+        self._fail(
+            code,
+            f"node {ev.node}: EMCY 0x{ev.code:04X} ({what})",
+            ev.node,
+            {"emcy_code": ev.code, "error_register": ev.register, "data": ev.data.hex()},
+        )
+
+    def _on_heartbeat_lost(self, ev: HeartbeatLost) -> None:
+        if ev.node in self._by_node:
+            self._t = ev.t
+            self._fail(oc.NODE_LOST, f"node {ev.node}: heartbeat lost", ev.node)
+
+    def _on_bootup(self, ev: Bootup) -> None:
+        if ev.node in self._by_node:
+            self._t = ev.t
+            self._fail(oc.NODE_REBOOT, f"node {ev.node}: boot-up message (the drive rebooted)", ev.node)
+
+    def _on_send_failed(self, ev: SendFailed) -> None:
+        self._t = ev.t
+        self._fail(oc.BUS_ERROR, f"the bus refused a frame: {ev.reason}", None, {"reason": ev.reason})
+
+    def _on_adapter_error(self, ev: AdapterError) -> None:
+        self._t = ev.t
+        self._fail(
+            oc.BUS_ERROR,
+            f"bus adapter error in {ev.where}: {ev.reason}",
+            None,
+            {"where": ev.where, "reason": ev.reason},
+        )
+
+    def _on_bus_load(self, ev: BusLoad) -> None:
+        self._congested = ev.load > self._settings.bus_load_limit
+        if self._measured_peak is None or ev.load > self._measured_peak:
+            self._measured_peak = ev.load
+
+    # ---- cancel ------------------------------------------------------------------------------------
+    def _cancel_before_start(self, ev: Cancel) -> None:
+        self._t = ev.t
+        for f in self._feeders:
+            f.fire(FeederInput.ABANDON)
+        self._cancel_info = {"stop": "before_start", "summary": "before the start; nothing moved"}
+        self._finish(
+            JobResult.CANCELLED, "cancelled before the start; nothing moved", dict(self._cancel_info)
+        )
+
+    def _cancel_after_end(self, ev: Cancel) -> None:
+        self._t = ev.t
+        self._cancel_info = {
+            "stop": "plan_end",
+            "summary": "the plan's end was already queued; it ends at rest",
+        }
+        self._set_state(JobState.CANCELLING)
+
+    def _cancel_in_motion(self, ev: Cancel) -> None:
+        self._t = ev.t
+        k = max(f.max_sent for f in self._feeders)
+        n_segments = len(self._ends) - 1
+        if k >= n_segments:
+            self._cancel_info = {
+                "stop": "plan_end",
+                "knot": k,
+                "summary": "the plan's last segment was already queued; it ends at rest",
+            }
+            self._set_state(JobState.CANCELLING)
+            return
+        if self._stop_planner is None:
+            self._halt("no stop planner was given")
+            return
+        accs = [f.end_acceleration(k - 1) for f in self._feeders]
+        request = StopRequest(
+            knot_index=k,
+            time_ms=self._ends[k - 1],
+            node_ids=self._plan.node_ids,
+            positions_counts=tuple(f.records[k - 1].position for f in self._feeders),
+            velocities_rpm=tuple(f.records[k - 1].velocity for f in self._feeders),
+            accelerations_counts_per_ms2=None
+            if any(a is None for a in accs)
+            else tuple(float(a or 0.0) for a in accs),
+        )
+        try:
+            stop = StreamPlan.from_trajectory(self._stop_planner(request))
+        except Exception as exc:  # the planner's failure is recorded in the outcome, and halt takes over
+            self._halt(f"the stop planner failed: {type(exc).__name__}: {exc}")
+            return
+        if stop.node_ids != self._plan.node_ids or stop.start_positions != request.positions_counts:
+            self._halt(
+                f"the stop trajectory does not start at knot {k} of every axis "
+                f"(starts {list(stop.start_positions)}, queued {list(request.positions_counts)})"
+            )
+            return
+        t0 = self._ends[k - 1]
+        new_ends = self._ends[:k] + [t0 + e for e in segment_ends(stop.segment_ms)]
+        assert self._sync is not None
+        short = dry_run(new_ends, self._policy, self._step, k, self._elapsed(self._sync))
+        if short is not None:
+            self._halt(
+                f"the stop trajectory cannot be streamed in time ({short.fill} records left at "
+                f"{short.elapsed_ms} ms)"
+            )
+            return
+        for axis, f in enumerate(self._feeders):
+            rid = rpdo2_id(f.node_id)
+            f.records = f.records[:k] + list(stop.records[axis])
+            f.sends = f.sends[:k] + [Send(rid, frame) for frame in stop.frames[axis]]
+        self._ends = new_ends
+        self._t_end = new_ends[-1]
+        self._lockstep = min(self._lockstep, k)
+        self._lock_prev = min(self._lock_prev, k)
+        self._points = sum(len(f.sends) for f in self._feeders)
+        self._cancel_info = {
+            "stop": "trajectory",
+            "knot": k,
+            "time_ms": t0,
+            "stop_duration_ms": stop.duration_ms,
+            "summary": f"stop trajectory from knot {k} ({t0} ms), {stop.duration_ms} ms long",
+        }
+        self._set_state(JobState.CANCELLING)
+
+    def _halt(self, reason: str) -> None:
+        for f in self._feeders:
+            if f.state in (FeederState.STARTING, FeederState.STREAMING):
+                f.fire(FeederInput.HALT)
+            self._emit_cw(f, CW_HALT)
+        self._halt_sync = (self._sync if self._sync is not None else 0) + 1
+        self._cancel_info = {"stop": "halt", "reason": reason, "summary": f"halt (bit 8): {reason}"}
+        self._set_state(JobState.HALTING)

@@ -1,0 +1,377 @@
+"""FIFO feeder: the per-axis state machine that keeps one drive's 64-entry PVT FIFO fed and verified.
+
+Owns, for one axis: where its record stream stands on the wire (`confirmed` records known to be in the
+FIFO or consumed, `sent_end` records sent), the loss/duplicate accounting against the drive's reported
+free size, and the axis' telemetry. It is fed by the coordinator, which attributes every TPDO to the
+SYNC it answers and knows the shared timing; it emits nothing itself: the coordinator asks it which
+frames to send (`take`). No I/O, no clock.
+
+States (`FeederState`, transitions in `_TRANSITIONS`; a missing entry raises `InvalidTransition`):
+
+    WAITING --READY--> PRIMING --PRIMED--> PRIMED --START--> STARTING --ACTIVE--> STREAMING
+    STREAMING --END_QUEUED--> DRAINING --STOPPED--> FINISHED
+    STARTING/STREAMING --HALT--> HALTING --STOPPED--> FINISHED
+    WAITING/PRIMING/PRIMED --ABANDON--> FINISHED          (cancel before the start)
+    any state but FAULTED --FAULT--> FAULTED             (poisoned: never sends again)
+
+Loss, duplicate and reorder accounting (the "one unconfirmed batch" design)
+---------------------------------------------------------------------------
+The drive tells us only how many records it holds, never which. With E = records sent before SYNC m
+minus records the plan says it consumed by SYNC m, the fill F it reports at m says:
+  F == E  everything sent arrived;
+  F >  E  a record arrived twice (duplicate, or a late original after a resend): PROTOCOL;
+  F <  E  E - F records are missing.
+A record can be resent without changing the drive's execution order only if no later record of the
+axis is in the FIFO. So a feeder keeps at most ONE unconfirmed batch: it sends the next batch only
+after the TPDO answering the SYNC after the previous batch confirmed it (batches go out on TPDO1
+arrival, so the batch sent in cycle m is confirmed by the TPDO of SYNC m + 1: one batch per cycle).
+Then a deficit D is always inside the last batch of b records, and
+  D == b  the whole batch is missing: resend it (nothing later was sent) -> repaired;
+  D <  b  some of the batch arrived: CAN keeps per-id order, but which records are missing is unknown
+          (r1 lost or r2 lost give the same fill), and r2 may already sit where r1 belongs: POINT_LOST.
+A deficit is first held for `loss_confirm_syncs` SYNC(s) without sending anything new: a record that
+is only late arrives meanwhile (no resend, so no duplicate); a record still missing then is lost. The
+wait is skipped when the missing record would be due too soon, and a resend is refused (predicted
+BUFFER_UNDERFLOW) when the record becomes the interpolation target less than `repair_margin_ms` from
+now. The top-up rule (schedule.py) keeps `repair_syncs` periods of records queued, so with the
+defaults a loss is detected at the next SYNC, declared at the one after and resent before it is due.
+
+Share repaired: batches are as small as the plan allows (one cycle's consumption: the top-up sends
+what the last period consumed, and an axis that fell behind catches up one extra record per cycle,
+not in one batch), so with segments of at least one SYNC period every batch has <= 1 record and
+every isolated loss is repaired (measured: 100% of 1% random drops, benchmarks/bench_streamer_core.py;
+the exception is the same record lost twice, after which the catch-up may need 2 per cycle); with k
+records per period an isolated loss is repaired only when it takes the whole batch, else POINT_LOST
+(the protocol cannot tell which record of the batch is missing). Priming goes at
+`prime_records_per_sync` (default 1) per cycle so priming losses are always repairable.
+
+Reordering inside a batch (two records of one axis swapped) leaves the fill right; it is caught when
+executed, by the position-demand check against the plan (coordinator, PositionFeedback).
+"""
+
+from __future__ import annotations
+
+from bisect import bisect_right
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, NamedTuple
+
+from bus.events import Send
+from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
+from planner.record import PvtRecord
+from streamer.core import outcome as oc
+
+
+class InvalidTransition(RuntimeError):
+    """An input arrived that the current state has no transition for (a bug in the caller)."""
+
+
+class FeederState(Enum):
+    WAITING = "waiting"
+    PRIMING = "priming"
+    PRIMED = "primed"
+    STARTING = "starting"
+    STREAMING = "streaming"
+    DRAINING = "draining"
+    HALTING = "halting"
+    FINISHED = "finished"
+    FAULTED = "faulted"
+
+
+class FeederInput(Enum):
+    READY = "ready"  # first feedback checked: drive ready, FIFO empty, at the plan's start
+    PRIMED = "primed"  # priming level confirmed in the FIFO
+    START = "start"  # start controlword sent
+    ACTIVE = "active"  # drive reports ip mode active at/after the start SYNC
+    END_QUEUED = "end_queued"  # the end record is confirmed in the FIFO
+    HALT = "halt"  # cancel fell back to halt (controlword bit 8)
+    STOPPED = "stopped"  # ip mode inactive and target reached (or halt standstill)
+    ABANDON = "abandon"  # cancelled before the start
+    FAULT = "fault"
+
+
+_S, _I = FeederState, FeederInput
+_TRANSITIONS: dict[tuple[FeederState, FeederInput], FeederState] = {
+    (_S.WAITING, _I.READY): _S.PRIMING,
+    (_S.PRIMING, _I.PRIMED): _S.PRIMED,
+    (_S.PRIMED, _I.START): _S.STARTING,
+    (_S.STARTING, _I.ACTIVE): _S.STREAMING,
+    (_S.STREAMING, _I.END_QUEUED): _S.DRAINING,
+    (_S.DRAINING, _I.STOPPED): _S.FINISHED,
+    (_S.STARTING, _I.HALT): _S.HALTING,
+    (_S.STREAMING, _I.HALT): _S.HALTING,
+    (_S.HALTING, _I.STOPPED): _S.FINISHED,
+    (_S.WAITING, _I.ABANDON): _S.FINISHED,
+    (_S.PRIMING, _I.ABANDON): _S.FINISHED,
+    (_S.PRIMED, _I.ABANDON): _S.FINISHED,
+    **{(state, _I.FAULT): _S.FAULTED for state in FeederState if state is not _S.FAULTED},
+}
+
+
+class Failure(NamedTuple):
+    code: str
+    message: str
+    detail: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class AxisTelemetry:
+    """One axis' counters for the job report (fills are records, as reported by the drive)."""
+
+    node_id: int
+    state: str
+    points_sent: int  # distinct records sent (resends not counted)
+    frames_sent: int  # records + controlwords sent to this node
+    resends: int
+    losses_detected: int
+    losses_repaired: int
+    late_batches: int  # deficits that resolved by themselves (records late, not lost)
+    min_fifo: int | None  # over SYNCs from the start while >= U records were left
+    max_fifo: int | None
+    underflow_warnings: int  # buffer status bit 0 over the same SYNCs
+    overflow_warnings: int  # buffer status bit 1 from the start
+    start_sync: int | None
+    end_sync: int | None
+    last_fill: int | None
+    max_demand_error_counts: int
+    errors: tuple[str, ...] = field(default=())
+
+
+class FifoFeeder:
+    """One axis. The coordinator owns the timing and calls `account`, `take` and `fire`."""
+
+    def __init__(
+        self,
+        axis: int,
+        node_id: int,
+        start_position: int,
+        records: list[PvtRecord],
+        sends: list[Send],
+        *,
+        sync_period_ms: int,
+        loss_confirm_syncs: int,
+        repair_margin_ms: int,
+        counts_per_rev: int | None,
+    ) -> None:
+        self.axis = axis
+        self.node_id = node_id
+        self.start_position = start_position
+        self.records = records  # replaced on cancel (the stop trajectory is spliced in)
+        self.sends = sends
+        self.state = FeederState.WAITING
+        self._period = sync_period_ms
+        self._confirm_syncs = loss_confirm_syncs
+        self._margin = repair_margin_ms
+        self._cpr = counts_per_rev
+        # stream position
+        self.confirmed = 0
+        self.sent_end = 0
+        self.batch_tag = 0  # SYNC from which the batch [confirmed, sent_end) is counted in the fill
+        self.suspect_sync: int | None = None
+        self.repair_pending = 0
+        self.max_sent = 0
+        # feedback bookkeeping (set by the coordinator)
+        self.last_tpdo1 = -1
+        self.last_tpdo2 = -1
+        self.first_status: tuple[int, int, int] | None = None  # (statusword, buffer status, fill)
+        self.first_demand: int | None = None
+        # telemetry
+        self.frames_sent = 0
+        self.resends = 0
+        self.losses_detected = 0
+        self.losses_repaired = 0
+        self.late_batches = 0
+        self.min_fifo: int | None = None
+        self.max_fifo: int | None = None
+        self.underflow_warnings = 0
+        self.overflow_warnings = 0
+        self.start_sync: int | None = None
+        self.end_sync: int | None = None
+        self.last_fill: int | None = None
+        self.max_demand_error = 0
+        self.errors: list[str] = []
+
+    # ---- state machine ----------------------------------------------------------------------------
+    def fire(self, inp: FeederInput) -> FeederState:
+        nxt = _TRANSITIONS.get((self.state, inp))
+        if nxt is None:
+            raise InvalidTransition(
+                f"feeder of node {self.node_id}: no transition from {self.state.name} on {inp.name}"
+            )
+        self.state = nxt
+        return nxt
+
+    @property
+    def pending(self) -> bool:
+        """An unconfirmed batch is out, or a deficit is being watched: send nothing new."""
+        return self.sent_end > self.confirmed or self.suspect_sync is not None
+
+    # ---- accounting -------------------------------------------------------------------------------
+    def account(
+        self, sync: int, consumed: int, fill: int, slack_ms: Callable[[int], float], congested: bool = False
+    ) -> Failure | None:
+        """Check the fill the drive reported at SYNC `sync` against the records sent and consumed.
+
+        `slack_ms(i)` is the time from SYNC `sync` until record i becomes the interpolation target
+        (infinite before the start). `congested`: the measured bus load is over the limit, so missing
+        records are presumed late, not lost: keep waiting while there is time, never resend (a late
+        original would then arrive twice), and fail BUS_OVERLOAD when the time is up. Returns a Failure,
+        or None (possibly after scheduling a resend).
+        """
+        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
+        expected = (self.sent_end if visible else self.confirmed) - consumed
+        if fill == expected:
+            if visible:
+                self.confirmed = self.sent_end
+                if self.repair_pending:
+                    self.losses_repaired += self.repair_pending
+                    self.repair_pending = 0
+            if self.suspect_sync is not None:
+                self.late_batches += 1
+                self.suspect_sync = None
+            return None
+        node = self.node_id
+        if fill > expected:
+            return Failure(
+                oc.PROTOCOL,
+                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {fill - expected} more "
+                f"than sent and not consumed ({expected}): a record arrived twice",
+                {"expected_fill": expected, "fill": fill},
+            )
+        deficit = expected - fill
+        batch = self.sent_end - self.confirmed if visible else 0
+        lo, hi = self.confirmed, self.sent_end
+        if deficit > batch:
+            return Failure(
+                oc.PROTOCOL,
+                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {deficit} fewer than expected "
+                f"({expected}) but only {batch} are unconfirmed: the drive consumed records the "
+                f"plan does not explain",
+                {"expected_fill": expected, "fill": fill, "unconfirmed": batch},
+            )
+        if self.suspect_sync is None:
+            self.suspect_sync = sync
+        slack = slack_ms(lo)
+        if slack >= self._period + self._margin and (
+            congested or sync - self.suspect_sync < self._confirm_syncs
+        ):
+            return None  # maybe late, not lost: wait one more SYNC, send nothing new meanwhile
+        if congested:
+            return Failure(
+                oc.BUS_OVERLOAD,
+                f"node {node}: {deficit} of records {lo}..{hi - 1} still not delivered at SYNC {sync} on an "
+                f"overloaded bus, and record {lo} is due in {slack:g} ms",
+                {"missing": deficit, "first_record": lo, "slack_ms": slack},
+            )
+        self.losses_detected += deficit
+        if deficit < batch:
+            return Failure(
+                oc.POINT_LOST,
+                f"node {node}: {deficit} of the {batch} records {lo}..{hi - 1} sent in one cycle did not "
+                f"arrive; which ones is unknown, so no resend can keep the execution order",
+                {"lost": deficit, "batch": batch, "first_record": lo},
+            )
+        if slack < self._margin:
+            return Failure(
+                oc.BUFFER_UNDERFLOW,
+                f"node {node}: records {lo}..{hi - 1} were lost and record {lo} is due in {slack:g} ms, "
+                f"too soon to resend (predicted underflow)",
+                {"predicted": True, "lost": deficit, "first_record": lo, "slack_ms": slack},
+            )
+        # the whole batch is missing and nothing later was sent: resend it, order unchanged
+        self.repair_pending += deficit
+        self.sent_end = self.confirmed
+        self.suspect_sync = None
+        return None
+
+    def take(self, n: int, tag: int) -> list[Send]:
+        """The next n frames of the stream, sent now and counted in the fill from SYNC `tag`."""
+        lo = self.sent_end
+        hi = lo + n
+        out = self.sends[lo:hi]
+        if lo < self.max_sent:
+            self.resends += min(hi, self.max_sent) - lo
+        if hi > self.max_sent:
+            self.max_sent = hi
+        self.sent_end = hi
+        self.batch_tag = tag
+        self.frames_sent += n
+        return out
+
+    # ---- position demand prediction ---------------------------------------------------------------
+    def expected_demand(self, elapsed_ms: int, ends: Sequence[int]) -> int | None:
+        """The drive's position demand after `elapsed_ms` of interpolation (None: not predictable here,
+        i.e. inside a segment without counts_per_rev)."""
+        recs = self.records
+        if elapsed_ms <= 0:
+            return self.start_position
+        if elapsed_ms >= ends[-1]:
+            return recs[-1].position
+        k = bisect_right(ends, elapsed_ms)  # records consumed; record k is the current target
+        prev_end = ends[k - 1] if k else 0
+        if elapsed_ms == prev_end:
+            return recs[k - 1].position
+        cpr = self._cpr
+        if cpr is None:
+            return None
+        rec = recs[k]
+        if k:
+            prev = recs[k - 1]
+            p_prev, v_prev = prev.position, rpm_to_counts_per_ms(prev.velocity, cpr)
+        else:
+            p_prev, v_prev = self.start_position, 0.0
+        coeffs = coefficients(
+            p_prev, v_prev, rec.position, rpm_to_counts_per_ms(rec.velocity, cpr), rec.time_ms
+        )
+        return round_counts(evaluate(coeffs, elapsed_ms - ends[k])[0])
+
+    def end_acceleration(self, index: int) -> float | None:
+        """The drive's Hermite acceleration (counts/ms^2) at the end of record `index`'s segment."""
+        cpr = self._cpr
+        if cpr is None or index < 0:
+            return None if cpr is None else 0.0
+        rec = self.records[index]
+        if index:
+            prev = self.records[index - 1]
+            p_prev, v_prev = prev.position, rpm_to_counts_per_ms(prev.velocity, cpr)
+        else:
+            p_prev, v_prev = self.start_position, 0.0
+        coeffs = coefficients(
+            p_prev, v_prev, rec.position, rpm_to_counts_per_ms(rec.velocity, cpr), rec.time_ms
+        )
+        return evaluate(coeffs, 0.0)[2]
+
+    # ---- telemetry --------------------------------------------------------------------------------
+    def observe_fill(self, fill: int, buffer_status: int, in_window: bool) -> None:
+        self.last_fill = fill
+        if buffer_status & 0x0002:
+            self.overflow_warnings += 1
+        if in_window:
+            if self.min_fifo is None or fill < self.min_fifo:
+                self.min_fifo = fill
+            if self.max_fifo is None or fill > self.max_fifo:
+                self.max_fifo = fill
+            if buffer_status & 0x0001:
+                self.underflow_warnings += 1
+
+    def telemetry(self) -> AxisTelemetry:
+        return AxisTelemetry(
+            node_id=self.node_id,
+            state=self.state.value,
+            points_sent=self.max_sent,
+            frames_sent=self.frames_sent,
+            resends=self.resends,
+            losses_detected=self.losses_detected,
+            losses_repaired=self.losses_repaired,
+            late_batches=self.late_batches,
+            min_fifo=self.min_fifo,
+            max_fifo=self.max_fifo,
+            underflow_warnings=self.underflow_warnings,
+            overflow_warnings=self.overflow_warnings,
+            start_sync=self.start_sync,
+            end_sync=self.end_sync,
+            last_fill=self.last_fill,
+            max_demand_error_counts=self.max_demand_error,
+            errors=tuple(self.errors),
+        )

@@ -1,0 +1,123 @@
+"""Streamer core settings: one frozen, validated parameter object per job.
+
+Everything the feeders and the coordinator need to know about the cell, the drives and the policy,
+in the drive's units (records, ms, counts). `StreamerSettings.from_cell` builds it from a
+`planner.config.CellConfig`; tests build it directly.
+
+Policy knobs and why they exist:
+- `lead_ms`: how much motion (in time) to keep queued ahead of the drive. More lead survives longer
+  bus trouble; less lead makes cancel react sooner (the stop starts after what is queued).
+- `repair_syncs`: extra SYNC periods of records kept queued so a lost batch can be detected,
+  confirmed lost and resent before the FIFO drops below the underflow watermark (see feeder.py).
+- `loss_confirm_syncs`: SYNCs to wait after a fill deficit before declaring records lost (1 tells a
+  record delayed past one SYNC from a lost one, and avoids resending a record that then arrives twice).
+- `repair_margin_ms`: a resend must arrive this long before its record becomes the interpolation
+  target; default one SYNC period (a real drive interpolates in real time, not at the SYNC).
+- `prime_records_per_sync`: priming pace per axis; 1 keeps every priming loss repairable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
+
+FIFO_SIZE = 64
+_EMPTY_CPR: Mapping[int, int] = MappingProxyType({})
+
+
+@dataclass(frozen=True)
+class StreamerSettings:
+    sync_period_ms: int = 10
+    bitrate: int = 1_000_000
+    underflow_watermark: int = 4  # 0x20C4:02
+    overflow_watermark: int = 60  # 0x20C4:03
+    lead_ms: int = 100
+    repair_syncs: int = 2
+    loss_confirm_syncs: int = 1
+    repair_margin_ms: int | None = None  # None: one SYNC period
+    bus_load_limit: float = 0.7
+    heartbeat_ms: int = 100  # producer time of the drives (for bus-load accounting only)
+    prime_records_per_sync: int = 1
+    tpdo_timeout_syncs: int = 3
+    finish_timeout_ms: int = 2000
+    start_tolerance_counts: int = 0
+    demand_tolerance_counts: int = 2
+    # motor quadcounts per revolution per node id: converts rpm to counts/ms so the core can predict
+    # the drive's position demand at every SYNC exactly (without it, demand is checked at knots only)
+    counts_per_rev: Mapping[int, int] = field(default_factory=lambda: _EMPTY_CPR)
+    sync_gap_factor: float | None = None  # core-side SYNC_LOST when a SYNC comes this many periods late
+    fifo_size: int = FIFO_SIZE
+
+    def __post_init__(self) -> None:
+        def bad(name: str, value: object, why: str) -> ValueError:
+            return ValueError(f"streamer setting {name} = {value!r}: {why}")
+
+        for name in (
+            "sync_period_ms",
+            "bitrate",
+            "lead_ms",
+            "heartbeat_ms",
+            "prime_records_per_sync",
+            "tpdo_timeout_syncs",
+            "finish_timeout_ms",
+            "fifo_size",
+        ):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise bad(name, v, "must be a positive integer")
+        for name in (
+            "underflow_watermark",
+            "repair_syncs",
+            "loss_confirm_syncs",
+            "start_tolerance_counts",
+            "demand_tolerance_counts",
+        ):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise bad(name, v, "must be an integer >= 0")
+        if not 2 <= self.overflow_watermark <= self.fifo_size:
+            raise bad("overflow_watermark", self.overflow_watermark, f"must be in [2, {self.fifo_size}]")
+        if not self.underflow_watermark < self.overflow_watermark:
+            raise bad(
+                "underflow_watermark",
+                self.underflow_watermark,
+                f"must be below overflow_watermark {self.overflow_watermark}",
+            )
+        if self.repair_margin_ms is not None and (
+            isinstance(self.repair_margin_ms, bool)
+            or not isinstance(self.repair_margin_ms, int)
+            or self.repair_margin_ms < 0
+        ):
+            raise bad("repair_margin_ms", self.repair_margin_ms, "must be None or an integer >= 0")
+        if not (math.isfinite(self.bus_load_limit) and 0.0 < self.bus_load_limit <= 1.0):
+            raise bad("bus_load_limit", self.bus_load_limit, "must be in (0, 1]")
+        if self.sync_gap_factor is not None and not (
+            math.isfinite(self.sync_gap_factor) and self.sync_gap_factor > 1.0
+        ):
+            raise bad("sync_gap_factor", self.sync_gap_factor, "must be None or > 1")
+        cpr = dict(self.counts_per_rev)
+        for node, value in cpr.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise bad(f"counts_per_rev[{node}]", value, "must be a positive integer")
+        object.__setattr__(self, "counts_per_rev", MappingProxyType(cpr))
+
+    @property
+    def margin_ms(self) -> int:
+        return self.sync_period_ms if self.repair_margin_ms is None else self.repair_margin_ms
+
+    @classmethod
+    def from_cell(cls, cell: Any, **overrides: Any) -> StreamerSettings:
+        """Settings for a `planner.config.CellConfig` (typed Any so this module does not pull the TOML
+        loader into the core's type check); keyword overrides win."""
+        base = cls(
+            sync_period_ms=cell.sync_period_ms,
+            bitrate=cell.bus.bitrate,
+            underflow_watermark=cell.drive.underflow_warning,
+            overflow_watermark=cell.drive.overflow_warning,
+            heartbeat_ms=cell.drive.heartbeat_ms,
+            counts_per_rev={a.node_id: int(a.counts_per_rev) for a in cell.axes},
+        )
+        return replace(base, **overrides) if overrides else base
