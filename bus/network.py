@@ -296,6 +296,12 @@ class MasterAdapter:
             task.stop()
 
     @property
+    def latest_sync(self) -> int | None:
+        """The count of the newest SYNC heard back from the bus (None before the first)."""
+        count = self._sync_count
+        return count - 1 if count else None
+
+    @property
     def sync_running(self) -> bool:
         return self._sync_task is not None
 

@@ -282,6 +282,7 @@ class Coordinator:
         settings: StreamerSettings,
         stop_planner: StopPlanner | None = None,
     ) -> None:
+        self._wire_sync: int | None = None
         self._plan = plan if isinstance(plan, StreamPlan) else StreamPlan.from_trajectory(plan)
         self._settings = s = settings
         self._stop_planner = stop_planner
@@ -353,11 +354,18 @@ class Coordinator:
         self._check_feasible()
 
     # ---- public surface ---------------------------------------------------------------------------
-    def handle(self, event: object) -> Reaction:
-        """Feed one event; returns the frames to send now and the state changes it caused."""
+    def handle(self, event: object, *, wire_sync: int | None = None) -> Reaction:
+        """Feed one event; returns the frames to send now and the state changes it caused.
+
+        `wire_sync`: the newest SYNC already on the wire when the returned frames will go out. A
+        real-time runtime that lags behind the bus (its queue already holds a later SYNC than the one
+        the core last saw) passes it, so records sent now are counted in the drive's fill from the SYNC
+        after that one, not from the SYNC after the core's; otherwise a late batch looks lost.
+        """
         fn = self._dispatch.get((self._state, type(event)))
         if fn is None:
             raise UnexpectedEvent(f"no transition for {type(event).__name__} in state {self._state.name}")
+        self._wire_sync = wire_sync
         fn(event)
         if not self._out and not self._changes:
             return _NOTHING
@@ -661,7 +669,9 @@ class Coordinator:
             self._extra_bits -= min(catch, n) * RECORD_FRAME_BITS
             if n <= 0:
                 return
-        sends = f.take(n, self._sync + 1 if self._sync is not None else 0)
+        newest = max(s for s in (self._sync, self._wire_sync) if s is not None) if (
+            self._sync is not None or self._wire_sync is not None) else -1
+        sends = f.take(n, newest + 1)
         self._out.extend(sends)
         self._cycle_used_bits += n * RECORD_FRAME_BITS
         self._frames_sent += n
@@ -762,14 +772,21 @@ class Coordinator:
             needed = needed_fill(self._u, remaining)
             missing = f.repair_pending > 0 or f.suspect_sync is not None
             # with records missing, the feeder's due-time check decides (resend in time, or predicted
-            # BUFFER_UNDERFLOW); otherwise a fill below U means records could not be sent in time
-            if fill < needed and (self._congested or not missing):
+            # BUFFER_UNDERFLOW). Otherwise a fill below U means records could not be sent in time: on a
+            # congested bus that is BUS_OVERLOAD at once (before any drive underflows); on a quiet bus
+            # it is a late master (a real-time runtime that lagged a cycle), which the next top-up
+            # repairs, so it fails only when what the FIFO holds runs out within two SYNC periods (a
+            # top-up sent now still arrives in time for one more, with a period to spare).
+            covered_ms = self._ends[min(consumed + fill, len(self._ends)) - 1] - elapsed if fill else 0
+            danger = covered_ms < 2 * self._period and consumed + fill < len(self._ends)
+            if fill < needed and (self._congested or (not missing and danger)):
                 self._fail(
                     oc.BUS_OVERLOAD,
                     f"node {node}: FIFO down to {fill} records (< {needed}) at SYNC {m}: records could not "
                     f"be delivered in time",
                     node,
-                    {"fill": fill, "needed": needed, "congested": self._congested},
+                    {"fill": fill, "needed": needed, "congested": self._congested,
+                     "covered_ms": covered_ms},
                 )
                 return
         if fs is FeederState.PRIMING:

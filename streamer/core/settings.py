@@ -34,7 +34,7 @@ class StreamerSettings:
     bitrate: int = 1_000_000
     underflow_watermark: int = 4  # 0x20C4:02
     overflow_watermark: int = 60  # 0x20C4:03
-    lead_ms: int = 100
+    lead_ms: int = 200
     repair_syncs: int = 2
     loss_confirm_syncs: int = 1
     repair_margin_ms: int | None = None  # None: one SYNC period

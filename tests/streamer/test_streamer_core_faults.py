@@ -449,7 +449,7 @@ def test_burst_of_40_lost_records_on_one_axis_is_buffer_underflow_and_all_axes_s
 
 def test_lost_record_too_close_to_its_due_time_is_predicted_underflow() -> None:
     plan = make_plan(2, 3000, seed=29)
-    settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), repair_margin_ms=200)
+    settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), lead_ms=100, repair_margin_ms=200)
     rig = Rig(plan, settings, inject=record_dropper(1, {40}))
     rig.run()
     outcome = rig.core.outcome
