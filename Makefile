@@ -28,3 +28,6 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) demo-out .pytest_cache .hypothesis
+
+vcan-test: $(STAMP)
+	tools/vcan-vm/vcan-test.sh

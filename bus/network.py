@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
@@ -53,7 +54,7 @@ from bus.errors import (
     BusError,
     ProtocolError,
 )
-from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, Sync
+from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, SendFailed, Sync
 from bus.profile import EPOS_IPM, DriveProfile, SdoWrite
 from planner.config import AxisConfig, BusConfig, CellConfig
 
@@ -109,6 +110,9 @@ class MasterAdapter:
         self.clock = clock
         self.nodes = frozenset(a.node_id for a in cell.axes)
         self.failures: list[BusError] = []
+        # received frames that mean nothing here ("unknown_cob_id", "other_node") or do not decode
+        # ("malformed", also reported as AdapterError): counted, never an exception
+        self.counters: Counter[str] = Counter()
         self._callbacks: list[EventCallback] = []
         self._emit_lock = threading.RLock()
         self._closed = False
@@ -205,6 +209,10 @@ class MasterAdapter:
         for axis in self.cell.axes:
             n = axis.node_id
             state = codec.state_from_statusword(self.read(n, sw.index, sw.sub))
+            reaction_ends = self.now() + timeout_s
+            while state == S.FAULT_REACTION_ACTIVE and self.now() < reaction_ends:
+                time.sleep(0.005)  # the drive is still ramping down: it enters FAULT by itself (CiA 402)
+                state = codec.state_from_statusword(self.read(n, sw.index, sw.sub))
             commands: list[codec.Command] = []
             if state == S.FAULT:
                 commands += [codec.Command.DISABLE_VOLTAGE, codec.Command.FAULT_RESET]
@@ -284,9 +292,19 @@ class MasterAdapter:
             self._sync_started_at = self.now()
             self._sync_echo_warned = False
         try:
-            self._sync_task = self._bus.send_periodic(msg, period)
+            task = self._bus.send_periodic(msg, period, autostart=False)
+            if hasattr(task, "on_error"):  # python-can's thread-based task: report a refused SYNC
+                task.on_error = self._on_sync_send_error
+            task.start()
+            self._sync_task = task
         except Exception as e:
             raise BusError(SEND_FAILED, f"cannot start SYNC producer: {type(e).__name__}: {e}") from None
+
+    def _on_sync_send_error(self, exc: Exception) -> bool:
+        """The periodic task could not send SYNC (bus-off...): a SendFailed event, and the task stops
+        (`sync_running` turns False, so the next job starts SYNC again once the bus is back)."""
+        self._emit(SendFailed(f"SYNC producer: {type(exc).__name__}: {exc}", self.now()))
+        return False
 
     def stop_sync(self) -> None:
         task, self._sync_task = self._sync_task, None
@@ -303,7 +321,8 @@ class MasterAdapter:
 
     @property
     def sync_running(self) -> bool:
-        return self._sync_task is not None
+        task = self._sync_task
+        return task is not None and not getattr(task, "stopped", False)
 
     def check(self) -> None:
         """Raise the first exception a subscriber callback raised (kept, never dropped)."""
@@ -404,10 +423,14 @@ class MasterAdapter:
                         self._emit(BusLoad(self._window_bits / (self._bitrate * window), t))
                     self._window_bits = 0
                     return
-            if not msg.is_rx:
-                return  # our own frame, received back
+            # No `is_rx` filter: on socketcan every frame created on this host (vcan0, or drives
+            # simulated in another process) arrives with is_rx False (MSG_DONTROUTE), not only ours.
+            # The COB-ID says who sent it: frame_to_event decodes only what drives send (TPDOs,
+            # EMCY, heartbeats) and ignores what the master sends (SYNC handled above, RPDOs, SDO, NMT).
             data = bytes(msg.data)
             kind, node = cob.classify(cob_id)
+            if kind == "OTHER" or (node and node not in self.nodes):
+                self.counters["unknown_cob_id" if kind == "OTHER" else "other_node"] += 1
             if kind == "HEARTBEAT" and node in self.nodes:
                 with self._emit_lock:
                     self._hb_last[node] = t
@@ -417,6 +440,7 @@ class MasterAdapter:
             if event is not None:
                 self._emit(event)
         except ProtocolError as e:
+            self.counters["malformed"] += 1
             self._emit(AdapterError(f"decode 0x{cob_id:03X}", str(e), t))
         except Exception as e:
             self._emit(AdapterError(f"receive 0x{cob_id:03X}", f"{type(e).__name__}: {e}", t))

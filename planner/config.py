@@ -22,9 +22,11 @@ from planner.errors import CONFIG, LIMITS, PlanningError
 
 def _number(section: str, key: str, value: Any, *, positive: bool = False, integer: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise PlanningError(CONFIG, f"{section}.{key} must be a number, got {value!r}", path=f"{section}.{key}")
+        raise PlanningError(CONFIG, f"{section}.{key} must be a number, got {value!r}",
+                            path=f"{section}.{key}")
     if integer and not isinstance(value, int):
-        raise PlanningError(CONFIG, f"{section}.{key} must be an integer, got {value!r}", path=f"{section}.{key}")
+        raise PlanningError(CONFIG, f"{section}.{key} must be an integer, got {value!r}",
+                            path=f"{section}.{key}")
     if not math.isfinite(value):
         raise PlanningError(LIMITS, f"{section}.{key} is {value}", path=f"{section}.{key}")
     if positive and value <= 0:
@@ -51,9 +53,11 @@ class AxisConfig:
     def __post_init__(self) -> None:
         where = f"axis '{self.name}'"
         if not self.name or not isinstance(self.name, str):
-            raise PlanningError(CONFIG, f"axis name must be a non-empty string, got {self.name!r}", path="axis.name")
+            raise PlanningError(CONFIG, f"axis name must be a non-empty string, got {self.name!r}",
+                                path="axis.name")
         if not (1 <= self.node_id <= 127):
-            raise PlanningError(CONFIG, f"node_id of {where} must be 1..127, got {self.node_id}", path="axis.node_id")
+            raise PlanningError(CONFIG, f"node_id of {where} must be 1..127, got {self.node_id}",
+                                path="axis.node_id")
         for f in fields(self):
             if f.name in ("name", "node_id"):
                 continue
@@ -81,7 +85,8 @@ class AxisConfig:
         if self.velocity_rpm(self.velocity) > self.max_profile_velocity_rpm:
             raise PlanningError(
                 LIMITS,
-                f"velocity {self.velocity} of {where} is {self.velocity_rpm(self.velocity):.1f} rpm, above the "
+                f"velocity {self.velocity} of {where} is {self.velocity_rpm(self.velocity):.1f} rpm, "
+                f"above the "
                 f"drive's max_profile_velocity_rpm {self.max_profile_velocity_rpm} (0x607F)",
                 path="axis.velocity",
             )
@@ -160,12 +165,13 @@ class CellConfig:
                                 path="cell.sync_period_ms")
         if not self.axes:
             raise PlanningError(CONFIG, "a cell needs at least one [[axis]]", path="axis")
-        names = [a.name for a in self.axes]
-        ids = [a.node_id for a in self.axes]
+        names: list[str | int] = [a.name for a in self.axes]
+        ids: list[str | int] = [a.node_id for a in self.axes]
         for label, values in (("name", names), ("node_id", ids)):
             dup = {v for v in values if values.count(v) > 1}
             if dup:
-                raise PlanningError(CONFIG, f"duplicate axis {label} {sorted(dup)!r}", path=f"axis.{label}")
+                raise PlanningError(CONFIG, f"duplicate axis {label} {sorted(dup, key=str)!r}",
+                                    path=f"axis.{label}")
 
     @property
     def sync_period_s(self) -> float:
@@ -194,7 +200,8 @@ class CellConfig:
                 used = {a.node_id for a in out} | {a.node_id for a in self.axes}
                 nid = next(k for k in range(1, 128) if k not in used)
                 out.append(_replace(base, name=f"{base.name}_{i // len(self.axes)}", node_id=nid))
-        return _replace(self, axes=tuple(out))
+        cell: CellConfig = _replace(self, axes=tuple(out))
+        return cell
 
 
 def _replace(obj: Any, **changes: Any) -> Any:
@@ -223,10 +230,12 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
             v = _number(path, f.name, v)
         elif "tuple" in str(f.type):
             if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
-                raise PlanningError(CONFIG, f"{path}.{f.name} must be a list of strings", path=f"{path}.{f.name}")
+                raise PlanningError(CONFIG, f"{path}.{f.name} must be a list of strings",
+                                    path=f"{path}.{f.name}")
             v = tuple(v)
         elif not isinstance(v, str):
-            raise PlanningError(CONFIG, f"{path}.{f.name} must be a string, got {v!r}", path=f"{path}.{f.name}")
+            raise PlanningError(CONFIG, f"{path}.{f.name} must be a string, got {v!r}",
+                                path=f"{path}.{f.name}")
         kwargs[f.name] = v
     return cls(**kwargs)
 
@@ -239,7 +248,8 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     allowed = {"cell", "axis", "bus", "drive", "zenoh"}
     unknown = sorted(set(data) - allowed)
     if unknown:
-        raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})", path=unknown[0])
+        raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})",
+                            path=unknown[0])
     cell = data.get("cell")
     if not isinstance(cell, Mapping):
         raise PlanningError(CONFIG, "missing [cell] table", path="cell")
@@ -262,7 +272,8 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         missing = [k for k in _AXIS_REQUIRED if k not in ax]
         unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED))
         if missing:
-            raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}", path=f"{p}.{missing[0]}")
+            raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}",
+                                path=f"{p}.{missing[0]}")
         if unknown_k:
             raise PlanningError(CONFIG, f"{p} has unknown key(s) {unknown_k}", path=f"{p}.{unknown_k[0]}")
         if not isinstance(ax["name"], str):

@@ -29,6 +29,7 @@ ENCODING_RANGE = "ENCODING_RANGE"
 SCHEMA = "SCHEMA"
 TYPE = "TYPE"
 CONFIG = "CONFIG"
+TOO_LARGE = "TOO_LARGE"
 
 CODES = frozenset(
     {
@@ -45,6 +46,7 @@ CODES = frozenset(
         SCHEMA,
         TYPE,
         CONFIG,
+        TOO_LARGE,
     }
 )
 

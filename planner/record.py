@@ -67,7 +67,9 @@ def unpack(data: bytes | bytearray | memoryview) -> PvtRecord:
     raw = bytes(data)
     if len(raw) != RECORD_SIZE:
         raise EncodingRangeError(
-            f"PVT record must be {RECORD_SIZE} bytes, got {len(raw)}", path="record", detail={"length": len(raw)}
+            f"PVT record must be {RECORD_SIZE} bytes, got {len(raw)}",
+            path="record",
+            detail={"length": len(raw)},
         )
     return PvtRecord(
         int.from_bytes(raw[0:4], "little", signed=True),

@@ -13,7 +13,12 @@ from collections.abc import Sequence
 
 # (module, one-line help) in the order `pvt --help` lists them
 SUBCOMMANDS: tuple[str, ...] = (
+    "streamer.cli_demo",
     "streamer.cli_plan",
+    "streamer.cli_serve",
+    "streamer.cli_submit",
+    "streamer.cli_jobs",
+    "streamer.cli_sim",
 )
 
 

@@ -42,6 +42,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--bus", default=None,
                    help="INTERFACE:CHANNEL, e.g. socketcan:vcan0 (default: the cell's [bus])")
     p.add_argument("--bitrate", type=int, default=None, help="bit/s (default: the cell's)")
+    p.add_argument("--axes", type=int, default=None,
+                   help="number of drives (the config's axes repeated, as `pvt demo --axes`)")
+    p.add_argument("--sync-ms", type=int, default=None, help="SYNC period the drives expect (default: the config's)")
     p.add_argument("--motor", choices=sorted(PRESETS), default="re35",
                    help="motor/controller preset from seed 000 chapter 7 (default: re35)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
@@ -57,6 +60,10 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
 
     try:
         cell = load_cell(args.config)
+        if args.axes is not None:
+            cell = cell.with_axes(args.axes)
+        if args.sync_ms is not None:
+            cell = replace(cell, sync_period_ms=args.sync_ms)
         bitrate = args.bitrate if args.bitrate is not None else cell.bus.bitrate
         bus_config = parse_bus(args.bus, bitrate) if args.bus else replace(cell.bus, bitrate=bitrate)
     except (PlanningError, ValueError) as e:

@@ -1,0 +1,729 @@
+"""PVT encoder: a `Reference` (the planned motion at every ms) -> knots on one shared integer-ms grid.
+
+Theory of operation. The drive rebuilds each axis' motion from PVT knots with the cubic Hermite
+polynomial of seed 000 4.2.3 (planner/hermite.py), evaluated every 1 ms and rounded to whole counts.
+The encoder's contract, checked at every ms of every axis on the quantised values:
+
+    |drive demand - planned demand| <= tolerance        (both in whole counts; planned demand =
+                                                          the plan rounded as the drive rounds)
+
+(Against the unrounded plan that is within tolerance + 0.5. A float tolerance of 1 count would leave
+a band of +-0.5 count after the drive's rounding, less than what one rpm of velocity quantisation,
+0.137 counts/ms at 8192 counts/rev, costs over a 25 ms segment; measured here, no placement then meets
+both the tolerance and the acceleration budget below.)
+
+1. Knot times, shared by all axes (`place_knots`): greedy, the longest segment (from a ladder of
+   lengths around the previous one) whose Hermite through the *exact* planned (position, velocity)
+   stays within `PLACEMENT_SHARE` of the tolerance at sample ticks and whose end accelerations miss
+   the plan's by less than `ACC_PLACEMENT_SHARE` of the axis limit. It runs in lockstep over
+   independent sections, so every round is one vectorised evaluation for all sections and axes.
+   Sections end at the plan's acceleration steps above `STEP_SHARE` (the planners put those on whole
+   ms; a Hermite segment, whose acceleration is linear, cannot follow a step inside it) and at least
+   every `SECTION_MS`. Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
+   moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
+   rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
+   segments make acceleration noise); sections are balanced and short segments rebalanced.
+2. Knot values, jointly (`_choose_values`): each knot's position is floor or ceil of the plan (int32
+   counts), its velocity one of the rpm values nearest the plan (int24). A Viterbi pass over the knots
+   (per axis, all axes vectorised) picks the combination that keeps the drive's rounded demand within
+   the tolerance at sample ticks and minimises the acceleration excess over the plan. Rounding each
+   value on its own is not enough (docs/formats.md, section 3).
+3. Verification of the drive's reconstruction (planner.hermite, rounded as the drive rounds) at every
+   ms. Segments that fail are refined locally (7 velocity candidates, exact check at every tick), then
+   split. Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
+   excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
+   `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
+   segments) and a long one (`variant=2`: fewer short segments), then plays planned motions slower
+   (sub-count moves need it).
+
+Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
+the last knot is the plan's end rounded to counts with velocity 0, exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner import hermite
+from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
+from planner.reference import FloatArray, IntArray, Reference
+
+PLACEMENT_SHARE = 0.7  # share of the tolerance the exact-value Hermite may use (the rest: quantisation)
+SECTION_MS = 250  # greedy placement runs in lockstep over sections of at most this length
+ACC_EXCESS_LIMIT = 0.05  # reconstruction acceleration over the plan, as a share of the axis limit
+VELOCITY_SLACK = 0.005  # reconstruction velocity over the axis limit allowed (0.5 %)
+MAX_ROUNDS = 6  # verify/refine/split rounds before giving up
+ACC_PLACEMENT_SHARE = 0.02  # end-acceleration miss of exact-value segments, share of the axis limit
+STEP_SHARE = 0.15  # acceleration steps above this share of the axis limit get a knot of their own
+MANDATORY_GAP = 4  # ms: acceleration steps closer than this share one knot
+_HARD = 1.0e6
+DP_VELOCITIES = (0, 1)  # first pass: the two rpm values around the plan (refinement: 7)
+_DP_POSITIONS = (-1.0, 0.0, 1.0)  # counts around the planned demand
+_PROX = np.array([1 / 6, 1 / 3, 1 / 2, 2 / 3, 5 / 6, 0.93])  # sample ticks (fractions of a segment)
+_LADDER = np.array([0.55, 0.75, 0.9, 1.0, 1.12, 1.3, 1.6, 2.0])
+
+
+class EncodingNeedsTime(Exception):
+    """Internal: the motion is too fast for the quantisation (slow it down by `factor` and retry)."""
+
+    def __init__(self, message: str, factor: float, axis: int = -1):
+        super().__init__(message)
+        self.message = message
+        self.factor = factor
+        self.axis = axis
+
+
+class EncodingFailed(Exception):
+    """Internal: the reference cannot be encoded within tolerance (the caller raises a PlanningError)."""
+
+    def __init__(self, message: str, axis: int = -1, tick: int = -1):
+        super().__init__(message)
+        self.message = message
+        self.axis = axis
+        self.tick = tick
+
+
+@dataclass(frozen=True, eq=False)
+class AxisScales:
+    """Per-axis conversions and limits in drive units (arrays of n_axes)."""
+
+    counts_per_ms_per_rpm: FloatArray  # counts_per_rev / 60000
+    velocity_limit: FloatArray  # counts/ms, the job's limit for this axis (scale applied)
+    acceleration_limit: FloatArray  # counts/ms^2, the job's limit for this axis (scale applied)
+    acceleration_axis: FloatArray  # counts/ms^2, the axis limit the 5 % excess budget refers to
+    drive_velocity: FloatArray  # 0x607F in counts/ms
+    drive_acceleration: FloatArray  # 0x60C5 in counts/ms^2
+
+
+@dataclass(frozen=True, eq=False)
+class Knots:
+    """The encoder's output: shared knot times and the quantised values of every axis."""
+
+    times_ms: IntArray  # (N+1,), times_ms[0] == 0
+    positions: IntArray  # (n_axes, N+1) counts
+    velocities_rpm: IntArray  # (n_axes, N+1) rpm
+
+
+@dataclass(frozen=True, eq=False)
+class Reconstruction:
+    """The drive's reconstruction at every ms (what the drive computes from the knots)."""
+
+    demand: IntArray  # (n_axes, M+1) rounded position demand, counts
+    position: FloatArray  # (n_axes, M+1) unrounded, counts
+    velocity: FloatArray  # (n_axes, M+1) counts/ms
+    acc_start: FloatArray  # (n_axes, N) acceleration at the start of each segment, counts/ms^2
+    acc_end: FloatArray  # (n_axes, N) acceleration at the end of each segment
+
+
+def planned_demand(ref: Reference) -> IntArray:
+    """The plan rounded to whole counts as the drive rounds: what a perfect encoding would command."""
+    return hermite.round_counts_array(ref.positions)
+
+
+# ----------------------------------------------------------------------------------------------------
+# reconstruction (through planner.hermite, the one definition of the drive's interpolation)
+
+
+def reconstruct(knots: Knots, scales: AxisScales) -> Reconstruction:
+    """The drive's position demand at every ms of every axis, and the segments' end accelerations."""
+    t = knots.times_ms
+    dt = np.diff(t)
+    n = knots.positions.shape[0]
+    total = int(t[-1])
+    demand = np.empty((n, total + 1), dtype=np.int64)
+    pos = np.empty((n, total + 1))
+    vel = np.empty((n, total + 1))
+    acc_s = np.zeros((n, dt.size))
+    acc_e = np.zeros((n, dt.size))
+    tt = dt.astype(np.float64)
+    for i in range(n):
+        v = knots.velocities_rpm[i].astype(np.float64) * scales.counts_per_ms_per_rpm[i]
+        p = knots.positions[i].astype(np.float64)
+        pos[i], vel[i], _ = hermite.reconstruct(p, v, dt)
+        demand[i] = hermite.round_counts_array(pos[i])
+        if dt.size:
+            dp = p[1:] - p[:-1]
+            acc_s[i] = (6.0 * dp - 2.0 * tt * v[1:] - 4.0 * tt * v[:-1]) / (tt * tt)
+            acc_e[i] = (-6.0 * dp + 4.0 * tt * v[1:] + 2.0 * tt * v[:-1]) / (tt * tt)
+    return Reconstruction(demand, pos, vel, acc_s, acc_e)
+
+
+def segment_envelope(ref: Reference, times: IntArray) -> FloatArray:
+    """Planned |acceleration| peak over each segment (both end ticks included), (n_axes, N)."""
+    env = ref.acc_envelope()
+    if times.size < 2:
+        return np.zeros((ref.n_axes, 0))
+    left: FloatArray = np.maximum.reduceat(env, times[:-1], axis=1)
+    out: FloatArray = np.maximum(left, env[:, times[1:]])
+    return out
+
+
+def acceleration_excess(ref: Reference, knots: Knots, rec: Reconstruction) -> FloatArray:
+    """Per segment and axis: peak reconstruction |acceleration| minus the plan's peak over the segment.
+
+    The drive's acceleration is linear inside a segment, so its peak is at one of the ends. Counts/ms^2,
+    (n_axes, N); negative where the reconstruction stays below the plan.
+    """
+    peak = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
+    out: FloatArray = peak - segment_envelope(ref, knots.times_ms)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# knot placement
+
+
+def _hermite_basis(
+    offsets: FloatArray, lengths: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    s = offsets / lengths
+    s2 = s * s
+    h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
+    h01 = 1.0 - h00
+    h10 = (s - 2.0 * s2 + s2 * s) * lengths
+    h11 = (s2 * s - s2) * lengths
+    return h00, h10, h01, h11
+
+
+def _placement_errors(
+    ref: Reference,
+    starts: IntArray,
+    lengths: IntArray,
+    acc_axis: FloatArray,
+    min_seg: int = 0,
+    acc_share: float = ACC_PLACEMENT_SHARE,
+) -> FloatArray:
+    """Candidate segments' error: max over axes of the position error (counts, at sample ticks) of the
+    Hermite through the exact knot values, or a large value where its end accelerations already miss
+    the plan's by more than `ACC_PLACEMENT_SHARE` of the axis limit (the linear Hermite acceleration
+    cannot follow a jerk kink inside a long segment; quantisation needs the rest of the budget)."""
+    tt = lengths.astype(np.float64)[:, None]
+    off = np.clip(np.round(_PROX[None, :] * tt), 1.0, np.maximum(tt - 1.0, 1.0))
+    h00, h10, h01, h11 = _hermite_basis(off, tt)
+    ends = starts + lengths
+    tick = starts[:, None] + off.astype(np.int64)
+    p, v = ref.positions, ref.velocities
+    pa, pb, va, vb = p[:, starts], p[:, ends], v[:, starts], v[:, ends]
+    h = pa[:, :, None] * h00 + va[:, :, None] * h10 + pb[:, :, None] * h01 + vb[:, :, None] * h11
+    err = np.abs(h - p[:, tick]).max(axis=(0, 2))
+    t1 = lengths.astype(np.float64)
+    dp = pb - pa
+    acc_s = (6.0 * dp - 2.0 * t1 * vb - 4.0 * t1 * va) / (t1 * t1)
+    acc_e = (-6.0 * dp + 4.0 * t1 * vb + 2.0 * t1 * va) / (t1 * t1)
+    miss = np.maximum(np.abs(acc_s - ref.acc_right[:, starts]), np.abs(acc_e - ref.acc_left[:, ends]))
+    # shorter segments only make the quantisation noise worse: the check applies above min_seg
+    acc_bad = (miss > acc_share * acc_axis[:, None]).any(axis=0) & (lengths > min_seg)
+    out: FloatArray = np.where(acc_bad, np.inf, err)
+    return out
+
+
+def _exact_errors(ref: Reference, starts: IntArray, lengths: IntArray) -> FloatArray:
+    """As `_placement_errors`, at every tick (used for the few rebalancing checks)."""
+    total = int(lengths.sum())
+    seg = np.repeat(np.arange(starts.size), lengths)
+    first = np.cumsum(lengths) - lengths
+    off = (np.arange(total) - first[seg] + 1).astype(np.float64)
+    h00, h10, h01, h11 = _hermite_basis(off, lengths[seg].astype(np.float64))
+    ends = starts + lengths
+    p, v = ref.positions, ref.velocities
+    tick = starts[seg] + off.astype(np.int64)
+    h = p[:, starts[seg]] * h00 + v[:, starts[seg]] * h10 + p[:, ends[seg]] * h01 + v[:, ends[seg]] * h11
+    err = np.abs(h - p[:, tick]).max(axis=0)
+    out: FloatArray = np.maximum.reduceat(err, first)
+    return out
+
+
+def segment_bounds(scales: AxisScales, tolerance: float) -> tuple[int, int]:
+    """(min_segment, max_segment) in ms for these axes (see the module docstring)."""
+    conv = float(np.max(scales.counts_per_ms_per_rpm))
+    a_min = float(np.min(scales.acceleration_axis))
+    # one rpm error over a segment of T ms peaks at T * conv * 4/27 counts; keep that near the tolerance
+    max_seg = int(np.clip(np.floor(tolerance * 27.0 / (2.0 * conv)), 16, SEGMENT_TIME_MAX_MS))
+    # 0.6 rpm of velocity error moves an end acceleration by 4 * 0.6 * conv / T: keep that under 5 %
+    min_seg = int(np.clip(np.ceil(2.4 * conv / (ACC_EXCESS_LIMIT * a_min)), 4, 40))
+    return min(min_seg, max_seg), max_seg
+
+
+def _mandatory_knots(ref: Reference, scales: AxisScales, min_gap: int) -> IntArray:
+    """Start, end, and the plan's acceleration steps above `STEP_SHARE` of an axis' limit.
+
+    A Hermite segment has a linear acceleration: one that spans a step misses it on both sides (an
+    acceleration excess over the plan, even when the positions stay within the tolerance). Steps closer
+    than `min_gap` ms share the knot of the larger one.
+    """
+    m = ref.duration_ms
+    b = ref.breaks
+    if b.size == 0 or m <= 2 * min_gap:
+        return np.array([0, m], dtype=np.int64)
+    step = np.abs(ref.acc_right[:, b] - ref.acc_left[:, b])
+    rel = (step / scales.acceleration_axis[:, None]).max(axis=0)
+    big = rel > STEP_SHARE
+    cand = b[big]
+    order = np.argsort(-rel[big], kind="stable")
+    kept: list[int] = []
+    for j in order:
+        t = int(cand[j])
+        if t < min_gap or m - t < min_gap:
+            continue
+        if all(abs(t - k) >= min_gap for k in kept):
+            kept.append(t)
+    return np.array(sorted([0, m, *kept]), dtype=np.int64)
+
+
+def place_knots(
+    ref: Reference,
+    scales: AxisScales,
+    budget: float,
+    min_seg: int,
+    max_seg: int,
+    acc_share: float = ACC_PLACEMENT_SHARE,
+) -> IntArray:
+    """Greedy shared knot times 0..M (see the module docstring)."""
+    m = ref.duration_ms
+    if m <= 0:
+        return np.array([0], dtype=np.int64)
+    mand = _mandatory_knots(ref, scales, MANDATORY_GAP)
+    cuts: list[int] = []
+    for a, b in zip(mand[:-1].tolist(), mand[1:].tolist(), strict=True):
+        parts = -(-(b - a) // SECTION_MS)  # equal parts, none longer than SECTION_MS
+        cuts.extend(a + (j * (b - a)) // parts for j in range(parts))
+    cuts.append(m)
+    sec_start = np.array(cuts[:-1], dtype=np.int64)
+    sec_end = np.array(cuts[1:], dtype=np.int64)
+    cur = sec_start.copy()
+    prev = np.minimum(sec_end - sec_start, min(max_seg, 2 * min_seg)).astype(np.int64)
+    found: list[IntArray] = [sec_start.copy()]
+    while True:
+        act = np.nonzero(cur < sec_end)[0]
+        if act.size == 0:
+            break
+        c = cur[act]
+        room = sec_end[act] - c
+        lim = np.minimum(room, max_seg)
+        lens = np.concatenate(
+            [
+                np.round(prev[act][:, None] * _LADDER[None, :]),
+                lim[:, None],
+                np.ceil(room / 2.0)[:, None],
+                np.ceil(room / 3.0)[:, None],
+            ],
+            axis=1,
+        )
+        lens = np.clip(lens, 1, lim[:, None]).astype(np.int64)
+        k = lens.shape[1]
+        err = _placement_errors(
+            ref, np.repeat(c, k), lens.ravel(), scales.acceleration_axis, min_seg, acc_share
+        ).reshape(-1, k)
+        ok = err <= budget
+        rem = room[:, None] - lens
+        half = lens == np.ceil(room / 2.0)[:, None]
+        # preference: finish the section; else the longest that leaves at least min_seg; else split
+        # the rest in two halves; else the longest that passes (a short remainder is the last resort)
+        score = np.where(ok, lens + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half, 0)
+        best = score.max(axis=1) % 1024
+        adv = best > 0
+        go = act[adv]
+        cur[go] += best[adv]
+        prev[go] = best[adv]
+        found.append(cur[go].copy())
+        stay = act[~adv]
+        prev[stay] = np.maximum(1, lens[~adv].min(axis=1) // 3)  # length 1 always passes, eventually
+    times = np.unique(np.concatenate([*found, np.array([m], dtype=np.int64)]))
+    return _rebalance(ref, times, mand, budget, min_seg, max_seg)
+
+
+def _rebalance(
+    ref: Reference, times: IntArray, mand: IntArray, budget: float, min_seg: int, max_seg: int
+) -> IntArray:
+    """Remove or move knots next to segments shorter than `min_seg` where the plan allows it (one pass,
+    all candidate segments checked in one vectorised evaluation)."""
+    t = times
+    dt = np.diff(t)
+    short = np.nonzero(dt < min_seg)[0]
+    if short.size == 0:
+        return t
+    fixed = np.isin(t, mand)
+    last = t.size - 1
+    # options: (segment k, kind, new knot value or -1 to drop, knot index, [(start, length), ...])
+    options: list[tuple[int, int, int, list[tuple[int, int]]]] = []
+    for k in short.tolist():
+        a, b = int(t[k]), int(t[k + 1])
+        if k + 1 < last and not fixed[k + 1] and int(t[k + 2]) - a <= max_seg:  # drop the right knot
+            options.append((k, k + 1, -1, [(a, int(t[k + 2]) - a)]))
+        if k >= 1 and not fixed[k] and b - int(t[k - 1]) <= max_seg:  # drop the left knot
+            options.append((k, k, -1, [(int(t[k - 1]), b - int(t[k - 1]))]))
+        if k + 1 < last and not fixed[k + 1]:  # move the right knot to the middle
+            mid = (a + int(t[k + 2])) // 2
+            if mid - a >= min_seg and int(t[k + 2]) - mid >= min_seg:
+                options.append((k, k + 1, mid, [(a, mid - a), (mid, int(t[k + 2]) - mid)]))
+        if k >= 1 and not fixed[k]:  # move the left knot to the middle
+            mid = (int(t[k - 1]) + b) // 2
+            if mid - int(t[k - 1]) >= min_seg and b - mid >= min_seg:
+                options.append((k, k, mid, [(int(t[k - 1]), mid - int(t[k - 1])), (mid, b - mid)]))
+    if not options:
+        return t
+    segs = [seg for opt in options for seg in opt[3]]
+    errs = _exact_errors(
+        ref, np.array([x[0] for x in segs], dtype=np.int64), np.array([x[1] for x in segs], dtype=np.int64)
+    )
+    ok: list[bool] = []
+    pos = 0
+    for opt in options:
+        ok.append(bool(errs[pos : pos + len(opt[3])].max() <= budget))
+        pos += len(opt[3])
+    new_t = t.copy()
+    keep = np.ones(t.size, dtype=bool)
+    touched: set[int] = set()
+    done: set[int] = set()
+    for (k, idx, value, _segs), good in zip(options, ok, strict=True):
+        if not good or k in done or touched & {idx - 1, idx, idx + 1}:
+            continue
+        if value < 0:
+            keep[idx] = False
+        else:
+            new_t[idx] = value
+        touched.add(idx)
+        done.add(k)
+    out: IntArray = np.unique(new_t[keep])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# value choice (Viterbi over the knots, per axis)
+
+
+def _candidates(
+    ref: Reference,
+    times: IntArray,
+    scales: AxisScales,
+    dv: tuple[int, ...],
+    fixed: dict[int, tuple[IntArray, IntArray]],
+) -> tuple[FloatArray, FloatArray]:
+    """Candidate (position counts, velocity rpm) per axis and knot: (n, K, C) each.
+
+    Positions: the planned demand and one count either side (all within the tolerance at the knot;
+    the side counts let a slow axis keep its motion smooth on a grid set by faster ones). Velocities:
+    the offsets `dv` from the nearest rpm, or with `dv == (0, 1)` the two rpm values that bracket the
+    plan's velocity.
+    """
+    conv = scales.counts_per_ms_per_rpm[:, None]
+    rp = hermite.round_counts_array(ref.positions[:, times]).astype(np.float64)
+    v_rpm = ref.velocities[:, times] / conv
+    vr = np.floor(v_rpm) if dv == (0, 1) else np.round(v_rpm)
+    cand_p = np.stack([rp + jp for _jv in dv for jp in _DP_POSITIONS], axis=2)
+    cand_v = np.stack([vr + jv for jv in dv for _jp in _DP_POSITIONS], axis=2)
+    for k, (pf, vf) in fixed.items():
+        cand_p[:, k, :] = pf.astype(np.float64)[:, None]
+        cand_v[:, k, :] = vf.astype(np.float64)[:, None]
+    return cand_p, np.clip(cand_v, VELOCITY_MIN, VELOCITY_MAX)
+
+
+def _segment_costs(
+    ref: Reference,
+    times: IntArray,
+    scales: AxisScales,
+    tolerance: float,
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    exact: bool,
+) -> FloatArray:
+    """Cost of every (start candidate, end candidate) pair of every segment: (n, N, C, C).
+
+    exact=False scores the float error at sample ticks (fast); exact=True checks the drive's rounded
+    demand against the planned demand at every tick (used for the local refinement).
+    """
+    conv = scales.counts_per_ms_per_rpm[:, None, None]
+    dt = np.diff(times).astype(np.float64)
+    pa, pb = cand_p[:, :-1, :], cand_p[:, 1:, :]
+    va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
+    if exact:
+        dev = np.empty((*pa.shape[:2], pa.shape[2], pb.shape[2]))
+        demand_plan = planned_demand(ref)
+        for k in range(dt.size):
+            ln = int(dt[k])
+            off = np.arange(1, ln + 1, dtype=np.float64)
+            h00, h10, h01, h11 = _hermite_basis(off, np.full(ln, dt[k]))
+            ha = pa[:, k, :, None] * h00 + va[:, k, :, None] * h10
+            hb = pb[:, k, :, None] * h01 + vb[:, k, :, None] * h11
+            hh = ha[:, :, None, :] + hb[:, None, :, :]
+            want = demand_plan[:, times[k] + 1 : times[k] + ln + 1]
+            dev[:, k] = np.abs(hermite.round_counts_array(hh) - want[:, None, None, :]).max(axis=3)
+        dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
+    else:
+        off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0))
+        h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
+        tick = (times[:-1, None] + off).astype(np.int64)
+        p_at = ref.positions[:, tick]  # (n, N, Q)
+        base = np.floor(p_at)  # work relative to whole counts near the plan: small numbers, float32 is exact
+        frac = (p_at - base).astype(np.float32)  # plan - base, in [0, 1)
+        f32 = np.float32
+        ea = (
+            (pa[:, :, :, None] - base[:, :, None, :]) * h00[None, :, None, :]
+            + va[:, :, :, None] * h10[None, :, None, :]
+        ).astype(f32)
+        eb = (
+            (pb[:, :, :, None] - base[:, :, None, :]) * h01[None, :, None, :]
+            + vb[:, :, :, None] * h11[None, :, None, :]
+        ).astype(f32)
+        d = ea[:, :, :, None, :] + eb[:, :, None, :, :]  # Hermite - base, (n, N, C, C, Q)
+        want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
+        dev = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None, :]).max(axis=4)
+        err = np.abs(d - frac[:, :, None, None, :]).max(axis=4)
+        # the drive's rounded demand against the planned demand at the sample ticks, and the float
+        # error as a tie-breaker (smaller is more robust at the ticks in between)
+        dev_cost = _HARD * (dev > tolerance) + 0.5 * (err / tolerance) ** 2
+    t1 = dt[None, :, None, None]
+    dp = pb[:, :, None, :] - pa[:, :, :, None]
+    acc_s = (6.0 * dp - 2.0 * t1 * vb[:, :, None, :] - 4.0 * t1 * va[:, :, :, None]) / (t1 * t1)
+    acc_e = (-6.0 * dp + 4.0 * t1 * vb[:, :, None, :] + 2.0 * t1 * va[:, :, :, None]) / (t1 * t1)
+    peak = np.maximum(np.abs(acc_s), np.abs(acc_e))
+    env = segment_envelope(ref, times)[:, :, None, None]
+    excess = np.maximum(peak - env, 0.0) / (ACC_EXCESS_LIMIT * scales.acceleration_axis)[:, None, None, None]
+    over = peak > scales.drive_acceleration[:, None, None, None]
+    # velocity: the end velocities must respect 0x607F (the interior is checked on verification)
+    vmax = np.maximum(np.abs(va)[:, :, :, None], np.abs(vb)[:, :, None, :])
+    over_v = vmax > scales.drive_velocity[:, None, None, None]
+    cost: FloatArray = dev_cost + _HARD * (over | over_v) + 1.0e3 * (excess > 0.9) + excess**2
+    return cost
+
+
+def _viterbi(cost: FloatArray, first: int = 0) -> IntArray:
+    """Minimum-cost candidate path per axis; cost (n, N, C, C); knot 0 is pinned to `first`."""
+    n, nseg, c, _ = cost.shape
+    j = np.full((n, c), np.inf)
+    j[:, first] = 0.0
+    back = np.empty((nseg, n, c), dtype=np.int64)
+    for k in range(nseg):
+        tot = j[:, :, None] + cost[:, k]
+        back[k] = tot.argmin(axis=1)
+        j = tot.min(axis=1)
+    choice = np.empty((n, nseg + 1), dtype=np.int64)
+    choice[:, -1] = np.argmin(j, axis=1)
+    rows = np.arange(n)
+    for k in range(nseg - 1, -1, -1):
+        choice[:, k] = back[k][rows, choice[:, k + 1]]
+    return choice
+
+
+def _choose_values(
+    ref: Reference,
+    times: IntArray,
+    scales: AxisScales,
+    tolerance: float,
+    fixed: dict[int, tuple[IntArray, IntArray]],
+    dv: tuple[int, ...] | None = None,
+    exact: bool = False,
+) -> tuple[IntArray, IntArray]:
+    """Quantised positions (counts) and velocities (rpm) for every knot, chosen jointly."""
+    cand_p, cand_v = _candidates(ref, times, scales, DP_VELOCITIES if dv is None else dv, fixed)
+    if times.size == 1:
+        return cand_p[:, :, 0].astype(np.int64), cand_v[:, :, 0].astype(np.int64)
+    cost = _segment_costs(ref, times, scales, tolerance, cand_p, cand_v, exact)
+    choice = _viterbi(cost)[:, :, None]
+    pos = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
+    vel = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
+    return pos, vel
+
+
+def _refine(
+    ref: Reference,
+    knots: Knots,
+    scales: AxisScales,
+    tolerance: float,
+    bad_segments: IntArray,
+    fixed_knots: set[int],
+) -> Knots:
+    """Choose the values again around failing segments, with more candidates and an exact check."""
+    times = knots.times_ms
+    pos = knots.positions.copy()
+    vel = knots.velocities_rpm.copy()
+    nk = times.size
+    windows: list[tuple[int, int]] = []
+    for s in sorted(set(bad_segments.tolist())):
+        lo, hi = max(0, s - 2), min(nk - 1, s + 3)
+        if windows and lo <= windows[-1][1]:
+            windows[-1] = (windows[-1][0], hi)
+        else:
+            windows.append((lo, hi))
+    for lo, hi in windows:
+        sub = times[lo : hi + 1]
+        fixed: dict[int, tuple[IntArray, IntArray]] = {
+            0: (pos[:, lo], vel[:, lo]),
+            hi - lo: (pos[:, hi], vel[:, hi]),
+        }
+        for k in range(lo + 1, hi):
+            if k in fixed_knots:
+                fixed[k - lo] = (pos[:, k], vel[:, k])
+        cand_p, cand_v = _candidates(ref, sub, scales, (-3, -2, -1, 0, 1, 2, 3), fixed)
+        cost = _segment_costs(ref, sub, scales, tolerance, cand_p, cand_v, exact=True)
+        # the window's last knot is pinned too: only its candidate 0 may be reached
+        cost[:, -1, :, 1:] = np.inf
+        choice = _viterbi(cost)[:, :, None]
+        pos[:, lo : hi + 1] = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
+        vel[:, lo : hi + 1] = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
+    return Knots(times, pos, vel)
+
+
+# ----------------------------------------------------------------------------------------------------
+# the encoder
+
+
+def encode(
+    ref: Reference,
+    scales: AxisScales,
+    *,
+    tolerance: float,
+    start_positions: IntArray | None = None,
+    start_velocities_rpm: IntArray | None = None,
+    times_ms: IntArray | None = None,
+    variant: int = 0,
+) -> tuple[Knots, Reconstruction]:
+    """Knots for `ref` whose drive reconstruction is within `tolerance` counts of it at every ms.
+
+    `start_positions`/`start_velocities_rpm` fix knot 0 (default: the plan's start rounded, at rest);
+    `times_ms` gives the knot times instead of placing them (raw PVT jobs pass their own rows through);
+    a segment whose quantised values cannot meet the tolerance is still split in two. `variant` 1 and 2
+    are the retries when the quantisation noise exceeded the budget (see the module docstring).
+    Raises EncodingNeedsTime or EncodingFailed (internal; the planner turns them into PlanningError).
+    """
+    n = ref.n_axes
+    m = ref.duration_ms
+    tol = float(np.floor(tolerance + 1e-9))
+    if m <= 0:
+        raise EncodingFailed("a motion needs at least 1 ms")
+    p_first = (
+        np.asarray(start_positions, dtype=np.int64)
+        if start_positions is not None
+        else hermite.round_counts_array(ref.positions[:, 0])
+    )
+    v_first = (
+        np.asarray(start_velocities_rpm, dtype=np.int64)
+        if start_velocities_rpm is not None
+        else np.zeros(n, dtype=np.int64)
+    )
+    p_last = hermite.round_counts_array(ref.positions[:, m])
+    v_last = np.zeros(n, dtype=np.int64)
+    for a in (p_first, p_last):
+        if a.min() < POSITION_MIN or a.max() > POSITION_MAX:
+            i = int(np.argmax((a < POSITION_MIN) | (a > POSITION_MAX)))
+            raise EncodingFailed(f"position {int(a[i])} counts does not fit int32", axis=i)
+    min_seg, max_seg = segment_bounds(scales, tol)
+    share, acc_share = PLACEMENT_SHARE, ACC_PLACEMENT_SHARE
+    if variant == 1:  # conservative: shorter maximum segments leave the value search more room
+        max_seg = max(16, int(0.6 * max_seg))
+        share = 0.5
+        min_seg = min(min_seg, max_seg)
+    elif variant >= 2:  # long: fewer short segments, where slow axes on the shared grid need them
+        min_seg = min(int(1.6 * min_seg), max_seg)
+        acc_share = 2.0 * ACC_PLACEMENT_SHARE
+    if times_ms is None:
+        times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share)
+    else:
+        times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
+    want = planned_demand(ref)
+    for _round in range(MAX_ROUNDS):
+        fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
+        pos, vel = _choose_values(ref, times, scales, tol, fixed)
+        knots = Knots(times, pos, vel)
+        bad = _bad_segments(ref, knots, scales, tol, want)
+        if bad.size:
+            knots = _refine(ref, knots, scales, tol, bad, {0, times.size - 1})
+            bad = _bad_segments(ref, knots, scales, tol, want)
+        if bad.size == 0:
+            rec = reconstruct(knots, scales)
+            _check_dynamics(ref, knots, rec, scales)
+            return knots, rec
+        rec = reconstruct(knots, scales)
+        dev = np.abs(rec.demand - want)
+        if not (dev > tol).any():
+            break
+        # split every segment that still holds a failing tick
+        bad_ticks = np.nonzero((dev > tol).any(axis=0))[0]
+        seg = np.unique(np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2))
+        a, b = times[seg], times[seg + 1]
+        split = b - a >= 2
+        if not split.any():
+            break
+        times = np.unique(np.concatenate([times, (a[split] + b[split]) // 2]))
+    rec = reconstruct(knots, scales)
+    dev = np.abs(rec.demand - want)
+    if (dev > tol).any():
+        i, tick = (int(x) for x in np.unravel_index(int(np.argmax(dev)), dev.shape))
+        raise EncodingFailed(
+            f"the drive's reconstruction misses the planned demand by {int(dev[i, tick])} counts at "
+            f"t = {int(tick)} ms (tolerance {tol:g})",
+            axis=int(i),
+            tick=int(tick),
+        )
+    _check_dynamics(ref, knots, rec, scales)
+    return knots, rec
+
+
+def _split_long(times: IntArray, max_seg: int) -> IntArray:
+    """Given knot times with segments longer than `max_seg` split into equal parts (extra knots lie on
+    the plan; long segments cannot be quantised within the tolerance, see `segment_bounds`)."""
+    dt = np.diff(times)
+    if dt.size == 0 or dt.max() <= max_seg:
+        return times
+    extra = [
+        times[k] + np.round(np.arange(1, parts) * dt[k] / parts).astype(np.int64)
+        for k in np.nonzero(dt > max_seg)[0]
+        for parts in [int(np.ceil(dt[k] / max_seg))]
+    ]
+    return np.unique(np.concatenate([times, *extra]))
+
+
+def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, want: IntArray) -> IntArray:
+    """Segments that miss the tolerance, 0x60C5, 0x607F or the acceleration-excess budget."""
+    rec = reconstruct(knots, scales)
+    times = knots.times_ms
+    dev = np.abs(rec.demand - want).max(axis=0)
+    bad_ticks = np.nonzero(dev > tol)[0]
+    seg_dev = np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2)
+    excess = acceleration_excess(ref, knots, rec)
+    peak = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
+    acc_bad = (
+        (excess > ACC_EXCESS_LIMIT * scales.acceleration_axis[:, None])
+        | (peak > scales.drive_acceleration[:, None])
+    ).any(axis=0)
+    out: IntArray = np.unique(np.concatenate([seg_dev, np.nonzero(acc_bad)[0]])).astype(np.int64)
+    return out
+
+
+def _check_dynamics(ref: Reference, knots: Knots, rec: Reconstruction, scales: AxisScales) -> None:
+    """Velocity and acceleration of the reconstruction against the drive and axis limits."""
+    vpeak = np.abs(rec.velocity).max(axis=1)
+    quantum = scales.counts_per_ms_per_rpm
+    vlim = np.minimum(
+        scales.drive_velocity,
+        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
+    )
+    peak = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
+    excess = acceleration_excess(ref, knots, rec)
+    for i in range(ref.n_axes):
+        if vpeak[i] > vlim[i] + 1e-12:
+            raise EncodingNeedsTime(
+                f"reconstructed velocity {vpeak[i]:.4f} counts/ms is above the limit {vlim[i]:.4f}",
+                factor=float(vpeak[i] / vlim[i]) * 1.002,
+                axis=i,
+            )
+        if peak.size == 0:
+            continue
+        apk = float(peak[i].max())
+        if apk > scales.drive_acceleration[i]:
+            raise EncodingNeedsTime(
+                f"reconstructed acceleration {apk * 1e6:.0f} counts/s^2 is above the drive's 0x60C5 "
+                f"({scales.drive_acceleration[i] * 1e6:.0f} counts/s^2)",
+                factor=float(np.sqrt(apk / scales.drive_acceleration[i])) * 1.05,
+                axis=i,
+            )
+        ex = float(excess[i].max())
+        if ex > ACC_EXCESS_LIMIT * scales.acceleration_axis[i]:
+            raise EncodingNeedsTime(
+                f"reconstructed acceleration exceeds the plan by {ex * 1e6:.0f} counts/s^2 "
+                f"({100 * ex / scales.acceleration_axis[i]:.1f} % of the axis limit)",
+                factor=1.1,
+                axis=i,
+            )

@@ -1,0 +1,709 @@
+"""Motion jobs: the validated, immutable description of one motion (TOML, JSON, or the API's msgpack).
+
+Theory of operation. A job arrives as a mapping (a parsed TOML/JSON file or a decoded msgpack
+payload). `job_from_dict(data, cell)` checks *everything* that can be checked without planning, and
+rejects the first problem with a `PlanningError` whose `code` is stable and whose `path` names the
+field ("waypoints[7][2]"), with a message naming the axis and the value. What it returns is a frozen
+`Job` whose arrays are read-only float64: nothing downstream re-validates shapes or finiteness.
+`job_to_dict` is the inverse (the API stores job bodies and compares them), `load_job` reads a file.
+
+Kinds (docs/formats.md has the full schema):
+
+- path:  `waypoints = [[...], ...]`, one row per waypoint (user units): time-optimal, rest to rest;
+- move:  `target = [...]`, `mode = "absolute" | "relative"`, optional `start = [...]` (where the axes
+         are assumed to stand when the caller gives no current position): jerk-limited point to point;
+- timed: `times = [...]` (s), `positions = [[...], ...]`: the user's timing, splined rest to rest;
+- pvt:   `times`, `positions`, `velocities` (user units/s): raw PVT rows, validated, passed through.
+
+Common optional fields: `job_id`, `description`, `tolerance_counts` (whole counts >= 1, default 1),
+`velocity_scale` / `acceleration_scale` (a number or one per axis, in (0, 1]), and a `[limits]` table
+with per-axis `velocity`, `acceleration`, `jerk` overrides (user units; never above the drive's 0x607F
+and 0x60C5).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, cast
+
+import numpy as np
+
+from planner.config import AxisConfig, CellConfig
+from planner.errors import (
+    AXIS_COUNT,
+    AXIS_ID,
+    DEGENERATE,
+    ENCODING_RANGE,
+    LIMITS,
+    LIMITS_EXCEED_DRIVE,
+    NON_MONOTONIC,
+    NONFINITE,
+    POSITION_LIMIT,
+    SCHEMA,
+    TOO_LARGE,
+    TYPE,
+    PlanningError,
+)
+from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
+from planner.reference import FloatArray
+
+Kind = Literal["path", "move", "timed", "pvt"]
+KINDS: tuple[str, ...] = ("path", "move", "timed", "pvt")
+MAX_ROWS = 100_000  # waypoints / rows per job (TOO_LARGE above)
+MAX_DURATION_S = 900.0  # user timing (timed/pvt) longer than this is TOO_LARGE
+MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
+MAX_TOLERANCE_COUNTS = 1_000_000
+MAX_TEXT = 1000
+
+_COMMON = {
+    "kind",
+    "axes",
+    "job_id",
+    "description",
+    "tolerance_counts",
+    "velocity_scale",
+    "acceleration_scale",
+    "limits",
+}
+_KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) besides the common ones
+    "path": ({"waypoints"}, set()),
+    "move": ({"target"}, {"mode", "start"}),
+    "timed": ({"times", "positions"}, set()),
+    "pvt": ({"times", "positions", "velocities"}, set()),
+}
+_LIMIT_KEYS = ("velocity", "acceleration", "jerk")
+
+
+def _ro(a: FloatArray) -> FloatArray:
+    out = np.array(a, dtype=np.float64, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def _eq_arrays(a: FloatArray | None, b: FloatArray | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return a.shape == b.shape and bool(np.array_equal(a, b))
+
+
+@dataclass(frozen=True, eq=False)
+class PathData:
+    waypoints: FloatArray  # (n_waypoints, n_axes), user units
+
+
+@dataclass(frozen=True, eq=False)
+class MoveData:
+    target: FloatArray  # (n_axes,), user units
+    mode: Literal["absolute", "relative"] = "absolute"
+    start: FloatArray | None = None  # (n_axes,) assumed start when the caller gives none
+
+
+@dataclass(frozen=True, eq=False)
+class TimedData:
+    times: FloatArray  # (n,), s, strictly increasing
+    positions: FloatArray  # (n, n_axes), user units
+
+
+@dataclass(frozen=True, eq=False)
+class PvtData:
+    times: FloatArray  # (n,), s; intervals whole ms in 1..255
+    positions: FloatArray  # (n, n_axes), user units
+    velocities: FloatArray  # (n, n_axes), user units/s
+
+
+JobData = PathData | MoveData | TimedData | PvtData
+_DATA_TYPES: dict[str, type] = {"path": PathData, "move": MoveData, "timed": TimedData, "pvt": PvtData}
+
+
+@dataclass(frozen=True, eq=False)
+class Job:
+    """One validated motion job. Arrays are read-only float64; per-axis tuples follow `axes`."""
+
+    kind: Kind
+    axes: tuple[str, ...]
+    data: JobData
+    tolerance_counts: int = 1
+    velocity_scale: tuple[float, ...] = ()  # () = 1.0 for every axis
+    acceleration_scale: tuple[float, ...] = ()
+    velocity_limit: tuple[float, ...] | None = None  # per-axis overrides (user units/s), None = config
+    acceleration_limit: tuple[float, ...] | None = None
+    jerk_limit: tuple[float, ...] | None = None
+    job_id: str | None = None
+    description: str | None = None
+    _scalar_scales: tuple[bool, bool] = field(default=(False, False), repr=False)
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise PlanningError(SCHEMA, f"kind must be one of {list(KINDS)}, got {self.kind!r}", path="kind")
+        if not isinstance(self.data, _DATA_TYPES[self.kind]):
+            raise PlanningError(
+                SCHEMA,
+                f"a {self.kind} job needs {_DATA_TYPES[self.kind].__name__}, got {type(self.data).__name__}",
+                path="kind",
+            )
+        n = len(self.axes)
+        if n == 0:
+            raise PlanningError(AXIS_COUNT, "a job needs at least one axis", path="axes")
+        if len(set(self.axes)) != n:
+            raise PlanningError(AXIS_ID, f"duplicate axis names in {list(self.axes)!r}", path="axes")
+        for name in ("velocity_scale", "acceleration_scale"):
+            v = getattr(self, name)
+            if v == ():
+                object.__setattr__(self, name, (1.0,) * n)
+            elif len(v) != n:
+                raise PlanningError(AXIS_COUNT, f"{name} has {len(v)} values for {n} axes", path=name)
+        for name in ("velocity_limit", "acceleration_limit", "jerk_limit"):
+            v = getattr(self, name)
+            if v is not None and len(v) != n:
+                raise PlanningError(AXIS_COUNT, f"{name} has {len(v)} values for {n} axes", path=name)
+        if not (
+            isinstance(self.tolerance_counts, int) and 1 <= self.tolerance_counts <= MAX_TOLERANCE_COUNTS
+        ):
+            raise PlanningError(
+                LIMITS,
+                f"tolerance_counts must be a whole number of counts in 1..."
+                f"{MAX_TOLERANCE_COUNTS}, got {self.tolerance_counts!r}",
+                path="tolerance_counts",
+            )
+        for f_name, arr in _arrays(self.data):
+            if arr is None:
+                continue
+            if not np.all(np.isfinite(arr)):
+                raise PlanningError(NONFINITE, f"{f_name} contains NaN or infinity", path=f_name)
+            want = n if arr.ndim == 1 and f_name in ("target", "start") else None
+            if arr.ndim == 2 and arr.shape[1] != n:
+                raise PlanningError(
+                    AXIS_COUNT, f"{f_name} rows have {arr.shape[1]} values for {n} axes", path=f_name
+                )
+            if want is not None and arr.shape != (n,):
+                raise PlanningError(
+                    AXIS_COUNT, f"{f_name} has {arr.shape[0]} values for {n} axes", path=f_name
+                )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Job):
+            return NotImplemented
+        return job_to_dict(self) == job_to_dict(other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def n_axes(self) -> int:
+        return len(self.axes)
+
+
+def _arrays(data: JobData) -> list[tuple[str, FloatArray | None]]:
+    if isinstance(data, PathData):
+        return [("waypoints", data.waypoints)]
+    if isinstance(data, MoveData):
+        return [("target", data.target), ("start", data.start)]
+    if isinstance(data, TimedData):
+        return [("times", data.times), ("positions", data.positions)]
+    return [("times", data.times), ("positions", data.positions), ("velocities", data.velocities)]
+
+
+# ----------------------------------------------------------------------------------------------------
+# parsing helpers: every check names the field path
+
+
+def _number(value: Any, path: str, what: str = "") -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise PlanningError(TYPE, f"{path}{what} must be a number, got {_show(value)}", path=path)
+    if isinstance(value, int):
+        if abs(value) > MAX_EXACT_INT:
+            raise PlanningError(
+                TYPE, f"{path}{what} = {value} is too large (integers must be within +-2**53)", path=path
+            )
+        return float(value)
+    if not math.isfinite(value):
+        raise PlanningError(NONFINITE, f"{path}{what} is {_nan_name(value)}", path=path)
+    return float(value)
+
+
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _nan_name(value: float) -> str:
+    return "NaN" if math.isnan(value) else ("infinity" if value > 0 else "-infinity")
+
+
+def _axis_note(axes: Sequence[str], j: int) -> str:
+    return f" of axis {axes[j]!r}" if 0 <= j < len(axes) else ""
+
+
+def _vector(value: Any, path: str, axes: Sequence[str]) -> FloatArray:
+    """A list with one number per axis."""
+    if not isinstance(value, list | tuple):
+        raise PlanningError(
+            TYPE, f"{path} must be a list of {len(axes)} numbers, got {_show(value)}", path=path
+        )
+    if len(value) != len(axes):
+        raise PlanningError(
+            AXIS_COUNT, f"{path} has {len(value)} values for {len(axes)} axes {list(axes)!r}", path=path
+        )
+    return np.array([_number(v, f"{path}[{j}]", _axis_note(axes, j)) for j, v in enumerate(value)])
+
+
+def _matrix(value: Any, path: str, axes: Sequence[str], max_rows: int) -> FloatArray:
+    """A list of rows, one number per axis in each row (fast path through numpy, exact errors after)."""
+    if not isinstance(value, list | tuple):
+        raise PlanningError(TYPE, f"{path} must be a list of rows, got {_show(value)}", path=path)
+    if len(value) > max_rows:
+        raise PlanningError(
+            TOO_LARGE,
+            f"{path} has {len(value)} rows, more than the limit of {max_rows}",
+            path=path,
+            detail={"rows": len(value), "limit": max_rows},
+        )
+    n = len(axes)
+    if all(isinstance(row, list | tuple) and len(row) == n for row in value):
+        flat = [x for row in value for x in row]
+        if all(type(x) is float or (type(x) is int and abs(x) <= MAX_EXACT_INT) for x in flat):
+            arr = np.array(flat, dtype=np.float64).reshape(len(value), n)
+            if np.all(np.isfinite(arr)):
+                return arr
+    # slow path: find and name the first bad element
+    out = np.empty((len(value), n))
+    for i, row in enumerate(value):
+        rp = f"{path}[{i}]"
+        if not isinstance(row, list | tuple):
+            raise PlanningError(TYPE, f"{rp} must be a list of {n} numbers, got {_show(row)}", path=rp)
+        if len(row) != n:
+            raise PlanningError(
+                AXIS_COUNT, f"{rp} has {len(row)} values for {n} axes {list(axes)!r}", path=rp
+            )
+        for j, x in enumerate(row):
+            out[i, j] = _number(x, f"{rp}[{j}]", _axis_note(axes, j))
+    return out
+
+
+def _series(value: Any, path: str, max_rows: int) -> FloatArray:
+    if not isinstance(value, list | tuple):
+        raise PlanningError(TYPE, f"{path} must be a list of numbers, got {_show(value)}", path=path)
+    if len(value) > max_rows:
+        raise PlanningError(
+            TOO_LARGE,
+            f"{path} has {len(value)} values, more than the limit of {max_rows}",
+            path=path,
+            detail={"rows": len(value), "limit": max_rows},
+        )
+    return np.array([_number(x, f"{path}[{i}]") for i, x in enumerate(value)], dtype=np.float64)
+
+
+def _per_axis_scale(value: Any, path: str, axes: Sequence[str]) -> tuple[tuple[float, ...], bool]:
+    if isinstance(value, list | tuple):
+        vals = _vector(value, path, axes)
+        scalar = False
+    else:
+        vals = np.full(len(axes), _number(value, path))
+        scalar = True
+    for j, v in enumerate(vals):
+        if not 0.0 < v <= 1.0:
+            p = path if scalar else f"{path}[{j}]"
+            raise PlanningError(
+                LIMITS,
+                f"{p}{'' if scalar else _axis_note(axes, j)} is {v:g}; scales must be in (0, 1]",
+                path=p,
+            )
+    return tuple(float(v) for v in vals), scalar
+
+
+def _text(value: Any, path: str, *, job_id: bool = False) -> str:
+    if not isinstance(value, str):
+        raise PlanningError(TYPE, f"{path} must be a string, got {_show(value)}", path=path)
+    limit = 128 if job_id else MAX_TEXT
+    if (job_id and not value) or len(value) > limit:
+        raise PlanningError(SCHEMA, f"{path} must be 1..{limit} characters long", path=path)
+    forbidden = set("/*$#?\\ ") if job_id else set()
+    if any(c in forbidden or (ord(c) < 32 and c not in "\n\t") for c in value):
+        note = (
+            "no '/', '*', '$', '#', '?', backslash, space or control characters"
+            if job_id
+            else "no control characters"
+        )
+        raise PlanningError(
+            SCHEMA, f"{path} {value!r} contains a character that is not allowed ({note})", path=path
+        )
+    return value
+
+
+# ----------------------------------------------------------------------------------------------------
+# job_from_dict
+
+
+def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = MAX_ROWS) -> Job:
+    """Validate a job mapping against `cell` and build the `Job` (raises PlanningError with a code)."""
+    if not isinstance(data, Mapping):
+        raise PlanningError(SCHEMA, f"a job must be a table/object, got {type(data).__name__}", path="")
+    for key in data:
+        if not isinstance(key, str):
+            raise PlanningError(SCHEMA, f"job keys must be strings, got {_show(key)}", path=str(key))
+    if "kind" not in data:
+        raise PlanningError(SCHEMA, "missing field 'kind' (one of path, move, timed, pvt)", path="kind")
+    kind = data["kind"]
+    if not isinstance(kind, str):
+        raise PlanningError(TYPE, f"kind must be a string, got {_show(kind)}", path="kind")
+    if kind not in KINDS:
+        raise PlanningError(SCHEMA, f"kind must be one of {list(KINDS)}, got {kind!r}", path="kind")
+    required, optional = _KIND_FIELDS[kind]
+    allowed = _COMMON | required | optional
+    unknown = sorted(k for k in data if k not in allowed)
+    if unknown:
+        raise PlanningError(
+            SCHEMA,
+            f"unknown field {unknown[0]!r} in a {kind} job (allowed: {sorted(allowed)})",
+            path=unknown[0],
+        )
+    for key in sorted(required | {"axes"}):
+        if key not in data:
+            raise PlanningError(SCHEMA, f"missing field {key!r} in a {kind} job", path=key)
+
+    axes = _axes(data["axes"], cell)
+    axis_cfg = [cell.axis(a) for a in axes]
+    job_id = _text(data["job_id"], "job_id", job_id=True) if data.get("job_id") is not None else None
+    description = _text(data["description"], "description") if data.get("description") is not None else None
+
+    tolerance = 1
+    if "tolerance_counts" in data:
+        t = _number(data["tolerance_counts"], "tolerance_counts")
+        if t <= 0 or t != math.floor(t) or t > MAX_TOLERANCE_COUNTS:
+            raise PlanningError(
+                LIMITS,
+                f"tolerance_counts is {t:g}; it must be a whole number of counts in "
+                f"1..{MAX_TOLERANCE_COUNTS} (the drive commands whole counts)",
+                path="tolerance_counts",
+            )
+        tolerance = int(t)
+    vscale, vs_scalar = (
+        _per_axis_scale(data["velocity_scale"], "velocity_scale", axes)
+        if "velocity_scale" in data
+        else ((1.0,) * len(axes), False)
+    )
+    ascale, as_scalar = (
+        _per_axis_scale(data["acceleration_scale"], "acceleration_scale", axes)
+        if "acceleration_scale" in data
+        else ((1.0,) * len(axes), False)
+    )
+    limits = _limits(data.get("limits"), axes, axis_cfg) if "limits" in data else {}
+
+    job_data: JobData
+    if kind == "path":
+        wp = _matrix(data["waypoints"], "waypoints", axes, max_rows)
+        _check_positions(wp, "waypoints", axes, axis_cfg)
+        distinct = 1 + int(np.count_nonzero(np.any(np.diff(wp, axis=0) != 0.0, axis=1))) if wp.shape[0] else 0
+        if distinct < 2:
+            raise PlanningError(
+                DEGENERATE,
+                f"a path needs at least 2 distinct waypoints, got {distinct} (use a move job to stand still)",
+                path="waypoints",
+            )
+        job_data = PathData(_ro(wp))
+    elif kind == "move":
+        mode = data.get("mode", "absolute")
+        if not isinstance(mode, str):
+            raise PlanningError(TYPE, f"mode must be a string, got {_show(mode)}", path="mode")
+        if mode not in ("absolute", "relative"):
+            raise PlanningError(SCHEMA, f"mode must be 'absolute' or 'relative', got {mode!r}", path="mode")
+        target = _vector(data["target"], "target", axes)
+        start = _vector(data["start"], "start", axes) if data.get("start") is not None else None
+        if start is not None:
+            _check_positions(start[None, :], "start", axes, axis_cfg, vector=True)
+        if mode == "absolute":
+            _check_positions(target[None, :], "target", axes, axis_cfg, vector=True)
+        else:
+            span = np.array([a.position_max - a.position_min for a in axis_cfg])
+            for j in range(len(axes)):
+                if abs(target[j]) > span[j]:
+                    raise PlanningError(
+                        POSITION_LIMIT,
+                        f"target[{j}] of axis {axes[j]!r} moves {target[j]:g}, more "
+                        f"than the axis' whole range {span[j]:g}",
+                        path=f"target[{j}]",
+                    )
+            if start is not None:
+                _check_positions((start + target)[None, :], "target", axes, axis_cfg, vector=True)
+        job_data = MoveData(
+            _ro(target), cast(Literal["absolute", "relative"], mode), None if start is None else _ro(start)
+        )
+    else:
+        times = _series(data["times"], "times", max_rows)
+        pos = _matrix(data["positions"], "positions", axes, max_rows)
+        if pos.shape[0] != times.size:
+            raise PlanningError(
+                SCHEMA,
+                f"times has {times.size} entries but positions has {pos.shape[0]} rows",
+                path="positions",
+            )
+        if times.size < 2:
+            raise PlanningError(
+                DEGENERATE, f"a {kind} job needs at least 2 rows, got {times.size}", path="times"
+            )
+        _check_times(times)
+        _check_positions(pos, "positions", axes, axis_cfg)
+        if kind == "timed":
+            job_data = TimedData(_ro(times), _ro(pos))
+        else:
+            vel = _matrix(data["velocities"], "velocities", axes, max_rows)
+            if vel.shape[0] != times.size:
+                raise PlanningError(
+                    SCHEMA,
+                    f"times has {times.size} entries but velocities has {vel.shape[0]} rows",
+                    path="velocities",
+                )
+            _check_pvt(times, vel, axes, axis_cfg)
+            job_data = PvtData(_ro(times), _ro(pos), _ro(vel))
+
+    job = Job(
+        kind=cast(Kind, kind),
+        axes=axes,
+        data=job_data,
+        tolerance_counts=tolerance,
+        velocity_scale=vscale,
+        acceleration_scale=ascale,
+        velocity_limit=limits.get("velocity"),
+        acceleration_limit=limits.get("acceleration"),
+        jerk_limit=limits.get("jerk"),
+        job_id=job_id,
+        description=description,
+        _scalar_scales=(vs_scalar and "velocity_scale" in data, as_scalar and "acceleration_scale" in data),
+    )
+    return job
+
+
+def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
+    if not isinstance(value, list | tuple):
+        raise PlanningError(TYPE, f"axes must be a list of axis names, got {_show(value)}", path="axes")
+    if not value:
+        raise PlanningError(AXIS_COUNT, "axes is empty: a job needs at least one axis", path="axes")
+    known = cell.axis_names()
+    if len(value) > len(known):
+        raise PlanningError(
+            AXIS_COUNT, f"axes lists {len(value)} axes but cell {cell.name!r} has {len(known)}", path="axes"
+        )
+    seen: set[str] = set()
+    for j, name in enumerate(value):
+        if not isinstance(name, str):
+            raise PlanningError(TYPE, f"axes[{j}] must be an axis name, got {_show(name)}", path=f"axes[{j}]")
+        if name not in known:
+            raise PlanningError(
+                AXIS_ID,
+                f"axes[{j}] {name!r} is not an axis of cell {cell.name!r} (axes: {list(known)})",
+                path=f"axes[{j}]",
+            )
+        if name in seen:
+            raise PlanningError(AXIS_ID, f"axes[{j}] {name!r} is listed twice", path=f"axes[{j}]")
+        seen.add(name)
+    return tuple(value)
+
+
+def _limits(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> dict[str, tuple[float, ...]]:
+    if not isinstance(value, Mapping):
+        raise PlanningError(
+            TYPE, f"limits must be a table with {list(_LIMIT_KEYS)}, got {_show(value)}", path="limits"
+        )
+    out: dict[str, tuple[float, ...]] = {}
+    for key in value:
+        if key not in _LIMIT_KEYS:
+            raise PlanningError(
+                SCHEMA,
+                f"unknown field {key!r} in limits (allowed: {list(_LIMIT_KEYS)})",
+                path=f"limits.{key}",
+            )
+    for key in _LIMIT_KEYS:
+        if key not in value:
+            continue
+        p = f"limits.{key}"
+        vals = _vector(value[key], p, axes)
+        for j, v in enumerate(vals):
+            if v <= 0:
+                raise PlanningError(
+                    LIMITS, f"{p}[{j}] of axis {axes[j]!r} is {v:g}; limits must be > 0", path=f"{p}[{j}]"
+                )
+            if key == "velocity" and v > cfg[j].max_profile_velocity * (1 + 1e-12):
+                raise PlanningError(
+                    LIMITS_EXCEED_DRIVE,
+                    f"{p}[{j}] of axis {axes[j]!r} is {v:g}/s = {cfg[j].velocity_rpm(v):.0f} rpm, above "
+                    f"the drive's max profile velocity 0x607F {cfg[j].max_profile_velocity_rpm:g} rpm",
+                    path=f"{p}[{j}]",
+                )
+            if key == "acceleration" and v > cfg[j].max_acceleration:
+                raise PlanningError(
+                    LIMITS_EXCEED_DRIVE,
+                    f"{p}[{j}] of axis {axes[j]!r} is {v:g}/s^2, above the drive's max "
+                    f"acceleration 0x60C5 {cfg[j].max_acceleration:g}/s^2",
+                    path=f"{p}[{j}]",
+                )
+        out[key] = tuple(float(v) for v in vals)
+    return out
+
+
+def _check_positions(
+    a: FloatArray, name: str, axes: Sequence[str], cfg: Sequence[AxisConfig], *, vector: bool = False
+) -> None:
+    lo = np.array([c.position_min for c in cfg])
+    hi = np.array([c.position_max for c in cfg])
+    bad = (a < lo) | (a > hi)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        p = f"{name}[{j}]" if vector else f"{name}[{i}][{j}]"
+        raise PlanningError(
+            POSITION_LIMIT,
+            f"{p} of axis {axes[j]!r} is {a[i, j]:g}, outside the software "
+            f"position limits [{lo[j]:g}, {hi[j]:g}]",
+            path=p,
+        )
+    counts = a * np.array([c.counts_per_unit for c in cfg])
+    bad = (counts < POSITION_MIN) | (counts > POSITION_MAX)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        p = f"{name}[{j}]" if vector else f"{name}[{i}][{j}]"
+        raise PlanningError(
+            ENCODING_RANGE,
+            f"{p} of axis {axes[j]!r} is {a[i, j]:g} = {counts[i, j]:.0f} counts, "
+            f"which does not fit the int32 PVT position",
+            path=p,
+        )
+
+
+def _check_times(times: FloatArray) -> None:
+    if times[0] < 0:
+        raise PlanningError(
+            NON_MONOTONIC, f"times[0] is {times[0]:g}; times start at >= 0 s", path="times[0]"
+        )
+    d = np.diff(times)
+    if np.any(d <= 0):
+        i = int(np.argmax(d <= 0)) + 1
+        raise PlanningError(
+            NON_MONOTONIC,
+            f"times[{i}] = {times[i]:g} s does not come after times[{i - 1}] = "
+            f"{times[i - 1]:g} s (times must strictly increase)",
+            path=f"times[{i}]",
+        )
+    if times[-1] - times[0] > MAX_DURATION_S:
+        raise PlanningError(
+            TOO_LARGE,
+            f"the job lasts {times[-1] - times[0]:g} s, more than the limit of {MAX_DURATION_S:g} s",
+            path="times",
+        )
+
+
+def _check_pvt(times: FloatArray, vel: FloatArray, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> None:
+    dt_ms = np.diff(times) * 1000.0
+    whole = np.round(dt_ms)
+    bad = (np.abs(dt_ms - whole) > 1e-6) | (whole < 1) | (whole > SEGMENT_TIME_MAX_MS)
+    if bad.any():
+        i = int(np.argmax(bad)) + 1
+        raise PlanningError(
+            ENCODING_RANGE,
+            f"times[{i}] - times[{i - 1}] is {dt_ms[i - 1]:g} ms; a PVT segment "
+            f"time must be a whole number of ms in 1..{SEGMENT_TIME_MAX_MS}",
+            path=f"times[{i}]",
+        )
+    rpm = vel * np.array([c.counts_per_unit * 60.0 / c.counts_per_rev for c in cfg])
+    bad = (np.round(rpm) < VELOCITY_MIN) | (np.round(rpm) > VELOCITY_MAX)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise PlanningError(
+            ENCODING_RANGE,
+            f"velocities[{i}][{j}] of axis {axes[j]!r} is {vel[i, j]:g}/s = "
+            f"{rpm[i, j]:.0f} rpm, which does not fit the int24 PVT velocity",
+            path=f"velocities[{i}][{j}]",
+        )
+
+
+# ----------------------------------------------------------------------------------------------------
+# job_to_dict / load_job
+
+
+def job_to_dict(job: Job) -> dict[str, Any]:
+    """The job as plain data (the fields of a job file); job_from_dict(job_to_dict(j), cell) == j."""
+    out: dict[str, Any] = {"kind": job.kind, "axes": list(job.axes)}
+    if job.job_id is not None:
+        out["job_id"] = job.job_id
+    if job.description is not None:
+        out["description"] = job.description
+    d = job.data
+    if isinstance(d, PathData):
+        out["waypoints"] = d.waypoints.tolist()
+    elif isinstance(d, MoveData):
+        out["target"] = d.target.tolist()
+        out["mode"] = d.mode
+        if d.start is not None:
+            out["start"] = d.start.tolist()
+    elif isinstance(d, TimedData):
+        out["times"] = d.times.tolist()
+        out["positions"] = d.positions.tolist()
+    else:
+        out["times"] = d.times.tolist()
+        out["positions"] = d.positions.tolist()
+        out["velocities"] = d.velocities.tolist()
+    if job.tolerance_counts != 1:
+        out["tolerance_counts"] = job.tolerance_counts
+    for name, scalar in (
+        ("velocity_scale", job._scalar_scales[0]),
+        ("acceleration_scale", job._scalar_scales[1]),
+    ):
+        vals = getattr(job, name)
+        if scalar:
+            out[name] = vals[0]
+        elif any(v != 1.0 for v in vals):
+            out[name] = list(vals)
+    limits = {
+        k: list(v)
+        for k, v in (
+            ("velocity", job.velocity_limit),
+            ("acceleration", job.acceleration_limit),
+            ("jerk", job.jerk_limit),
+        )
+        if v is not None
+    }
+    if limits:
+        out["limits"] = limits
+    return out
+
+
+def load_job(path: str | Path, cell: CellConfig, *, max_rows: int = MAX_ROWS) -> Job:
+    """Read a TOML (.toml) or JSON (anything else) job file and validate it."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise PlanningError(SCHEMA, f"job file {str(p)!r} not found", path="") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise PlanningError(SCHEMA, f"job file {str(p)!r} cannot be read: {e}", path="") from None
+    data: Any
+    if p.suffix.lower() == ".toml":
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            raise PlanningError(SCHEMA, f"job file {str(p)!r} is not valid TOML: {e}", path="") from None
+    else:
+        try:
+            data = json.loads(text)
+        except (json.JSONDecodeError, RecursionError) as e:
+            raise PlanningError(SCHEMA, f"job file {str(p)!r} is not valid JSON: {e}", path="") from None
+    return job_from_dict(data, cell, max_rows=max_rows)
+
+
+def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:
+    """Per-axis limits the job is planned with (user units): overrides, then scales, applied."""
+    cfg = [cell.axis(a) for a in job.axes]
+    vel = np.array(job.velocity_limit if job.velocity_limit is not None else [c.velocity for c in cfg])
+    acc = np.array(
+        job.acceleration_limit if job.acceleration_limit is not None else [c.acceleration for c in cfg]
+    )
+    jerk = np.array(job.jerk_limit if job.jerk_limit is not None else [c.jerk for c in cfg])
+    return {
+        "velocity": vel * np.array(job.velocity_scale),
+        "acceleration": acc * np.array(job.acceleration_scale),
+        "jerk": jerk,
+        "velocity_axis": vel,  # before scaling: what "the axis limit" means in the checks
+        "acceleration_axis": acc,
+    }

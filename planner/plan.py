@@ -1,0 +1,409 @@
+"""plan_job: a validated `Job` on a cell -> `PvtTrajectory` (plan, encode, verify, measure).
+
+Theory of operation. Each job kind has a reference builder (path.py: toppra; jerk.py: ruckig;
+timed.py: the user's timing) that yields the planned motion of every axis at every ms in counts. The
+encoder (encoder.py) turns it into knots and proves the drive's reconstruction; the statistics in the
+trajectory are measured on that reconstruction. Where the encoder finds the motion too fast for the
+wire's resolution (sub-count moves: one count of quantisation is then a large share of the motion),
+planned kinds (path, move, stop) are played slower and encoded again; user timings (timed, pvt) are
+rejected instead. Start and end positions are snapped to whole counts first: the drive stands on
+whole counts, and the plan must start exactly where the drive is.
+
+Errors are PlanningError with stable codes; no toppra/ruckig/numpy exception escapes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from planner.config import AxisConfig, CellConfig
+from planner.encoder import (
+    ACC_EXCESS_LIMIT,
+    AxisScales,
+    EncodingFailed,
+    EncodingNeedsTime,
+    Knots,
+    Reconstruction,
+    acceleration_excess,
+    encode,
+    planned_demand,
+    segment_bounds,
+)
+from planner.errors import ENCODING_RANGE, INFEASIBLE, POSITION_LIMIT, PlanningError
+from planner.job import MAX_DURATION_S, Job, MoveData, PathData, PvtData, TimedData, effective_limits
+from planner.reference import FloatArray, IntArray, Reference
+from planner.trajectory import AxisStats, PvtTrajectory
+
+MAX_SLOWDOWNS = 6  # attempts at playing a planned motion slower when the quantisation needs it
+TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
+MIN_SWITCH_PIECE_MS = 10  # shorter profile pieces between two switches are merged (see path.Profile)
+
+
+def axis_configs(axes: Sequence[str], cell: CellConfig) -> list[AxisConfig]:
+    return [cell.axis(a) for a in axes]
+
+
+def axis_scales(cfg: Sequence[AxisConfig], limits: dict[str, FloatArray]) -> AxisScales:
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    return AxisScales(
+        counts_per_ms_per_rpm=np.array([c.counts_per_rev / 60000.0 for c in cfg]),
+        velocity_limit=limits["velocity"] * cpu / 1000.0,
+        acceleration_limit=limits["acceleration"] * cpu / 1.0e6,
+        acceleration_axis=limits["acceleration_axis"] * cpu / 1.0e6,
+        drive_velocity=np.array([c.max_profile_velocity for c in cfg]) * cpu / 1000.0,
+        drive_acceleration=np.array([c.max_acceleration for c in cfg]) * cpu / 1.0e6,
+    )
+
+
+def snap(x: FloatArray, cpu: FloatArray) -> FloatArray:
+    """User-unit positions moved to the nearest whole count (the drive stands on whole counts)."""
+    out: FloatArray = np.round(x * cpu) / cpu
+    return out
+
+
+def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None) -> PvtTrajectory:
+    """Plan, encode and verify `job` on `cell`.
+
+    `start`: where the axes stand now (user units, one per job axis). A move starts there (relative
+    moves are relative to it); path, timed and pvt jobs start at their first row, which must then be
+    within `tolerance_counts` of it (the first row is replaced by `start` so knot 0 is the drive's
+    position). Without `start`, a move starts at its `start` field, else at 0.
+    """
+    cfg = axis_configs(job.axes, cell)
+    n = len(cfg)
+    limits = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    scales = axis_scales(cfg, limits)
+    tol = job.tolerance_counts
+    here = None if start is None else _start_vector(start, job.axes)
+    min_seg = segment_bounds(scales, float(tol))[0]
+    info: dict[str, float] = {}
+    d = job.data
+
+    build: Callable[[float], Reference]
+    times_ms: IntArray | None = None
+    if isinstance(d, PathData):
+        wp = np.array(d.waypoints, dtype=np.float64)
+        if here is not None:
+            _check_start(here, wp[0], cpu, tol, job.axes, "waypoints[0]")
+            wp[0] = here
+        wp = _merge_close(wp, cpu)
+        wp[0], wp[-1] = snap(wp[0], cpu), snap(wp[-1], cpu)
+        extent = (wp.max(axis=0) - wp.min(axis=0)) * cpu
+        if wp.shape[0] < 2 or float(extent.max()) < TINY_PATH_COUNTS:
+            first, last = wp[0], wp[-1]
+
+            def build(f: float, smooth: bool = False) -> Reference:
+                from planner.jerk import move_reference
+
+                return move_reference(
+                    first,
+                    last,
+                    limits["velocity"],
+                    limits["acceleration"],
+                    limits["jerk"],
+                    cpu,
+                    time_scale=f,
+                    max_duration_s=MAX_DURATION_S,
+                )
+        else:
+
+            def build(f: float, smooth: bool = False) -> Reference:
+                from planner.path import plan_path
+
+                ref, path_info = plan_path(
+                    wp,
+                    cpu,
+                    limits["velocity"],
+                    limits["acceleration"],
+                    time_scale=f,
+                    min_piece_ms=max(MIN_SWITCH_PIECE_MS, min_seg)
+                    if smooth
+                    else min(MIN_SWITCH_PIECE_MS, min_seg),
+                    max_duration_s=MAX_DURATION_S,
+                )
+                info.update(path_info)
+                return ref
+    elif isinstance(d, MoveData):
+        origin = here if here is not None else (np.array(d.start) if d.start is not None else np.zeros(n))
+        _check_within(origin, cfg, job.axes, "start")
+        target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
+        _check_within(target, cfg, job.axes, "target")
+        a, b = snap(origin, cpu), snap(target, cpu)
+
+        def build(f: float, smooth: bool = False) -> Reference:
+            from planner.jerk import move_reference
+
+            return move_reference(
+                a,
+                b,
+                limits["velocity"],
+                limits["acceleration"],
+                limits["jerk"],
+                cpu,
+                time_scale=f,
+                max_duration_s=MAX_DURATION_S,
+            )
+    elif isinstance(d, TimedData):
+        pos = np.array(d.positions, dtype=np.float64)
+        if here is not None:
+            _check_start(here, pos[0], cpu, tol, job.axes, "positions[0]")
+            pos[0] = here
+        pos[0], pos[-1] = snap(pos[0], cpu), snap(pos[-1], cpu)
+        times = np.array(d.times)
+
+        def build(f: float, smooth: bool = False) -> Reference:
+            from planner.timed import check_user_timing, timed_reference
+
+            ref = timed_reference(times, pos, cpu)
+            check_user_timing(ref, scales.velocity_limit, scales.acceleration_limit, job.axes, cpu)
+            return ref
+    else:
+        assert isinstance(d, PvtData)
+        pos = np.array(d.positions, dtype=np.float64)
+        vel = np.array(d.velocities, dtype=np.float64)
+        for row, name in ((0, "first"), (-1, "last")):
+            if np.any(vel[row] != 0.0):
+                j = int(np.argmax(vel[row] != 0.0))
+                k = 0 if row == 0 else vel.shape[0] - 1
+                raise PlanningError(
+                    INFEASIBLE,
+                    f"velocities[{k}][{j}] of axis {job.axes[j]!r} is {vel[row, j]:g}; the "
+                    f"{name} PVT row must be at rest (the drive starts and ends at "
+                    f"velocity 0)",
+                    path=f"velocities[{k}][{j}]",
+                )
+        if here is not None:
+            _check_start(here, pos[0], cpu, tol, job.axes, "positions[0]")
+            pos[0] = here
+        pos[0], pos[-1] = snap(pos[0], cpu), snap(pos[-1], cpu)
+        from planner.timed import check_user_timing, pvt_reference
+
+        pvt_ref, times_ms = pvt_reference(np.array(d.times), pos, vel, cpu)
+        # the rows' own Hermite may exceed the limits; quantisation adds up to the 5 % excess budget
+        check_user_timing(
+            pvt_ref,
+            scales.velocity_limit * 1.005,
+            scales.acceleration_limit,
+            job.axes,
+            cpu,
+            acc_slack=ACC_EXCESS_LIMIT,
+        )
+
+        def build(f: float, smooth: bool = False) -> Reference:
+            return pvt_ref
+
+    retime = isinstance(d, PathData | MoveData)
+    ref, knots, rec = encode_with_retries(
+        build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
+    )
+    _check_reference_positions(ref, cfg, job.axes)
+    return build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
+
+
+def encode_with_retries(
+    build: Callable[[float, bool], Reference],
+    scales: AxisScales,
+    tol: int,
+    *,
+    retime: bool,
+    times_ms: IntArray | None = None,
+    axes: Sequence[str] = (),
+    start_positions: IntArray | None = None,
+    start_velocities_rpm: IntArray | None = None,
+    info_out: dict[str, float] | None = None,
+) -> tuple[Reference, Knots, Reconstruction]:
+    """Build the reference and encode it; planned motions are slowed down when quantisation needs it.
+
+    `info_out` receives `time_scale` (1.0 unless the motion had to be played slower) and
+    `encode_variant` (1 or 2 when the encoder needed its conservative or long placement).
+    """
+    if info_out is None:
+        info_out = {}
+    factor = 1.0
+    last = ""
+    variant = 0
+    ref = build(factor, False)
+    for _attempt in range(MAX_SLOWDOWNS):
+        try:
+            knots, rec = encode(
+                ref,
+                scales,
+                tolerance=float(tol),
+                times_ms=times_ms,
+                start_positions=start_positions,
+                start_velocities_rpm=start_velocities_rpm,
+                variant=variant,
+            )
+            info_out["time_scale"] = factor
+            info_out["encode_variant"] = float(variant)
+            return ref, knots, rec
+        except EncodingNeedsTime as e:
+            where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""
+            last = e.message + where
+            if variant < 2:
+                # other placements first: conservative on the same plan, then long segments on a plan
+                # whose short switch pieces are merged more widely (path jobs)
+                variant += 1
+                if variant == 2:
+                    ref = build(factor, True)
+                continue
+            if not retime:
+                raise PlanningError(
+                    INFEASIBLE, f"the drive cannot reproduce this timing: {last}", detail={"stage": "encode"}
+                ) from None
+            factor *= max(e.factor, 1.05)
+            ref = build(factor, True)
+        except EncodingFailed as e:
+            where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""
+            code = ENCODING_RANGE if "int32" in e.message else INFEASIBLE
+            raise PlanningError(code, f"{e.message}{where}", detail={"stage": "encode"}) from None
+    raise PlanningError(
+        INFEASIBLE,
+        f"could not encode the motion within the limits even {factor:.2f}x slower: {last}",
+        detail={"stage": "encode"},
+    )
+
+
+def build_trajectory(
+    kind: str,
+    axes: Sequence[str],
+    cfg: Sequence[AxisConfig],
+    ref: Reference,
+    knots: Knots,
+    rec: Reconstruction,
+    scales: AxisScales,
+    tol: int,
+    limits: dict[str, FloatArray],
+    info: dict[str, float],
+) -> PvtTrajectory:
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    want = planned_demand(ref)
+    dev = np.abs(rec.demand - want).max(axis=1)
+    dev_plan = np.abs(rec.demand - ref.positions).max(axis=1)
+    excess = acceleration_excess(ref, knots, rec)
+    peak_acc = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
+    env = ref.acc_envelope()
+    conv = scales.counts_per_ms_per_rpm
+    stats = []
+    for i, c in enumerate(cfg):
+        vpk = float(np.abs(rec.velocity[i]).max())
+        ex = max(float(excess[i].max()), 0.0) if excess.size else 0.0
+        stats.append(
+            AxisStats(
+                name=c.name,
+                node_id=c.node_id,
+                max_deviation_counts=int(dev[i]),
+                max_deviation_from_plan_counts=float(dev_plan[i]),
+                peak_velocity=vpk * 1000.0 / cpu[i],
+                peak_velocity_rpm=vpk / conv[i],
+                velocity_limit=float(limits["velocity"][i]),
+                drive_velocity_limit_rpm=float(c.max_profile_velocity_rpm),
+                planned_peak_acceleration=float(env[i].max()) * 1.0e6 / cpu[i],
+                peak_acceleration=(float(peak_acc[i].max()) if peak_acc.size else 0.0) * 1.0e6 / cpu[i],
+                acceleration_limit=float(limits["acceleration"][i]),
+                axis_acceleration_limit=float(limits["acceleration_axis"][i]),
+                drive_acceleration_limit=float(c.max_acceleration),
+                acceleration_excess=ex * 1.0e6 / cpu[i],
+                acceleration_excess_share=ex / float(scales.acceleration_axis[i]),
+            )
+        )
+    return PvtTrajectory(
+        kind=kind,
+        axis_names=tuple(axes),
+        node_ids=tuple(c.node_id for c in cfg),
+        dt_ms=np.diff(knots.times_ms),
+        positions=knots.positions,
+        velocities=knots.velocities_rpm,
+        counts_per_unit=cpu,
+        counts_per_rev=np.array([float(c.counts_per_rev) for c in cfg]),
+        tolerance_counts=tol,
+        plan=ref,
+        stats=tuple(stats),
+        info=dict(info),
+    )
+
+
+def _start_vector(start: Sequence[float], axes: Sequence[str]) -> FloatArray:
+    a = np.asarray(start, dtype=np.float64)
+    if a.shape != (len(axes),):
+        raise PlanningError("AXIS_COUNT", f"start has {a.size} values for {len(axes)} axes", path="start")
+    if not np.all(np.isfinite(a)):
+        raise PlanningError("NONFINITE", "start contains NaN or infinity", path="start")
+    return a
+
+
+def _check_start(
+    here: FloatArray, first: FloatArray, cpu: FloatArray, tol: int, axes: Sequence[str], name: str
+) -> None:
+    off = np.abs(np.round(here * cpu) - np.round(first * cpu))
+    if np.any(off > tol):
+        j = int(np.argmax(off))
+        raise PlanningError(
+            INFEASIBLE,
+            f"{name}[{j}] of axis {axes[j]!r} is {first[j]:g} but the axis stands at "
+            f"{here[j]:g} ({off[j]:.0f} counts away): the job must start where the "
+            f"axes are",
+            path=f"{name}[{j}]",
+        )
+
+
+def _check_within(x: FloatArray, cfg: Sequence[AxisConfig], axes: Sequence[str], name: str) -> None:
+    for j, c in enumerate(cfg):
+        if not c.position_min <= x[j] <= c.position_max:
+            raise PlanningError(
+                POSITION_LIMIT,
+                f"{name}[{j}] of axis {axes[j]!r} is {x[j]:g}, outside the software "
+                f"position limits [{c.position_min:g}, {c.position_max:g}]",
+                path=f"{name}[{j}]",
+            )
+
+
+def _merge_close(wp: FloatArray, cpu: FloatArray) -> FloatArray:
+    """Drop waypoints within half a count (every axis) of the previous kept one; keep the last waypoint.
+
+    The drive cannot tell such waypoints apart, and a spline through near-duplicates swings wildly.
+    """
+    keep = [0]
+    for i in range(1, wp.shape[0]):
+        if np.any(np.abs(wp[i] - wp[keep[-1]]) * cpu >= 0.5):
+            keep.append(i)
+    if keep[-1] != wp.shape[0] - 1:
+        if len(keep) > 1:
+            keep[-1] = wp.shape[0] - 1  # the end is where the job says it is
+        else:
+            keep.append(wp.shape[0] - 1)
+    out: FloatArray = wp[keep].copy()
+    return out
+
+
+def _check_reference_positions(ref: Reference, cfg: Sequence[AxisConfig], axes: Sequence[str]) -> None:
+    """The planned motion (e.g. a spline bulging between waypoints) must stay inside the software limits."""
+    for j, c in enumerate(cfg):
+        lo, hi = c.position_min * c.counts_per_unit, c.position_max * c.counts_per_unit
+        row = ref.positions[j]
+        bad = (row < lo - 0.5) | (row > hi + 0.5)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise PlanningError(
+                POSITION_LIMIT,
+                f"the planned motion of axis {axes[j]!r} reaches "
+                f"{row[k] / c.counts_per_unit:.4g} at t = {k / 1000:.3f} s, outside the "
+                f"software position limits [{c.position_min:g}, {c.position_max:g}] "
+                f"(the spline through the waypoints bulges there)",
+                path="waypoints",
+                detail={"axis": axes[j], "time_s": k / 1000.0},
+            )
+
+
+def warm_up() -> None:
+    """Import the solvers now (toppra pulls in matplotlib: ~0.5 s once), e.g. when a service starts,
+    so the first job's planning time is the planning."""
+    from planner.jerk import _ruckig
+    from planner.path import _toppra
+
+    _toppra()
+    _ruckig()
+    import scipy.interpolate  # noqa: F401

@@ -1,0 +1,93 @@
+"""The planned motion of every axis, sampled at every millisecond in drive units (the encoder's input).
+
+Theory of operation. Every planner (toppra paths, ruckig moves and stops, timed splines, raw PVT rows)
+ends in a `Reference`: positions in counts (float, unrounded), velocities in counts/ms and
+accelerations in counts/ms^2, for all axes, at every integer millisecond 0..M of the motion. The drive
+interpolates at 1 ms ticks and the encoder verifies the drive's reconstruction at exactly those ticks,
+so the 1 kHz samples are all the encoder needs, and they make every check a vectorised array
+operation.
+
+Accelerations are kept on both sides of every tick (`acc_left` on (m-1, m), `acc_right` on (m, m+1)):
+the time-optimal profiles switch acceleration abruptly, and the planners arrange those switches to fall
+on whole milliseconds (listed in `breaks`), because a Hermite segment can only follow an acceleration
+step that sits on one of its knots.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def _readonly(a: NDArray[np.generic]) -> NDArray[np.generic]:
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class Reference:
+    """Planned positions (counts), velocities (counts/ms), accelerations (counts/ms^2) at every ms."""
+
+    positions: FloatArray  # (n_axes, M+1)
+    velocities: FloatArray  # (n_axes, M+1)
+    acc_left: FloatArray  # (n_axes, M+1): acceleration on (m-1, m); [:, 0] repeats acc_right[:, 0]
+    acc_right: FloatArray  # (n_axes, M+1): acceleration on (m, m+1); [:, M] repeats acc_left[:, M]
+    breaks: IntArray  # ms in 1..M-1 where the acceleration may jump (sorted, unique)
+
+    def __post_init__(self) -> None:
+        p = np.ascontiguousarray(self.positions, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] < 1:
+            raise ValueError(f"reference positions must be (n_axes, M+1), got shape {p.shape}")
+        for name in ("positions", "velocities", "acc_left", "acc_right"):
+            a = np.ascontiguousarray(getattr(self, name), dtype=np.float64)
+            if a.shape != p.shape:
+                raise ValueError(f"reference {name} has shape {a.shape}, expected {p.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"reference {name} is not finite")
+            object.__setattr__(self, name, _readonly(a))
+        b = np.unique(np.asarray(self.breaks, dtype=np.int64))
+        b = b[(b > 0) & (b < p.shape[1] - 1)]
+        object.__setattr__(self, "breaks", _readonly(b))
+
+    @property
+    def n_axes(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def duration_ms(self) -> int:
+        return int(self.positions.shape[1] - 1)
+
+    def acc_envelope(self) -> FloatArray:
+        """max(|acc_left|, |acc_right|) at every ms: the planned acceleration magnitude there."""
+        return np.maximum(np.abs(self.acc_left), np.abs(self.acc_right))
+
+    def at(self, t_ms: FloatArray) -> FloatArray:
+        """Positions (counts) at arbitrary times (ms), (n_axes, len(t)): cubic Hermite between samples.
+
+        Between two 1 ms samples the planned motion is smooth, so this is exact to well below a count.
+        Times outside [0, M] are clamped (the motion is at rest before and after).
+        """
+        t = np.clip(np.asarray(t_ms, dtype=np.float64), 0.0, float(self.duration_ms))
+        if self.duration_ms == 0:
+            return np.repeat(self.positions[:, :1], t.size, axis=1)
+        k = np.minimum(np.floor(t).astype(np.int64), self.duration_ms - 1)
+        s = t - k
+        h00 = (1 + 2 * s) * (1 - s) ** 2
+        h10 = s * (1 - s) ** 2
+        h01 = s * s * (3 - 2 * s)
+        h11 = s * s * (s - 1)
+        p, v = self.positions, self.velocities
+        out: FloatArray = p[:, k] * h00 + v[:, k] * h10 + p[:, k + 1] * h01 + v[:, k + 1] * h11
+        return out
+
+
+def hold(positions_counts: FloatArray, duration_ms: int = 1) -> Reference:
+    """A reference that stands still at `positions_counts` for `duration_ms` (a valid no-op motion)."""
+    p = np.repeat(np.asarray(positions_counts, dtype=np.float64)[:, None], duration_ms + 1, axis=1)
+    z = np.zeros_like(p)
+    return Reference(p, z, z, z, np.zeros(0, dtype=np.int64))

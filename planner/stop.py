@@ -1,0 +1,119 @@
+"""plan_stop: a jerk-limited stop of all axes from any state, encoded like every other motion.
+
+Theory of operation. The streamer cancels a job by appending a stop to what it has already queued:
+it asks for a stop from the state at the end of the queue (the last queued knot: its position and
+velocity exactly as sent, and the drive's Hermite acceleration at the end of that segment, see
+`PvtTrajectory.knot_state`). ruckig's velocity interface brings every axis to velocity 0 and
+acceleration 0 under the axis' velocity, acceleration and jerk limits from the cell config.
+
+All axes are time-synchronised (`Synchronization.Time`): they come to rest at the same instant,
+the slowest axis' minimum stopping time. A cancel is a controlled stop (faults use the drive's quick
+stop), and stopping together keeps the axes coordinated as the motion winds down; the fast axes brake
+more gently than they could, which costs stopping distance only on axes that are not limiting.
+
+Knot 0 of the stop is exactly the given state (position rounded to counts, velocity to rpm: the wire
+values the streamer passed in), so the stop's records continue the queued stream seamlessly. A stop
+is never refused for leaving the software limits (the drive's own 0x607D still applies): it is the
+shortest coordinated stop there is; `PvtTrajectory.stats` reports where it ends.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from planner.config import CellConfig
+from planner.errors import AXIS_COUNT, NONFINITE, PlanningError
+from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
+from planner.reference import FloatArray, Reference
+from planner.trajectory import PvtTrajectory
+
+
+def plan_stop(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions: Sequence[float],
+    velocities: Sequence[float],
+    accelerations: Sequence[float],
+    *,
+    tolerance_counts: int = 1,
+) -> PvtTrajectory:
+    """Stop every axis in `axis_names` from (position, velocity, acceleration) in user units (/s, /s^2)."""
+    names = tuple(axis_names)
+    cfg = axis_configs(names, cell)
+    n = len(cfg)
+    p = _vec(positions, "positions", n)
+    v = _vec(velocities, "velocities", n)
+    a = _vec(accelerations, "accelerations", n)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    limits = {
+        "velocity": np.array([c.velocity for c in cfg]),
+        "acceleration": np.array([c.acceleration for c in cfg]),
+        "jerk": np.array([c.jerk for c in cfg]),
+        "velocity_axis": np.array([c.velocity for c in cfg]),
+        "acceleration_axis": np.array([c.acceleration for c in cfg]),
+    }
+    # a stop that starts while accelerating at full speed briefly goes faster than the axis limit
+    # (it must first bring the acceleration to zero): the hard bound it is checked against is 0x607F
+    limits["velocity"] = np.array([c.max_profile_velocity for c in cfg])
+    scales = axis_scales(cfg, limits)
+    conv = scales.counts_per_ms_per_rpm
+    p0 = np.round(p * cpu).astype(np.int64)
+    v0 = np.round(v * cpu / 1000.0 / conv).astype(np.int64)
+    # plan from the wire values exactly
+    p_exact = p0 / cpu
+    v_exact = v0 * conv * 1000.0 / cpu
+
+    info: dict[str, float] = {}
+
+    def build(f: float, smooth: bool = False) -> Reference:
+        from planner.jerk import stop_reference
+
+        vlim = np.maximum(limits["velocity_axis"], np.abs(v_exact))
+        alim = np.maximum(limits["acceleration"], np.abs(a))
+        return stop_reference(p_exact, v_exact, a, vlim, alim, limits["jerk"], cpu, time_scale=f)
+
+    ref, knots, rec = encode_with_retries(
+        build,
+        scales,
+        int(tolerance_counts),
+        retime=True,
+        axes=names,
+        start_positions=p0,
+        start_velocities_rpm=v0,
+        info_out=info,
+    )
+    return build_trajectory("stop", names, cfg, ref, knots, rec, scales, int(tolerance_counts), limits, info)
+
+
+def plan_stop_from_wire(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions_counts: Sequence[int],
+    velocities_rpm: Sequence[int],
+    accelerations_counts_per_ms2: Sequence[float] | None = None,
+    *,
+    tolerance_counts: int = 1,
+) -> PvtTrajectory:
+    """plan_stop with the state in drive units (counts, rpm, counts/ms^2), as the streamer holds it."""
+    cfg = axis_configs(tuple(axis_names), cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    conv = np.array([c.counts_per_rev / 60000.0 for c in cfg])
+    p = np.asarray(positions_counts, dtype=np.float64) / cpu
+    v = np.asarray(velocities_rpm, dtype=np.float64) * conv * 1000.0 / cpu
+    a = (
+        np.zeros(len(cfg))
+        if accelerations_counts_per_ms2 is None
+        else np.asarray(accelerations_counts_per_ms2, dtype=np.float64) * 1.0e6 / cpu
+    )
+    return plan_stop(cell, axis_names, p.tolist(), v.tolist(), a.tolist(), tolerance_counts=tolerance_counts)
+
+
+def _vec(x: Sequence[float], name: str, n: int) -> FloatArray:
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape != (n,):
+        raise PlanningError(AXIS_COUNT, f"{name} has {a.size} values for {n} axes", path=name)
+    if not np.all(np.isfinite(a)):
+        raise PlanningError(NONFINITE, f"{name} contains NaN or infinity", path=name)
+    return a

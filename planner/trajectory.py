@@ -1,0 +1,271 @@
+"""`PvtTrajectory`: the encoded motion of all axes on one shared grid, plus what it was planned from.
+
+Theory of operation. This is the planner's product and the streamer's input. It holds the knots
+exactly as they go on the wire (positions int32 counts, velocities int24 rpm, one shared list of
+segment times 1..255 ms), the plan they were encoded from (the `Reference`, every ms, in counts) and
+per-axis statistics measured on the drive's own reconstruction (planner.hermite). Everything else
+is derived: records per axis (N records then the end record), the plan and the reconstruction at
+any time, the drive's position demand at every ms, and the state at any knot (for the stop planner).
+
+Deviation is measured in whole counts: drive demand (the Hermite rounded as the drive rounds) minus
+planned demand (the plan rounded the same way), at every ms of every axis; the encoder guarantees it
+is within `tolerance_counts`. Against the unrounded plan that is within tolerance + 0.5 counts.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from planner import hermite
+from planner.errors import ENCODING_RANGE, PlanningError
+from planner.record import PvtRecord, pack
+from planner.reference import FloatArray, IntArray, Reference
+
+CSV_COLUMNS = ("axis", "node_id", "index", "time_s", "dt_ms", "position_counts", "velocity_rpm")
+
+
+@dataclass(frozen=True)
+class AxisStats:
+    """Measured on the drive's reconstruction of one axis (user units unless the name says otherwise)."""
+
+    name: str
+    node_id: int
+    max_deviation_counts: int  # |drive demand - planned demand|, whole counts, over every ms
+    max_deviation_from_plan_counts: float  # |drive demand - unrounded plan|
+    peak_velocity: float  # reconstruction, user units/s
+    peak_velocity_rpm: float
+    velocity_limit: float  # the job's limit (scales applied), user units/s
+    drive_velocity_limit_rpm: float  # 0x607F
+    planned_peak_acceleration: float  # the plan, user units/s^2
+    peak_acceleration: float  # reconstruction (segment ends), user units/s^2
+    acceleration_limit: float  # the job's limit (scales applied)
+    axis_acceleration_limit: float  # the limit the excess budget refers to (before scales)
+    drive_acceleration_limit: float  # 0x60C5, user units/s^2
+    acceleration_excess: float  # max over segments of reconstruction peak - planned peak, user units/s^2
+    acceleration_excess_share: float  # acceleration_excess / axis_acceleration_limit
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def _ro(a: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+    a = np.array(a, copy=True)
+    a.setflags(write=False)
+    return a
+
+
+@dataclass(frozen=True, eq=False)
+class PvtTrajectory:
+    """Knots of every axis on one shared grid (see the module docstring)."""
+
+    kind: str
+    axis_names: tuple[str, ...]
+    node_ids: tuple[int, ...]
+    dt_ms: IntArray  # (N,) shared segment times, each 1..255
+    positions: IntArray  # (n_axes, N+1) counts, knot 0 = start
+    velocities: IntArray  # (n_axes, N+1) rpm, last knot 0
+    counts_per_unit: FloatArray  # (n_axes,)
+    counts_per_rev: FloatArray  # (n_axes,)
+    tolerance_counts: int
+    plan: Reference  # the planned motion at every ms, counts
+    stats: tuple[AxisStats, ...]
+    info: dict[str, float] = field(default_factory=dict)  # e.g. optimal_s (toppra), planning details
+
+    def __post_init__(self) -> None:
+        n = len(self.axis_names)
+        dt = np.asarray(self.dt_ms, dtype=np.int64)
+        pos = np.asarray(self.positions, dtype=np.int64)
+        vel = np.asarray(self.velocities, dtype=np.int64)
+        if dt.ndim != 1 or dt.size < 1 or dt.min() < 1 or dt.max() > 255:
+            raise PlanningError(
+                ENCODING_RANGE, "segment times must be 1..255 ms (at least one segment)", path="dt_ms"
+            )
+        if pos.shape != (n, dt.size + 1) or vel.shape != pos.shape:
+            raise ValueError(
+                f"positions/velocities must be ({n}, {dt.size + 1}), got {pos.shape}/{vel.shape}"
+            )
+        if len(self.node_ids) != n or self.plan.n_axes != n or self.plan.duration_ms != int(dt.sum()):
+            raise ValueError("node_ids, plan and knots disagree on axes or duration")
+        if np.any(vel[:, -1] != 0):
+            raise ValueError("a trajectory ends at rest (last knot velocity 0)")
+        for name, a in (
+            ("dt_ms", dt),
+            ("positions", pos),
+            ("velocities", vel),
+            ("counts_per_unit", np.asarray(self.counts_per_unit, dtype=np.float64)),
+            ("counts_per_rev", np.asarray(self.counts_per_rev, dtype=np.float64)),
+        ):
+            object.__setattr__(self, name, _ro(a))
+
+    # -- shape and time ------------------------------------------------------------------------------
+
+    @property
+    def n_axes(self) -> int:
+        return len(self.axis_names)
+
+    @property
+    def n_segments(self) -> int:
+        return int(self.dt_ms.size)
+
+    @property
+    def n_points(self) -> int:
+        """PVT points per axis, including the start point (knots)."""
+        return int(self.dt_ms.size) + 1
+
+    @property
+    def knot_times_ms(self) -> IntArray:
+        out: IntArray = np.concatenate([[0], np.cumsum(self.dt_ms)]).astype(np.int64)
+        return out
+
+    @property
+    def knot_times_s(self) -> FloatArray:
+        out: FloatArray = self.knot_times_ms / 1000.0
+        return out
+
+    @property
+    def duration_ms(self) -> int:
+        return int(self.dt_ms.sum())
+
+    @property
+    def duration_s(self) -> float:
+        return self.duration_ms / 1000.0
+
+    def axis_index(self, name: str) -> int:
+        return self.axis_names.index(name)
+
+    # -- wire ----------------------------------------------------------------------------------------
+
+    def records(self, axis_index: int) -> list[PvtRecord]:
+        """(p_k, v_k, dt_k) for k = 1..N, then the end record (p_N, 0, 0)."""
+        p = self.positions[axis_index].tolist()
+        v = self.velocities[axis_index].tolist()
+        dt = self.dt_ms.tolist()
+        out = [PvtRecord(p[k], v[k], dt[k - 1]) for k in range(1, len(p))]
+        out.append(PvtRecord(p[-1], 0, 0))
+        return out
+
+    def packed(self, axis_index: int) -> list[bytes]:
+        """The 8-byte 0x20C1 records of one axis (raises EncodingRangeError if one does not fit)."""
+        return [pack(r) for r in self.records(axis_index)]
+
+    # -- plan and reconstruction ---------------------------------------------------------------------
+
+    def _scale_ms(self) -> FloatArray:
+        out: FloatArray = self.counts_per_rev / 60000.0
+        return out
+
+    def reference(self, t_s: Sequence[float] | FloatArray | float) -> FloatArray:
+        """Planned positions (counts, unrounded) of all axes at times `t_s` (s): (n_axes, len(t))."""
+        t = np.atleast_1d(np.asarray(t_s, dtype=np.float64)) * 1000.0
+        return self.plan.at(t)
+
+    def reconstruction(self, t_s: Sequence[float] | FloatArray | float) -> FloatArray:
+        """The drive's interpolated positions (counts, unrounded) at times `t_s` (s): (n_axes, len(t))."""
+        t = np.clip(np.atleast_1d(np.asarray(t_s, dtype=np.float64)) * 1000.0, 0.0, float(self.duration_ms))
+        kt = self.knot_times_ms
+        seg = np.clip(np.searchsorted(kt, t, side="left") - 1, 0, self.n_segments - 1)
+        tt = self.dt_ms[seg].astype(np.float64)
+        tau = t - kt[seg + 1]  # in [-T, 0], measured from the segment end as in seed 000 4.2.3
+        out = np.empty((self.n_axes, t.size))
+        conv = self._scale_ms()
+        for i in range(self.n_axes):
+            p = self.positions[i].astype(np.float64)
+            v = self.velocities[i].astype(np.float64) * conv[i]
+            dp = p[seg + 1] - p[seg]
+            a = (-2.0 * dp + tt * (v[seg + 1] + v[seg])) / tt**3
+            b = (-3.0 * dp + tt * (2.0 * v[seg + 1] + v[seg])) / tt**2
+            out[i] = ((a * tau + b) * tau + v[seg + 1]) * tau + p[seg + 1]
+        return out
+
+    def drive_profile(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Unrounded position (counts), velocity (counts/ms), acceleration (counts/ms^2) at every ms."""
+        n, m = self.n_axes, self.duration_ms
+        pos, vel, acc = np.empty((n, m + 1)), np.empty((n, m + 1)), np.empty((n, m + 1))
+        conv = self._scale_ms()
+        for i in range(n):
+            pos[i], vel[i], acc[i] = hermite.reconstruct(
+                self.positions[i].astype(np.float64),
+                self.velocities[i].astype(np.float64) * conv[i],
+                self.dt_ms,
+            )
+        return pos, vel, acc
+
+    def demand(self) -> IntArray:
+        """The drive's position demand (0x6062) at every ms 0..M: whole counts, (n_axes, M+1)."""
+        return hermite.round_counts_array(self.drive_profile()[0])
+
+    def planned_demand(self) -> IntArray:
+        """The plan rounded to whole counts as the drive rounds, at every ms: (n_axes, M+1)."""
+        return hermite.round_counts_array(np.asarray(self.plan.positions))
+
+    def deviation(self) -> IntArray:
+        """demand() - planned_demand(): whole counts, within +-tolerance_counts at every ms."""
+        out: IntArray = self.demand() - self.planned_demand()
+        return out
+
+    def knot_state(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """(positions, velocities, accelerations) of all axes at knot k, user units (/s, /s^2).
+
+        Position and velocity are the knot's wire values; the acceleration is the drive's Hermite
+        acceleration at the end of segment k (0 at knot 0). Feed this to planner.stop.plan_stop to stop
+        from the end of what is queued.
+        """
+        if not 0 <= k <= self.n_segments:
+            raise IndexError(f"knot {k} outside 0..{self.n_segments}")
+        cpu = self.counts_per_unit
+        conv = self._scale_ms()
+        pos = self.positions[:, k] / cpu
+        vel = self.velocities[:, k] * conv * 1000.0 / cpu
+        if k == 0:
+            acc = np.zeros(self.n_axes)
+        else:
+            t = float(self.dt_ms[k - 1])
+            p0, p1 = self.positions[:, k - 1].astype(np.float64), self.positions[:, k].astype(np.float64)
+            v0, v1 = self.velocities[:, k - 1] * conv, self.velocities[:, k] * conv
+            acc = (-6.0 * (p1 - p0) + 4.0 * t * v1 + 2.0 * t * v0) / (t * t) * 1.0e6 / cpu
+        return pos, vel, acc
+
+    # -- reports -------------------------------------------------------------------------------------
+
+    def summary(self) -> dict[str, Any]:
+        """A JSON-ready summary (what `pvt plan --json` prints)."""
+        return {
+            "kind": self.kind,
+            "duration_s": self.duration_s,
+            "points": self.n_points,
+            "segments": self.n_segments,
+            "points_per_second": self.n_points / self.duration_s if self.duration_s > 0 else 0.0,
+            "tolerance_counts": self.tolerance_counts,
+            "segment_ms": {
+                "min": int(self.dt_ms.min()),
+                "max": int(self.dt_ms.max()),
+                "mean": float(self.dt_ms.mean()),
+            },
+            "info": dict(self.info),
+            "axes": [s.to_dict() for s in self.stats],
+        }
+
+    def csv_rows(self) -> list[tuple[str, int, int, float, int, int, int]]:
+        """axis,node_id,index,time_s,dt_ms,position_counts,velocity_rpm; index 0 = start (dt_ms 0)."""
+        rows: list[tuple[str, int, int, float, int, int, int]] = []
+        t = self.knot_times_s.tolist()
+        dt = [0, *self.dt_ms.tolist()]
+        for i, (name, node) in enumerate(zip(self.axis_names, self.node_ids, strict=True)):
+            p = self.positions[i].tolist()
+            v = self.velocities[i].tolist()
+            rows.extend((name, node, k, t[k], dt[k], p[k], v[k]) for k in range(len(p)))
+        return rows
+
+    def to_csv(self) -> str:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(CSV_COLUMNS)
+        for r in self.csv_rows():
+            w.writerow((r[0], r[1], r[2], f"{r[3]:.3f}", r[4], r[5], r[6]))
+        return buf.getvalue()

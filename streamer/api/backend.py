@@ -1,0 +1,214 @@
+"""The seam between the job service and the motion runtime: the `MotionBackend` protocol.
+
+The job service (streamer/api/service.py) owns the network side: decoding, admission, the queue, the
+journal, events and telemetry. Everything that touches the planner or the bus is behind this
+protocol, so the service is tested with a fake (tests/api/fakes.py) and the motion runtime plugs in
+without the service knowing about CAN.
+
+    class MotionBackend(Protocol):
+        cell: CellConfig
+        def validate(self, body: Mapping[str, Any]) -> Any
+        def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned
+        def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]
+        def telemetry(self) -> Sequence[Mapping[str, Any]]
+        def ready(self) -> tuple[bool, str]
+        def reset(self) -> tuple[bool, str]
+        def close(self) -> None
+
+Contract, method by method (which service thread calls it, what it may raise):
+
+- `validate(body)`: the job body as decoded from msgpack (a dict with a job file's fields, `job_id`
+  removed; payload.py already rejected malformed/oversized input, non-string or duplicate keys, bools,
+  huge ints, NaN/inf). Returns the planner's `Job` (`planner.job.job_from_dict(body, cell)`). Raises
+  `PlanningError` (code/path/message) for every bad job. Called on the service's intake thread.
+- `plan(job, start)`: plans and encodes, returns `Planned` (use `planned_from_trajectory`, which also
+  records where the job ends). Raises `PlanningError` (INFEASIBLE, ENCODING_RANGE, ...). Intake thread,
+  never the SYNC thread; one call at a time. Jobs are planned when they are accepted, which may be
+  while other jobs are still queued: `start` maps axis name -> user-unit position where the service
+  expects that axis to stand when this job starts (the end of the last queued or running job that
+  moves it); for axes not in `start` use the drives' current positions. So:
+  `plan_job(job, cell, start=[start.get(a, current[a]) for a in job.axes])`.
+- `execute(planned, emit, cancel)`: runs the motion and blocks until it has ended. Called on the
+  service's executor thread, one job at a time, only when `ready()` said True just before. While it
+  runs it calls `emit("running", {"progress": p, ...})` (p in 0..1, at any rate: the service
+  throttles to `progress_hz` and keeps the first and the last) from any thread; `emit` never blocks
+  and is thread-safe, so the SYNC thread may call it. The service itself emits `priming` before it
+  calls `execute` (a backend `priming` is ignored). `cancel` is a `CancelToken`: poll
+  `cancel.cancelled` each SYNC or register `cancel.add_callback(fn)` (called once, on the cancelling
+  thread: keep it short, e.g. queue a `Cancel()` event for the core); on cancel, stop all axes with the
+  jerk-limited stop and return result "cancelled" (if it is already cancelled on entry, return
+  "cancelled" without moving). Returns the report (the demo's report.json shape:
+  `result`, `sync_period_ms`, `duration_s`, `syncs`, `frames`, `bus_load_peak`, `faults`, `axes`),
+  where `result` is "done", "cancelled" or "failed", and for "failed" an `error` mapping
+  `{"code": str, "node": int | None, "message": str}` (extra keys such as `detail`, `sync` are kept).
+  It should not raise; if it does, the job fails with code INTERNAL and the exception text. If the
+  drives do not stand at the plan's knot 0 when execute is called (a job before it was cancelled or
+  failed), re-plan from the current positions (`self.plan(planned.job, None)`) or fail START_MISMATCH.
+- `telemetry()`: a snapshot, one mapping per axis, at least `name`, `position` (user units),
+  `velocity` (user units/s), `fifo_fill` (records), `state` (drive state, a short string). Called on
+  the telemetry thread at `telemetry_hz`, concurrently with `execute`: must be cheap and thread-safe.
+- `ready()`: (True, "") when a job may start; (False, reason) while the cell is faulted and not
+  reset. Any thread. A new submission gets NOT_READY, and a queued job that comes up while not ready
+  fails with NOT_READY (it is not kept to move unexpectedly after a reset).
+- `reset()`: clear a fault (fault reset on the drives); returns `ready()` afterwards. Called by the
+  control thread only while no job runs.
+- `close()`: release the bus. Called once, after the executor has stopped.
+
+`load_backend(spec, cell, ...)` imports a backend factory by "module:function" name; `pvt serve`
+uses `DEFAULT_BACKEND` unless `--backend` names another (tests use this to run the fake).
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from planner.config import CellConfig
+
+# The motion runtime's factory: open_backend(cell, *, sim, interface, channel, bitrate) -> MotionBackend
+DEFAULT_BACKEND = "streamer.runtime_backend:open_backend"
+
+Emit = Callable[[str, Mapping[str, Any]], None]
+"""emit(event_type, fields): report progress of the running job ("running" with "progress" 0..1)."""
+
+REQUIRED_METHODS = ("validate", "plan", "execute", "telemetry", "ready", "reset", "close")
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A planned job: what `execute` needs, plus the two numbers the acceptance reply carries."""
+
+    job: Any  # planner.job.Job
+    trajectory: Any  # planner PvtTrajectory
+    duration_s: float
+    points: int  # PVT points per axis (knots, including the start point)
+    planning_s: float = 0.0  # wall time spent planning (for the benchmark's planner share)
+    end_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at the end
+
+    def __post_init__(self) -> None:
+        if not self.duration_s >= 0.0:
+            raise ValueError(f"Planned.duration_s must be >= 0, got {self.duration_s}")
+        if self.points < 0:
+            raise ValueError(f"Planned.points must be >= 0, got {self.points}")
+
+
+def planned_from_trajectory(job: Any, trajectory: Any, planning_s: float = 0.0) -> Planned:
+    """Wrap a planner `PvtTrajectory` (`.duration_s`, `.dt_ms`: points = len(dt_ms) + 1; the end
+    positions from the last knot of `.positions` (counts) / `.counts_per_unit`)."""
+    end: dict[str, float] = {}
+    names = getattr(trajectory, "axis_names", None)
+    positions = getattr(trajectory, "positions", None)
+    cpu = getattr(trajectory, "counts_per_unit", None)
+    if names is not None and positions is not None and cpu is not None:
+        for i, name in enumerate(names):
+            end[str(name)] = float(positions[i][-1]) / float(cpu[i])
+    return Planned(
+        job=job,
+        trajectory=trajectory,
+        duration_s=float(trajectory.duration_s),
+        points=len(trajectory.dt_ms) + 1,
+        planning_s=planning_s,
+        end_positions=end,
+    )
+
+
+class CancelToken:
+    """A one-shot, thread-safe cancel flag with callbacks (the service cancels, the backend reacts)."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self._lock = threading.Lock()
+        self._callbacks: list[Callable[[], None]] = []
+
+    @property
+    def cancelled(self) -> bool:
+        return self._event.is_set()
+
+    def cancel(self) -> None:
+        with self._lock:
+            if self._event.is_set():
+                return
+            self._event.set()
+            callbacks, self._callbacks = self._callbacks, []
+        for fn in callbacks:
+            fn()
+
+    def add_callback(self, fn: Callable[[], None]) -> None:
+        """Call `fn()` once when cancelled (now, on this thread, if already cancelled)."""
+        with self._lock:
+            if not self._event.is_set():
+                self._callbacks.append(fn)
+                return
+        fn()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until cancelled or `timeout` s passed; True if cancelled (a cancellable sleep)."""
+        return self._event.wait(timeout)
+
+
+class MotionBackend(Protocol):
+    """What the job service needs from the motion runtime (see the module docstring for the contract)."""
+
+    cell: CellConfig
+
+    def validate(self, body: Mapping[str, Any]) -> Any: ...
+
+    def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned: ...
+
+    def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]: ...
+
+    def telemetry(self) -> Sequence[Mapping[str, Any]]: ...
+
+    def ready(self) -> tuple[bool, str]: ...
+
+    def reset(self) -> tuple[bool, str]: ...
+
+    def close(self) -> None: ...
+
+
+def check_backend(obj: object) -> None:
+    """Raise TypeError naming what is missing if `obj` does not look like a MotionBackend."""
+    missing = [m for m in REQUIRED_METHODS if not callable(getattr(obj, m, None))]
+    if not isinstance(getattr(obj, "cell", None), CellConfig):
+        missing.append("cell (a CellConfig)")
+    if missing:
+        raise TypeError(f"{type(obj).__name__} is not a MotionBackend: missing {', '.join(missing)}")
+
+
+class BackendUnavailable(RuntimeError):
+    """The backend factory named by a spec cannot be imported."""
+
+
+def load_factory(spec: str) -> Callable[..., MotionBackend]:
+    """Import "package.module:function" and return the function."""
+    module_name, sep, attr = spec.partition(":")
+    if not sep or not module_name or not attr:
+        raise BackendUnavailable(f"backend spec {spec!r} must look like 'package.module:function'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise BackendUnavailable(f"cannot import backend module {module_name!r}: {exc}") from exc
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise BackendUnavailable(f"{module_name!r} has no callable {attr!r}")
+    result: Callable[..., MotionBackend] = factory
+    return result
+
+
+def load_backend(
+    spec: str,
+    cell: CellConfig,
+    *,
+    sim: bool = False,
+    interface: str | None = None,
+    channel: str | None = None,
+    bitrate: int | None = None,
+) -> MotionBackend:
+    """Build the backend `spec` names for `cell` and check it has the protocol's methods."""
+    factory = load_factory(spec)
+    backend = factory(cell, sim=sim, interface=interface, channel=channel, bitrate=bitrate)
+    check_backend(backend)
+    return backend

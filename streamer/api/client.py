@@ -1,0 +1,562 @@
+"""`MotionClient`: submit motion jobs to a cell's job service over Zenoh, watch them, cancel them.
+
+    from streamer.api.client import MotionClient
+
+    with MotionClient(connect="tcp/127.0.0.1:7447", cell="demo") as client:
+        client.wait_for_service(timeout=10)
+        job = client.submit({"kind": "move", "axes": ["j1"], "target": [0.5], "mode": "absolute"})
+        for event in job.events():
+            print(event.seq, event.type, event.progress)
+        status = job.wait(timeout=60)        # JobFailedError if the job failed
+
+Every error is a `MotionError` with the service's stable `code` (BUSY, CONFLICT, INFEASIBLE, ...);
+`JobFailedError` for a job that ended FAILED; code TIMEOUT when no answer came in time and
+NO_SERVICE when no service answered for the cell at all.
+
+How events are never missed: `submit` picks the job id (a uuid unless given) and subscribes to the
+job's events key *before* sending the job, and events carry a per-job sequence number. `events()`
+yields them in sequence order; on a gap, or when nothing arrives for a while, it reads the journalled
+history from the service (`pvt/<cell>/jobs/<id>/events`) and fills in what the subscription missed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import threading
+import time
+import tomllib
+import uuid
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from streamer.api import errors as E
+from streamer.api import keys
+from streamer.api.errors import JobFailedError, MotionError
+from streamer.api.model import JobState
+from streamer.api.payload import encode_submission, unpack
+from streamer.api.zenoh_config import DEFAULT_CONNECT, client_config
+
+FINAL_EVENTS = frozenset({"done", "failed", "cancelled"})
+
+
+@dataclass(frozen=True)
+class JobEvent:
+    """One event of a job (see docs/api.md "Events"); `data` is the whole message."""
+
+    job_id: str
+    seq: int
+    type: str  # accepted, planned, priming, running, done, failed, cancelled (rejected: seq 0)
+    t: float  # service wall clock, Unix seconds
+    state: str  # the job's state after the event
+    data: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def final(self) -> bool:
+        return self.type in FINAL_EVENTS
+
+    @property
+    def progress(self) -> float | None:
+        p = self.data.get("progress")
+        return float(p) if isinstance(p, int | float) and not isinstance(p, bool) else None
+
+    @property
+    def error(self) -> Mapping[str, Any] | None:
+        err = self.data.get("error")
+        return err if isinstance(err, Mapping) else None
+
+    @classmethod
+    def from_wire(cls, msg: Any) -> JobEvent:
+        if not isinstance(msg, Mapping):
+            raise MotionError(E.MALFORMED_PAYLOAD, f"event is not a map: {msg!r}"[:200])
+        try:
+            return cls(
+                job_id=str(msg["job_id"]) if msg.get("job_id") is not None else "",
+                seq=int(msg["seq"]),
+                type=str(msg["type"]),
+                t=float(msg["t"]),
+                state=str(msg["state"]),
+                data=dict(msg),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MotionError(E.MALFORMED_PAYLOAD, f"event lacks {exc}: {msg!r}"[:300]) from None
+
+
+@dataclass(frozen=True)
+class JobStatus:
+    """A job's journalled status (`pvt/<cell>/jobs/<job_id>`)."""
+
+    job_id: str
+    cell: str
+    state: JobState
+    kind: str
+    planned_duration_s: float | None
+    points: int | None
+    progress: float
+    error: Mapping[str, Any] | None
+    report: Mapping[str, Any] | None
+    number: int
+    submitted_t: float
+    finished_t: float | None
+    raw: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def final(self) -> bool:
+        return self.state.final
+
+    @classmethod
+    def from_wire(cls, msg: Any) -> JobStatus:
+        if not isinstance(msg, Mapping):
+            raise MotionError(E.MALFORMED_PAYLOAD, f"status is not a map: {msg!r}"[:200])
+        try:
+            return cls(
+                job_id=str(msg["job_id"]),
+                cell=str(msg.get("cell", "")),
+                state=JobState(msg["state"]),
+                kind=str(msg.get("kind", "")),
+                planned_duration_s=msg.get("planned_duration_s"),
+                points=msg.get("points"),
+                progress=float(msg.get("progress") or 0.0),
+                error=msg.get("error"),
+                report=msg.get("report"),
+                number=int(msg.get("number") or 0),
+                submitted_t=float(msg.get("submitted_t") or 0.0),
+                finished_t=msg.get("finished_t"),
+                raw=dict(msg),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MotionError(E.MALFORMED_PAYLOAD, f"status lacks {exc}: {msg!r}"[:300]) from None
+
+
+def load_job_file(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """A job file (TOML or JSON, the planner's job format) as the dict the service expects."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise MotionError(E.SCHEMA, f"cannot read job file {str(p)!r}: {exc}", path="job") from None
+    try:
+        data = json.loads(text) if p.suffix.lower() == ".json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise MotionError(
+            E.MALFORMED_PAYLOAD,
+            f"job file {str(p)!r} is not valid {'JSON' if p.suffix.lower() == '.json' else 'TOML'}: {exc}",
+        ) from None
+    if not isinstance(data, dict):
+        raise MotionError(E.SCHEMA, f"job file {str(p)!r} must hold a table/object", path="job")
+    return data
+
+
+def _reply_error(raw: bytes, key: str, timeout: float) -> MotionError:
+    """An error reply as MotionError: the service's msgpack {code, path, message}, or Zenoh's own
+    error replies (plain text, e.g. "Timeout" when a service matched but did not answer in time)."""
+    try:
+        data = unpack(raw)
+    except MotionError:
+        data = None
+    if isinstance(data, Mapping) and "code" in data:
+        return MotionError.from_dict(data)
+    text = raw[:200].decode("utf-8", "replace")
+    if text.strip().lower() == "timeout":
+        return MotionError(E.TIMEOUT, f"no answer to {key!r} within {timeout} s")
+    return MotionError(E.INTERNAL, f"error reply to {key!r}: {text!r}")
+
+
+class Job:
+    """A handle on one job: its events, status, cancellation. Made by `MotionClient.submit` / `.job`."""
+
+    def __init__(self, client: MotionClient, job_id: str, accepted: Mapping[str, Any] | None = None):
+        self.client = client
+        self.job_id = job_id
+        self.cell = client.cell
+        self.accepted: dict[str, Any] = dict(accepted or {})
+        self._inbox: queue.Queue[bytes] = queue.Queue()
+        self._lock = threading.RLock()
+        self._seen: list[JobEvent] = []
+        self._buffer: dict[int, JobEvent] = {}
+        self._history_checked = False
+        self._sub: Any = client.session.declare_subscriber(
+            keys.job_events(self.cell, job_id), lambda s: self._inbox.put(s.payload.to_bytes())
+        )
+
+    # -- accepted reply ------------------------------------------------------------------------------
+    @property
+    def planned_duration_s(self) -> float | None:
+        v = self.accepted.get("planned_duration_s")
+        return float(v) if isinstance(v, int | float) else None
+
+    @property
+    def points(self) -> int | None:
+        v = self.accepted.get("points")
+        return int(v) if isinstance(v, int) else None
+
+    def __repr__(self) -> str:
+        return f"Job({self.job_id!r}, cell={self.cell!r})"
+
+    # -- queries -------------------------------------------------------------------------------------
+    def status(self, timeout: float | None = None) -> JobStatus:
+        return JobStatus.from_wire(self.client._query(keys.job(self.cell, self.job_id), timeout=timeout))
+
+    def cancel(self, timeout: float | None = None) -> JobStatus:
+        """Ask the service to cancel; a queued job ends CANCELLED at once, a running one after its stop."""
+        return JobStatus.from_wire(
+            self.client._query(keys.job_cancel(self.cell, self.job_id), timeout=timeout)
+        )
+
+    def history(self, after: int = 0, timeout: float | None = None) -> list[JobEvent]:
+        """The journalled events (seq > after), from the service."""
+        msg = self.client._query(
+            keys.job_events(self.cell, self.job_id), parameters=f"after={after}", timeout=timeout
+        )
+        return [JobEvent.from_wire(e) for e in msg.get("events", [])] if isinstance(msg, Mapping) else []
+
+    # -- events --------------------------------------------------------------------------------------
+    def events(self, timeout: float | None = None, *, poll_s: float = 0.5) -> Iterator[JobEvent]:
+        """Every event of the job in sequence order, from the first; ends after done/failed/cancelled.
+
+        `timeout` bounds the wait for each next event (MotionError TIMEOUT); None waits for ever.
+        Iterating again replays from the first event.
+        """
+        index = 0
+        while True:
+            with self._lock:
+                if index < len(self._seen):
+                    ev = self._seen[index]
+                else:
+                    if self._seen and self._seen[-1].final:
+                        return
+                    ev = self._next(timeout, poll_s)
+            index += 1
+            yield ev
+            if ev.final:
+                self._unsubscribe()
+                return
+
+    def wait(self, timeout: float | None = None) -> JobStatus:
+        """Block until the job ends; its final status. Raises JobFailedError (with the job's error code)
+        if it failed, MotionError TIMEOUT if it has not ended within `timeout` seconds."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        index = 0
+        while True:
+            with self._lock:
+                if index < len(self._seen):
+                    ev = self._seen[index]
+                else:
+                    remaining = None if deadline is None else deadline - time.monotonic()
+                    if remaining is not None and remaining <= 0:
+                        raise MotionError(E.TIMEOUT, f"job {self.job_id!r} did not end within {timeout} s")
+                    try:
+                        ev = self._next(remaining, 0.5)
+                    except MotionError as err:
+                        if err.code == E.TIMEOUT:
+                            raise MotionError(
+                                E.TIMEOUT, f"job {self.job_id!r} did not end within {timeout} s"
+                            ) from None
+                        raise
+            index += 1
+            if ev.final:
+                self._unsubscribe()
+                break
+        status = self.status()
+        if status.state == JobState.FAILED:
+            failure = status.error or {}
+            raise JobFailedError(
+                str(failure.get("code", E.INTERNAL)),
+                str(failure.get("message", "job failed")),
+                path=str(failure.get("path", "") or ""),
+                detail={"node": failure.get("node")} if failure.get("node") is not None else None,
+                status=status,
+            )
+        return status
+
+    def _next(self, timeout: float | None, poll_s: float) -> JobEvent:
+        """The next event in sequence (caller holds the lock)."""
+        want = len(self._seen) + 1
+        deadline = None if timeout is None else time.monotonic() + timeout
+        if not self._history_checked and not self.accepted:
+            self._history_checked = True  # a handle on an existing job: catch up from the journal first
+            self._fill_from_history()
+        while want not in self._buffer:
+            wait = poll_s if deadline is None else max(0.0, min(poll_s, deadline - time.monotonic()))
+            try:
+                raw = self._inbox.get(timeout=wait)
+            except queue.Empty:
+                self._fill_from_history()  # quiet for a while: the journal may have what we missed
+                if want in self._buffer:
+                    break
+                if deadline is not None and time.monotonic() >= deadline:
+                    raise MotionError(
+                        E.TIMEOUT, f"no event of job {self.job_id!r} within {timeout} s"
+                    ) from None
+                continue
+            ev = JobEvent.from_wire(unpack(raw))
+            if ev.type == "rejected":
+                self._unsubscribe()
+                raise MotionError.from_dict(ev.error or {})
+            if ev.seq >= want:
+                self._buffer[ev.seq] = ev
+                if ev.seq > want:
+                    self._fill_from_history()  # a gap: the journal has everything before this event
+        ev = self._buffer.pop(want)
+        self._seen.append(ev)
+        return ev
+
+    def _fill_from_history(self) -> None:
+        try:
+            for ev in self.history(after=len(self._seen), timeout=self.client.timeout):
+                if ev.seq > len(self._seen):
+                    self._buffer.setdefault(ev.seq, ev)
+        except MotionError as err:
+            if err.code not in (E.NOT_FOUND, E.NO_SERVICE, E.TIMEOUT):
+                raise
+
+    def _unsubscribe(self) -> None:
+        sub: Any = self._sub
+        self._sub = None
+        if sub is not None:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+    @property
+    def subscribed(self) -> bool:
+        """True while the handle listens to the job's events (until its final event or `close()`)."""
+        return self._sub is not None
+
+    def close(self) -> None:
+        """Stop listening to the job's events (the job itself is not affected)."""
+        self._unsubscribe()
+
+
+def open_session(connect: str | Sequence[str] = DEFAULT_CONNECT, mode: str = "auto") -> zenoh.Session:
+    """Open a client-side Zenoh session (no listen endpoint, multicast scouting off).
+
+    mode "auto" (the default): with one endpoint, Zenoh client mode (one link, opens in ~1 ms, good
+    for short-lived clients), falling back to a peer that keeps retrying in the background when
+    nothing listens there yet (so `wait_for_service` can wait for a service that starts later);
+    with several endpoints, a peer that connects to all of them. "peer"/"client" force the mode.
+    """
+    endpoints = [connect] if isinstance(connect, str) else list(connect)
+    if mode == "auto":
+        if len(endpoints) == 1:
+            try:
+                return zenoh.open(client_config(endpoints, mode="client"))
+            except zenoh.ZError:
+                pass  # nothing listens yet: a peer retries in the background
+        return zenoh.open(client_config(endpoints, mode="peer"))
+    return zenoh.open(client_config(endpoints, mode=mode))
+
+
+class MotionClient:
+    """A Zenoh client of one cell's job service. Use as a context manager (closes its session).
+
+    `connect`: the service's (or a router's) endpoint(s). `mode`: "auto" (see `open_session`), "client"
+    or "peer"; the session never listens and never scouts by multicast. `session`: use an already open
+    session instead (it is not closed by `close()`). `timeout`: default seconds for every query.
+    """
+
+    def __init__(
+        self,
+        connect: str | Sequence[str] = DEFAULT_CONNECT,
+        cell: str = "demo",
+        *,
+        mode: str = "auto",
+        timeout: float = 10.0,
+        session: zenoh.Session | None = None,
+    ):
+        self.cell = keys.check_cell(cell)
+        self.timeout = float(timeout)
+        self.connect = connect
+        self._own_session = session is None
+        self.session: zenoh.Session = session if session is not None else open_session(connect, mode)
+        self._jobs: list[Job] = []
+        self._closed = False
+
+    def __enter__(self) -> MotionClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for job in self._jobs:
+            job.close()
+        self._jobs.clear()
+        if self._own_session:
+            session: Any = self.session
+            session.close()
+
+    # -- the service ---------------------------------------------------------------------------------
+    def wait_for_service(self, timeout: float = 10.0) -> None:
+        """Block until the cell's service is up (its liveliness token is seen); MotionError TIMEOUT if not."""
+        deadline = time.monotonic() + timeout
+        while True:
+            remaining = deadline - time.monotonic()
+            try:
+                replies = list(
+                    self.session.liveliness().get(
+                        keys.alive(self.cell), timeout=max(0.05, min(1.0, remaining))
+                    )
+                )
+            except zenoh.ZError:
+                replies = []
+            if any(r.ok is not None for r in replies):
+                return
+            if time.monotonic() >= deadline:
+                raise MotionError(
+                    E.TIMEOUT,
+                    f"no job service for cell {self.cell!r} appeared within {timeout} s "
+                    f"(connect {self.connect!r})",
+                )
+            time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
+
+    def cells(self, timeout: float = 1.0) -> list[str]:
+        """Cells whose service is alive on this Zenoh network (from the liveliness tokens)."""
+        out = set()
+        for r in self.session.liveliness().get(keys.alive_any(), timeout=timeout):
+            if r.ok is not None:
+                parts = str(r.ok.key_expr).split("/")
+                if len(parts) == 3:
+                    out.add(parts[1])
+        return sorted(out)
+
+    def service_status(self, timeout: float | None = None) -> dict[str, Any]:
+        msg = self._query(keys.service(self.cell), timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
+    def reset(self, timeout: float | None = None) -> dict[str, Any]:
+        """Reset a faulted cell (fault reset on the drives); {ready, reason} afterwards."""
+        msg = self._query(keys.reset(self.cell), timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
+    def telemetry(self, timeout: float = 2.0) -> dict[str, Any]:
+        """The next telemetry sample of the cell ({cell, t, seq, ready, job_id, axes: [...]})."""
+        box: queue.Queue[bytes] = queue.Queue()
+        sub: Any = self.session.declare_subscriber(
+            keys.telemetry(self.cell), lambda s: box.put(s.payload.to_bytes())
+        )
+        try:
+            raw = box.get(timeout=timeout)
+        except queue.Empty:
+            raise MotionError(E.TIMEOUT, f"no telemetry from cell {self.cell!r} within {timeout} s") from None
+        finally:
+            sub.undeclare()
+        msg = unpack(raw)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
+    # -- jobs ----------------------------------------------------------------------------------------
+    def submit(
+        self,
+        job: Mapping[str, Any] | str | os.PathLike[str],
+        *,
+        job_id: str | None = None,
+        timeout: float | None = None,
+    ) -> Job:
+        """Submit a job (a dict with a job file's fields, or a TOML/JSON job file) and return its handle.
+
+        The answer comes after the service validated, planned and journalled the job: the handle's
+        `accepted` holds {job_id, state, planned_duration_s, points, existing}. Resubmitting the same
+        job_id with the same body returns the existing job (existing=True). Raises MotionError with
+        the rejection's code (SCHEMA, INFEASIBLE, BUSY, CONFLICT, NOT_READY, ...). On TIMEOUT or
+        NO_SERVICE the job may still have been accepted: resubmit with the same `job_id` (idempotent)
+        to find out.
+        """
+        body = load_job_file(job) if isinstance(job, str | os.PathLike) else dict(job)
+        jid = (
+            job_id
+            or (body.get("job_id") if isinstance(body.get("job_id"), str) else None)
+            or uuid.uuid4().hex
+        )
+        handle = Job(self, jid, accepted={"job_id": jid})  # subscribed before the job exists
+        try:
+            reply = self._query(keys.submit(self.cell), payload=encode_submission(body, jid), timeout=timeout)
+        except BaseException:
+            handle.close()
+            raise
+        handle.accepted = dict(reply) if isinstance(reply, Mapping) else {"job_id": jid}
+        self._track(handle)
+        return handle
+
+    def submit_put(
+        self, job: Mapping[str, Any] | str | os.PathLike[str], *, job_id: str | None = None
+    ) -> Job:
+        """Fire-and-forget submission (a Zenoh put); the outcome arrives as the handle's events
+        (a rejection raises MotionError from `events()`/`wait()`)."""
+        body = load_job_file(job) if isinstance(job, str | os.PathLike) else dict(job)
+        jid = (
+            job_id
+            or (body.get("job_id") if isinstance(body.get("job_id"), str) else None)
+            or uuid.uuid4().hex
+        )
+        handle = Job(self, jid, accepted={"job_id": jid, "via": "put"})
+        self.session.put(
+            keys.submit(self.cell),
+            encode_submission(body, jid),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
+        self._track(handle)
+        return handle
+
+    def job(self, job_id: str) -> Job:
+        """A handle on an existing job (its events replay from the journal)."""
+        if not keys.valid_job_id(job_id):
+            raise MotionError(
+                E.SCHEMA, f"job_id {job_id!r} must be 1-64 characters of [A-Za-z0-9_.-]", path="job_id"
+            )
+        handle = Job(self, job_id)
+        self._track(handle)
+        return handle
+
+    def _track(self, handle: Job) -> None:
+        """Keep handles with a live subscription (closed at `close()`); forget finished ones."""
+        self._jobs = [j for j in self._jobs if j.subscribed]
+        self._jobs.append(handle)
+
+    def jobs(
+        self, state: str | Sequence[str] | None = None, limit: int = 100, timeout: float | None = None
+    ) -> list[JobStatus]:
+        """Journalled jobs of the cell, newest first (optionally only some states)."""
+        params = [f"limit={int(limit)}"]
+        if state:
+            params.append("state=" + (state if isinstance(state, str) else ",".join(state)))
+        msg = self._query(keys.jobs(self.cell), parameters=";".join(params), timeout=timeout)
+        raw = msg.get("jobs", []) if isinstance(msg, Mapping) else []
+        return [JobStatus.from_wire(j) for j in raw]
+
+    # -- plumbing ------------------------------------------------------------------------------------
+    def _query(
+        self,
+        key: str,
+        *,
+        payload: bytes | None = None,
+        parameters: str | None = None,
+        timeout: float | None = None,
+    ) -> Any:
+        """One query; the first reply decoded, an error reply raised as MotionError."""
+        t = self.timeout if timeout is None else float(timeout)
+        selector = f"{key}?{parameters}" if parameters else key
+        t0 = time.monotonic()
+        try:
+            replies = self.session.get(selector, payload=payload, timeout=t)
+            for reply in replies:
+                if reply.ok is not None:
+                    return unpack(reply.ok.payload.to_bytes())
+                if reply.err is not None:
+                    raise _reply_error(reply.err.payload.to_bytes(), key, t)
+        except zenoh.ZError as exc:
+            raise MotionError(E.NO_SERVICE, f"query {key!r} failed: {exc}") from None
+        if time.monotonic() - t0 >= 0.9 * t:  # a service matched but did not answer in time
+            raise MotionError(E.TIMEOUT, f"no answer to {key!r} within {t} s")
+        raise MotionError(
+            E.NO_SERVICE,
+            f"no job service answered {key!r} (is `pvt serve` for cell "
+            f"{self.cell!r} running and reachable at {self.connect!r}?)",
+        )

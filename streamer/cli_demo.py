@@ -1,0 +1,183 @@
+"""`pvt demo`: plan the default 6-axis path and stream it to simulated drives, in one process.
+
+With no arguments: python-can `virtual` bus, the cell's simulated EPOS-style drives, the streamer, in
+real time at the cell's SYNC period (10 ms). A live progress bar shows every axis' FIFO fill. Writes
+report.json, motion.png and bus.log (candump -L) to --out (default demo-out/). Exit status 0 when
+the job is done with every guarantee met, 1 when the job failed or a guarantee was missed, 2 when the
+job or config was rejected.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("demo", help="run the default job end to end on simulated drives",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", type=Path, default=None, help="cell config TOML (default: configs/demo.toml)")
+    p.add_argument("--job", type=Path, default=None, help="job file (default: configs/jobs/demo-path.toml)")
+    p.add_argument("--axes", type=int, default=None, help="number of axes (the job's axes are repeated)")
+    p.add_argument("--sync-ms", type=int, default=None, help="SYNC period in ms (default: the config's)")
+    p.add_argument("--fast", action="store_true", help="virtual time: as fast as possible, same core and drives")
+    p.add_argument("--out", type=Path, default=Path("demo-out"), help="output folder (default: demo-out)")
+    p.add_argument("--bus", default=None, help="INTERFACE:CHANNEL, e.g. socketcan:vcan0 (default: the config's)")
+    p.add_argument("--bitrate", type=int, default=None, help="CAN bitrate (default: the config's)")
+    p.add_argument("--external-drives", action="store_true",
+                   help="do not start simulated drives here (they run elsewhere, e.g. `pvt sim`)")
+    p.add_argument("--quiet", action="store_true", help="no live display")
+    p.set_defaults(func=run)
+
+
+def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
+    """What `pvt demo` promises; an empty list means every promise was kept."""
+    problems: list[str] = []
+    axes = report["axes"]
+    if report["result"] != "done":
+        problems.append(f"result is {report['result']!r}: {report.get('message', '')}")
+    starts = {a["start_sync"] for a in axes}
+    if len(starts) != 1 or None in starts:
+        problems.append(f"axes started on different SYNCs: {sorted(map(str, starts))}")
+    for a in axes:
+        n = a["name"]
+        if a["max_deviation_counts"] > tolerance_counts:
+            problems.append(f"axis {n}: deviation {a['max_deviation_counts']} counts > tolerance {tolerance_counts}")
+        if a["final_position_error_counts"] != 0:
+            problems.append(f"axis {n}: final position error {a['final_position_error_counts']} counts")
+        if a["errors"]:
+            problems.append(f"axis {n}: errors {a['errors']}")
+    return problems
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from planner.errors import PlanningError
+    from streamer import demo
+
+    console = Console(stderr=False)
+    try:
+        cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,
+                                       bus=args.bus, bitrate=args.bitrate)
+    except PlanningError as e:
+        console.print(f"[red]error {e.code}[/red]" + (f" at {e.path}" if e.path else "") + f": {e.message}")
+        return 2
+    mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"
+    console.print(
+        f"[bold]pvt demo[/bold]: {traj.n_axes} axes, {traj.duration_s:.2f} s, {traj.n_points} points/axis, "
+        f"SYNC {cell.sync_period_ms} ms, {mode}"
+    )
+    display = _Display(console, traj, cell, enabled=not args.quiet)
+    try:
+        with display:
+            if args.fast:
+                report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync)
+            elif cell.bus.interface != "virtual" and not args.external_drives:
+                # a real bus (vcan0, an adapter): the simulated drives run as their own process
+                with demo.drive_process(cell, args.config, args.axes):
+                    report, _ = demo.run_realtime(cell, traj, args.out, external_drives=True,
+                                                  on_change=display.on_change)
+            else:
+                report, _ = demo.run_realtime(cell, traj, args.out, external_drives=args.external_drives,
+                                              on_change=display.on_change)
+    except Exception as e:  # bus errors, timeouts: say what and where, do not dump a traceback on users
+        from bus.errors import BusError
+
+        if isinstance(e, BusError | TimeoutError):
+            console.print(f"[red]demo failed:[/red] {e}")
+            return 1
+        raise
+    _summary(console, report, args.out)
+    problems = guarantees(report, job.tolerance_counts)
+    for p in problems:
+        console.print(f"[red]guarantee missed:[/red] {p}")
+    return 0 if not problems else 1
+
+
+class _Display:
+    """A rich progress bar with per-axis FIFO fill, refreshed from the core's counters (read only)."""
+
+    def __init__(self, console: Any, traj: Any, cell: Any, *, enabled: bool):
+        self.console = console
+        self.traj = traj
+        self.cell = cell
+        self.enabled = enabled and console.is_terminal
+        self._live: Any = None
+        self._lock = threading.Lock()
+        self._progress = 0.0
+        self._fills: dict[int, int | None] = {}
+        self._state = "configuring"
+        self._every = 0
+
+    def __enter__(self) -> _Display:
+        if self.enabled:
+            from rich.live import Live
+
+            self._live = Live(self._render(), console=self.console, refresh_per_second=8, transient=False)
+            self._live.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._live is not None:
+            self._live.update(self._render())
+            self._live.__exit__(None, None, None)
+
+    def on_change(self, core: Any) -> None:
+        # called on the streaming thread for every event: copy three numbers, nothing else
+        self._progress = core.progress
+        self._fills = core.fifo_fills()
+        self._state = core.state.value
+        if self._live is not None and self._every % 8 == 0:
+            pass  # Live refreshes itself from its own thread via __rich__
+        self._every += 1
+
+    def on_sync(self, core: Any, n: int) -> None:
+        self.on_change(core)
+        if self._live is not None and n % 5 == 0:
+            self._live.update(self._render())
+
+    def __rich__(self) -> Any:
+        return self._render()
+
+    def _render(self) -> Any:
+        from rich.progress_bar import ProgressBar
+        from rich.table import Table
+
+        t = Table.grid(padding=(0, 1))
+        t.add_row(f"[bold]{self._state:>11}[/bold]", ProgressBar(total=1.0, completed=self._progress, width=40),
+                  f"{100 * self._progress:5.1f}%")
+        for name, node in zip(self.traj.axis_names, self.traj.node_ids, strict=True):
+            fill = self._fills.get(node)
+            f = 0 if fill is None else fill
+            t.add_row(f"{name:>11}", ProgressBar(total=64, completed=f, width=40),
+                      f"FIFO {'-' if fill is None else fill:>2}/64")
+        return t
+
+
+def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{report['result'].upper()}: {report['duration_s']:.2f} s, {report['syncs']} SYNCs, "
+                        f"{report['frames']} frames, peak bus load {100 * report['bus_load_peak']:.1f}%")
+    for col in ("axis", "node", "start", "end", "points", "FIFO min/max", "deviation", "following",
+                "final err", "underflow warn"):
+        table.add_column(col, justify="right")
+    for a in report["axes"]:
+        table.add_row(a["name"], str(a["node_id"]), str(a["start_sync"]), str(a["end_sync"]),
+                      str(a["points_sent"]), f"{a['min_fifo']}/{a['max_fifo']}",
+                      str(a["max_deviation_counts"]), str(a["max_following_error_counts"]),
+                      str(a["final_position_error_counts"]), str(a["underflow_warnings"]))
+    console.print(table)
+    for f in report["faults"]:
+        console.print(f"[red]fault[/red] {f}")
+    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}")
+
+
+def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli_demo`
+    from streamer.cli import main as cli_main
+
+    sys.exit(cli_main(["demo", *sys.argv[1:]]))

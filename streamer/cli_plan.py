@@ -1,0 +1,173 @@
+"""`pvt plan JOB --config CELL [--out pvt.csv] [--plot pvt.png] [--json]`: plan and encode one job.
+
+Prints a summary (duration, points, points per second, max deviation per axis in counts, peak
+velocity and acceleration against the limits). `--out` writes the PVT points as CSV (columns
+axis,node_id,index,time_s,dt_ms,position_counts,velocity_rpm; each axis' first row is its start point
+with dt_ms 0), `--plot` draws position, velocity, acceleration and deviation per axis, `--json` prints
+the summary as JSON instead of the table. A rejected job prints its error code, path and message and
+exits with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser(
+        "plan",
+        help="plan a job and encode it as PVT points (no bus needed)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("job", type=Path, help="job file (TOML or JSON)")
+    p.add_argument("--config", type=Path, default=None, help="cell config TOML (default: configs/demo.toml)")
+    p.add_argument("--out", type=Path, default=None, help="write the PVT points as CSV")
+    p.add_argument(
+        "--plot",
+        type=Path,
+        default=None,
+        help="write a PNG with position/velocity/acceleration/deviation per axis",
+    )
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from planner.config import default_config_path, load_cell
+    from planner.errors import PlanningError
+    from planner.job import load_job
+    from planner.plan import plan_job
+
+    try:
+        cell = load_cell(args.config or default_config_path())
+        job = load_job(args.job, cell)
+        t0 = time.perf_counter()
+        traj = plan_job(job, cell)
+        planning_s = time.perf_counter() - t0
+    except PlanningError as e:
+        if args.json:
+            print(json.dumps({"error": e.to_dict()}, indent=2))
+        else:
+            print(f"error {e.code}" + (f" at {e.path}" if e.path else "") + f": {e.message}", file=sys.stderr)
+        return 2
+    summary = traj.summary()
+    summary["job"] = str(args.job)
+    summary["cell"] = cell.name
+    summary["planning_ms"] = round(planning_s * 1000.0, 3)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(traj.to_csv(), encoding="utf-8")
+        summary["csv"] = str(args.out)
+    if args.plot is not None:
+        plot(traj, args.plot, title=f"{args.job.name} on {cell.name}")
+        summary["plot"] = str(args.plot)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        _print_table(summary)
+    return 0
+
+
+def _print_table(s: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    seg = s["segment_ms"]
+    console.print(
+        f"[bold]{s['job']}[/] ({s['kind']}) on cell [bold]{s['cell']}[/]: {s['duration_s']:.3f} s, "
+        f"{s['points']} points per axis ({s['points_per_second']:.1f} per s), "
+        f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), "
+        f"tolerance {s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms",
+        soft_wrap=True,
+    )
+    table = Table(show_lines=False)
+    for col in (
+        "axis",
+        "node",
+        "max dev\ncounts",
+        "velocity /s\npeak/limit",
+        "rpm\npeak/0x607F",
+        "accel /s²\nplan/drive/limit",
+        "0x60C5\n/s²",
+        "acc excess\n% limit",
+    ):
+        table.add_column(col, justify="right")
+    for a in s["axes"]:
+        table.add_row(
+            a["name"],
+            str(a["node_id"]),
+            str(a["max_deviation_counts"]),
+            f"{a['peak_velocity']:.3g}/{a['velocity_limit']:.3g}",
+            f"{a['peak_velocity_rpm']:.0f}/{a['drive_velocity_limit_rpm']:.0f}",
+            f"{a['planned_peak_acceleration']:.3g}/{a['peak_acceleration']:.3g}/{a['acceleration_limit']:.3g}",
+            f"{a['drive_acceleration_limit']:.3g}",
+            f"{100 * a['acceleration_excess_share']:.1f}",
+        )
+    console.print(table)
+    for key in ("csv", "plot"):
+        if key in s:
+            console.print(f"wrote {s[key]}")
+
+
+def plot(traj: Any, path: Path, *, title: str = "") -> None:
+    """Position, velocity, acceleration and deviation (plan vs drive) per axis, one column per axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    n = traj.n_axes
+    m = traj.duration_ms
+    t = np.arange(m + 1) / 1000.0
+    plan = traj.plan
+    _pos, vel, acc = traj.drive_profile()
+    dev = traj.deviation()
+    cpu = traj.counts_per_unit
+    fig, axs = plt.subplots(4, n, figsize=(max(4.0, 3.4 * n), 10), squeeze=False, sharex=True)
+    knots = traj.knot_times_s
+    for i in range(n):
+        c = cpu[i]
+        a = axs[0, i]
+        a.plot(t, plan.positions[i] / c, lw=1.2, label="plan")
+        a.plot(knots, traj.positions[i] / c, ".", ms=3, label="PVT points")
+        a.set_title(f"{traj.axis_names[i]} (node {traj.node_ids[i]})")
+        a = axs[1, i]
+        a.plot(t, plan.velocities[i] * 1000.0 / c, lw=1.2, label="plan")
+        a.plot(t, vel[i] * 1000.0 / c, lw=0.8, ls="--", label="drive")
+        lim = traj.stats[i].velocity_limit
+        a.axhline(lim, color="r", lw=0.6)
+        a.axhline(-lim, color="r", lw=0.6)
+        a = axs[2, i]
+        a.plot(t, plan.acc_right[i] * 1.0e6 / c, lw=1.2, label="plan")
+        a.plot(t, acc[i] * 1.0e6 / c, lw=0.6, label="drive")
+        alim = traj.stats[i].acceleration_limit
+        a.axhline(alim, color="r", lw=0.6)
+        a.axhline(-alim, color="r", lw=0.6)
+        a = axs[3, i]
+        a.plot(t, dev[i], lw=0.8, drawstyle="steps-mid")
+        a.axhline(traj.tolerance_counts, color="r", lw=0.6)
+        a.axhline(-traj.tolerance_counts, color="r", lw=0.6)
+        a.set_xlabel("time [s]")
+    for row, label in enumerate(
+        ("position [unit]", "velocity [unit/s]", "acceleration [unit/s²]", "deviation [counts]")
+    ):
+        axs[row, 0].set_ylabel(label)
+    axs[0, 0].legend(fontsize=7)
+    axs[1, 0].legend(fontsize=7)
+    axs[2, 0].legend(fontsize=7)
+    fig.suptitle(
+        f"{title}: {traj.duration_s:.3f} s, {traj.n_points} points per axis, drive demand vs planned "
+        f"demand within {traj.tolerance_counts} count(s)"
+    )
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

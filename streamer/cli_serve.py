@@ -1,0 +1,195 @@
+"""`pvt serve`: run the job service of one cell (bus + motion runtime + Zenoh API + job journal).
+
+    pvt serve --config configs/demo.toml --sim
+    pvt serve --config cell.toml --bus socketcan:can0 --bitrate 500000 --listen tcp/127.0.0.1:7447
+
+The Zenoh session defaults to the cell config's `[zenoh]` section (peer mode, listening on
+tcp/127.0.0.1:7447, multicast scouting always off); `--mode/--listen/--connect` override it. The job
+journal defaults to `<config dir>/<config stem>.jobs.sqlite`. Stops cleanly on SIGINT/SIGTERM (queued jobs
+fail SERVICE_STOPPED, the running job is cancelled with its jerk-limited stop); after a crash the next
+start reports the interrupted jobs as SERVICE_RESTART.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from planner.config import default_config_path, load_cell
+from planner.errors import PlanningError
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "serve",
+        help="serve one cell's job API over Zenoh",
+        description="Serve one cell: motion runtime on its CAN bus, job API over Zenoh, job journal "
+        "in SQLite.",
+    )
+    _arguments(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, default=None, help="cell config (TOML); default configs/demo.toml")
+    p.add_argument("--sim", action="store_true", help="simulated drives on an in-process virtual bus")
+    p.add_argument(
+        "--bus",
+        metavar="INTERFACE:CHANNEL",
+        default=None,
+        help="python-can interface and channel, e.g. socketcan:can0 (default: the config's [bus])",
+    )
+    p.add_argument("--bitrate", type=int, default=None, help="CAN bitrate (default: the config's)")
+    p.add_argument(
+        "--mode", choices=("peer", "client", "router"), default=None, help="Zenoh mode (default: config)"
+    )
+    p.add_argument(
+        "--listen",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh listen endpoint, repeatable (default: config, tcp/127.0.0.1:7447)",
+    )
+    p.add_argument(
+        "--connect",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to (a router), repeatable",
+    )
+    p.add_argument("--store", type=Path, default=None, help="job journal (default: next to the config)")
+    p.add_argument("--queue", type=int, default=16, help="queued jobs before BUSY (default 16)")
+    p.add_argument("--telemetry-hz", type=float, default=None, help="telemetry rate (default: config, 20 Hz)")
+    p.add_argument(
+        "--backend",
+        default=None,
+        metavar="MODULE:FUNCTION",
+        help="advanced: the motion backend factory to use instead of the built-in runtime",
+    )
+    p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+
+
+def _parse_bus(text: str | None) -> tuple[str | None, str | None]:
+    if text is None:
+        return None, None
+    interface, sep, channel = text.partition(":")
+    if not sep or not interface or not channel:
+        raise SystemExit(
+            f"pvt serve: --bus must look like INTERFACE:CHANNEL (e.g. socketcan:can0), got {text!r}"
+        )
+    if interface == "udp_multicast":
+        raise SystemExit("pvt serve: the udp_multicast interface is not allowed (network rule)")
+    return interface, channel
+
+
+def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int:
+    """Run until SIGINT/SIGTERM (or until `stop` is set, for embedding)."""
+    from streamer.api.store import default_store_path
+
+    logging.basicConfig(
+        level=getattr(logging, str(args.log_level).upper(), logging.INFO),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    config_path = args.config or default_config_path()
+    try:
+        cell = load_cell(config_path)
+    except PlanningError as exc:
+        print(f"pvt serve: {exc.code}: {exc.message}", file=sys.stderr)
+        return 2
+    interface, channel = _parse_bus(args.bus)
+    store_path = args.store or default_store_path(cell.source or str(config_path), cell.name)
+    stop = stop or threading.Event()
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: stop.set())
+    try:
+        return _serve(args, cell, store_path, interface, channel, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _serve(
+    args: argparse.Namespace,
+    cell: Any,
+    store_path: Path,
+    interface: str | None,
+    channel: str | None,
+    stop: threading.Event,
+) -> int:
+    import zenoh
+
+    from streamer.api.backend import DEFAULT_BACKEND, BackendUnavailable, load_backend
+    from streamer.api.service import JobService, ServiceOptions
+    from streamer.api.store import JobStore, ServiceLock, StoreError
+    from streamer.api.zenoh_config import service_config
+
+    lock = ServiceLock(store_path)
+    try:
+        lock.acquire()
+        store = JobStore(store_path)
+    except StoreError as exc:
+        print(f"pvt serve: {exc}", file=sys.stderr)
+        return 2
+    backend = None
+    session: Any = None
+    service = None
+    try:
+        try:
+            backend = load_backend(
+                args.backend or DEFAULT_BACKEND,
+                cell,
+                sim=args.sim,
+                interface=interface,
+                channel=channel,
+                bitrate=args.bitrate,
+            )
+        except BackendUnavailable as exc:
+            print(f"pvt serve: motion backend unavailable: {exc}", file=sys.stderr)
+            return 2
+        conf = service_config(cell.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
+        try:
+            session = zenoh.open(conf)
+        except zenoh.ZError as exc:
+            print(f"pvt serve: cannot open the Zenoh session: {exc}", file=sys.stderr)
+            return 2
+        options = ServiceOptions(queue_limit=args.queue, telemetry_hz=args.telemetry_hz)
+        service = JobService(session, backend, store, options).start()
+        listen = args.listen or list(cell.zenoh.listen)
+        print(
+            f"pvt serve: cell {cell.name!r} ready on {', '.join(listen) or '(no listen endpoint)'}; "
+            f"journal {store_path}",
+            flush=True,
+        )
+        while not stop.wait(0.5):
+            pass
+        print("pvt serve: stopping", flush=True)
+        return 0
+    finally:
+        if service is not None:
+            service.close()
+        if session is not None:
+            session.close()
+        if backend is not None:
+            backend.close()
+        store.close()
+        lock.release()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Standalone entry (`python -m streamer.cli_serve ...`), same options as `pvt serve`."""
+    parser = argparse.ArgumentParser(prog="pvt serve", description="Serve one cell's job API over Zenoh.")
+    _arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

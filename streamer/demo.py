@@ -1,0 +1,215 @@
+"""`pvt demo`: the whole product in one process, on the embedded default.
+
+A python-can `virtual` bus (or any bus given with --bus), the cell's simulated drives, the master
+adapter, the streamer core and the default 6-axis path job. In real time at the cell's SYNC period by
+default; `--fast` runs the same core and drive models in virtual time. Writes report.json,
+motion.png and bus.log (candump -L format) to the output folder and prints a summary.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import can
+
+from planner.config import CellConfig, load_cell
+from planner.errors import PlanningError
+from planner.job import Job, job_from_dict, job_to_dict, load_job
+from planner.plan import plan_job
+from planner.trajectory import PvtTrajectory
+from streamer.core.coordinator import Coordinator
+from streamer.report import build_report, plot_motion, write_report
+from streamer.stop import make_stop_planner
+from streamer.virtual import VirtualRuntime
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_JOB = ROOT / "configs" / "jobs" / "demo-path.toml"
+IN_PROCESS_SYNC_GAP_FACTOR = 3.0
+
+
+@dataclass(frozen=True)
+class DemoResult:
+    report: dict[str, Any]
+    trajectory: PvtTrajectory
+    out_dir: Path
+
+
+def fit_job_to_cell(job: Job, cell: CellConfig) -> Job:
+    """The job on the cell's axes: a job for fewer axes than the cell keeps its axes; a 6-axis demo job
+    run on N axes drives axis i like the job's axis (i mod 6), clipped to that axis' position limits."""
+    if set(job.axes) <= set(cell.axis_names()) and len(job.axes) == len(cell.axes):
+        return job
+    body = job_to_dict(job)
+    names = cell.axis_names()
+    src = list(job.axes)
+
+    def column(rows: list[list[float]]) -> list[list[float]]:
+        out = []
+        for row in rows:
+            new = []
+            for i, ax in enumerate(cell.axes):
+                v = float(row[i % len(src)])
+                new.append(min(max(v, ax.position_min), ax.position_max))
+            out.append(new)
+        return out
+
+    body["axes"] = list(names)
+    for key in ("waypoints", "positions"):
+        if key in body:
+            body[key] = column(body[key])
+    if "target" in body:
+        body["target"] = column([body["target"]])[0]
+    if "velocities" in body:
+        body["velocities"] = column(body["velocities"])
+    for key in ("velocity_scale", "acceleration_scale"):
+        if isinstance(body.get(key), list):
+            body[key] = [body[key][i % len(src)] for i in range(len(names))]
+    body.pop("job_id", None)
+    return job_from_dict(body, cell)
+
+
+def prepare(
+    config: Path | None = None,
+    job_path: Path | None = None,
+    *,
+    axes: int | None = None,
+    sync_ms: int | None = None,
+    bus: str | None = None,
+    bitrate: int | None = None,
+) -> tuple[CellConfig, Job, PvtTrajectory]:
+    cell = load_cell(config or ROOT / "configs" / "demo.toml")
+    loaded = load_job(job_path or DEFAULT_JOB, cell)  # validated against the cell as configured
+    if axes is not None:
+        cell = cell.with_axes(axes)
+    if sync_ms is not None:
+        cell = replace(cell, sync_period_ms=sync_ms)
+    if bus is not None or bitrate is not None:
+        cell = replace(cell, bus=parse_bus(bus, bitrate, cell))
+    job = fit_job_to_cell(loaded, cell)
+    traj = plan_job(job, cell)
+    return cell, job, traj
+
+
+def parse_bus(spec: str | None, bitrate: int | None, cell: CellConfig) -> Any:
+    """`INTERFACE:CHANNEL` (e.g. socketcan:vcan0, virtual:demo) over the cell's [bus]."""
+    from planner.config import BusConfig
+
+    base = cell.bus
+    if spec is None:
+        return replace(base, bitrate=bitrate or base.bitrate)
+    interface, sep, channel = spec.partition(":")
+    if not sep or not interface or not channel:
+        raise PlanningError("CONFIG", f"--bus must be INTERFACE:CHANNEL (e.g. socketcan:vcan0), got {spec!r}",
+                            path="bus")
+    if interface == "udp_multicast":
+        raise PlanningError("CONFIG", "the udp_multicast interface is not allowed (it leaves this host)",
+                            path="bus")
+    return BusConfig(interface=interface, channel=channel, bitrate=bitrate or base.bitrate)
+
+
+def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:
+    """Where the simulated drives stand at power-on: the plan's start, in counts."""
+    return {int(n): float(traj.positions[i, 0]) for i, n in enumerate(traj.node_ids)}
+
+
+def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
+             on_sync: Any = None) -> tuple[dict[str, Any], Any]:
+    from bus.sim.virtual import VirtualCell
+
+    out.mkdir(parents=True, exist_ok=True)
+    vcell = VirtualCell(cell, initial_positions=start_positions(cell, traj))
+    with can.Logger(str(out / "bus.log")) as logger:
+        def log(t: float, cob_id: int, data: bytes) -> None:
+            logger.on_message_received(
+                can.Message(timestamp=t, arbitration_id=cob_id, data=data, is_extended_id=False, channel="vcan0")
+            )
+
+        rt = VirtualRuntime(cell, vcell=vcell, log=log)
+        result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync)
+    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out)
+
+
+def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any, first: int, last: int,
+            out: Path) -> tuple[dict[str, Any], Any]:
+    report = build_report(traj, core.report(), trace, sync_period_ms=cell.sync_period_ms,
+                          first_sync=first, last_sync=last)
+    write_report(report, out / "report.json")
+    plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
+                underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning)
+    return report, trace
+
+
+@contextlib.contextmanager
+def drive_process(cell: CellConfig, config: Path | None, axes: int | None) -> Iterator[subprocess.Popen[str]]:
+    """`pvt sim` on the cell's bus as a second process; stopped with SIGTERM (its clean shutdown)."""
+    cmd = [sys.executable, "-m", "streamer.cli", "sim", "--config", str(config or ROOT / "configs" / "demo.toml"),
+           "--bus", f"{cell.bus.interface}:{cell.bus.channel}", "--bitrate", str(cell.bus.bitrate),
+           "--sync-ms", str(cell.sync_period_ms)]
+    if axes is not None:
+        cmd += ["--axes", str(axes)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()  # "pvt sim: cell ..." once the drives are on the bus
+        if proc.poll() is not None or "drives" not in first:
+            rest = proc.stdout.read() if proc.poll() is not None else ""
+            raise RuntimeError(f"the drive process did not start: {first}{rest}".strip())
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+@contextlib.contextmanager
+def realtime_cell(cell: CellConfig, traj: PvtTrajectory, *, external_drives: bool = False) -> Iterator[Any]:
+    """Simulated drives (in this process, unless `external_drives`) and a configured master adapter."""
+    from bus.network import MasterAdapter
+    from bus.sim.node import SimulatedCell
+
+    sim = None
+    if not external_drives:
+        # In one Python process the simulated drives share the interpreter (and its GIL) with the
+        # master and its SYNC thread, so SYNC jitter here is partly an artifact of the simulation.
+        # The drives still check the SYNC period (EMCY 0x8780), but at 3x rather than 1.5x; virtual
+        # time and `pvt sim` in its own process keep the drive's 1.5x.
+        sim = SimulatedCell(cell, initial_positions=start_positions(cell, traj),
+                            sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
+    try:
+        adapter = MasterAdapter(None, cell)
+        try:
+            adapter.configure_drives()
+            yield adapter
+        finally:
+            adapter.close()
+    finally:
+        if sim is not None:
+            sim.stop()
+
+
+def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_drives: bool = False,
+                 on_change: Any = None, cancel: threading.Event | None = None) -> tuple[dict[str, Any], Any]:
+    from streamer.realtime import RealtimeRuntime
+
+    out.mkdir(parents=True, exist_ok=True)
+    with realtime_cell(cell, traj, external_drives=external_drives) as adapter:
+        rt = RealtimeRuntime(cell, adapter, log_path=out / "bus.log")
+        try:
+            result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_change=on_change, cancel=cancel)
+        finally:
+            rt.close()
+    time.sleep(0.05)
+    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out)

@@ -1,0 +1,228 @@
+"""The real-time runtime: the streamer core on a python-can bus, driven by the SYNCs on the wire.
+
+Theory of operation. `MasterAdapter` (bus/network.py) owns the bus: it produces SYNC with python-can's
+periodic send (the kernel's broadcast manager on socketcan), hears its own SYNC back and every TPDO,
+EMCY, heartbeat and boot-up, and turns them into `bus.events` on its receive thread. This runtime
+puts those events on a queue and runs the `Coordinator` on ONE dedicated streaming thread (the one
+that calls `run`): pop an event, feed the trace and the core, send the frames the core returns at
+once. Nothing heavy happens on that thread: planning is done before `run`, plotting after, the
+progress display only reads counters. A frame the bus refuses becomes a `SendFailed` event; a
+cancel request (a `threading.Event`) becomes a `Cancel` event; both go through the same core.
+
+The same core, the same decoding and the same trace as the virtual-time runtime (`streamer.virtual`),
+so what the tests prove in virtual time is what runs here.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import can
+
+from bus.errors import BusError
+from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync
+from bus.network import MasterAdapter
+from planner.config import CellConfig
+from streamer.core.coordinator import Coordinator, JobState
+from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
+from streamer.core.settings import StreamerSettings
+from streamer.trace import JobTrace
+
+TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
+
+
+class _Tap(can.Listener):
+    """Every frame the master's bus sees (its own included): candump log and the trace's frame tally."""
+
+    def __init__(self, log_path: Path | None):
+        self.writer: can.Logger | None = can.Logger(str(log_path)) if log_path is not None else None
+        self.trace: JobTrace | None = None
+        self._lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self._lock:
+            if self.writer is not None:
+                self.writer.on_message_received(msg)
+            if self.trace is not None:
+                self.trace.on_frame(msg.arbitration_id, msg.dlc)
+
+    def stop(self) -> None:
+        with self._lock:
+            if self.writer is not None:
+                self.writer.stop()
+                self.writer = None
+
+
+@dataclass
+class NodeSnapshot:
+    """The latest TPDO values of one drive (for telemetry while no job runs, and start checks)."""
+
+    node: int
+    statusword: int | None = None
+    buffer_status: int | None = None
+    free_size: int | None = None
+    position_actual: int | None = None
+    position_demand: int | None = None
+    velocity_counts_per_s: float = 0.0
+    t: float = 0.0
+    emcy_code: int | None = None
+
+    def update(self, ev: object) -> None:
+        if isinstance(ev, BufferStatus):
+            self.statusword, self.buffer_status, self.free_size = ev.statusword, ev.buffer_status, ev.free_size
+        elif isinstance(ev, PositionFeedback):
+            if self.position_actual is not None and ev.t > self.t:
+                self.velocity_counts_per_s = (ev.position_actual - self.position_actual) / (ev.t - self.t)
+            self.position_actual, self.position_demand, self.t = ev.position_actual, ev.position_demand, ev.t
+        elif isinstance(ev, Emcy):
+            self.emcy_code = ev.code
+
+
+@dataclass(frozen=True)
+class RealtimeResult:
+    coordinator: Coordinator
+    trace: JobTrace
+    first_sync: int
+    last_sync: int
+    settled: bool
+    wall_s: float
+
+
+class RealtimeRuntime:
+    """Runs jobs on a configured `MasterAdapter`, one at a time, on the calling thread."""
+
+    def __init__(
+        self,
+        cell: CellConfig,
+        adapter: MasterAdapter,
+        *,
+        log_path: Path | None = None,
+        settings: StreamerSettings | None = None,
+    ):
+        self.cell = cell
+        self.adapter = adapter
+        self.settings = settings if settings is not None else StreamerSettings.from_cell(cell)
+        self._events: queue.Queue[Event] = queue.Queue()
+        self._sync = -1
+        self._tap = _Tap(log_path)
+        adapter.add_listener(self._tap)
+        self._running = False
+        self._snap_lock = threading.Lock()
+        self._snapshot: dict[int, NodeSnapshot] = {a.node_id: NodeSnapshot(a.node_id) for a in cell.axes}
+        adapter.on_event(self._on_event)
+
+    def _on_event(self, ev: Event) -> None:
+        """Adapter thread: keep the latest state of every node (cheap), queue events only during a job."""
+        node = getattr(ev, "node", None)
+        snap = self._snapshot.get(node) if node is not None else None
+        if snap is not None:
+            with self._snap_lock:
+                snap.update(ev)
+        if self._running:
+            self._events.put(ev)
+
+    def snapshot(self) -> dict[int, NodeSnapshot]:
+        with self._snap_lock:
+            return {n: replace(s) for n, s in self._snapshot.items()}
+
+    def close(self) -> None:
+        self.adapter.stop_sync()
+        self._tap.stop()
+
+    def _drain(self, timeout_s: float) -> Event | None:
+        try:
+            return self._events.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def run(
+        self,
+        trajectory: PvtTrajectoryLike,
+        *,
+        stop_planner: StopPlanner | None = None,
+        cancel: threading.Event | None = None,
+        settle_s: float = 3.0,
+        on_change: Callable[[Coordinator], None] | None = None,
+        timeout_s: float | None = None,
+    ) -> RealtimeResult:
+        """Stream one trajectory: enable the drives, start SYNC if it is not running, run to the end."""
+        cell = self.cell
+        wall0 = time.monotonic()
+        self.adapter.enable_drives()
+        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)
+        nodes = set(core.node_ids)
+        trace = JobTrace([(a.node_id, a.name) for a in cell.axes if a.node_id in nodes],
+                         sync_period_s=cell.sync_period_s, bitrate=cell.bus.bitrate)
+        # events queued before this job (TPDOs of the previous one) belong to nobody
+        while self._drain(0.0) is not None:
+            pass
+        self._running = True
+        self._tap.trace = trace
+        if not self.adapter.sync_running:
+            self.adapter.start_sync()
+        limit = timeout_s if timeout_s is not None else core.report().duration_ms / 1000.0 + 30.0
+        first_sync: int | None = None
+        last_sync = -1
+        cancelled = False
+        settle_until: float | None = None
+        settled = False
+        try:
+            while True:
+                ev = self._drain(0.05)
+                if cancel is not None and cancel.is_set() and not cancelled and core.state not in TERMINAL:
+                    cancelled = True
+                    self._feed(core, trace, Cancel(self.adapter.now()))
+                if ev is None:
+                    if settle_until is not None and time.monotonic() >= settle_until:
+                        break  # the job ended and nothing comes any more (bus-off: no SYNC, no TPDO)
+                    if time.monotonic() - wall0 > limit:
+                        raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
+                    continue
+                if isinstance(ev, Sync):
+                    first_sync = ev.count if first_sync is None else first_sync
+                    last_sync = ev.count
+                    trace.on_sync(ev.count, ev.t)
+                self._feed(core, trace, ev)
+                if on_change is not None:
+                    on_change(core)
+                if core.state in TERMINAL:
+                    now = time.monotonic()
+                    if settle_until is None:
+                        settle_until = now + settle_s
+                    settled = self._settled(trace, nodes)
+                    if settled or now >= settle_until:
+                        break
+                if time.monotonic() - wall0 > limit:
+                    raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
+        finally:
+            self._running = False
+            self._tap.trace = None
+        return RealtimeResult(core, trace, first_sync if first_sync is not None else 0, last_sync, settled,
+                              time.monotonic() - wall0)
+
+    @staticmethod
+    def _settled(trace: JobTrace, nodes: set[int]) -> bool:
+        for n in nodes:
+            ax = trace.axes[n]
+            if len(ax.actual) < 3 or len(set(ax.actual[-3:])) != 1 or ax.actual[-1] != ax.demand[-1]:
+                return False
+        return True
+
+    def _feed(self, core: Coordinator, trace: JobTrace, ev: Any) -> None:
+        pending = [ev]
+        while pending:
+            e = pending.pop(0)
+            trace.on_event(e)
+            reaction = core.handle(e, wire_sync=self.adapter.latest_sync)
+            for s in reaction.sends:
+                try:
+                    self.adapter.send(s.cob_id, s.data)
+                except BusError as err:
+                    pending.append(SendFailed(str(err), self.adapter.now()))
+                    break

@@ -1,0 +1,184 @@
+"""The job report (report.json), the motion plot (motion.png) and the candump cross-check.
+
+Built from three sources that do not trust each other: the plan (`PvtTrajectory`), what the drives
+reported every SYNC (`JobTrace`: FIFO fill, position actual and demand) and the streamer core's own
+accounting (`Coordinator.report()`). The deviation of the drive's demand from the plan is measured
+two ways and the larger is reported:
+- at every ms, from the records that were streamed, through the drive's interpolation formula
+  (`PvtTrajectory.deviation()`; `decode_candump` proves the records on the wire are exactly these);
+- at every SYNC, from the position demand the drive itself reported in TPDO2 (0x6062), against the
+  plan rounded as the drive rounds.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bus.cob import RPDO2_BASE
+from planner.record import PvtRecord, unpack
+from planner.trajectory import PvtTrajectory
+from streamer.core.coordinator import JobReport
+from streamer.trace import JobTrace
+
+
+def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: int) -> int:
+    if start_sync is None or sync <= start_sync:
+        return 0
+    return min((sync - start_sync) * period_ms, duration_ms)
+
+
+def build_report(
+    traj: PvtTrajectory,
+    core: JobReport,
+    trace: JobTrace,
+    *,
+    sync_period_ms: int,
+    first_sync: int,
+    last_sync: int,
+    faults: Sequence[Mapping[str, Any]] = (),
+) -> dict[str, Any]:
+    outcome = core.outcome
+    result = outcome.result.value if outcome is not None else core.state
+    planned = traj.planned_demand()
+    encoder_dev = np.abs(traj.deviation()).max(axis=1)
+    axes_out: list[dict[str, Any]] = []
+    telemetry = {t.node_id: t for t in core.axes}
+    for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True)):
+        ax = trace.axes[node]
+        tel = telemetry.get(node)
+        sampled_dev = 0
+        for s, d in zip(ax.pos_sync, ax.demand, strict=True):
+            if core.start_sync is not None and s > core.start_sync + traj.duration_ms // sync_period_ms + 1:
+                break  # after the plan's end: the stop or hold is not the plan
+            k = _plan_index(s, core.start_sync, sync_period_ms, traj.duration_ms)
+            sampled_dev = max(sampled_dev, abs(int(d) - int(planned[i, k])))
+        final_actual = trace.final_actual(node)
+        target = int(traj.positions[i, -1])
+        ends = [s for s in ax.ip_active_syncs]
+        axes_out.append(
+            {
+                "name": name,
+                "node_id": node,
+                "start_sync": core.start_sync,
+                "end_sync": (ends[-1] + 1) if ends else None,
+                "points_sent": tel.points_sent if tel else 0,
+                "min_fifo": tel.min_fifo if tel else None,
+                "max_fifo": tel.max_fifo if tel else None,
+                "max_deviation_counts": int(max(int(encoder_dev[i]), sampled_dev)),
+                "max_following_error_counts": ax.max_following_error(),
+                "final_position_error_counts": (final_actual - target) if final_actual is not None else None,
+                "underflow_warnings": tel.underflow_warnings if tel else 0,
+                "overflow_warnings": tel.overflow_warnings if tel else 0,
+                "resends": tel.resends if tel else 0,
+                "errors": list(tel.errors) if tel else [],
+            }
+        )
+    fault_list = list(faults)
+    if outcome is not None and outcome.code is not None:
+        fault_list.append(
+            {"code": outcome.code, "node": outcome.node, "message": outcome.message, "sync": outcome.sync}
+        )
+    return {
+        "result": result,
+        "message": outcome.message if outcome is not None else "",
+        "sync_period_ms": sync_period_ms,
+        "duration_s": traj.duration_s,
+        "planned_points": traj.n_points,
+        "syncs": last_sync - first_sync + 1,
+        "frames": trace.frames,
+        "frames_per_point": core.frames_per_point,
+        "bus_load_peak": round(trace.bus_load_peak(), 4),
+        "faults": fault_list,
+        "axes": axes_out,
+    }
+
+
+def write_report(report: Mapping[str, Any], path: Path) -> None:
+    path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+
+
+def decode_candump(path: Path, node_ids: Iterable[int]) -> dict[int, list[PvtRecord]]:
+    """The 0x20C1 records sent to each node, in bus order, read back from a candump (-L) log."""
+    import can
+
+    wanted = {RPDO2_BASE + n: n for n in node_ids}
+    out: dict[int, list[PvtRecord]] = {n: [] for n in wanted.values()}
+    with can.LogReader(str(path)) as reader:
+        for msg in reader:
+            node = wanted.get(msg.arbitration_id)
+            if node is not None:
+                out[node].append(unpack(bytes(msg.data)))
+    return out
+
+
+def plot_motion(
+    traj: PvtTrajectory,
+    trace: JobTrace,
+    report: Mapping[str, Any],
+    path: Path,
+    *,
+    sync_period_ms: int,
+    underflow_watermark: int,
+    overflow_watermark: int,
+) -> None:
+    """Per axis: commanded vs actual position and their difference; FIFO fill with both watermarks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = traj.n_axes
+    fig, grid = plt.subplots(n, 2, figsize=(13, 2.2 * n + 1.0), squeeze=False, sharex="col")
+    start = next((a["start_sync"] for a in report["axes"] if a["start_sync"] is not None), None)
+    period_s = sync_period_ms / 1000.0
+    sync0 = min(trace.sync_times) if trace.sync_times else 0
+    planned = traj.planned_demand()
+    for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True)):
+        ax = trace.axes[node]
+        cpu = float(traj.counts_per_unit[i])
+        left, right = grid[i][0], grid[i][1]
+        ts = np.array([(s - sync0) * period_s for s in ax.pos_sync])
+        actual = np.array(ax.actual, dtype=float)
+        demand = np.array(ax.demand, dtype=float)
+        idx = [_plan_index(s, start, sync_period_ms, traj.duration_ms) for s in ax.pos_sync]
+        commanded = planned[i, idx].astype(float) if len(idx) else np.array([])
+        left.plot(ts, commanded / cpu, color="#1f77b4", lw=1.6, label="commanded (plan)")
+        left.plot(ts, actual / cpu, color="#ff7f0e", lw=1.0, ls="--", label="actual 0x6064")
+        left.set_ylabel(f"{name}\nposition [unit]")
+        twin = left.twinx()
+        twin.plot(ts, actual - commanded, color="#d62728", lw=0.8, alpha=0.7, label="actual - commanded")
+        twin.set_ylabel("diff [counts]", color="#d62728")
+        twin.tick_params(axis="y", colors="#d62728")
+        if start is not None:
+            left.axvline((start - sync0) * period_s, color="green", lw=0.8, ls=":", label="start SYNC")
+        if i == 0:
+            h1, l1 = left.get_legend_handles_labels()
+            h2, l2 = twin.get_legend_handles_labels()
+            left.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=7, ncol=2)
+        tf = np.array([(s - sync0) * period_s for s in ax.fill_sync])
+        right.step(tf, ax.fill, where="post", color="#2ca02c", lw=1.0, label="FIFO fill")
+        right.axhline(underflow_watermark, color="#d62728", lw=0.8, ls="--",
+                      label=f"underflow wm {underflow_watermark}")
+        right.axhline(overflow_watermark, color="#9467bd", lw=0.8, ls="--",
+                      label=f"overflow wm {overflow_watermark}")
+        if start is not None:
+            right.axvline((start - sync0) * period_s, color="green", lw=0.8, ls=":", label="start SYNC")
+        right.set_ylim(0, 66)
+        right.set_ylabel("records")
+        if i == 0:
+            right.legend(loc="upper right", fontsize=7, ncol=2)
+        del demand
+    grid[-1][0].set_xlabel("time [s]")
+    grid[-1][1].set_xlabel("time [s]")
+    fig.suptitle(
+        f"{report['result'].upper()}: {n} axes, {report['duration_s']:.2f} s, SYNC {sync_period_ms} ms, "
+        f"peak bus load {100 * report['bus_load_peak']:.1f}%"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

@@ -1,0 +1,530 @@
+"""The virtual-time runtime: the streamer core and the simulated drives, frame by frame, no threads.
+
+Theory of operation. There is no python-can bus here: the runtime plays it, as a small discrete-event
+simulation of one CAN bus. Every frame anybody sends (the master's SYNC and records, the drives' TPDOs,
+EMCYs and heartbeats, other devices' traffic) is queued with its release time; the bus transmits one
+frame at a time, and when it goes idle the lowest COB-ID among the frames released by then wins
+arbitration (CAN priority), each frame lasting its worst-case bit length at the configured bitrate.
+A frame takes effect when its transmission ends: the drives process what the master sent (a SYNC runs
+their clock and makes them answer TPDO1 + TPDO2), the master's side decodes what the drives sent and
+feeds the core (`Sync(n)` on the echo of its own SYNC n, TPDOs tagged with the last SYNC echoed before
+they arrived, exactly as `bus.network.MasterAdapter` tags them, then `BusLoad` over the last cycle as
+the adapter measures it), and the frames the core returns are queued at once. Every SYNC cycle the
+runtime
+1. runs the drives' timers (heartbeats, SYNC loss) up to the SYNC time, at their own deadlines;
+2. queues SYNC n at `sync_time(n)` (jitter and gaps come from that hook);
+3. runs the bus until the next SYNC's release time (what is still queued competes with that SYNC),
+   firing the master's heartbeat consumer timer (HeartbeatLost) at the moment a node's timeout runs out.
+The same `Coordinator`, `DriveModel` and decoding code run here as on a real bus (`streamer.realtime`),
+only the transport differs, so a minute of motion runs in well under a second, every timing branch is
+reachable from a test, and a candump log of the same run is byte-identical.
+
+Fault injection hooks (the reliability tests, `bus.faults.FaultLink`):
+- `link` sees every frame between master and drives as it arrives and says what arrives instead:
+  nothing, several frames, or `(frame, arrival_time)` for a late one; optionally `accept(frame, t)`
+  refuses a frame the master sends (bus-off: the core is fed `SendFailed`, a refused SYNC is never
+  echoed) and `release(t)` hands back frames it held (reordering) once their time is up;
+- `sync_time(n)` jitters or skips SYNCs;
+- `foreign` is traffic of other devices (`ForeignTraffic`, e.g. `periodic_load(...)` for a 80% load of
+  higher-priority frames, or malformed frames at given times): it arbitrates like every other frame
+  and both the master and the drives receive it;
+- `drive_frames(frames, t)` puts frames a drive sends on its own on the bus (a drive that rebooted).
+`counters` tallies frames ("frames", "foreign"), what the master received that meant nothing to it
+("unknown_cob_id", "other_node") or did not decode ("malformed", also fed to the core as AdapterError,
+as `MasterAdapter` does), and frames refused at bus-off ("send_refused", "sync_refused").
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol
+
+from bus.codec import Frame, frame_bits
+from bus.cob import SYNC_COB_ID, classify
+from bus.errors import ProtocolError
+from bus.events import AdapterError, BusLoad, Cancel, Event, HeartbeatLost, Send, SendFailed, Sync
+from bus.profile import EPOS_IPM, DriveProfile
+from bus.sim.virtual import VirtualCell
+from planner.config import CellConfig
+from streamer.core.coordinator import Coordinator, JobState, Reaction
+from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
+from streamer.core.settings import StreamerSettings
+from streamer.trace import JobTrace
+
+TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
+
+Arrival = Frame | tuple[Frame, float]  # a frame that arrives now, or (frame, arrival time)
+
+
+class FrameLog(Protocol):
+    def __call__(self, t: float, cob_id: int, data: bytes) -> None: ...
+
+
+class Link(Protocol):
+    """What the wire does to a frame between master and drives. Returns what arrives (none, one, several;
+    `(frame, t)` arrives at time t). Optional methods, used when present: `accept(frame, t) -> str | None`
+    (a reason = the master's controller refuses to send it: bus-off), `release(t) -> (to_drives,
+    to_master)` (frames held back, due by t)."""
+
+    def to_drives(self, frame: Frame, t: float) -> Sequence[Arrival]: ...
+
+    def to_master(self, frame: Frame, t: float) -> Sequence[Arrival]: ...
+
+
+class ForeignTraffic:
+    """Frames other devices send: a merge of time-ordered `(release time, frame)` sources."""
+
+    def __init__(self, *sources: Iterable[tuple[float, Frame]]):
+        self._it: Iterator[tuple[float, Frame]] = heapq.merge(*sources, key=lambda x: x[0])
+        self._next: tuple[float, Frame] | None = next(self._it, None)
+        self.sent = 0
+
+    def peek(self) -> tuple[float, Frame] | None:
+        return self._next
+
+    def pop(self) -> tuple[float, Frame]:
+        item = self._next
+        assert item is not None
+        self._next = next(self._it, None)
+        self.sent += 1
+        return item
+
+
+def periodic_load(load: float, bitrate: int, *, cob_id: int = 0x050, dlc: int = 8, start_s: float = 0.0,
+                  duration_s: float = math.inf, data: bytes | None = None) -> Iterator[tuple[float, Frame]]:
+    """Frames of one COB-ID released evenly so that they use `load` of the bus (worst-case frame bits)."""
+    if not 0.0 < load <= 1.0:
+        raise ValueError(f"load must be in (0, 1], got {load}")
+    payload = bytes(data) if data is not None else bytes(range(0xA0, 0xA0 + dlc))
+    period = frame_bits(len(payload)) / (bitrate * load)
+    k = 0
+    while True:
+        t = start_s + k * period
+        if t >= start_s + duration_s:
+            return
+        yield t, Frame(cob_id, payload)
+        k += 1
+
+
+@dataclass(frozen=True)
+class VirtualResult:
+    coordinator: Coordinator
+    trace: JobTrace
+    first_sync: int
+    last_sync: int
+    settled: bool  # every axis stood still at its final position after the job
+
+
+# who queued a frame
+_MASTER, _DRIVES, _FOREIGN = 0, 1, 2
+
+
+class _Queued(NamedTuple):
+    release: float
+    seq: int
+    frame: Frame
+    sender: int
+
+
+class _Bus:
+    """One CAN bus: queued frames, arbitration by COB-ID when the bus goes idle, worst-case frame bits."""
+
+    def __init__(self, bitrate: int, foreign: ForeignTraffic | None):
+        self.bit_s = 1.0 / bitrate
+        self.free_at = 0.0
+        self.queued: list[_Queued] = []
+        self.foreign = foreign
+        self._seq = 0
+
+    def submit(self, frame: Frame, release: float, sender: int) -> None:
+        self._seq += 1
+        self.queued.append(_Queued(release, self._seq, frame, sender))
+
+    def next_start(self) -> tuple[float, _Queued | None] | None:
+        """When the next transmission starts and which queued frame it is (None: the foreign one)."""
+        fn = self.foreign.peek() if self.foreign is not None else None
+        if not self.queued and fn is None:
+            return None
+        earliest = min((q.release for q in self.queued), default=math.inf)
+        if fn is not None and fn[0] < earliest:
+            earliest = fn[0]
+        start = max(self.free_at, earliest)
+        best: _Queued | None = None
+        for q in self.queued:
+            if q.release <= start and (best is None or (q.frame.cob_id, q.seq) < (best.frame.cob_id, best.seq)):
+                best = q
+        if fn is not None and fn[0] <= start and (best is None or fn[1].cob_id < best.frame.cob_id):
+            best = None
+        return start, best
+
+    def transmit(self, start: float, which: _Queued | None) -> tuple[float, _Queued]:
+        if which is None:
+            assert self.foreign is not None
+            release, frame = self.foreign.pop()
+            self._seq += 1
+            which = _Queued(release, self._seq, frame, _FOREIGN)
+        else:
+            self.queued.remove(which)
+        end = start + frame_bits(len(which.frame.data)) * self.bit_s
+        self.free_at = end
+        return end, which
+
+
+class VirtualRuntime:
+    """One cell of simulated drives plus the streamer core, in virtual time. Runs jobs back to back."""
+
+    def __init__(
+        self,
+        cell: CellConfig,
+        *,
+        vcell: VirtualCell | None = None,
+        log: FrameLog | None = None,
+        link: Link | None = None,
+        sync_time: Callable[[int], float] | None = None,
+        foreign: ForeignTraffic | None = None,
+        profile: DriveProfile = EPOS_IPM,
+        settings: StreamerSettings | None = None,
+        bus_load_events: bool = True,
+    ):
+        self.cell = cell
+        self.period_s = cell.sync_period_s
+        self.vcell = vcell if vcell is not None else VirtualCell(cell)
+        self.profile = profile
+        self.settings = settings if settings is not None else StreamerSettings.from_cell(cell)
+        self.nodes = frozenset(a.node_id for a in cell.axes)
+        self._log = log
+        self._link = link
+        self._accept = getattr(link, "accept", None)
+        self._release = getattr(link, "release", None)
+        self._sync_time = sync_time or (lambda n: n * self.period_s)
+        self._bus = _Bus(cell.bus.bitrate, foreign)
+        self._bitrate = cell.bus.bitrate
+        self._bus_load_events = bus_load_events
+        self._late: list[tuple[float, int, bool, Frame]] = []  # (arrival, seq, to_drives, frame)
+        self._late_seq = 0
+        self._cycle = -1  # SYNC producer cycles (the index given to sync_time)
+        self._sync = -1  # SYNCs echoed (the count the core is fed, as the adapter counts them)
+        self._last_sync_t: float | None = None
+        self._window_bits = 0
+        self._last_heartbeat: dict[int, float] = {}
+        self._hb_lost: set[int] = set()
+        self._hb_timeout_s = cell.drive.heartbeat_timeout_ms / 1000.0
+        self._core: Coordinator | None = None
+        self.trace: JobTrace | None = None
+        self.counters: Counter[str] = Counter()
+        for f in self.vcell.boot_frames:
+            self._bus.submit(f, 0.0, _DRIVES)
+        self._drain()  # the drives booted before the master starts: their boot-ups belong to no job
+
+    @property
+    def sync_count(self) -> int:
+        return self._sync
+
+    @property
+    def now(self) -> float:
+        """The release time of the current SYNC cycle."""
+        return self._sync_time(self._cycle) if self._cycle >= 0 else 0.0
+
+    # ---- frames onto the bus from outside the protocol flow
+    def drive_frames(self, frames: Iterable[Frame], t: float) -> None:
+        """Frames a drive sends on its own (e.g. the boot-up after `model.on_frame(0, reset)`), at `t`."""
+        for f in frames:
+            self._bus.submit(f, t, _DRIVES)
+
+    # ---- the bus
+    def _run_bus(self, until: float) -> None:
+        """Transmit and deliver everything that starts (or arrives late) before `until`."""
+        bus = self._bus
+        while True:
+            nxt = bus.next_start()
+            start = nxt[0] if nxt is not None else math.inf
+            late_at = self._late[0][0] if self._late else math.inf
+            if min(start, late_at) >= until:
+                return
+            if late_at <= start:
+                at, _, to_drives, frame = heapq.heappop(self._late)
+                if to_drives:
+                    self._arrive_drives(frame, at)
+                else:
+                    self._arrive_master(frame, at)
+                continue
+            assert nxt is not None
+            end, q = bus.transmit(start, nxt[1])
+            self._on_wire(q, start, end)
+
+    def _drain(self) -> None:
+        """Transmit and deliver everything queued or late (and the foreign frames competing with it)."""
+        while self._bus.queued or self._late:
+            nxt = self._bus.next_start()
+            self._run_bus(math.nextafter(max(nxt[0] if nxt else 0.0, self._late[0][0] if self._late else 0.0),
+                                         math.inf))
+
+    def _on_wire(self, q: _Queued, start: float, end: float) -> None:
+        frame = q.frame
+        dlc = len(frame.data)
+        if self._log is not None:
+            self._log(start, frame.cob_id, frame.data)
+        if self.trace is not None:
+            self.trace.on_frame(frame.cob_id, dlc)
+        self._window_bits += frame_bits(dlc)
+        self.counters["frames"] += 1
+        if self._release is not None:
+            to_drives, to_master = self._release(end)
+            for f in to_drives:
+                self._arrive_drives(f, end)
+            for f in to_master:
+                self._arrive_master(f, end)
+        if q.sender == _MASTER:
+            if frame.cob_id == SYNC_COB_ID:
+                self._sync_echo(start)
+            self._deliver(frame, end, to_drives=True)
+        elif q.sender == _DRIVES:
+            self._deliver(frame, end, to_drives=False)
+        else:
+            self.counters["foreign"] += 1
+            self._arrive_drives(frame, end)
+            self._arrive_master(frame, end)
+
+    def _deliver(self, frame: Frame, t: float, *, to_drives: bool) -> None:
+        if self._link is None:
+            arrivals: Sequence[Arrival] = (frame,)
+        elif to_drives:
+            arrivals = self._link.to_drives(frame, t)
+        else:
+            arrivals = self._link.to_master(frame, t)
+        for a in arrivals:
+            if isinstance(a, Frame):
+                f, at = a, t
+            else:
+                f, at = a
+            if at > t:
+                self._late_seq += 1
+                heapq.heappush(self._late, (at, self._late_seq, to_drives, f))
+            elif to_drives:
+                self._arrive_drives(f, t)
+            else:
+                self._arrive_master(f, t)
+
+    def _arrive_drives(self, frame: Frame, t: float) -> None:
+        if frame.cob_id == SYNC_COB_ID:
+            answers = self.vcell.sync(t)
+        else:
+            answers = self.vcell.deliver(frame.cob_id, frame.data, t)
+        for f in answers:
+            self._bus.submit(f, t, _DRIVES)
+
+    def _arrive_master(self, frame: Frame, t: float) -> None:
+        kind, node = classify(frame.cob_id)
+        if kind == "HEARTBEAT" and node in self.nodes:
+            self._last_heartbeat[node] = t
+            self._hb_lost.discard(node)
+        try:
+            ev = self.profile.frame_to_event(frame.cob_id, bytes(frame.data), t, self.nodes,
+                                             self._sync if self._sync >= 0 else None)
+        except ProtocolError as e:
+            self.counters["malformed"] += 1
+            ev = AdapterError(f"decode 0x{frame.cob_id:03X}", str(e), t)
+        if kind == "OTHER" or (node and node not in self.nodes):
+            self.counters["unknown_cob_id" if kind == "OTHER" else "other_node"] += 1
+        if ev is None:
+            return
+        if self._core is not None:
+            self._apply(self._core, ev, t)
+
+    def _sync_echo(self, t: float) -> None:
+        self._sync += 1
+        n = self._sync
+        last, self._last_sync_t = self._last_sync_t, t
+        core = self._core
+        if self.trace is not None:
+            self.trace.on_sync(n, t)
+        if core is not None:
+            self._apply(core, Sync(n, t), t)
+        if last is not None and self._bus_load_events:
+            load = self._window_bits / (self._bitrate * max(t - last, self.period_s))
+            if core is not None:
+                self._apply(core, BusLoad(load, t), t)
+        self._window_bits = 0
+
+    def _send(self, frame: Frame, t: float) -> str | None:
+        """The master queues a frame; returns the refusal reason when the controller refuses it."""
+        if self._accept is not None:
+            reason: str | None = self._accept(frame, t)
+            if reason is not None:
+                self.counters["send_refused"] += 1
+                return reason
+        self._bus.submit(frame, t, _MASTER)
+        return None
+
+    def _apply(self, core: Coordinator, ev: Event, t: float) -> None:
+        """Feed one event; queue what the core returns (a refused frame becomes SendFailed)."""
+        pending: list[Event] = [ev]
+        while pending:
+            e = pending.pop(0)
+            if self.trace is not None:
+                self.trace.on_event(e)
+            reaction: Reaction = core.handle(e)
+            for s in reaction.sends:
+                reason = self._send(Frame(s.cob_id, s.data), t)
+                if reason is not None:
+                    pending.append(SendFailed(f"{reason}: frame 0x{s.cob_id:03X} not sent", t))
+                    break
+
+    # ---- timers
+    def _advance_drives(self, t: float) -> None:
+        """The drives' timers up to t, each at its own deadline (a SYNC-loss EMCY at 1.5 periods, not at
+        the next SYNC)."""
+        vcell = self.vcell
+        for _ in range(10_000):
+            d = vcell.next_deadline()
+            if d is None or d >= t:
+                break
+            at = min(t, d + 1e-9)
+            for f in vcell.advance(at):
+                self._bus.submit(f, at, _DRIVES)
+            if vcell.next_deadline() == d:
+                break
+        for f in vcell.advance(t):
+            self._bus.submit(f, t, _DRIVES)
+
+    def _heartbeat_check(self, t: float) -> list[Event]:
+        lost: list[Event] = []
+        for node in sorted(self.nodes):
+            seen = self._last_heartbeat.get(node)
+            if seen is not None and node not in self._hb_lost and t - seen > self._hb_timeout_s:
+                self._hb_lost.add(node)
+                lost.append(HeartbeatLost(node, t))
+        return lost
+
+    def _cycle_once(self) -> float:
+        """One SYNC cycle (see the module docstring); returns the SYNC's release time."""
+        self._cycle += 1
+        t = self._sync_time(self._cycle)
+        t_next = self._sync_time(self._cycle + 1)
+        self._run_bus(t)
+        self._advance_drives(t)
+        self._consumer_check(t)
+        reason = self._send(Frame(SYNC_COB_ID, b""), t)
+        if reason is not None:
+            self.counters["sync_refused"] += 1
+            if self._core is not None:
+                self._apply(self._core, SendFailed(f"{reason}: SYNC not sent", t), t)
+        # the bus up to the next SYNC, stopping at each heartbeat consumer deadline on the way (the
+        # master's consumer timer fires when the timeout passes, not at the next SYNC)
+        while (d := self._next_consumer_deadline()) is not None and d < t_next:
+            self._run_bus(d)
+            self._consumer_check(d)
+        self._run_bus(t_next)
+        return t
+
+    def _next_consumer_deadline(self) -> float | None:
+        live = [seen for node, seen in self._last_heartbeat.items() if node not in self._hb_lost]
+        return math.nextafter(min(live) + self._hb_timeout_s, math.inf) if live else None
+
+    def _consumer_check(self, t: float) -> None:
+        for ev in self._heartbeat_check(t):
+            if self._core is not None:
+                self._apply(self._core, ev, t)
+
+    # ---- running a job
+    def enable_drives(self, t: float) -> None:
+        """What `MasterAdapter.enable_drives` does over SDO, written straight into the models: fault
+        reset when faulted, shutdown 0x0006, enable operation 0x000F (bit 4 low, so the start is a
+        rising edge), ip buffer clear 0x60C4:06 = 0 then enable = 1. What the drives answer (EMCY "error
+        reset") goes on the bus."""
+        from bus import codec
+
+        cw = self.profile.obj("controlword")
+        clear = self.profile.obj("buffer_clear")
+        for node in sorted(self.nodes):
+            m = self.vcell.model(node)
+            writes: list[tuple[int, int, int]] = []
+            if m.state == codec.Cia402State.FAULT:
+                writes += [(cw.index, cw.sub, codec.Command.DISABLE_VOLTAGE.value),
+                           (cw.index, cw.sub, codec.Command.FAULT_RESET.value)]
+            writes += [(cw.index, cw.sub, codec.Command.SHUTDOWN.value),
+                       (cw.index, cw.sub, codec.Command.ENABLE_OPERATION.value),
+                       (clear.index, clear.sub, 0), (clear.index, clear.sub, 1)]
+            for index, sub, value in writes:
+                for f in self.vcell.sdo_write(node, index, sub, value, t):
+                    self._bus.submit(f, t, _DRIVES)
+
+    def idle(self, duration_s: float, *, on_sync: Callable[[int], None] | None = None) -> None:
+        """Keep SYNC running with no job for `duration_s` (what the drives do is seen in the models)."""
+        self._core = None
+        self.trace = None
+        end = self.now + duration_s
+        while True:
+            t = self._cycle_once()
+            if on_sync is not None:
+                on_sync(self._sync)
+            if t >= end:
+                return
+
+    def run(
+        self,
+        trajectory: PvtTrajectoryLike,
+        *,
+        stop_planner: StopPlanner | None = None,
+        cancel_at_s: float | None = None,
+        max_s: float | None = None,
+        settle_s: float = 3.0,
+        on_sync: Callable[[Coordinator, int], None] | None = None,
+    ) -> VirtualResult:
+        """Stream one trajectory to the drives. Returns when the job ended and the axes settled."""
+        t_enable = self._sync_time(self._cycle + 1) - self.period_s / 2
+        self._core = None
+        self._run_bus(t_enable)  # frames still in flight from before belong to no job
+        self.enable_drives(t_enable)
+        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)
+        job_nodes = set(core.node_ids)
+        self.trace = JobTrace(
+            [(a.node_id, a.name) for a in self.cell.axes if a.node_id in job_nodes],
+            sync_period_s=self.period_s,
+            bitrate=self.cell.bus.bitrate,
+        )
+        self._core = core
+        first_cycle = self._cycle + 1
+        first = self._sync + 1
+        dt_total_s = core.report().duration_ms / 1000.0
+        limit_s = max_s if max_s is not None else dt_total_s + 30.0
+        cancelled = False
+        settle_until: float | None = None
+        settled = False
+        try:
+            while True:
+                t = self._cycle_once()
+                elapsed = (self._cycle - first_cycle) * self.period_s
+                if (cancel_at_s is not None and not cancelled and elapsed >= cancel_at_s
+                        and core.state not in TERMINAL):
+                    cancelled = True
+                    self._apply(core, Cancel(t), t)
+                if on_sync is not None:
+                    on_sync(core, self._sync)
+                if core.state in TERMINAL:
+                    if settle_until is None:
+                        settle_until = t + settle_s
+                    if self._settled() or t >= settle_until:
+                        settled = self._settled()
+                        break
+                if elapsed > limit_s:
+                    raise TimeoutError(
+                        f"job still {core.state.value} after {elapsed:.1f} s of virtual time (limit {limit_s:.1f} s)"
+                    )
+        finally:
+            self._core = None
+        return VirtualResult(core, self.trace, first, self._sync, settled)
+
+    def _settled(self) -> bool:
+        return all(
+            m.position_actual == m.position_demand and abs(m.velocity_actual_rpm) < 1.0
+            for m in self.vcell.models.values()
+        )
+
+
+def send_frames(sends: Sequence[Send]) -> list[Frame]:
+    return [Frame(s.cob_id, s.data) for s in sends]

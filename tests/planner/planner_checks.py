@@ -1,0 +1,73 @@
+"""Shared checks for the planner tests (imported by name: tests/planner is a rootless test directory)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from planner import hermite
+from planner.config import CellConfig
+from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK
+from planner.record import PvtRecord, pack, unpack
+from planner.trajectory import PvtTrajectory
+
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def assert_invariants(
+    traj: PvtTrajectory, cell: CellConfig, *, target_counts: np.ndarray | None = None
+) -> None:
+    """Everything the encoder promises, checked from the outside (through planner.hermite)."""
+    n = traj.n_axes
+    dt = np.asarray(traj.dt_ms)
+    # shared grid of whole ms in 1..255
+    assert dt.dtype.kind == "i" and dt.size >= 1
+    assert dt.min() >= 1 and dt.max() <= 255
+    assert traj.positions.shape == (n, dt.size + 1) == traj.velocities.shape
+    for i in range(n):
+        recs = traj.records(i)
+        assert [r.time_ms for r in recs[:-1]] == dt.tolist()  # every axis on the same grid
+        assert recs[-1] == PvtRecord(int(traj.positions[i, -1]), 0, 0)  # end record
+        for r in recs:
+            assert unpack(pack(r)) == r  # every record fits the wire
+    # exact end at rest
+    assert np.all(traj.velocities[:, -1] == 0)
+    if target_counts is not None:
+        assert np.array_equal(traj.positions[:, -1], target_counts)
+    # the drive's reconstruction, rounded as the drive rounds, within tolerance of the planned demand
+    pos, vel, acc = traj.drive_profile()
+    assert np.all(np.isfinite(pos)) and np.all(np.isfinite(vel)) and np.all(np.isfinite(acc))
+    assert np.all(np.isfinite(traj.plan.positions))
+    demand = hermite.round_counts_array(pos)
+    dev = np.abs(demand - hermite.round_counts_array(traj.plan.positions))
+    assert dev.max() <= traj.tolerance_counts
+    assert np.array_equal(demand, traj.demand())
+    assert demand[:, -1].tolist() == traj.positions[:, -1].tolist()
+    # C1 at the knots: the velocity arriving at a knot equals the one leaving it (the knot's own value)
+    conv = traj.counts_per_rev / 60000.0
+    kt = traj.knot_times_ms
+    for i in range(n):
+        np.testing.assert_allclose(vel[i, kt], traj.velocities[i] * conv[i], atol=1e-6)
+        for k in range(1, dt.size):  # leaving knot k: the next segment's velocity at tau = -T
+            a, b, c, _d = hermite.coefficients(
+                traj.positions[i, k],
+                traj.velocities[i, k] * conv[i],
+                traj.positions[i, k + 1],
+                traj.velocities[i, k + 1] * conv[i],
+                int(dt[k]),
+            )
+            _p, v0, _a = hermite.evaluate((a, b, c, _d), -float(dt[k]))
+            assert abs(v0 - traj.velocities[i, k] * conv[i]) < 1e-6
+    # limits: velocity (axis limit + 0.5 % or one rpm, and 0x607F), acceleration (0x60C5 and 5 % excess)
+    for i, s in enumerate(traj.stats):
+        ax = cell.axis(traj.axis_names[i])
+        cpu = traj.counts_per_unit[i]
+        vmax = np.abs(vel[i]).max() * 1000.0 / cpu
+        lim = max(s.velocity_limit * (1 + VELOCITY_SLACK), s.velocity_limit + conv[i] * 1000.0 / cpu)
+        if traj.kind != "stop":
+            assert vmax <= lim + 1e-9, (traj.axis_names[i], vmax, lim)
+        assert np.abs(vel[i]).max() / conv[i] <= ax.max_profile_velocity_rpm + 1e-9
+        assert s.peak_acceleration <= ax.max_acceleration + 1e-9
+        assert s.acceleration_excess_share <= ACC_EXCESS_LIMIT + 1e-12
+        assert s.max_deviation_counts <= traj.tolerance_counts

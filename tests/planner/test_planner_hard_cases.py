@@ -1,0 +1,53 @@
+"""Pinned hard cases (tests/planner/data/hard_cases.toml): zero motion, 1e-8 motion, duplicate
+waypoints, waypoints 1e-4 apart, one axis with 1000x larger limits, 180-degree reversals, jobs longer
+than 60 s. Each one plans on the demo cell (with its axis overrides) and satisfies every invariant."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from planner_checks import assert_invariants
+
+from planner import plan_job
+from planner.config import CellConfig
+from planner.errors import PlanningError
+from planner.job import job_from_dict
+
+CASES: list[dict[str, Any]] = tomllib.loads(
+    (Path(__file__).parent / "data" / "hard_cases.toml").read_text(encoding="utf-8")
+)["case"]
+
+
+def _cell(base: CellConfig, overrides: dict[str, dict[str, float]]) -> CellConfig:
+    axes = tuple(dataclasses.replace(a, **overrides.get(a.name, {})) for a in base.axes)
+    return dataclasses.replace(base, axes=axes)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
+def test_hard_case(cell: CellConfig, case: dict[str, Any]) -> None:
+    c = _cell(cell, case.get("cell_axes", {}))
+    expect = case["expect"]
+    if expect not in ("ok", "noop"):
+        with pytest.raises(PlanningError) as e:
+            plan_job(job_from_dict(case["job"], c), c)
+        assert e.value.code == expect, e.value
+        return
+    job = job_from_dict(case["job"], c)
+    traj = plan_job(job, c)
+    assert_invariants(traj, c)
+    if expect == "noop":
+        assert np.all(traj.positions == traj.positions[:, :1]) and np.all(traj.velocities == 0)
+        assert np.all(traj.demand() == traj.positions[:, :1])
+    if "min_duration_s" in case:
+        assert traj.duration_s >= case["min_duration_s"]
+    if "max_duration_s" in case:
+        assert traj.duration_s <= case["max_duration_s"]
+    if "min_points" in case:
+        assert traj.n_points >= case["min_points"]
+    if "max_segment_ms" in case:
+        assert int(traj.dt_ms.max()) <= case["max_segment_ms"]

@@ -1,0 +1,36 @@
+"""Reliability suite fixtures: every FaultModel a test creates through `faults` has its seed printed
+when the test fails (replay with PVT_FAULT_SEED=<seed>)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import pytest
+
+from bus.faults import FaultModel, FaultRule
+from reliability_kit import SEED
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    rep = yield
+    setattr(item, f"rep_{rep.when}", rep)
+    return rep
+
+
+@pytest.fixture
+def faults(request: pytest.FixtureRequest) -> Iterator[Callable[..., FaultModel]]:
+    """faults(rules, seed=SEED, **kw) -> FaultModel; seeds are printed if the test fails."""
+    made: list[FaultModel] = []
+
+    def make(rules: Sequence[FaultRule], seed: int = SEED, **kw: Any) -> FaultModel:
+        model = FaultModel(list(rules), seed=seed, **kw)
+        made.append(model)
+        return model
+
+    yield make
+    rep = getattr(request.node, "rep_call", None)
+    if rep is not None and rep.failed:
+        for m in made:
+            print(f"[reliability] {m.describe()} -- replay with PVT_FAULT_SEED={m.seed}")

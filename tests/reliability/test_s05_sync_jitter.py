@@ -1,0 +1,84 @@
+"""Scenario 5: SYNC jitter of +-30% of the period on every SYNC interval, and one gap of 1.4 periods:
+no fault, and a deviation within what the jitter explains.
+
+The drives' clocks are locked to SYNC (0x1006 = the period): each SYNC runs exactly one period of 1 ms
+interpolation ticks, however long the interval was. So the interpolation, as a function of the SYNC
+count, is the plan to the count (the per-ms deviation stays within the planner's tolerance); jitter
+only moves *when*, in wall time, a given plan ms is executed. The bound that jitter explains, per axis:
+|demand(t) - plan(t)| <= v_max * max|dt| + tolerance + 1, where dt is how far the SYNC that ran a plan
+ms is from its nominal time (jitter is per SYNC, the 1.4x gap shifts every later SYNC by 0.4 period)
+and v_max the axis' largest planned speed (counts/ms). Nothing faults: the 1.4x gap is below the
+drives' 1.5x SYNC-loss threshold, and a +-30% interval never reaches it."""
+
+from __future__ import annotations
+
+import random
+from collections.abc import Callable
+
+import numpy as np
+from reliability_kit import SEED, Rig, long_traj
+
+from streamer.core import JobState
+
+JITTER = 0.30  # of the period, on the interval between consecutive SYNCs
+GAP = 1.4
+
+
+def jittery_sync_time(period_s: float, seed: int, gap_cycle: int) -> Callable[[int], float]:
+    """t_n = n T + j_n (+ 0.4 T after the gap), j_n uniform in +-JITTER/2 T: every interval within
+    +-JITTER T of T; the two SYNCs around the gap are exact so that interval is exactly GAP T."""
+
+    def jitter(n: int) -> float:
+        if n in (gap_cycle - 1, gap_cycle):
+            return 0.0
+        return random.Random(seed * 1_000_003 + n).uniform(-JITTER / 2, JITTER / 2) * period_s
+
+    def sync_time(n: int) -> float:
+        return n * period_s + jitter(n) + ((GAP - 1.0) * period_s if n >= gap_cycle else 0.0)
+
+    return sync_time
+
+
+def test_sync_jitter_and_a_short_gap_cause_no_fault_and_only_the_explained_deviation() -> None:
+    traj = long_traj()
+    period_s = 0.01
+    gap_cycle = 2500  # ~25 s into the job, in motion
+    sync_time = jittery_sync_time(period_s, SEED, gap_cycle)
+    intervals = np.diff([sync_time(n) for n in range(0, 8000)]) / period_s
+    assert intervals.min() >= 1 - JITTER - 1e-9 and intervals.max() <= GAP + 1e-9
+    assert abs(intervals[gap_cycle - 1] - GAP) < 1e-9 and intervals[np.arange(intervals.size) != gap_cycle - 1].max() <= 1 + JITTER
+
+    rig = Rig(traj, sync_time=sync_time)
+    result = rig.run()
+    core = result.coordinator
+    assert core.state is JobState.DONE, core.outcome
+    for node, m in rig.vcell.models.items():
+        assert m.counters.emcy_sent == 0 and m.counters.sync_gaps == 0, (node, m.fault_log)
+    # the interpolation itself is the plan, to the tolerance, at every ms
+    tol = traj.tolerance_counts
+    assert max(rig.ms_deviation().values()) <= tol
+    # against wall time: the demand each drive reported at each SYNC vs the plan at that SYNC's time
+    start = core.start_sync
+    assert start is not None
+    t0 = result.trace.sync_times[start]
+    vmax = np.abs(np.diff(traj.plan.positions, axis=1)).max(axis=1)  # counts per ms, per axis
+    measured: dict[str, float] = {}
+    bounds: dict[str, float] = {}
+    for i, node in enumerate(traj.node_ids):
+        ax = result.trace.axes[node]
+        worst = worst_dt = 0.0
+        for s, demand in zip(ax.pos_sync, ax.demand, strict=True):
+            if s <= start or (s - start) * 10 > traj.duration_ms:
+                continue
+            wall_ms = (result.trace.sync_times[s] - t0) * 1000.0
+            nominal_ms = (s - start) * 10.0
+            ref = float(traj.reference(min(wall_ms, traj.duration_ms) / 1000.0)[i, 0])
+            worst = max(worst, abs(demand - ref))
+            worst_dt = max(worst_dt, abs(wall_ms - nominal_ms))
+        bound = float(vmax[i]) * worst_dt + tol + 1
+        measured[traj.axis_names[i]], bounds[traj.axis_names[i]] = worst, bound
+        assert worst <= bound, (node, worst, bound)
+    print(f"[scenario 5] max |dt| of a SYNC vs nominal: {worst_dt:.2f} ms; deviation vs the plan in wall "
+          f"time (counts) {({k: round(v) for k, v in measured.items()})} <= bound "
+          f"{({k: round(v) for k, v in bounds.items()})}; per-ms interpolation deviation "
+          f"{rig.ms_deviation()} (tolerance {tol})")

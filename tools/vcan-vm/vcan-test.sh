@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# `make vcan-test`: the vcan-marked tests (tests/vcan), the multi-process demo on socketcan:vcan0
+# among them. Runs them directly when this machine has vcan0, otherwise
+# inside the vcan VM (tools/vcan-vm/run, which shares this repository writable with the guest and
+# calls this same script there). Exits non-zero when anything fails, and also when vcan0 is missing
+# where it must exist (PVT_REQUIRE_VCAN=1: a broken VM must not pass by skipping every test).
+# Environment: VCAN_VM_TIMEOUT (host seconds for the whole VM run, default 540), VCAN_VM_CLOCK (the
+# VM's clock, see tools/vcan-vm/run --help), PYTEST_ADDOPTS for
+# extra pytest options.
+set -euo pipefail
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+repo=$(cd "$here/../.." && pwd)
+cd "$repo"
+py=$repo/.venv/bin/python
+channel=${PVT_VCAN_CHANNEL:-vcan0}
+
+has_vcan() { [ -e "/sys/class/net/$channel" ]; }
+
+if ! has_vcan; then
+  if [ "${VCAN_VM_GUEST:-}" = 1 ]; then
+    echo "vcan-test: inside the VM but $channel is missing" >&2; exit 125
+  fi
+  [ -x "$py" ] || { echo "vcan-test: no $py (run make test first)" >&2; exit 2; }
+  echo "vcan-test: no $channel on this machine, running in the vcan VM"
+  exec "$here/run" --share "$repo" --timeout "${VCAN_VM_TIMEOUT:-540}" \
+    --env "PYTEST_ADDOPTS=${PYTEST_ADDOPTS:-}" \
+    --env "PVT_VCAN_CHANNEL=$channel" -- "$here/vcan-test.sh"
+fi
+
+export PVT_REQUIRE_VCAN=1 PVT_VCAN_CHANNEL=$channel
+status=0
+start=$(date +%s)
+# no pytest cache writes and no .pyc files in the (shared) work tree; the cache lives in /tmp in the VM
+"$py" -m pytest -q -p no:cacheprovider -m vcan tests/vcan || status=$?
+echo "vcan-test: tests/vcan exit $status after $(( $(date +%s) - start )) s"
+# The multi-process demo on socketcan (pvt demo --bus socketcan:vcan0, drives in a second process)
+# is tests/vcan/test_vcan_demo.py, part of the run above.
+exit $status
