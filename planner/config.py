@@ -114,6 +114,24 @@ class BusConfig:
     channel: str = "pvt"
     bitrate: int = 1_000_000
 
+    def __post_init__(self) -> None:
+        if self.interface == "udp_multicast":
+            raise PlanningError(CONFIG, "the udp_multicast interface is not allowed (it leaves this host)",
+                                path="bus.interface")
+        if self.bitrate <= 0:
+            raise PlanningError(CONFIG, f"bus.bitrate must be > 0, got {self.bitrate}", path="bus.bitrate")
+
+    def with_spec(self, spec: str | None, bitrate: int | None = None) -> BusConfig:
+        """This bus with `--bus INTERFACE:CHANNEL` (e.g. socketcan:vcan0; the channel may contain ':')
+        and `--bitrate` applied where given."""
+        interface, channel = self.interface, self.channel
+        if spec is not None:
+            interface, sep, channel = spec.partition(":")
+            if not sep or not interface or not channel:
+                raise PlanningError(CONFIG, f"--bus must be INTERFACE:CHANNEL (e.g. socketcan:vcan0), got {spec!r}",
+                                    path="bus")
+        return BusConfig(interface=interface, channel=channel, bitrate=bitrate or self.bitrate)
+
 
 @dataclass(frozen=True)
 class DriveSettings:

@@ -76,19 +76,6 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
 
 
-def _parse_bus(text: str | None) -> tuple[str | None, str | None]:
-    if text is None:
-        return None, None
-    interface, sep, channel = text.partition(":")
-    if not sep or not interface or not channel:
-        raise SystemExit(
-            f"pvt serve: --bus must look like INTERFACE:CHANNEL (e.g. socketcan:can0), got {text!r}"
-        )
-    if interface == "udp_multicast":
-        raise SystemExit("pvt serve: the udp_multicast interface is not allowed (network rule)")
-    return interface, channel
-
-
 def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int:
     """Run until SIGINT/SIGTERM (or until `stop` is set, for embedding)."""
     from streamer.api.store import default_store_path
@@ -103,7 +90,12 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
     except PlanningError as exc:
         print(f"pvt serve: {exc.code}: {exc.message}", file=sys.stderr)
         return 2
-    interface, channel = _parse_bus(args.bus)
+    try:
+        bus = cell.bus.with_spec(args.bus, args.bitrate) if args.bus or args.bitrate else None
+    except PlanningError as exc:
+        print(f"pvt serve: {exc.code}: {exc.message}", file=sys.stderr)
+        return 2
+    interface, channel = (bus.interface, bus.channel) if bus is not None else (None, None)
     store_path = args.store or default_store_path(cell.source or str(config_path), cell.name)
     stop = stop or threading.Event()
     previous: dict[signal.Signals, Any] = {}

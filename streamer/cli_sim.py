@@ -22,16 +22,8 @@ from typing import Any
 
 from bus.errors import BusError
 from bus.sim.motor import PRESETS
-from planner.config import BusConfig, default_config_path, load_cell
+from planner.config import default_config_path, load_cell
 from planner.errors import PlanningError
-
-
-def parse_bus(text: str, bitrate: int) -> BusConfig:
-    """INTERFACE:CHANNEL (the channel may itself contain ':')."""
-    interface, sep, channel = text.partition(":")
-    if not sep or not interface or not channel:
-        raise ValueError(f"--bus must be INTERFACE:CHANNEL, got {text!r}")
-    return BusConfig(interface=interface, channel=channel, bitrate=bitrate)
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -64,8 +56,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             cell = cell.with_axes(args.axes)
         if args.sync_ms is not None:
             cell = replace(cell, sync_period_ms=args.sync_ms)
-        bitrate = args.bitrate if args.bitrate is not None else cell.bus.bitrate
-        bus_config = parse_bus(args.bus, bitrate) if args.bus else replace(cell.bus, bitrate=bitrate)
+        bus_config = cell.bus.with_spec(args.bus, args.bitrate)
     except (PlanningError, ValueError) as e:
         print(f"pvt sim: {e}", file=sys.stderr)
         return 2

@@ -22,7 +22,6 @@ from typing import Any
 import can
 
 from planner.config import CellConfig, load_cell
-from planner.errors import PlanningError
 from planner.job import Job, job_from_dict, job_to_dict, load_job
 from planner.plan import plan_job
 from planner.trajectory import PvtTrajectory
@@ -93,27 +92,10 @@ def prepare(
     if sync_ms is not None:
         cell = replace(cell, sync_period_ms=sync_ms)
     if bus is not None or bitrate is not None:
-        cell = replace(cell, bus=parse_bus(bus, bitrate, cell))
+        cell = replace(cell, bus=cell.bus.with_spec(bus, bitrate))
     job = fit_job_to_cell(loaded, cell)
     traj = plan_job(job, cell)
     return cell, job, traj
-
-
-def parse_bus(spec: str | None, bitrate: int | None, cell: CellConfig) -> Any:
-    """`INTERFACE:CHANNEL` (e.g. socketcan:vcan0, virtual:demo) over the cell's [bus]."""
-    from planner.config import BusConfig
-
-    base = cell.bus
-    if spec is None:
-        return replace(base, bitrate=bitrate or base.bitrate)
-    interface, sep, channel = spec.partition(":")
-    if not sep or not interface or not channel:
-        raise PlanningError("CONFIG", f"--bus must be INTERFACE:CHANNEL (e.g. socketcan:vcan0), got {spec!r}",
-                            path="bus")
-    if interface == "udp_multicast":
-        raise PlanningError("CONFIG", "the udp_multicast interface is not allowed (it leaves this host)",
-                            path="bus")
-    return BusConfig(interface=interface, channel=channel, bitrate=bitrate or base.bitrate)
 
 
 def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:

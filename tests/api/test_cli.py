@@ -128,11 +128,12 @@ def test_jobs_lists_the_journal(
 
 def test_serve_rejects_bad_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = ROOT / "configs" / "demo.toml"
-    with pytest.raises(SystemExit):
-        run_cli(
+    for bad_bus in ("nochannel", "udp_multicast:239.0.0.1"):
+        code = run_cli(
             cli_serve,
-            ["serve", "--config", str(config), "--bus", "nochannel", "--store", str(tmp_path / "s.db")],
+            ["serve", "--config", str(config), "--bus", bad_bus, "--store", str(tmp_path / "s.db")],
         )
+        assert code == 2 and "CONFIG" in capsys.readouterr().err
     assert run_cli(cli_serve, ["serve", "--config", str(tmp_path / "missing.toml")]) == 2
     code = run_cli(
         cli_serve,

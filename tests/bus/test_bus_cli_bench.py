@@ -13,7 +13,8 @@ from bus_testkit import remote_network, unique_channel, wait_until
 
 from benchmarks import bench_sim
 from bus.sim.eds import EDS_PATH
-from planner.config import load_cell
+from planner.config import BusConfig, load_cell
+from planner.errors import PlanningError
 from streamer import cli_sim
 
 DEMO = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
@@ -25,11 +26,17 @@ def parse(argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(["sim", *argv])
 
 
-def test_parse_bus() -> None:
-    assert cli_sim.parse_bus("socketcan:vcan0", 500_000) == cli_sim.BusConfig("socketcan", "vcan0", 500_000)
-    assert cli_sim.parse_bus("pcan:PCAN_USBBUS1:x", 1).channel == "PCAN_USBBUS1:x"
-    with pytest.raises(ValueError):
-        cli_sim.parse_bus("vcan0", 1)
+def test_bus_spec() -> None:
+    base = BusConfig()
+    assert base.with_spec("socketcan:vcan0", 500_000) == BusConfig("socketcan", "vcan0", 500_000)
+    assert base.with_spec("pcan:PCAN_USBBUS1:x").channel == "PCAN_USBBUS1:x"
+    assert base.with_spec(None, 250_000) == BusConfig(base.interface, base.channel, 250_000)
+    for bad in ("vcan0", ":x", "socketcan:"):
+        with pytest.raises(PlanningError) as e:
+            base.with_spec(bad)
+        assert e.value.code == "CONFIG" and e.value.path == "bus"
+    with pytest.raises(PlanningError, match="udp_multicast"):
+        base.with_spec("udp_multicast:239.0.0.1")
 
 
 def test_pvt_sim_serves_the_cell_until_stopped(capsys: pytest.CaptureFixture[str]) -> None:
@@ -66,7 +73,8 @@ def test_pvt_sim_rejects_a_bad_config(tmp_path: Path, capsys: pytest.CaptureFixt
     bad.write_text("[cell]\nname = 'x'\n", encoding="utf-8")
     assert cli_sim.run(parse(["--config", str(bad)])) == 2
     assert "pvt sim:" in capsys.readouterr().err
-    assert cli_sim.run(parse(["--config", str(DEMO), "--bus", "udp_multicast:x", "--duration", "0"])) == 1
+    # a forbidden interface is a configuration error, refused before any bus is opened
+    assert cli_sim.run(parse(["--config", str(DEMO), "--bus", "udp_multicast:x", "--duration", "0"])) == 2
 
 
 def test_benchmark_scenario_runs_a_short_stream() -> None:
