@@ -23,8 +23,9 @@ both the tolerance and the acceleration budget below.)
    moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
    rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
    segments make acceleration noise); sections are balanced and short segments rebalanced.
-2. Knot values, jointly (`_choose_values`): each knot's position is floor or ceil of the plan (int32
-   counts), its velocity one of the rpm values nearest the plan (int24). A Viterbi pass over the knots
+2. Knot values, jointly (`_choose_values`): each knot's position is the planned demand or one count
+   either side (int32 counts), its velocity one of the two rpm values around the plan (int24). A
+   Viterbi pass over the knots
    (per axis, all axes vectorised) picks the combination that keeps the drive's rounded demand within
    the tolerance at sample ticks and minimises the acceleration excess over the plan. Rounding each
    value on its own is not enough (docs/formats.md, section 3).
@@ -33,8 +34,8 @@ both the tolerance and the acceleration budget below.)
    split. Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
    excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
    `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
-   segments) and a long one (`variant=2`: fewer short segments), then plays planned motions slower
-   (sub-count moves need it).
+   segments) and a long one (`variant=2`: fewer short segments, on a path profile with its switch
+   pieces merged more widely), then plays planned motions slower (sub-count moves need it).
 
 Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
 the last knot is the plan's end rounded to counts with velocity 0, exactly.

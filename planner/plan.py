@@ -31,7 +31,7 @@ from planner.encoder import (
     planned_demand,
     segment_bounds,
 )
-from planner.errors import ENCODING_RANGE, INFEASIBLE, POSITION_LIMIT, PlanningError
+from planner.errors import ENCODING_RANGE, INFEASIBLE, POSITION_LIMIT, TOO_LARGE, PlanningError
 from planner.job import MAX_DURATION_S, Job, MoveData, PathData, PvtData, TimedData, effective_limits
 from planner.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, PvtTrajectory
@@ -73,6 +73,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     """
     cfg = axis_configs(job.axes, cell)
     n = len(cfg)
+    shape = ["spline"]  # path jobs: "pchip" for the one-axis fallback below
     limits = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
     scales = axis_scales(cfg, limits)
@@ -82,7 +83,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     info: dict[str, float] = {}
     d = job.data
 
-    build: Callable[[float], Reference]
+    build: Callable[[float, bool], Reference]
     times_ms: IntArray | None = None
     if isinstance(d, PathData):
         wp = np.array(d.waypoints, dtype=np.float64)
@@ -91,6 +92,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
             wp[0] = here
         wp = _merge_close(wp, cpu)
         wp[0], wp[-1] = snap(wp[0], cpu), snap(wp[-1], cpu)
+        _check_duration_bound(np.abs(np.diff(wp, axis=0)).sum(axis=0), limits["velocity"])
         extent = (wp.max(axis=0) - wp.min(axis=0)) * cpu
         if wp.shape[0] < 2 or float(extent.max()) < TINY_PATH_COUNTS:
             first, last = wp[0], wp[-1]
@@ -123,6 +125,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                     if smooth
                     else min(MIN_SWITCH_PIECE_MS, min_seg),
                     max_duration_s=MAX_DURATION_S,
+                    shape=shape[0],
                 )
                 info.update(path_info)
                 return ref
@@ -132,6 +135,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
         target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
         _check_within(target, cfg, job.axes, "target")
         a, b = snap(origin, cpu), snap(target, cpu)
+        _check_duration_bound(np.abs(b - a), limits["velocity"])
 
         def build(f: float, smooth: bool = False) -> Reference:
             from planner.jerk import move_reference
@@ -199,7 +203,19 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     ref, knots, rec = encode_with_retries(
         build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
     )
-    _check_reference_positions(ref, cfg, job.axes)
+    try:
+        _check_reference_positions(ref, cfg, job.axes)
+    except PlanningError as e:
+        if not (isinstance(d, PathData) and n == 1 and e.code == POSITION_LIMIT and shape[0] == "spline"):
+            raise
+        # one axis, and the C2 spline overshot its waypoints out of the limits: the shape-preserving
+        # path cannot (it stays between consecutive waypoints); slower, but a plan instead of a refusal
+        shape[0] = "pchip"
+        info["path_shape_pchip"] = 1.0
+        ref, knots, rec = encode_with_retries(
+            build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
+        )
+        _check_reference_positions(ref, cfg, job.axes)
     return build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
 
 
@@ -377,6 +393,16 @@ def _merge_close(wp: FloatArray, cpu: FloatArray) -> FloatArray:
             keep.append(wp.shape[0] - 1)
     out: FloatArray = wp[keep].copy()
     return out
+
+
+def _check_duration_bound(travel: FloatArray, velocity: FloatArray) -> None:
+    """No motion beats travel / velocity on any axis: refuse a job whose lower bound is already over the
+    duration limit before planning it (a velocity_scale of 1e-300 would otherwise reach toppra)."""
+    bound = float(np.max(travel / velocity))
+    if not bound <= MAX_DURATION_S:
+        raise PlanningError(TOO_LARGE, f"the motion takes at least {bound:.4g} s at the allowed velocities, more "
+                                       f"than the limit of {MAX_DURATION_S:g} s", path="velocity_scale",
+                            detail={"duration_s_lower_bound": bound})
 
 
 def _check_reference_positions(ref: Reference, cfg: Sequence[AxisConfig], axes: Sequence[str]) -> None:

@@ -217,10 +217,8 @@ def test_fuzz_with_the_real_planner_never_internal(serve: Serve, demo_cell: Cell
     one()
 
 
-# Planner bugs the fuzz above found (reported): tiny positive scales escape planning as raw numpy/scipy
-# exceptions (the service then answers INTERNAL). strict: when the planner is fixed these XPASS -> fail,
-# and this marker should go.
-@pytest.mark.xfail(strict=True, reason="planner: tiny velocity_scale raises a raw ValueError/TypeError")
+# Found by the fuzz above: tiny positive scales used to escape planning as raw numpy/scipy exceptions
+# (the service then answered INTERNAL); the planner now refuses them by a duration lower bound.
 @pytest.mark.parametrize("scale", [6.77056101785854e-292, 1.1442948703186888e-36])
 def test_tiny_velocity_scale_is_a_coded_rejection(serve: Serve, demo_cell: CellConfig, scale: float) -> None:
     served = serve(backend=planner_backend(demo_cell, time_scale=0.0))
