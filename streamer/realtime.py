@@ -41,7 +41,7 @@ class _Tap(can.Listener):
     """Every frame the master's bus sees (its own included): candump log and the trace's frame tally."""
 
     def __init__(self, log_path: Path | None):
-        self.writer: can.Logger | None = can.Logger(str(log_path)) if log_path is not None else None
+        self.writer: can.Listener | None = can.Logger(str(log_path)) if log_path is not None else None
         self.trace: JobTrace | None = None
         self._lock = threading.Lock()
 

@@ -6,7 +6,7 @@ the life cycle and the contract with the runtime, feeder.py for the per-axis FIF
 repair, schedule.py for the fill model, bus_load.py for the frame budget.
 """
 
-from streamer.core.bus_load import frame_bits
+from bus.codec import frame_bits
 from streamer.core.coordinator import (
     Coordinator,
     JobReport,

@@ -9,20 +9,14 @@ intermission before the next frame may start: 47 + 8n. Bit stuffing applies from
 CRC sequence, 34 + 8n bits, and adds at most floor((34 + 8n - 1) / 4) bits (a stuff bit after every
 4 equal bits once the first 5 have been counted; Davis et al., "Controller Area Network (CAN)
 schedulability analysis: refuted, revisited and revised", 2007). So 8 data bytes cost 135 bits and
-an empty SYNC 55. (`bus/codec` may provide the same function later; the lead dedupes.)
+an empty SYNC 55. The formula itself is `bus.codec.frame_bits` (one definition for the whole product).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-
-def frame_bits(dlc: int) -> int:
-    """Worst-case length in bits of a standard (11-bit id) data frame with `dlc` data bytes, incl. IFS."""
-    if not 0 <= dlc <= 8:
-        raise ValueError(f"a classic CAN frame carries 0..8 data bytes, got {dlc}")
-    return 47 + 8 * dlc + (34 + 8 * dlc - 1) // 4
-
+from bus.codec import frame_bits
 
 RECORD_FRAME_BITS = frame_bits(8)  # RPDO2 0x20C1 record
 CONTROLWORD_FRAME_BITS = frame_bits(2)  # RPDO1 controlword
