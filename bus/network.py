@@ -290,10 +290,10 @@ class MasterAdapter:
             self._sync_started_at = self.now()
             self._sync_echo_warned = False
         try:
-            task = self._bus.send_periodic(msg, period, autostart=False)
+            task: Any = self._bus.send_periodic(msg, period, autostart=False)
             if hasattr(task, "on_error"):  # python-can's thread-based task: report a refused SYNC
                 task.on_error = self._on_sync_send_error
-            task.start()
+            task.start()  # every concrete task (thread-based, socketcan BCM) has start()
             self._sync_task = task
         except Exception as e:
             raise BusError(SEND_FAILED, f"cannot start SYNC producer: {type(e).__name__}: {e}") from None
