@@ -210,7 +210,7 @@ def solve_toppra(
     row_scale: FloatArray | None = None,
 ) -> FloatArray:
     """toppra's optimal path velocities s_dot at the gridpoints (raises PlanningError(INFEASIBLE))."""
-    ta = _toppra()
+    _toppra()  # imports toppra once, quietly, with its solver query cached
     from toppra.algorithm import TOPPRA  # after _toppra(): the solver query is cached
     from toppra.constraint import JointVelocityConstraint
 

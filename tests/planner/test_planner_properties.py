@@ -158,11 +158,10 @@ def test_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     # time-optimal up to the re-timing (whole ms, limits checked at every ms) and, where the quantisation
     # needed it, a slower replay (rare; the benchmark measures the overhead on the example paths)
     assert traj.info["time_scale"] <= 1.25
-    if "optimal_s" in traj.info:  # (a path spanning less than a count is planned as a plain move)
-        # (one axis whose spline overshot its limits falls back to the shape-preserving path: valid and
-        # within every limit, but not time-optimal, see planner/path.py)
-        if "path_shape_pchip" not in traj.info:
-            assert traj.duration_s <= 1.03 * traj.info["time_scale"] * traj.info["optimal_s"] + 0.002
+    # (a path spanning less than a count is planned as a plain move; one axis whose spline overshot its
+    # limits falls back to the shape-preserving path: valid and within every limit, but not time-optimal)
+    if "optimal_s" in traj.info and "path_shape_pchip" not in traj.info:
+        assert traj.duration_s <= 1.03 * traj.info["time_scale"] * traj.info["optimal_s"] + 0.002
 
 
 @SETTINGS

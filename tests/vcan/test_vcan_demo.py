@@ -6,6 +6,7 @@ it inside tools/vcan-vm."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import statistics
 import subprocess
@@ -57,7 +58,7 @@ def test_vcan_demo_sync_period_from_the_candump_log(vcan_demo: tuple[dict, Path]
     period_s = load_cell(ROOT / "configs" / "demo.toml").sync_period_s
     with can.LogReader(str(out / "bus.log")) as reader:
         stamps = [m.timestamp for m in reader if m.arbitration_id == 0x080]
-    intervals = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
+    intervals = [b - a for a, b in itertools.pairwise(stamps)]
     assert len(intervals) > 300
     mean = statistics.fmean(intervals)
     jitter = sorted(abs(i - period_s) for i in intervals)
