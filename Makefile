@@ -16,15 +16,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/pvt demo
 
-test: $(STAMP)
+test: $(STAMP) lint
 	$(PY) -m pytest -q
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check planner streamer bus tests benchmarks
-	$(VENV)/bin/mypy --strict planner
+	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
+	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/virtual.py streamer/trace.py
 
+# every benchmark; the soak runs 1 h of virtual time here (about 2 min), the full 8 h with
+# `.venv/bin/python -m benchmarks.bench_soak --hours 8` (about 13 min)
 bench: $(STAMP)
-	$(PY) -m benchmarks
+	PVT_SOAK_HOURS=1 $(PY) -m benchmarks
 
 clean:
 	rm -rf $(VENV) demo-out .pytest_cache .hypothesis

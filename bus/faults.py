@@ -392,7 +392,7 @@ class FaultyBus(can.BusABC):
         self._echoes: Counter[tuple[int, bytes]] = Counter()
         self.channel_info = f"faulty({getattr(inner, 'channel_info', inner)})"
         self._thread = threading.Thread(target=self._run_timers, name="faulty-bus-timers", daemon=True)
-        super().__init__(channel=getattr(inner, "channel", None), **kwargs)
+        super().__init__(channel=self.channel_info, **kwargs)
         self._thread.start()
 
     # ---- convenience
@@ -471,6 +471,10 @@ class FaultyBus(can.BusABC):
     @property
     def state(self) -> can.BusState:
         return can.BusState.ERROR if self.model.bus_off_at(self.clock()) else can.BusState.ACTIVE
+
+    @state.setter
+    def state(self, new_state: can.BusState) -> None:
+        self.inner.state = new_state
 
     # ---- timers (delayed frames, reorder holds without a follower)
     def _schedule(self, due: float, where: str, frame: Frame, like: can.Message | None) -> None:

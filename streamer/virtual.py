@@ -43,8 +43,8 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
-from bus.codec import Frame, frame_bits
 from bus.cob import SYNC_COB_ID, classify
+from bus.codec import Frame, frame_bits
 from bus.errors import ProtocolError
 from bus.events import AdapterError, BusLoad, Cancel, Event, HeartbeatLost, Send, SendFailed, Sync
 from bus.profile import EPOS_IPM, DriveProfile
@@ -310,10 +310,8 @@ class VirtualRuntime:
                 self._arrive_master(f, t)
 
     def _arrive_drives(self, frame: Frame, t: float) -> None:
-        if frame.cob_id == SYNC_COB_ID:
-            answers = self.vcell.sync(t)
-        else:
-            answers = self.vcell.deliver(frame.cob_id, frame.data, t)
+        is_sync = frame.cob_id == SYNC_COB_ID
+        answers = self.vcell.sync(t) if is_sync else self.vcell.deliver(frame.cob_id, frame.data, t)
         for f in answers:
             self._bus.submit(f, t, _DRIVES)
 
@@ -433,21 +431,27 @@ class VirtualRuntime:
     # ---- running a job
     def enable_drives(self, t: float) -> None:
         """What `MasterAdapter.enable_drives` does over SDO, written straight into the models: fault
-        reset when faulted, shutdown 0x0006, enable operation 0x000F (bit 4 low, so the start is a
-        rising edge), ip buffer clear 0x60C4:06 = 0 then enable = 1. What the drives answer (EMCY "error
-        reset") goes on the bus."""
+        reset when faulted, disable voltage from quick stop / fault reaction, shutdown 0x0006 unless
+        already operation enabled (leaving operation enabled would drop the position demand to the
+        actual position, and the next plan starts at the demand), enable operation 0x000F (bit 4 low, so
+        the start is a rising edge), ip buffer clear 0x60C4:06 = 0 then enable = 1. What the drives
+        answer (EMCY "error reset") goes on the bus."""
         from bus import codec
 
+        S = codec.Cia402State
         cw = self.profile.obj("controlword")
         clear = self.profile.obj("buffer_clear")
         for node in sorted(self.nodes):
             m = self.vcell.model(node)
             writes: list[tuple[int, int, int]] = []
-            if m.state == codec.Cia402State.FAULT:
+            if m.state == S.FAULT:
                 writes += [(cw.index, cw.sub, codec.Command.DISABLE_VOLTAGE.value),
                            (cw.index, cw.sub, codec.Command.FAULT_RESET.value)]
-            writes += [(cw.index, cw.sub, codec.Command.SHUTDOWN.value),
-                       (cw.index, cw.sub, codec.Command.ENABLE_OPERATION.value),
+            elif m.state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
+                writes.append((cw.index, cw.sub, codec.Command.DISABLE_VOLTAGE.value))
+            if m.state != S.OPERATION_ENABLED:
+                writes.append((cw.index, cw.sub, codec.Command.SHUTDOWN.value))
+            writes += [(cw.index, cw.sub, codec.Command.ENABLE_OPERATION.value),
                        (clear.index, clear.sub, 0), (clear.index, clear.sub, 1)]
             for index, sub, value in writes:
                 for f in self.vcell.sdo_write(node, index, sub, value, t):

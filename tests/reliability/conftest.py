@@ -7,9 +7,9 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import pytest
+from reliability_kit import SEED
 
 from bus.faults import FaultModel, FaultRule
-from reliability_kit import SEED
 
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)

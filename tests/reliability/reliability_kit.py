@@ -19,17 +19,16 @@ import bisect
 import dataclasses
 import functools
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
 from bus.cob import RPDO1_BASE, RPDO2_BASE, SYNC_COB_ID, classify, unpack_controlword
-from bus.codec import Cia402State, Frame
-from bus.faults import FaultLink, FaultModel, FaultRule
+from bus.codec import Cia402State
+from bus.faults import FaultLink, FaultModel
 from bus.sim.model import DriveModel
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig, load_cell
@@ -37,7 +36,6 @@ from planner.job import job_from_dict
 from planner.plan import plan_job
 from planner.record import PvtRecord
 from planner.trajectory import PvtTrajectory
-from streamer.core import JobState
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
 from streamer.core.settings import StreamerSettings
 from streamer.stop import make_stop_planner
@@ -92,10 +90,6 @@ def slow_sync_cell(sync_ms: int = 20) -> CellConfig:
 
 def start_positions(traj: PvtTrajectory) -> dict[int, float]:
     return {int(n): float(traj.positions[i, 0]) for i, n in enumerate(traj.node_ids)}
-
-
-def nominal_sync_time(period_s: float) -> Callable[[int], float]:
-    return lambda n: n * period_s
 
 
 @dataclass
@@ -286,10 +280,6 @@ def batch_index(rig: Rig, node: int, size: int) -> int:
         if s > start + 5 and len(by_sync[s]) == size:
             return by_sync[s][0]
     raise AssertionError(f"no batch of {size} records for node {node}")
-
-
-def fault_model(rules: Sequence[FaultRule], seed: int = SEED, **kw: Any) -> FaultModel:
-    return FaultModel(list(rules), seed=seed, **kw)
 
 
 def assert_all_stopped_within_one_sync(rig: Rig) -> int:

@@ -50,5 +50,5 @@ def test_burst_in_motion_is_buffer_underflow_and_everything_stops(faults) -> Non
     planned = rig.traj.records(rig.traj.node_ids.index(2))
     assert rig.entered[2] == planned[: len(rig.entered[2])]
     assert_no_motion_resumes(rig)
-    print(f"[scenario 3] failed {outcome.code} at SYNC {m} ({'predicted by the core' if outcome.detail.get('predicted') else 'drive EMCY'}); "
-          f"drive 2 underflow EMCY: {bool(underflows)}")
+    how = "predicted by the core" if outcome.detail.get("predicted") else "drive EMCY"
+    print(f"[scenario 3] failed {outcome.code} at SYNC {m} ({how}); drive 2 underflow EMCY: {bool(underflows)}")

@@ -126,4 +126,5 @@ def test_bus_off_in_real_time_on_the_virtual_bus() -> None:
         if rt is not None:
             rt.close()
         adapter.close(check=False)
+        faulty.shutdown()  # the adapter does not own a bus it was given
         sim.stop()
