@@ -84,6 +84,8 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    # canopen logs every SDO transfer at INFO: keep the service's own log readable
+    logging.getLogger("canopen").setLevel(max(logging.WARNING, logging.getLogger().level))
     config_path = args.config or default_config_path()
     try:
         cell = load_cell(config_path)
