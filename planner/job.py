@@ -251,17 +251,22 @@ def _vector(value: Any, path: str, axes: Sequence[str]) -> FloatArray:
     return np.array([_number(v, f"{path}[{j}]", _axis_note(axes, j)) for j, v in enumerate(value)])
 
 
-def _matrix(value: Any, path: str, axes: Sequence[str], max_rows: int) -> FloatArray:
-    """A list of rows, one number per axis in each row (fast path through numpy, exact errors after)."""
+def _check_list(value: Any, path: str, items: str, what: str, max_rows: int) -> None:
+    """TYPE unless `value` is a list, TOO_LARGE when it has more than `max_rows` items."""
     if not isinstance(value, list | tuple):
-        raise PlanningError(TYPE, f"{path} must be a list of rows, got {_show(value)}", path=path)
+        raise PlanningError(TYPE, f"{path} must be {what}, got {_show(value)}", path=path)
     if len(value) > max_rows:
         raise PlanningError(
             TOO_LARGE,
-            f"{path} has {len(value)} rows, more than the limit of {max_rows}",
+            f"{path} has {len(value)} {items}, more than the limit of {max_rows}",
             path=path,
             detail={"rows": len(value), "limit": max_rows},
         )
+
+
+def _matrix(value: Any, path: str, axes: Sequence[str], max_rows: int) -> FloatArray:
+    """A list of rows, one number per axis in each row (fast path through numpy, exact errors after)."""
+    _check_list(value, path, "rows", "a list of rows", max_rows)
     n = len(axes)
     if all(isinstance(row, list | tuple) and len(row) == n for row in value):
         flat = [x for row in value for x in row]
@@ -285,15 +290,7 @@ def _matrix(value: Any, path: str, axes: Sequence[str], max_rows: int) -> FloatA
 
 
 def _series(value: Any, path: str, max_rows: int) -> FloatArray:
-    if not isinstance(value, list | tuple):
-        raise PlanningError(TYPE, f"{path} must be a list of numbers, got {_show(value)}", path=path)
-    if len(value) > max_rows:
-        raise PlanningError(
-            TOO_LARGE,
-            f"{path} has {len(value)} values, more than the limit of {max_rows}",
-            path=path,
-            detail={"rows": len(value), "limit": max_rows},
-        )
+    _check_list(value, path, "values", "a list of numbers", max_rows)
     return np.array([_number(x, f"{path}[{i}]") for i, x in enumerate(value)], dtype=np.float64)
 
 

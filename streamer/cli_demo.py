@@ -111,34 +111,28 @@ class _Display:
         self._progress = 0.0
         self._fills: dict[int, int | None] = {}
         self._state = "configuring"
-        self._every = 0
 
     def __enter__(self) -> _Display:
         if self.enabled:
             from rich.live import Live
 
-            self._live = Live(self._render(), console=self.console, refresh_per_second=8, transient=False)
+            # Live renders `self` (its __rich__) on every refresh, so the display follows the counters
+            self._live = Live(self, console=self.console, refresh_per_second=8, transient=False)
             self._live.__enter__()
         return self
 
     def __exit__(self, *exc: object) -> None:
         if self._live is not None:
-            self._live.update(self._render())
             self._live.__exit__(None, None, None)
 
     def on_change(self, core: Any) -> None:
         # called on the streaming thread for every event: copy three numbers, nothing else
         self._progress = core.progress
         self._fills = core.fifo_fills()
-        self._state = core.state.value
-        if self._live is not None and self._every % 8 == 0:
-            pass  # Live refreshes itself from its own thread via __rich__
-        self._every += 1
+        self._state = core.state.value  # rich's Live redraws from its own thread (refresh_per_second)
 
     def on_sync(self, core: Any, n: int) -> None:
         self.on_change(core)
-        if self._live is not None and n % 5 == 0:
-            self._live.update(self._render())
 
     def __rich__(self) -> Any:
         return self._render()
