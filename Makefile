@@ -21,7 +21,7 @@ test: $(STAMP) lint
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
-	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/virtual.py streamer/trace.py
+	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py
 
 # every benchmark; the soak runs 1 h of virtual time here (about 2 min), the full 8 h with
 # `.venv/bin/python -m benchmarks.bench_soak --hours 8` (about 13 min)

@@ -77,8 +77,8 @@ def soak(hours: float, n_axes: int = 6, *, use_tracemalloc: bool = False, quiet:
     from bus.sim.virtual import VirtualCell
     from streamer.core import JobState
     from streamer.demo import start_positions
+    from streamer.runtime.virtual import VirtualRuntime
     from streamer.stop import make_stop_planner
-    from streamer.virtual import VirtualRuntime
 
     if use_tracemalloc:
         tracemalloc.start()  # before anything is built: the heap baseline is the whole live state

@@ -16,8 +16,8 @@ Two transports use the same model:
   Frames sent through it go "to the drives", frames received through it go "to the master" (swap with
   `master_side=False` to wrap a drive-side bus). Delayed and held frames are released by a timer thread.
   Bus-off raises `can.CanOperationError` from `send` (and from the periodic SYNC task, which calls it).
-- `FaultLink(model)`: the `streamer.virtual.Link` of the virtual-time runtime (`to_drives`, `to_master`,
-  `accept`, `release`), returning `streamer.virtual`-style late deliveries as `(frame, at)` pairs.
+- `FaultLink(model)`: the `streamer.runtime.virtual.Link` of the virtual-time runtime (`to_drives`, `to_master`,
+  `accept`, `release`), returning `streamer.runtime.virtual`-style late deliveries as `(frame, at)` pairs.
 
 A model decides one frame at a time, so the same seed and the same frame sequence give the same
 injections, whatever transport carries them.
@@ -327,7 +327,7 @@ class FaultModel:
 
 # ---- transport 1: the virtual-time runtime's Link ------------------------------------------------------
 class FaultLink:
-    """`streamer.virtual.Link` over a FaultModel: frames or (frame, arrival time) pairs."""
+    """`streamer.runtime.virtual.Link` over a FaultModel: frames or (frame, arrival time) pairs."""
 
     def __init__(self, model: FaultModel):
         self.model = model

@@ -27,8 +27,8 @@ from planner.plan import plan_job
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import Coordinator
 from streamer.report import build_report, plot_motion, write_report
+from streamer.runtime.virtual import VirtualRuntime
 from streamer.stop import make_stop_planner
-from streamer.virtual import VirtualRuntime
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_JOB = ROOT / "configs" / "jobs" / "demo-path.toml"
@@ -184,7 +184,7 @@ def realtime_cell(cell: CellConfig, traj: PvtTrajectory, *, external_drives: boo
 
 def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_drives: bool = False,
                  on_change: Any = None, cancel: threading.Event | None = None) -> tuple[dict[str, Any], Any]:
-    from streamer.realtime import RealtimeRuntime
+    from streamer.runtime.realtime import RealtimeRuntime
 
     out.mkdir(parents=True, exist_ok=True)
     with realtime_cell(cell, traj, external_drives=external_drives) as adapter:

@@ -23,7 +23,7 @@ from bus.cob import RPDO2_BASE
 from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import JobReport
-from streamer.trace import JobTrace
+from streamer.runtime.trace import JobTrace
 
 
 def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: int) -> int:

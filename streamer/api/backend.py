@@ -69,7 +69,7 @@ from typing import Any, Protocol
 from planner.config import CellConfig
 
 # The motion runtime's factory: open_backend(cell, *, sim, interface, channel, bitrate) -> MotionBackend
-DEFAULT_BACKEND = "streamer.runtime_backend:open_backend"
+DEFAULT_BACKEND = "streamer.runtime.backend:open_backend"
 
 Emit = Callable[[str, Mapping[str, Any]], None]
 """emit(event_type, fields): report progress of the running job ("running" with "progress" 0..1)."""

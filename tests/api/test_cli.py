@@ -12,7 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from streamer import cli_jobs, cli_serve, cli_submit
+from streamer.cli import jobs as cli_jobs
+from streamer.cli import serve as cli_serve
+from streamer.cli import submit as cli_submit
 from tests.api.conftest import Served
 from tests.api.fakes import timed_job
 

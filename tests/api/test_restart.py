@@ -27,7 +27,7 @@ def start_service(config: Path, port: int, *extra: str) -> subprocess.Popen[str]
     cmd = [
         sys.executable,
         "-m",
-        "streamer.cli_serve",
+        "streamer.cli.serve",
         "--config",
         str(config),
         "--listen",
@@ -97,7 +97,7 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
         # `pvt jobs` (reading the journal next to the config) lists every accepted job
         assert (cell_config.parent / "demo.jobs.sqlite").exists()
         out = subprocess.run(
-            [sys.executable, "-m", "streamer.cli_jobs", "--config", str(cell_config), "--json"],
+            [sys.executable, "-m", "streamer.cli.jobs", "--config", str(cell_config), "--json"],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -114,7 +114,7 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
             [
                 sys.executable,
                 "-m",
-                "streamer.cli_serve",
+                "streamer.cli.serve",
                 "--config",
                 str(cell_config),
                 "--listen",

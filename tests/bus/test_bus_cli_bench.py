@@ -1,4 +1,4 @@
-"""`pvt sim` (streamer/cli_sim.py) and the simulator benchmark's scenario runner."""
+"""`pvt sim` (streamer/cli/sim.py) and the simulator benchmark's scenario runner."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from benchmarks import bench_sim
 from bus.sim.eds import EDS_PATH
 from planner.config import BusConfig, load_cell
 from planner.errors import PlanningError
-from streamer import cli_sim
+from streamer.cli import sim as cli_sim
 
 DEMO = Path(__file__).resolve().parents[2] / "configs" / "demo.toml"
 

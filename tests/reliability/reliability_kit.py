@@ -38,8 +38,8 @@ from planner.record import PvtRecord
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
 from streamer.core.settings import StreamerSettings
+from streamer.runtime.virtual import ForeignTraffic, VirtualResult, VirtualRuntime
 from streamer.stop import make_stop_planner
-from streamer.virtual import ForeignTraffic, VirtualResult, VirtualRuntime
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = int(os.environ.get("PVT_FAULT_SEED", "20260"))

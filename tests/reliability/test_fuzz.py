@@ -125,7 +125,7 @@ def test_any_frames_on_the_bus_during_a_job_never_crash_the_runtime(seed: int) -
     from reliability_kit import Rig, demo_traj
 
     from streamer.core import JobState
-    from streamer.virtual import ForeignTraffic
+    from streamer.runtime.virtual import ForeignTraffic
 
     rng = random.Random(seed)
     noise = sorted(((rng.uniform(0.5, 2.5), Frame(rng.randrange(0x800),

@@ -29,9 +29,9 @@ from bus.sim.node import SimulatedCell
 from streamer.core import JobState
 from streamer.core import outcome as oc
 from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
-from streamer.realtime import RealtimeRuntime
+from streamer.runtime.realtime import RealtimeRuntime
+from streamer.runtime.virtual import ForeignTraffic
 from streamer.stop import make_stop_planner
-from streamer.virtual import ForeignTraffic
 
 JOB_NODES = (1, 2, 3)
 

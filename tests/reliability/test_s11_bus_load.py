@@ -16,7 +16,7 @@ from reliability_kit import Rig, assert_all_stopped_within_one_sync, long_traj
 from streamer import demo
 from streamer.core import JobState
 from streamer.core import outcome as oc
-from streamer.virtual import ForeignTraffic, periodic_load
+from streamer.runtime.virtual import ForeignTraffic, periodic_load
 
 LOAD, LOAD_S = 0.80, 30.0
 

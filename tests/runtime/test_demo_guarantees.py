@@ -10,7 +10,7 @@ import pytest
 
 from streamer import demo
 from streamer.cli import main as pvt
-from streamer.cli_demo import guarantees
+from streamer.cli.demo import guarantees
 from streamer.report import decode_candump
 
 

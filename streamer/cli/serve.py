@@ -179,7 +179,7 @@ def _serve(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Standalone entry (`python -m streamer.cli_serve ...`), same options as `pvt serve`."""
+    """Standalone entry (`python -m streamer.cli.serve ...`), same options as `pvt serve`."""
     parser = argparse.ArgumentParser(prog="pvt serve", description="Serve one cell's job API over Zenoh.")
     _arguments(parser)
     return run(parser.parse_args(argv))

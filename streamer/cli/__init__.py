@@ -1,4 +1,4 @@
-"""The `pvt` command: one entry point, one module per subcommand.
+"""The `pvt` command: one entry point, one module per subcommand (this package).
 
 Each subcommand module defines `add_parser(subparsers)` (which sets `func` on its parser) and is
 imported only when the command line is built, so `pvt plan` does not pay for Zenoh or canopen.
@@ -13,12 +13,12 @@ from collections.abc import Sequence
 
 # (module, one-line help) in the order `pvt --help` lists them
 SUBCOMMANDS: tuple[str, ...] = (
-    "streamer.cli_demo",
-    "streamer.cli_plan",
-    "streamer.cli_serve",
-    "streamer.cli_submit",
-    "streamer.cli_jobs",
-    "streamer.cli_sim",
+    "streamer.cli.demo",
+    "streamer.cli.plan",
+    "streamer.cli.serve",
+    "streamer.cli.submit",
+    "streamer.cli.jobs",
+    "streamer.cli.sim",
 )
 
 

@@ -26,8 +26,8 @@ from planner.job import Job, job_from_dict
 from planner.plan import plan_job
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
 from streamer.core.coordinator import Coordinator
-from streamer.realtime import RealtimeRuntime
 from streamer.report import build_report
+from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import make_stop_planner
 
 FIFO_SIZE = 64

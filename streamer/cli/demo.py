@@ -171,7 +171,7 @@ def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
     console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}")
 
 
-def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli_demo`
+def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli.demo`
     from streamer.cli import main as cli_main
 
     sys.exit(cli_main(["demo", *sys.argv[1:]]))

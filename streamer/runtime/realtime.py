@@ -9,7 +9,7 @@ once. Nothing heavy happens on that thread: planning is done before `run`, plott
 progress display only reads counters. A frame the bus refuses becomes a `SendFailed` event; a
 cancel request (a `threading.Event`) becomes a `Cancel` event; both go through the same core.
 
-The same core, the same decoding and the same trace as the virtual-time runtime (`streamer.virtual`),
+The same core, the same decoding and the same trace as the virtual-time runtime (`streamer.runtime.virtual`),
 so what the tests prove in virtual time is what runs here.
 """
 
@@ -32,7 +32,7 @@ from planner.config import CellConfig
 from streamer.core.coordinator import Coordinator, JobState
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
-from streamer.trace import JobTrace
+from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
 
