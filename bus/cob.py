@@ -2,7 +2,8 @@
 
 CiA 301 predefined connection set, per node id n (1..127):
 
-    SYNC          0x080               DLC 0 (no counter)
+    SYNC          0x080               DLC 0, or DLC 1 = the SYNC counter 1..0x1019 when TPDO2 is staggered
+    TIME          0x100               DLC 4: high-resolution time stamp 0x1013 (us) of the last SYNC sent
     EMCY          0x080 + n           DLC 8: error code u16, error register u8, 5 manufacturer bytes
     TPDO1         0x180 + n           statusword 0x6041 u16 | buffer status 0x20C4:01 u16 |
                                       free buffer size 0x60C4:02 u32
@@ -26,6 +27,7 @@ import struct
 from typing import NamedTuple
 
 SYNC_COB_ID = 0x080
+TIME_STAMP_COB_ID = 0x100  # the master's high-resolution time stamp 0x1013 (4 bytes, us), after each SYNC
 EMCY_BASE = 0x080
 TPDO1_BASE = 0x180
 RPDO1_BASE = 0x200
@@ -64,7 +66,7 @@ def heartbeat_id(node: int) -> int:
 class CobClass(NamedTuple):
     """What a COB-ID is, and for which node (0 for broadcast objects)."""
 
-    # "NMT", "SYNC", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"
+    # "NMT", "SYNC", "TIME", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"
     kind: str
     node: int
 
@@ -86,6 +88,8 @@ def classify(cob_id: int) -> CobClass:
         return CobClass("NMT", 0)
     if cob_id == SYNC_COB_ID:
         return CobClass("SYNC", 0)
+    if cob_id == TIME_STAMP_COB_ID:
+        return CobClass("TIME", 0)
     for base, kind in _RANGES:
         if base + 1 <= cob_id <= base + 127:
             return CobClass(kind, cob_id - base)

@@ -14,10 +14,12 @@ from dataclasses import dataclass
 # ---- events (bus -> streamer) -------------------------------------------------------------------
 @dataclass(frozen=True)
 class Sync:
-    """The master sent SYNC number `count` (0, 1, 2, ...) at time `t`."""
+    """The master sent SYNC number `count` (0, 1, 2, ...) at time `t`; `counter` is the CiA 301 SYNC
+    counter byte it carried (None: a SYNC without counter)."""
 
     count: int
     t: float
+    counter: int | None = None
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ its EMCY codes (0x8611, 0x8780, 0x8782, 0x8130 are already shared) and its SYNC 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Literal
@@ -111,13 +111,19 @@ class PdoLayout:
 
 @dataclass(frozen=True)
 class SdoWrite:
-    """One configuration write: the master sends it over SDO (and verifies it if `verify`)."""
+    """One configuration write: the master sends it over SDO (and verifies it if `verify`).
+
+    `essential`: the product cannot run the drive without this object (a drive that lacks it fails
+    configuration with `why`); a non-essential object the drive lacks is skipped (bus/readings.py's
+    optional objects)."""
 
     index: int
     sub: int
     value: int
     what: str
     verify: bool = True
+    essential: bool = True
+    why: str = ""
 
     @property
     def ref(self) -> ObjectRef:
@@ -138,6 +144,48 @@ class EmcyCodes:
 
     def name_of(self, code: int) -> str:
         return codec.EMCY_NAMES.get(code, f"0x{code:04X}")
+
+
+FEEDBACK_TPDO = 2  # TPDO2 carries the position feedback (0x6064, 0x6062)
+TIME_STAMP_CONSUME = 1 << 31  # 0x1012 bit 31: the node consumes the time stamp
+
+
+@dataclass(frozen=True)
+class FeedbackSchedule:
+    """Position feedback (TPDO2) every `every` SYNCs, staggered over the axes with the CiA 301 SYNC counter:
+    the SYNC carries a counter 1..`counter_overflow` (0x1019), and axis k's TPDO2 goes first at the counter
+    value 1 + k mod `every` (0x18xx:06), then every `every` SYNCs. `counter_overflow` is a multiple of
+    `every`, so the phase holds across the counter's wrap. `phases` maps node id -> start value."""
+
+    every: int
+    phases: Mapping[int, int]
+
+    @property
+    def counter_overflow(self) -> int:
+        return self.every * (240 // self.every) if self.every > 1 else 0
+
+    def start_value(self, node: int) -> int:
+        return self.phases[node]
+
+    def carries(self, node: int, counter: int | None) -> bool:
+        """Does the SYNC with this counter value carry the node's TPDO2?"""
+        if self.every <= 1:
+            return True
+        if counter is None:
+            return False
+        return (counter - self.phases[node]) % self.every == 0
+
+    @classmethod
+    def staggered(cls, nodes: Sequence[int], every: int) -> FeedbackSchedule:
+        return cls(every, MappingProxyType({n: 1 + k % every for k, n in enumerate(nodes)}))
+
+
+def feedback_schedule(nodes: Sequence[int], every: int, counter_everywhere: bool) -> FeedbackSchedule | None:
+    """The cell's TPDO2 schedule: staggered every `every` SYNCs when every drive has the SYNC counter
+    (0x1019), else None (TPDO2 every SYNC: without the counter the phases could not be set)."""
+    if every <= 1 or not counter_everywhere:
+        return None
+    return FeedbackSchedule.staggered(nodes, every)
 
 
 def _pack_pvt(position: int, velocity_rpm: int, time_ms: int) -> bytes:
@@ -200,46 +248,64 @@ class DriveProfile:
 
     # ---- configuration
     def configuration(
-        self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int
+        self,
+        axis: AxisConfig,
+        settings: DriveSettings,
+        sync_period_ms: int,
+        *,
+        feedback: FeedbackSchedule | None = None,
+        time_stamp: bool = False,
     ) -> tuple[SdoWrite, ...]:
         """Ordered SDO writes that put one axis into ip mode with the product's PDO layout.
 
         Limits in drive units (rpm, rpm/s) are rounded up so that a plan inside the axis limits never
-        trips the drive's own checks on rounding alone.
+        trips the drive's own checks on rounding alone. `feedback`: TPDO2 every n-th SYNC from a SYNC
+        counter value (None: every SYNC). `time_stamp`: consume the master's 0x1013 time stamps.
         """
         o = self.objects
         decel = settings.profile_deceleration if settings.profile_deceleration > 0 else axis.acceleration
 
-        def w(name: str, value: int, what: str) -> SdoWrite:
+        def w(name: str, value: int, what: str, why: str = "", essential: bool = True) -> SdoWrite:
             ref = o[name]
-            return SdoWrite(ref.index, ref.sub, value, what)
+            return SdoWrite(ref.index, ref.sub, value, what, essential=essential, why=why)
 
         writes: list[SdoWrite] = [
-            w("sync_period", sync_period_ms * 1000, "communication cycle period (us)"),
-            w("heartbeat_producer", settings.heartbeat_ms, "producer heartbeat time (ms)"),
-            w("mode", self.ip_mode, "modes of operation = interpolated position"),
-            w("ip_submode", self.ip_submode, "interpolation sub mode"),
-            w("underflow_warning", settings.underflow_warning, "buffer underflow warning level"),
-            w("overflow_warning", settings.overflow_warning, "buffer overflow warning level"),
-            w("following_error_window", settings.following_error_counts, "following error window"),
+            w("sync_period", sync_period_ms * 1000, "communication cycle period (us)", essential=False),
+            w("heartbeat_producer", settings.heartbeat_ms, "producer heartbeat time (ms)",
+              "the master detects a lost drive by its heartbeat"),
+            w("mode", self.ip_mode, "modes of operation = interpolated position", "selects the PVT mode"),
+            w("ip_submode", self.ip_submode, "interpolation sub mode", "cubic PVT interpolation"),
+            w("underflow_warning", settings.underflow_warning, "buffer underflow warning level",
+              "the FIFO's low watermark"),
+            w("overflow_warning", settings.overflow_warning, "buffer overflow warning level",
+              "the FIFO's high watermark"),
+            w("following_error_window", settings.following_error_counts, "following error window",
+              "the drive stops itself on a following error"),
             w("max_profile_velocity", _u32(axis.max_profile_velocity_rpm),
-                     "max profile velocity (rpm)"),
+              "max profile velocity (rpm)", "the drive's own velocity limit"),
             w("profile_velocity", _u32(axis.velocity_rpm(axis.velocity)),
-                     "profile velocity (rpm)"),
+              "profile velocity (rpm)", essential=False),
             w("profile_acceleration", _u32(rpm_per_s(axis, axis.acceleration)),
-                     "profile acceleration (rpm/s)"),
+              "profile acceleration (rpm/s)", essential=False),
             w("max_acceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
-                     "max acceleration (rpm/s)"),
+              "max acceleration (rpm/s)", "the drive's own acceleration limit"),
             w("profile_deceleration", _u32(rpm_per_s(axis, decel)),
-                     "profile deceleration (rpm/s)"),
+              "profile deceleration (rpm/s)", "halt decelerates with it"),
             w("quick_stop_deceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
-                     "quick stop deceleration (rpm/s)"),
+              "quick stop deceleration (rpm/s)", essential=False),
         ]
-        writes += self.pdo_configuration(axis.node_id)
+        if time_stamp:
+            writes.append(w("time_stamp_cob_id", TIME_STAMP_CONSUME | cob.TIME_STAMP_COB_ID,
+                            "consume the high-resolution time stamp 0x1013", essential=False))
+        if feedback is not None and feedback.every > 1:
+            writes.append(w("sync_counter_overflow", feedback.counter_overflow,
+                            "SYNC counter overflow value", essential=False))
+        writes += self.pdo_configuration(axis.node_id, feedback)
         return tuple(writes)
 
-    def pdo_configuration(self, node: int) -> list[SdoWrite]:
-        """CiA 301 remapping sequence for every PDO 1..4 of both directions (unused ones disabled)."""
+    def pdo_configuration(self, node: int, feedback: FeedbackSchedule | None = None) -> list[SdoWrite]:
+        """CiA 301 remapping sequence for every PDO 1..4 of both directions (unused ones disabled).
+        With `feedback`, TPDO2 goes every `feedback.every` SYNCs from the counter value `start_value`."""
         writes: list[SdoWrite] = []
         directions: tuple[Direction, Direction] = ("rx", "tx")
         for direction in directions:
@@ -256,7 +322,16 @@ class DriveProfile:
                 cob_id = layout.cob_id(node)
                 tag = f"{direction}PDO{number}"
                 writes.append(SdoWrite(comm, 1, 0x80000000 | cob_id, f"{tag} invalid while remapping", False))
-                writes.append(SdoWrite(comm, 2, layout.transmission_type, f"{tag} transmission type"))
+                ttype = layout.transmission_type
+                staggered = (feedback is not None and feedback.every > 1 and direction == "tx"
+                             and number == FEEDBACK_TPDO)
+                if staggered:
+                    assert feedback is not None
+                    ttype = feedback.every
+                writes.append(SdoWrite(comm, 2, ttype, f"{tag} transmission type"))
+                if staggered:
+                    assert feedback is not None
+                    writes.append(SdoWrite(comm, 6, feedback.start_value(node), f"{tag} SYNC start value"))
                 writes.append(SdoWrite(layout.mapping_index, 0, 0, f"{tag} clear mapping", False))
                 for k, entry in enumerate(layout.entries, start=1):
                     writes.append(SdoWrite(layout.mapping_index, k, entry.word,
@@ -297,6 +372,15 @@ _EPOS_OBJECTS: dict[str, ObjectRef] = {
     "error_register": ObjectRef(0x1001),
     "sync_cob_id": ObjectRef(0x1005),
     "sync_period": ObjectRef(0x1006),
+    "store_parameters": ObjectRef(0x1010, 1),
+    "restore_defaults": ObjectRef(0x1011, 1),
+    "time_stamp_cob_id": ObjectRef(0x1012),
+    "high_resolution_time_stamp": ObjectRef(0x1013),
+    "identity_vendor": ObjectRef(0x1018, 1),
+    "identity_product": ObjectRef(0x1018, 2),
+    "identity_revision": ObjectRef(0x1018, 3),
+    "identity_serial": ObjectRef(0x1018, 4),
+    "sync_counter_overflow": ObjectRef(0x1019),
     "heartbeat_consumer": ObjectRef(0x1016, 1),
     "heartbeat_producer": ObjectRef(0x1017),
     "record": ObjectRef(0x20C1),

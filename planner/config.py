@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from planner.errors import CONFIG, LIMITS, PlanningError
+from planner.readings import DriveReadings, SimDriveOptions, drive_readings, sim_options
 
 
 def _number(section: str, key: str, value: Any, *, positive: bool = False, integer: bool = False) -> float:
@@ -49,6 +50,10 @@ class AxisConfig:
     position_max: float  # user units (0x607D:02)
     max_profile_velocity_rpm: float  # 0x607F
     max_acceleration: float  # 0x60C5 in user units/s^2
+    # how the drive settles the points the manuals leave open: what the master knows ([axis.probed]) and,
+    # for a simulated drive, what it does ([axis.sim]); see planner/readings.py
+    probed: DriveReadings = field(default_factory=DriveReadings)
+    sim: SimDriveOptions = field(default_factory=SimDriveOptions)
 
     def __post_init__(self) -> None:
         where = f"axis '{self.name}'"
@@ -59,7 +64,7 @@ class AxisConfig:
             raise PlanningError(CONFIG, f"node_id of {where} must be 1..127, got {self.node_id}",
                                 path="axis.node_id")
         for f in fields(self):
-            if f.name in ("name", "node_id"):
+            if f.name in _AXIS_NOT_NUMBERS:
                 continue
             v = getattr(self, f.name)
             if not math.isfinite(v):
@@ -106,6 +111,9 @@ class AxisConfig:
     def max_profile_velocity(self) -> float:
         """The drive's 0x607F in user units/s."""
         return self.rpm_to_user(self.max_profile_velocity_rpm)
+
+
+_AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim")
 
 
 @dataclass(frozen=True)
@@ -176,6 +184,12 @@ class CellConfig:
     drive: DriveSettings = field(default_factory=DriveSettings)
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
     source: str = ""  # file the config was loaded from, for messages and default store location
+    # the master sends the high-resolution time stamp 0x1013 after every SYNC (seed 001 3.6.2) so that
+    # drives with their own clock correct it
+    time_stamp: bool = False
+    # TPDO2 (position feedback) every n-th SYNC, staggered over the axes; 0 = the smallest n that fits
+    # the bus budget (1 on small cells)
+    feedback_every_syncs: int = 0
 
     def __post_init__(self) -> None:
         if not (1 <= self.sync_period_ms <= 255):
@@ -183,6 +197,9 @@ class CellConfig:
                                 path="cell.sync_period_ms")
         if not self.axes:
             raise PlanningError(CONFIG, "a cell needs at least one [[axis]]", path="axis")
+        if not 0 <= self.feedback_every_syncs <= 16:
+            raise PlanningError(CONFIG, f"cell.feedback_every_syncs must be \"auto\" or 1..16, got "
+                                f"{self.feedback_every_syncs}", path="cell.feedback_every_syncs")
         names: list[str | int] = [a.name for a in self.axes]
         ids: list[str | int] = [a.node_id for a in self.axes]
         for label, values in (("name", names), ("node_id", ids)):
@@ -258,12 +275,12 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
     return cls(**kwargs)
 
 
-_AXIS_REQUIRED = [f.name for f in fields(AxisConfig)]
+_AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in ("probed", "sim")]
 
 
 def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     """Build a validated CellConfig from parsed TOML."""
-    allowed = {"cell", "axis", "bus", "drive", "zenoh"}
+    allowed = {"cell", "axis", "bus", "drive", "zenoh", "sim", "probed"}
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})",
@@ -271,7 +288,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     cell = data.get("cell")
     if not isinstance(cell, Mapping):
         raise PlanningError(CONFIG, "missing [cell] table", path="cell")
-    extra = sorted(set(cell) - {"name", "sync_period_ms"})
+    extra = sorted(set(cell) - {"name", "sync_period_ms", "time_stamp", "feedback_every_syncs"})
     if extra:
         raise PlanningError(CONFIG, f"unknown key(s) {extra} in [cell]", path=f"cell.{extra[0]}")
     name = cell.get("name")
@@ -279,6 +296,12 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         raise PlanningError(CONFIG, f"cell.name must be a non-empty string without '/' or '*', got {name!r}",
                             path="cell.name")
     period = int(_number("cell", "sync_period_ms", cell.get("sync_period_ms", 10), integer=True))
+    time_stamp = cell.get("time_stamp", False)
+    if not isinstance(time_stamp, bool):
+        raise PlanningError(CONFIG, f"cell.time_stamp must be true or false, got {time_stamp!r}",
+                            path="cell.time_stamp")
+    every = cell.get("feedback_every_syncs", "auto")
+    every = 0 if every == "auto" else int(_number("cell", "feedback_every_syncs", every, integer=True))
     raw_axes = data.get("axis")
     if not isinstance(raw_axes, list) or not raw_axes:
         raise PlanningError(CONFIG, "a cell needs at least one [[axis]] table", path="axis")
@@ -288,7 +311,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         if not isinstance(ax, Mapping):
             raise PlanningError(CONFIG, f"{p} must be a table", path=p)
         missing = [k for k in _AXIS_REQUIRED if k not in ax]
-        unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED))
+        unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED) - {"probed", "sim"})
         if missing:
             raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}",
                                 path=f"{p}.{missing[0]}")
@@ -301,6 +324,8 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
             integer = k in ("node_id", "counts_per_rev")
             val = _number(p, k, ax[k], integer=integer)
             kw[k] = int(val) if integer else val
+        kw["probed"] = drive_readings(data.get("probed"), ax.get("probed"), p)
+        kw["sim"] = sim_options(data.get("sim"), ax.get("sim"), p)
         try:
             axes.append(AxisConfig(**kw))
         except PlanningError as e:
@@ -313,6 +338,8 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         drive=_section(data, "drive", DriveSettings, "drive"),
         zenoh=_section(data, "zenoh", ZenohSettings, "zenoh"),
         source=source,
+        time_stamp=time_stamp,
+        feedback_every_syncs=every,
     )
 
 

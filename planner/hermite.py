@@ -77,15 +77,31 @@ def round_counts_array(x: NDArray[np.float64]) -> NDArray[np.int64]:
     return (np.sign(x) * np.floor(np.abs(x) + 0.5)).astype(np.int64)
 
 
-def demand_from_coefficients(coeffs: tuple[float, float, float, float], time_ms: int) -> list[int]:
+def truncate_counts(x: float) -> int:
+    """The other reading of the demand's rounding the manuals permit: toward zero."""
+    return math.trunc(x)
+
+
+def truncate_counts_array(x: NDArray[np.float64]) -> NDArray[np.int64]:
+    return np.trunc(x).astype(np.int64)
+
+
+def demand_from_coefficients(coeffs: tuple[float, float, float, float], time_ms: int,
+                             toward_zero: bool = False) -> list[int]:
     """Position demand at each tick tau = k - T, k = 1..T, of a segment with these coefficients.
 
     The drive's inner loop, so it is written out: the same float evaluation order as `evaluate`
-    (((a*tau + b)*tau + c)*tau + d) and the same rounding as `round_counts`, without a call per tick.
+    (((a*tau + b)*tau + c)*tau + d) and the same rounding as `round_counts` (or `truncate_counts` with
+    `toward_zero`), without a call per tick.
     """
     a, b, c, d = coeffs
-    floor = math.floor
     out = []
+    if toward_zero:
+        trunc = math.trunc
+        for tau in range(1 - time_ms, 1):
+            out.append(trunc(((a * tau + b) * tau + c) * tau + d))
+        return out
+    floor = math.floor
     for tau in range(1 - time_ms, 1):
         x = ((a * tau + b) * tau + c) * tau + d
         out.append(floor(x + 0.5) if x >= 0 else -floor(-x + 0.5))

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import random
 import struct
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -68,12 +69,14 @@ from bus.codec import (
     NmtState,
 )
 from bus.errors import ProtocolError
-from bus.profile import EPOS_IPM, DriveProfile
+from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule
 from bus.sim import od as odm
+from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key, SdoAbort
 from planner import hermite, record
 from planner.config import AxisConfig, DriveSettings
+from planner.readings import SimDriveOptions
 from planner.record import PvtRecord
 
 ST = Cia402State
@@ -81,6 +84,11 @@ IP_MODE = 7
 SUPPORTED_MODES = frozenset({0, IP_MODE})
 QUICK_STOP_OPTIONS = frozenset({0, 1, 2, 5, 6})
 MAX_RAMP_TICKS = 600_000  # a stop ramp longer than 10 min of drive time ends with an abrupt stop
+SAVE_SIGNATURE = 0x65766173  # "save" (seed 000 6.12; CiA 301 0x1010)
+LOAD_SIGNATURE = 0x64616F6C  # "load" (seed 000 6.12; CiA 301 0x1011)
+# what 0x1010 "save all parameters" keeps: every writable integer object but commands and the FIFO
+_NOT_STORED = frozenset({(0x6040, 0), (0x20C1, 0), (0x60C4, 6), (0x60C4, 4), (0x1010, 1), (0x1011, 1),
+                         (0x1013, 0)})
 COAST_STOP_COUNTS_PER_MS = 1e-4  # below this a coasting motor is taken as standing still
 
 _EMCY_REGISTER = {
@@ -154,6 +162,12 @@ class _TxPdo:
     build: Callable[[], bytes]
     sync_count: int = 0
     last: bytes | None = field(default=None)
+    inhibit_s: float = 0.0  # event TPDOs: at least this long between two transmissions (0x18xx:03)
+    event_timer_s: float = 0.0  # event TPDOs: sent at least this often, changed or not (0x18xx:05)
+    start_value: int = 0  # synchronous TPDOs with a SYNC counter: first sent at this counter (0x18xx:06)
+    started: bool = True
+    sent_at: float | None = None
+    pending: bool = False  # changed during the inhibit time: sent when it ends
 
 
 def _builder(packer: struct.Struct, getters: tuple[Callable[[], int], ...]) -> Callable[[], bytes]:
@@ -197,6 +211,7 @@ class DriveModel:
         initial_position: float = 0.0,
         sync_gap_factor: float = 1.5,
         profile: DriveProfile = EPOS_IPM,
+        options: SimDriveOptions | None = None,
     ):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
@@ -212,6 +227,20 @@ class DriveModel:
         self.motor = motor
         self.counts_per_rev = int(counts_per_rev or (axis.counts_per_rev if axis else 8192))
         self.sync_gap_factor = float(sync_gap_factor)
+        # the reading of every point the manuals leave open (planner/readings.py, docs/drive-model.md)
+        self.options = o = options if options is not None else (axis.sim if axis is not None else SimDriveOptions())
+        self._sample_before = o.tpdo_sampling == "before_rpdo"
+        self._count_started = o.fifo_count == "until_segment_start"
+        self._first_is_origin = o.first_record == "time_zero"
+        self._toward_zero = o.rounding == "toward_zero"
+        self._round = hermite.truncate_counts if self._toward_zero else hermite.round_counts
+        self._tick_underflow = o.underflow_check == "every_tick"
+        self._clock = MotionClock(o.clock_drift_ppm) if o.clock == "own" else None
+        self._tpdo_latency_s = o.tpdo_latency_ms / 1000.0
+        self._latency_rng = random.Random(o.seed * 1000 + node_id)
+        self._held: list[tuple[float, Frame]] = []  # TPDOs answering a SYNC, sent after the latency
+        self._absent = frozenset(o.absent)
+        self._stored: dict[Key, int] = {}  # 0x1010 "save": survives NMT reset node
         self._c = LoopConstants.build(motor, self.counts_per_rev)
         self._rpm_to_cpms = self.counts_per_rev / hermite.MS_PER_MINUTE
         self.counters = DriveCounters()
@@ -296,33 +325,42 @@ class DriveModel:
         self._out = []
         if self._nmt == NmtState.BOOTUP:
             return self._out
+        self._release_held(t)
+        self._catch_up(t)
         if cob_id == 0:
             self._on_nmt(data, t)
         elif cob_id == self._sync_cob:
-            self._sync(t)
+            self._sync(t, data)
         elif cob_id in self._rx_by_cob:
             if self._nmt == NmtState.OPERATIONAL:
                 self._on_rpdo(self._rx_by_cob[cob_id], bytes(data), t)
         elif cob_id == self._hb_consumer_cob and len(data) >= 1:
             self._hb_rx_last = t
+        elif cob_id == self._ts_cob and self._clock is not None and len(data) >= 4:
+            self._clock.time_stamp(int.from_bytes(bytes(data[:4]), "little"))  # 0x1013 as a TIME frame
         self._flush_event_tpdos()
         return self._out
 
-    def on_sync(self, t: float) -> list[Frame]:
+    def on_sync(self, t: float, data: bytes = b"") -> list[Frame]:
         """A SYNC: run the period's ticks, apply synchronous RPDOs, send synchronous TPDOs."""
         self._t_now = t
         self._out = []
         if self._nmt != NmtState.BOOTUP:
-            self._sync(t)
+            self._release_held(t)
+            self._catch_up(t)
+            self._sync(t, data)
             self._flush_event_tpdos()
         return self._out
 
     def advance(self, t: float) -> list[Frame]:
-        """Timers up to time `t`: heartbeat producer, SYNC loss, heartbeat consumer."""
+        """Timers up to time `t`: heartbeat producer, SYNC loss, heartbeat consumer, the own clock's
+        ticks, TPDOs held for their latency, event TPDO timers."""
         self._t_now = t
         self._out = []
         if self._nmt == NmtState.BOOTUP:
             return self._out
+        self._release_held(t)
+        self._catch_up(t)
         if self._hb_next is not None and t >= self._hb_next:
             self._out.append(codec.heartbeat_frame(self.node_id, self._nmt))
             period = self._od[(0x1017, 0)] / 1000.0
@@ -344,13 +382,22 @@ class DriveModel:
         """The earliest time `advance` has something to do, or None."""
         if self._nmt == NmtState.BOOTUP:
             return None
-        candidates = (self._hb_next, self._sync_deadline(), self._hb_consumer_deadline())
+        candidates = (self._hb_next, self._sync_deadline(), self._hb_consumer_deadline(),
+                      self._held[0][0] if self._held else None, self._clock_deadline(), self._event_deadline())
         times = [x for x in candidates if x is not None]
         return min(times) if times else None
 
+    def _spec(self, index: int, sub: int) -> odm.ObjectSpec:
+        if index in self._absent:
+            raise SdoAbort(odm.ABORT_NO_OBJECT, f"object 0x{index:04X} does not exist on this drive")
+        return odm.spec(index, sub)
+
+    def has_object(self, index: int) -> bool:
+        return index not in self._absent and any(k[0] == index for k in odm.OBJECTS)
+
     def sdo_read(self, index: int, sub: int) -> int:
         """SDO upload of an integer object (raises SdoAbort like the drive's SDO server)."""
-        s = odm.spec(index, sub)
+        s = self._spec(index, sub)
         if not s.readable:
             raise SdoAbort(odm.ABORT_WRITE_ONLY, f"0x{index:04X}:{sub:02X} is write-only")
         if s.dtype == odm.DataType.VISIBLE_STRING:
@@ -364,7 +411,7 @@ class DriveModel:
         Raises SdoAbort with the CiA 301 code the drive would answer with."""
         if t is not None:
             self._t_now = t
-        s = odm.spec(index, sub)
+        s = self._spec(index, sub)
         if not s.writable:
             raise SdoAbort(odm.ABORT_READ_ONLY, f"0x{index:04X}:{sub:02X} is read-only")
         if isinstance(value, bool) or not isinstance(value, int):
@@ -383,10 +430,13 @@ class DriveModel:
         *,
         start: bool = True,
         t: float | None = None,
+        feedback: FeedbackSchedule | None = None,
+        time_stamp: bool = False,
     ) -> list[Frame]:
         """Apply the very writes the master sends over SDO (`profile.configuration`), then NMT start.
 
-        For virtual-time runtimes that bypass SDO. Boots the drive first if it was not powered on.
+        For virtual-time runtimes that bypass SDO. Boots the drive first if it was not powered on. Like
+        the master, it skips the optional objects the drive lacks and refuses a missing essential one.
         """
         axis = axis or self.axis
         if axis is None:
@@ -397,7 +447,12 @@ class DriveModel:
         out: list[Frame] = []
         if self._nmt == NmtState.BOOTUP:
             out += self.power_on(self._t_now)
-        for w in self.profile.configuration(axis, settings, sync_period_ms):
+        for w in self.profile.configuration(axis, settings, sync_period_ms, feedback=feedback,
+                                            time_stamp=time_stamp):
+            if not self.has_object(w.index):
+                if w.essential:
+                    raise SdoAbort(odm.ABORT_NO_OBJECT, f"0x{w.index:04X} ({w.what}) is missing")
+                continue  # what the master does: configure what the drive has
             out += self.sdo_write(w.index, w.sub, w.value)
         if start:
             out += self.on_frame(0, bytes((NmtCommand.START, self.node_id)), self._t_now)
@@ -485,6 +540,11 @@ class DriveModel:
         return self._sync_cob
 
     @property
+    def clock(self) -> MotionClock | None:
+        """The drive's own motion clock (None: locked to SYNC)."""
+        return self._clock
+
+    @property
     def buffer_status(self) -> int:
         return self._get_buffer_status()
 
@@ -520,10 +580,12 @@ class DriveModel:
         return sw
 
     def rx_cob_ids(self) -> frozenset[int]:
-        """COB-IDs this drive consumes (NMT, SYNC, enabled RPDOs, monitored heartbeat)."""
+        """COB-IDs this drive consumes (NMT, SYNC, enabled RPDOs, monitored heartbeat, time stamp)."""
         ids = {0, self._sync_cob, *self._rx_by_cob}
         if self._hb_consumer_cob:
             ids.add(self._hb_consumer_cob)
+        if self._ts_cob:
+            ids.add(self._ts_cob)
         return frozenset(ids)
 
     # ============================================================================================
@@ -557,8 +619,10 @@ class DriveModel:
             p.last = None  # an event TPDO is sent again once operational
 
     def _reset_application(self, first: bool = False) -> None:
-        """Power-on / NMT reset node: every object to its default, the drive to switch on disabled."""
+        """Power-on / NMT reset node: every object to its default (or to what 0x1010 stored), the drive to
+        switch on disabled."""
         self._od = odm.defaults(self.node_id)
+        self._od.update(self._stored)
         self._fifo.clear()
         self._buffer_enabled = False
         self._ip_active = False
@@ -582,6 +646,9 @@ class DriveModel:
     def _reset_communication(self) -> None:
         defaults = odm.defaults(self.node_id)
         for key, value in defaults.items():
+            if 0x1000 <= key[0] < 0x2000:
+                self._od[key] = value
+        for key, value in self._stored.items():
             if 0x1000 <= key[0] < 0x2000:
                 self._od[key] = value
         self._pending_sync.clear()
@@ -617,8 +684,13 @@ class DriveModel:
         pw = od[(0x6067, 0)]
         self._pos_window = math.inf if pw == 0xFFFFFFFF else float(pw)
         self._mode = od[(0x6060, 0)]
-        self._period_us = od[(0x1006, 0)]
+        self._period_us = od[(0x1006, 0)] if 0x1006 not in self._absent else 0
         self._sync_cob = od[(0x1005, 0)] & 0x7FF
+        ts = od[(0x1012, 0)]
+        has_ts = 0x1012 not in self._absent and 0x1013 not in self._absent
+        self._ts_cob = ts & 0x7FF if has_ts and ts & (1 << 31) else 0
+        self._sync_counter_max = od[(0x1019, 0)] if 0x1019 not in self._absent else 0
+        self._qs_dec_key: Key = (0x6085, 0) if 0x6085 not in self._absent else (0x6084, 0)
         self._emcy_cob = od[(0x1014, 0)]
         hb = od[(0x1016, 1)]
         hb_node = (hb >> 16) & 0x7F
@@ -630,11 +702,15 @@ class DriveModel:
         self._a_limit_min = min(self._acc_limit((0x6083, 0)), self._acc_limit((0x60C5, 0)))
 
     def _rpm_limit(self, key: Key) -> float:
-        """A velocity object (rpm) as counts/ms."""
+        """A velocity object (rpm) as counts/ms (no limit when the drive lacks the object)."""
+        if key[0] in self._absent:
+            return math.inf
         return self._od[key] * self._rpm_to_cpms
 
     def _acc_limit(self, key: Key) -> float:
-        """An acceleration object (rpm/s) as counts/ms^2."""
+        """An acceleration object (rpm/s) as counts/ms^2 (no limit when the drive lacks the object)."""
+        if key[0] in self._absent:
+            return math.inf
         return self._od[key] * self._rpm_to_cpms / 1000.0
 
     def _write(self, key: Key, value: int, via_sdo: bool) -> None:
@@ -658,6 +734,9 @@ class DriveModel:
             (0x1005, 0): self._write_sync_cob,
             (0x605A, 0): self._write_quick_stop_option,
             (0x1016, 1): self._write_heartbeat_consumer,
+            (0x1010, 1): self._write_store,
+            (0x1011, 1): self._write_restore,
+            (0x1013, 0): self._write_time_stamp,
         }
         for n in range(4):
             for base, direction in ((0x1400, "rx"), (0x1800, "tx")):
@@ -707,6 +786,24 @@ class DriveModel:
             raise SdoAbort(odm.ABORT_INVALID_VALUE, "29-bit COB-IDs are not supported")
         self._store((0x1005, 0), value)
 
+    def _write_store(self, value: int) -> None:
+        if value != SAVE_SIGNATURE:
+            raise SdoAbort(odm.ABORT_CANNOT_STORE, f"0x1010:01 needs the signature \"save\" (0x{SAVE_SIGNATURE:08X}), "
+                           f"got 0x{value:08X}")
+        self._stored = {k: v for k, v in self._od.items()
+                        if k not in _NOT_STORED and odm.OBJECTS[k].writable}
+
+    def _write_restore(self, value: int) -> None:
+        if value != LOAD_SIGNATURE:
+            raise SdoAbort(odm.ABORT_CANNOT_STORE, f"0x1011:01 needs the signature \"load\" (0x{LOAD_SIGNATURE:08X}), "
+                           f"got 0x{value:08X}")
+        self._stored = {}  # defaults again from the next reset node / power-on (CiA 301)
+
+    def _write_time_stamp(self, value: int) -> None:
+        self._od[(0x1013, 0)] = value
+        if self._clock is not None:
+            self._clock.time_stamp(value)
+
     def _write_quick_stop_option(self, value: int) -> None:
         if value not in QUICK_STOP_OPTIONS:
             raise SdoAbort(odm.ABORT_INVALID_VALUE, f"quick stop option code {value} not supported")
@@ -746,7 +843,7 @@ class DriveModel:
             return 0
         index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
         s = odm.OBJECTS.get((index, sub))
-        if s is None or not s.pdo or bits != s.dtype.bits:
+        if s is None or index in self._absent or not s.pdo or bits != s.dtype.bits:
             raise SdoAbort(odm.ABORT_CANNOT_MAP, f"0x{index:04X}:{sub:02X} ({bits} bits) cannot be mapped")
         if (direction == "rx" and not s.writable) or (direction == "tx" and not s.readable):
             raise SdoAbort(odm.ABORT_CANNOT_MAP,
@@ -810,7 +907,10 @@ class DriveModel:
                 fmt = "<" + "".join(odm.OBJECTS[k].dtype.struct_code for k in keys)
                 ttype = od[(0x1800 + n, 2)]
                 pdo = _TxPdo(n + 1, cob & 0x7FF, ttype,
-                             _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)))
+                             _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)),
+                             inhibit_s=od[(0x1800 + n, 3)] * 1e-4, event_timer_s=od[(0x1800 + n, 5)] * 1e-3,
+                             start_value=od[(0x1800 + n, 6)])
+                pdo.started = not (pdo.start_value and self._sync_counter_max)
                 (tx_sync if ttype <= 240 else tx_event).append(pdo)
         self._rx_by_cob = rx
         self._tx_sync = tx_sync
@@ -843,9 +943,16 @@ class DriveModel:
             except SdoAbort:
                 self.counters.pdo_writes_rejected += 1
 
-    def _transmit_sync_tpdos(self) -> None:
-        out = self._out
+    def _sample_sync_tpdos(self, counter: int | None) -> list[Frame]:
+        """The synchronous TPDOs due at this SYNC, sampled now (CiA 301: type n = every n-th SYNC; with a
+        SYNC counter and a start value, first at the SYNC whose counter equals the start value)."""
+        out: list[Frame] = []
         for p in self._tx_sync:
+            if not p.started:
+                if counter is None or counter != p.start_value:
+                    continue
+                p.started = True
+                p.sync_count = p.trans_type - 1
             p.sync_count += 1
             if p.trans_type == 0:
                 payload = p.build()
@@ -855,20 +962,63 @@ class DriveModel:
             elif p.sync_count >= p.trans_type:
                 p.sync_count = 0
                 out.append(Frame(p.cob_id, p.build()))
+        return out
+
+    def _send_sync_tpdos(self, frames: list[Frame], t: float) -> None:
+        """Now, or after this SYNC's latency draw (the `tpdo_latency_ms` option; all of a SYNC's TPDOs
+        go together, in PDO order)."""
+        if not frames:
+            return
+        if self._tpdo_latency_s <= 0.0:
+            self._out.extend(frames)
+            return
+        at = t + self._latency_rng.uniform(0.0, self._tpdo_latency_s)
+        self._held.extend((at, f) for f in frames)
+
+    def _release_held(self, t: float) -> None:
+        """TPDOs whose latency ran out by t go out (in order), before anything the drive does at t."""
+        held = self._held
+        while held and held[0][0] <= t:
+            self._out.append(held.pop(0)[1])
 
     def _flush_event_tpdos(self) -> None:
+        """Event-driven TPDOs (types 254/255): sent when their payload changed, no sooner than the inhibit
+        time after the previous one (a change inside it is sent when it ends), and at least every event
+        timer period (CiA 301 0x18xx:03 / 0x18xx:05)."""
         if not self._tx_event or self._nmt != NmtState.OPERATIONAL:
             return
+        t = self._t_now
         for p in self._tx_event:
             payload = p.build()
-            if payload != p.last:
-                p.last = payload
-                self._out.append(Frame(p.cob_id, payload))
+            changed = payload != p.last
+            timer_due = p.event_timer_s > 0.0 and p.sent_at is not None and t >= p.sent_at + p.event_timer_s
+            if not (changed or timer_due or p.pending):
+                continue
+            if p.sent_at is not None and t < p.sent_at + p.inhibit_s - 1e-9:
+                p.pending = True
+                continue
+            p.last = payload
+            p.sent_at = t
+            p.pending = False
+            self._out.append(Frame(p.cob_id, payload))
+
+    def _event_deadline(self) -> float | None:
+        if self._nmt != NmtState.OPERATIONAL:
+            return None
+        times: list[float] = []
+        for p in self._tx_event:
+            if p.sent_at is None:
+                continue
+            if p.pending:
+                times.append(p.sent_at + p.inhibit_s)
+            if p.event_timer_s > 0.0:
+                times.append(p.sent_at + p.event_timer_s)
+        return min(times) if times else None
 
     # ============================================================================================
     # SYNC: the drive clock
 
-    def _sync(self, t: float) -> None:
+    def _sync(self, t: float, data: bytes = b"") -> None:
         self.counters.syncs += 1
         last = self._t_last_sync
         period_us = self._period_us
@@ -881,8 +1031,12 @@ class DriveModel:
             self._tick_acc_us += period_us
         self._t_last_sync = t
         n, self._tick_acc_us = divmod(self._tick_acc_us, 1000)
-        if n:
+        if self._clock is not None:
+            self._clock.latch_sync(t)  # the own clock already ran to t (_catch_up); latch it for 0x1013
+        elif n:
             self._run_ticks(n, t)
+        counter = data[0] if self._sync_counter_max and len(data) >= 1 else None
+        sampled = self._sample_sync_tpdos(counter) if self._sample_before else None
         if self._pending_sync:
             pending = self._pending_sync
             self._pending_sync = {}
@@ -896,7 +1050,26 @@ class DriveModel:
             self.counters.overflow_warnings += 1
         self._prev_warn = warn
         if self._nmt == NmtState.OPERATIONAL:
-            self._transmit_sync_tpdos()
+            self._send_sync_tpdos(sampled if sampled is not None else self._sample_sync_tpdos(counter), t)
+
+    # ---- the own clock (option clock = "own"; bus/sim/clock.py)
+    def _catch_up(self, t: float) -> None:
+        """Run the ticks the own clock has due by t (a drive locked to SYNC ticks in `_sync` only)."""
+        clock = self._clock
+        if clock is None:
+            return
+        n = clock.due(t)
+        if n:
+            clock.done += n
+            self._run_ticks(n, t)
+
+    def _clock_deadline(self) -> float | None:
+        """With an own clock, the time of the next tick at which the active source has an event
+        (segment end, limit event), so underflows and pops happen at their tick, not at the next frame."""
+        clock = self._clock
+        if clock is None or self._src is None:
+            return None
+        return clock.time_of_tick(max(1, self._next_event - self._src_i))
 
     def _run_ticks(self, n: int, t: float) -> None:
         while n > 0:
@@ -1042,8 +1215,8 @@ class DriveModel:
         if kind == Source.SEGMENT:
             self.counters.segments_completed += 1
             target = self._seg_target
-            if self._fifo and self._fifo[0] is target:
-                self._fifo.popleft()
+            if not self._count_started and self._fifo and self._fifo[0] is target:
+                self._fifo.popleft()  # until_segment_end: the target left the FIFO when its segment ended
             assert target is not None
             self._next_segment(target, t)
         elif kind == Source.QUICK_STOP:
@@ -1067,12 +1240,18 @@ class DriveModel:
         n_ms = target.time_ms
         v_end = target.velocity * self._rpm_to_cpms
         coeffs = hermite.coefficients(p_prev, v_prev, target.position, v_end, n_ms)
-        self._set_source(hermite.demand_from_coefficients(coeffs, n_ms), Source.SEGMENT)
+        self._set_source(hermite.demand_from_coefficients(coeffs, n_ms, self._toward_zero), Source.SEGMENT)
         self._seg_target = target
         self._seg_coeffs = coeffs
         self._seg_events = self._limit_events(coeffs, n_ms)
         if self._seg_events:
             self._next_event = self._seg_events[0][0]
+        if self._count_started and self._fifo and self._fifo[0] is target:
+            self._fifo.popleft()  # until_segment_start: the target leaves the FIFO as its segment starts
+        if self._tick_underflow and len(self._fifo) < 2:
+            # every_tick: "at least two data records have to be in the FIFO" while ip mode is active; the
+            # count only drops when a segment starts, so checking here is checking at every tick
+            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, self._t_now)
 
     def _limit_events(self, coeffs: tuple[float, float, float, float], n_ms: int) -> list[tuple[int, int]]:
         """Ticks (1..n_ms) at which the segment first exceeds 0x6081/0x607F (velocity) and
@@ -1136,9 +1315,10 @@ class DriveModel:
             t_stop = abs(v0) / dec
             steps = min(MAX_RAMP_TICKS, math.ceil(t_stop))
             s = 1.0 if v0 > 0 else -1.0
+            rnd = self._round
             for k in range(1, steps + 1):
                 tk = min(float(k), t_stop)
-                demands.append(hermite.round_counts(p0 + v0 * tk - s * dec * tk * tk / 2.0))
+                demands.append(rnd(p0 + v0 * tk - s * dec * tk * tk / 2.0))
         self._ramp_v0 = v0
         self._ramp_dec = dec
         self._set_source(demands, kind)
@@ -1180,6 +1360,14 @@ class DriveModel:
         self.counters.activations += 1
         self._latched &= ~(BS_VELOCITY_WARNING | BS_ACCELERATION_WARNING)
         self._ip_active = True
+        if self._clock is not None:
+            self._clock.anchor(self._t_now)  # the own clock's tick grid starts at the enabling SYNC
+        if self._first_is_origin:
+            # time_zero: the first record is the path's point at time zero; the demand starts there
+            origin = self._fifo.popleft()
+            self._demand = origin.position
+            self._next_segment(origin, self._t_now)
+            return
         head = self._fifo[0]
         if head.time_ms == 0:
             self._fifo.popleft()
@@ -1236,7 +1424,7 @@ class DriveModel:
             if self._qs_option == 0:
                 self._transition(Internal.QUICK_STOP_DONE)
             else:
-                self._start_ramp(Source.QUICK_STOP, (0x6084, 0) if self._qs_option in (1, 5) else (0x6085, 0))
+                self._start_ramp(Source.QUICK_STOP, (0x6084, 0) if self._qs_option in (1, 5) else self._qs_dec_key)
         elif old == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED:
             self._src = None
             self._ip_active = False
@@ -1273,7 +1461,7 @@ class DriveModel:
         self._emit_emcy(code, bs)
         was_powered = self._powered
         if was_powered:
-            self._start_ramp(Source.FAULT, (0x6085, 0))
+            self._start_ramp(Source.FAULT, self._qs_dec_key)
         else:
             self._transition(Internal.FAULT_REACTION_DONE)
 

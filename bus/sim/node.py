@@ -11,7 +11,7 @@ that serialises everything that touches the models. What it does:
 - RPDOs: through `rpdo[n].add_callback` (canopen delivers received RPDOs only there). canopen only
   applies a PDO mapping after `rpdo.read()`/`tpdo.read()`, so the adapter re-reads the maps whenever
   the model's PDO configuration changed (master remapping over SDO, NMT resets).
-- NMT, SYNC and heartbeats: a raw python-can listener hands them to the models; canopen's own
+- NMT, SYNC, the time stamp and heartbeats: a raw python-can listener hands them to the models; canopen's own
   `NmtSlave` is detached (it would run its own heartbeat with its own idea of the state).
 - TPDOs, EMCYs, heartbeats, boot-up: whatever frames the model returns are sent as they are (a
   LocalNode sends no TPDO by itself).
@@ -49,7 +49,7 @@ TIMER_MAX_SLEEP_S = 0.05
 
 
 class _RawListener(can.Listener):
-    """NMT, SYNC and heartbeat frames to the models (canopen handles SDO and RPDOs)."""
+    """NMT, SYNC, time stamp and heartbeat frames to the models (canopen handles SDO and RPDOs)."""
 
     def __init__(self, cell: SimulatedCell):
         self.cell = cell
@@ -58,7 +58,7 @@ class _RawListener(can.Listener):
         if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
             return
         cob_id = msg.arbitration_id
-        if cob_id == 0 or cob_id in self.cell._sync_ids or 0x701 <= cob_id <= 0x77F:
+        if cob_id in (0, cob.TIME_STAMP_COB_ID) or cob_id in self.cell._sync_ids or 0x701 <= cob_id <= 0x77F:
             self.cell._dispatch_raw(cob_id, bytes(msg.data), msg.timestamp)
 
     def on_error(self, exc: Exception) -> None:

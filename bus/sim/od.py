@@ -34,6 +34,7 @@ ABORT_INVALID_VALUE = 0x06090030
 ABORT_VALUE_TOO_HIGH = 0x06090031
 ABORT_VALUE_TOO_LOW = 0x06090032
 ABORT_GENERAL = 0x08000000
+ABORT_CANNOT_STORE = 0x08000020
 ABORT_DEVICE_STATE = 0x08000022
 
 
@@ -164,12 +165,28 @@ def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
     var(0x1005, "COB-ID SYNC", U32, "rw", 0x00000080)
     var(0x1006, "Communication cycle period", U32, "rw", 0, 0, 255_000)  # us; 0 = not configured
     var(0x1008, "Manufacturer device name", STR, "const", "EPOS-IPM simulated drive")
+    # store / restore (CiA 301; seed 000 6.12: "save" 0x65766173, "load" 0x64616F6C); reading sub 1 gives
+    # bit 0 = the device saves / restores on command
+    group(0x1010, "Store parameters", 8, [
+        (0, "Highest sub-index supported", U8, "ro", 1, None, None, False, False),
+        (1, "Save all parameters", U32, "rw", 1, None, None, False, False),
+    ])
+    group(0x1011, "Restore default parameters", 8, [
+        (0, "Highest sub-index supported", U8, "ro", 1, None, None, False, False),
+        (1, "Restore all default parameters", U32, "rw", 1, None, None, False, False),
+    ])
+    # time stamp (seed 001 3.6.1-3.6.2): bit 31 = consume the TIME frame with this COB-ID; 0x1013 is the
+    # master's high-resolution time stamp (us) of the last SYNC it sent
+    var(0x1012, "COB-ID time stamp object", U32, "rw", 0x00000100)
+    var(0x1013, "High resolution time stamp", U32, "rw", 0, pdo=True)
     var(0x1014, "COB-ID EMCY", U32, "ro", 0x80, rel=True)
     group(0x1016, "Consumer heartbeat time", 8, [
         (0, "Number of entries", U8, "ro", 1, None, None, False, False),
         (1, "Consumer heartbeat time 1", U32, "rw", 0, None, None, False, False),
     ])
     var(0x1017, "Producer heartbeat time", U16, "rw", 0)
+    # CiA 301 SYNC counter: 0 = SYNC without counter; 2..240 = SYNC carries a counter 1..value
+    var(0x1019, "Synchronous counter overflow value", U8, "rw", 0, 0, 240)
     group(0x1018, "Identity object", 9, [
         (0, "Number of entries", U8, "ro", 4, None, None, False, False),
         (1, "Vendor-ID", U32, "ro", 0x00000000, None, None, False, False),
@@ -198,11 +215,12 @@ def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
             entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
         group(0x1600 + n, f"Receive PDO {n + 1} mapping", 9, entries)
         group(0x1800 + n, f"Transmit PDO {n + 1} parameter", 9, [
-            (0, "Highest sub-index supported", U8, "ro", 5, None, None, False, False),
+            (0, "Highest sub-index supported", U8, "ro", 6, None, None, False, False),
             (1, "COB-ID used by TPDO", U32, "rw", tx_cob, None, None, False, True),
             (2, "Transmission type", U8, "rw", 255, None, None, False, False),
-            (3, "Inhibit time", U16, "rw", 0, None, None, False, False),
-            (5, "Event timer", U16, "rw", 0, None, None, False, False),
+            (3, "Inhibit time", U16, "rw", 0, None, None, False, False),  # 100 us units (event TPDOs)
+            (5, "Event timer", U16, "rw", 0, None, None, False, False),  # ms (event TPDOs)
+            (6, "SYNC start value", U8, "rw", 0, None, None, False, False),  # with a SYNC counter
         ])
         entries = [(0, "Number of mapped objects", U8, "rw", len(tx_defaults[n]), 0, MAX_PDO_ENTRIES, False,
                     False)]

@@ -15,7 +15,7 @@ from collections.abc import Mapping
 
 from bus import codec
 from bus.codec import Frame
-from bus.profile import EPOS_IPM, DriveProfile
+from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, feedback_schedule
 from bus.sim.model import DriveModel
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams
 from planner.config import CellConfig
@@ -32,6 +32,7 @@ class VirtualCell:
         initial_positions: Mapping[int, float] | None = None,
         sync_gap_factor: float = 1.5,
         profile: DriveProfile = EPOS_IPM,
+        feedback_every: int = 1,
     ):
         self.cell = cell
         self.models: dict[int, DriveModel] = {}
@@ -42,9 +43,15 @@ class VirtualCell:
                            initial_position=positions.get(axis.node_id, 0.0),
                            sync_gap_factor=sync_gap_factor, profile=profile)
             self.boot_frames += m.power_on(t0)
-            if configure:
-                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=t0)
             self.models[axis.node_id] = m
+        # what the master configures: TPDO2 staggered when the cell asks for it and every drive has the
+        # SYNC counter (the master learns that over SDO; here each model says so itself)
+        self.feedback: FeedbackSchedule | None = feedback_schedule(
+            [a.node_id for a in cell.axes], feedback_every, all(m.has_object(0x1019) for m in self.models.values()))
+        if configure:
+            for m in self.models.values():
+                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=t0, feedback=self.feedback,
+                                                        time_stamp=cell.time_stamp)
         self._models = tuple(self.models.values())
         self._routes: dict[int, tuple[DriveModel, ...]] = {}
         self._versions: dict[int, int] = {}
@@ -74,10 +81,10 @@ class VirtualCell:
             self._rebuild_routes()
         return out
 
-    def sync(self, t: float) -> list[Frame]:
+    def sync(self, t: float, data: bytes = b"") -> list[Frame]:
         out: list[Frame] = []
         for m in self._models:
-            out += m.on_sync(t)
+            out += m.on_sync(t, data)
         return out
 
     def advance(self, t: float) -> list[Frame]:

@@ -3,7 +3,7 @@
 A runtime creates one `Coordinator(plan, settings, stop_planner)` per job and feeds it `bus.events`;
 each `handle(event)` returns the frames to send and the job's state changes. See coordinator.py for
 the life cycle and the contract with the runtime, feeder.py for the per-axis FIFO accounting and loss
-repair, schedule.py for the fill model, bus_load.py for the frame budget.
+repair, schedule.py for the fill model, bus/budget.py for the frame budget.
 """
 
 from bus.codec import frame_bits

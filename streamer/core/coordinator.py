@@ -43,7 +43,7 @@ Job life cycle (JobState):
                a new job needs a new Coordinator.
 
 Frame budget: per SYNC cycle, bus_load_limit (70%) x bitrate x period minus the traffic the job
-causes anyway (SYNC, TPDO1 + TPDO2 per drive, heartbeats), in worst-case frame bits (bus_load.py).
+causes anyway (SYNC, TPDO1 + TPDO2 per drive, heartbeats), in worst-case frame bits (bus/budget.py).
 The lockstep grows at most as many records per axis per cycle as that allows; resends and catch-up
 use what this cycle's lockstep step leaves. The whole nominal schedule is dry-run at construction: if
 it cannot keep every FIFO >= min(U, records left), the job is FAILED at once with BUS_OVERLOAD (the
@@ -91,6 +91,15 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, NamedTuple
 
+from bus.budget import (
+    CONTROLWORD_FRAME_BITS,
+    RECORD_FRAME_BITS,
+    SYNC_FRAME_BITS,
+    TIME_STAMP_FRAME_BITS,
+    TPDO_FRAME_BITS,
+    CycleBudget,
+    cycle_budget,
+)
 from bus.cob import pack_controlword, rpdo1_id, rpdo2_id
 from bus.events import (
     AdapterError,
@@ -105,8 +114,9 @@ from bus.events import (
     SendFailed,
     Sync,
 )
+from planner.record import PvtRecord, pack
 from streamer.core import outcome as oc
-from streamer.core.bus_load import CONTROLWORD_FRAME_BITS, RECORD_FRAME_BITS, CycleBudget, cycle_budget
+from streamer.core.drive_time import DriveTime
 from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder
 from streamer.core.outcome import JobOutcome, JobResult
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
@@ -290,33 +300,64 @@ class Coordinator:
         self._fifo = s.fifo_size
         self._u = s.underflow_watermark
         self._o = s.overflow_watermark
+        readings = {node: s.reading(node) for node in self._plan.node_ids}
+        # a drive that counts the record it interpolates towards out of its FIFO reports one record less
+        # while it moves: keep one more queued, so that its own count stays above the watermark too
+        hide = any(r.fifo_count == "until_segment_start" for r in readings.values())
         self._policy = FillPolicy(
-            s.sync_period_ms, s.underflow_watermark, s.overflow_watermark, s.lead_ms, s.repair_syncs
+            s.sync_period_ms, s.underflow_watermark + (1 if hide else 0), s.overflow_watermark, s.lead_ms,
+            s.repair_syncs
         )
         self._ends = segment_ends(self._plan.segment_ms)
         self._t_end = self._ends[-1]
         self._prime_level = priming_level(self._ends, self._policy)
         n = self._plan.n_axes
+        self._feedback = s.feedback
+        self._feedback_every = s.feedback.every if s.feedback is not None else 1
         self._budget: CycleBudget = cycle_budget(
-            n, s.sync_period_ms, s.bitrate, s.bus_load_limit, s.heartbeat_ms
+            n, s.sync_period_ms, s.bitrate, s.bus_load_limit, s.heartbeat_ms,
+            feedback_every=self._feedback_every, time_stamp=s.time_stamp,
         )
         self._step = self._budget.record_frames_per_axis(n)
         self._feeders: list[FifoFeeder] = []
         self._by_node: dict[int, FifoFeeder] = {}
         self._cw: dict[int, dict[int, Send]] = {}
+        self._clocks: dict[int, DriveTime] = {}
+        self._sampling: dict[int, str | None] = {}
+        # how long a TPDO may come after its SYNC: the drive's latency (0.9 of a period when unknown, the
+        # longest the readings permit) and the cycle's own frames queued ahead of it (SYNC, time stamp,
+        # every node's TPDOs)
+        queue_s = (SYNC_FRAME_BITS + TIME_STAMP_FRAME_BITS + 2 * n * TPDO_FRAME_BITS) / s.bitrate
+        self._latency_window_s = {
+            node: max(1.5 * (0.9 * s.sync_period_ms if r.tpdo_latency_ms is None else r.tpdo_latency_ms),
+                      0.5 * s.sync_period_ms) / 1000.0 + queue_s
+            for node, r in readings.items()
+        }
         for axis, node in enumerate(self._plan.node_ids):
             rid = rpdo2_id(node)
+            r = readings[node]
+            start = self._plan.start_positions[axis]
+            end = self._plan.records[axis][-1]
             feeder = FifoFeeder(
                 axis,
                 node,
-                self._plan.start_positions[axis],
+                start,
                 list(self._plan.records[axis]),
                 [Send(rid, frame) for frame in self._plan.frames[axis]],
                 sync_period_ms=s.sync_period_ms,
                 loss_confirm_syncs=s.loss_confirm_syncs,
                 repair_margin_ms=s.margin_ms,
                 counts_per_rev=s.counts_per_rev.get(node),
+                # time_zero: the origin record (the start at rest) is the point at time zero
+                lead=Send(rid, pack(PvtRecord(start, 0, 1))) if r.first_record == "time_zero" else None,
+                # until_segment_start: a second end record keeps two behind the target to the end
+                tail=Send(rid, pack(end)) if r.fifo_count == "until_segment_start" else None,
+                hides_target=r.fifo_count == "until_segment_start",
+                rounding=r.rounding,
             )
+            self._clocks[node] = DriveTime(s.sync_period_ms, own_clock=r.clock == "own",
+                                           ppm_max=r.clock_ppm_max, time_stamped=s.time_stamp)
+            self._sampling[node] = r.tpdo_sampling
             self._feeders.append(feeder)
             self._by_node[node] = feeder
             cid = rpdo1_id(node)
@@ -334,6 +375,8 @@ class Coordinator:
         self._changes: list[StateChange] = []
         self._sync: int | None = None
         self._first_sync: int | None = None
+        self._sync_times: dict[int, float] = {}  # recent SYNC count -> time sent
+        self._sync_counters: dict[int, int | None] = {}  # recent SYNC count -> its counter byte
         self._t = 0.0
         self._last_sync_t: float | None = None
         self._start_sync: int | None = None
@@ -466,30 +509,76 @@ class Coordinator:
 
     # ---- helpers -----------------------------------------------------------------------------------
     def _elapsed(self, sync: int) -> int:
+        """Nominal interpolation time at SYNC `sync` (ms since the start SYNC, by the SYNC count)."""
         s = self._start_sync
         if s is None or sync <= s:
             return 0
         return (sync - s) * self._period
 
-    def _slack_ms(self, index: int) -> float:
-        """Time from the current SYNC until record `index` becomes the interpolation target."""
+    def _elapsed_bounds(self, sync: int, t: float) -> tuple[int, int]:
+        """[least, most] interpolation time over every drive at SYNC `sync` (sent at t), whole ms: what
+        the slowest drive surely consumed, and what the fastest may have."""
+        s = self._start_sync
+        if s is None or sync <= s:
+            return 0, 0
+        lo = hi = self._elapsed(sync)
+        for clock in self._clocks.values():
+            if clock.exact:
+                continue
+            k_lo, k_hi = clock.ticks(sync, t)
+            lo, hi = min(lo, k_lo), max(hi, k_hi)
+        return lo, hi
+
+    def _sync_time(self, sync: int) -> float:
+        return self._sync_times.get(sync, self._t)
+
+    def _slack_ms(self, f: FifoFeeder, index: int) -> float:
+        """Time from the current SYNC until stream record `index` of `f` becomes the interpolation target
+        (pessimistic: as seen by the fastest clock the drive may have)."""
         s = self._start_sync
         if s is None or self._sync is None:
             return float("inf")
-        due = s * self._period + (self._ends[index - 1] if index > 0 else 0)
-        return float(due - self._sync * self._period)
+        plan_index = index - f.lead
+        due = self._ends[plan_index - 1] if plan_index > 0 else 0
+        if self._sync <= s:
+            return float(due + (s - self._sync) * self._period)
+        _, now_hi = self._clocks[f.node_id].ticks(self._sync, self._sync_time(self._sync))
+        return float(due - now_hi)
 
-    def _attribute(self, sync_count: int | None) -> int | None:
+    def _attribute(self, f: FifoFeeder, pdo: int, sync_count: int | None, t: float) -> int | None:
+        """The SYNC a TPDO of `f`'s node answers. `sync_count` is the runtime's tag: the newest SYNC on the
+        wire before the TPDO arrived, so the TPDO answers it or an older one. A drive answers every SYNC
+        once, in order (CiA 301), within a latency that may exceed the rest of the period (it then arrives
+        after the next SYNC): so TPDO1 answers the SYNC after the last one it answered, unless that is not
+        on the wire yet (the drive answered quickly: the newest), or its answer is overdue (it came more
+        than the node's latency window after that SYNC: the answer was lost, this one answers a later
+        SYNC). The window is max(1.5 x the drive's stated TPDO latency, half a period) plus the time the
+        cycle's own frames can hold a TPDO back: long enough for every late answer the drive's latency
+        explains, short enough to tell a lost answer from a late one when the drive answers well inside
+        the period. TPDO2 every n-th SYNC answers the newest SYNC whose counter carries it."""
         cur = self._sync
         if cur is None:
             return None  # no SYNC seen yet in this job: an answer to an earlier one, not ours
-        if sync_count is None:
-            return cur
-        if sync_count > cur:
-            raise ValueError(
-                f"TPDO answering SYNC {sync_count} fed before Sync({sync_count}) (last Sync {cur})"
-            )
-        return sync_count
+        upper = cur
+        if sync_count is not None:
+            if sync_count > cur:
+                raise ValueError(
+                    f"TPDO answering SYNC {sync_count} fed before Sync({sync_count}) (last Sync {cur})"
+                )
+            upper = sync_count
+        fb = self._feedback
+        if pdo == 2 and fb is not None and fb.every > 1:
+            for m in range(upper, max(upper - 2 * fb.every, -1), -1):
+                if m in self._sync_counters and fb.carries(f.node_id, self._sync_counters[m]):
+                    return m
+            return None
+        last = f.last_tpdo1 if pdo == 1 else f.last_tpdo2
+        cand = max(upper - 1, last + 1)
+        # an answer overdue by more than the node's latency window was lost: the TPDO answers a later SYNC
+        window = self._latency_window_s[f.node_id]
+        while cand < upper and t - self._sync_times.get(cand, t) > window:
+            cand += 1
+        return min(upper, cand)
 
     def _set_state(self, new: JobState, outcome: JobOutcome | None = None) -> None:
         if new not in _JOB_TRANSITIONS[self._state]:
@@ -539,6 +628,10 @@ class Coordinator:
         m = ev.count
         self._t = ev.t
         prev = self._sync
+        self._sync_times[m] = ev.t
+        self._sync_counters[m] = ev.counter
+        self._sync_times.pop(m - 64, None)
+        self._sync_counters.pop(m - 64, None)
         if prev is None:
             self._first_sync = m
             for f in self._feeders:
@@ -575,17 +668,23 @@ class Coordinator:
         self._last_sync_t = ev.t
         self._cycle_used_bits = 0.0
         self._extra_bits = self._budget.streamer_bits
-        limit = m - self._settings.tpdo_timeout_syncs - 1
+        timeout = self._settings.tpdo_timeout_syncs
+        limit = m - timeout - 1
+        limit2 = m - timeout * self._feedback_every - 1
         for f in self._feeders:
-            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit:
+            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit2:
                 which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
                 self._fail(
                     oc.TPDO_TIMEOUT,
-                    f"node {f.node_id}: no {which} for {self._settings.tpdo_timeout_syncs} "
+                    f"node {f.node_id}: no {which} for "
+                    f"{timeout if which == 'TPDO1' else timeout * self._feedback_every} "
                     f"SYNCs (last answered SYNC {min(f.last_tpdo1, f.last_tpdo2)})",
                     f.node_id,
                 )
                 return
+        if m == self._start_sync:
+            for clock in self._clocks.values():
+                clock.start(m, ev.t)
         st = self._state
         if st is JobState.PRIMING:
             if self._all_feeders(_ALL_PRIMED):
@@ -595,8 +694,10 @@ class Coordinator:
                     self._prime_level, min(self._step, self._settings.prime_records_per_sync)
                 )
         elif st in _SENDING:
+            now_lo, _ = self._elapsed_bounds(m, ev.t)
+            _, next_hi = self._elapsed_bounds(m + 1, ev.t + self._period / 1000.0)
             self._advance_lockstep(
-                target_prefix(self._ends, self._elapsed(m), self._elapsed(m + 1), self._policy), self._step
+                target_prefix(self._ends, now_lo, next_hi, self._policy), self._step
             )
             self._update_safe_prefix(m)
         if st in _IN_MOTION and self._elapsed(m) > self._t_end + self._settings.finish_timeout_ms:
@@ -644,24 +745,25 @@ class Coordinator:
 
     def _update_safe_prefix(self, m: int) -> None:
         if self._start_sync is not None:
-            horizon = self._elapsed(m + 1) + self._policy.repair_syncs * self._period
-            self._safe_prefix = consumed_at(self._ends, horizon) + self._u
+            _, next_hi = self._elapsed_bounds(m + 1, self._sync_time(m) + self._period / 1000.0)
+            horizon = next_hi + self._policy.repair_syncs * self._period
+            self._safe_prefix = consumed_at(self._ends, horizon) + self._policy.underflow_watermark
 
     def _feed(self, f: FifoFeeder, fill: int, free: int) -> None:
         if f.pending:
             return
         lo = f.confirmed
-        hi = min(self._lockstep, len(f.sends))
+        hi = f.stream_prefix(self._lockstep)
         n = min(hi - lo, free, self._o - fill)
         if n <= 0:
             return
         # keep batches as small as this cycle's lockstep step (>= 1): an axis behind the others (after a
         # repair or a missed TPDO) catches up one record per cycle, not in one large batch whose partial
         # loss could not be repaired, unless its fill needs more to stay >= U for repair_syncs SYNCs
-        cap = max(1, self._lockstep - self._lock_prev, self._safe_prefix - lo)
+        cap = max(1, self._lockstep - self._lock_prev, f.stream_prefix(self._safe_prefix) - lo)
         if n > cap:
             n = cap
-        catch = min(n, self._lock_prev - lo)
+        catch = min(n, f.stream_prefix(self._lock_prev) - lo)
         if catch > 0:
             afford = int(self._extra_bits // RECORD_FRAME_BITS)
             if afford < catch:
@@ -682,7 +784,7 @@ class Coordinator:
         f = self._by_node.get(ev.node)
         if f is None:
             return
-        m = self._attribute(ev.sync_count)
+        m = self._attribute(f, 1, ev.sync_count, ev.t)
         if m is None or m <= f.last_tpdo1:
             return
         f.last_tpdo1 = m
@@ -732,17 +834,21 @@ class Coordinator:
         active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
         s = self._start_sync
         started = s is not None and m >= s
+        # the TPDO of the start SYNC itself may be sampled before or after that SYNC's controlword
+        # applies (reading `tpdo_sampling`): it may still show ip mode inactive
+        sampling = self._sampling[node]
+        activated = started and (m != s or active)
         if not started:
             if active:
                 self._fail(oc.PROTOCOL, f"node {node}: ip mode active at SYNC {m}, before the start", node)
                 return
-            elapsed = consumed = 0
+            lo_ms = hi_ms = 0
         else:
             assert s is not None
-            elapsed = (m - s) * self._period
-            consumed = consumed_at(self._ends, elapsed)
-            if not active and elapsed < self._t_end:
-                if fs is FeederState.STARTING:
+            lo_ms, hi_ms = self._clocks[node].ticks(m, self._sync_time(m)) if activated else (0, 0)
+            if not active:
+                sampled_before = m == s and sampling != "after_rpdo"
+                if fs is FeederState.STARTING and not sampled_before:
                     self._fail(
                         oc.START_FAILED,
                         f"node {node}: ip mode not active at the start SYNC {s} (reported "
@@ -750,24 +856,32 @@ class Coordinator:
                         node,
                         {"start_sync": s},
                     )
-                else:
+                    return
+                if hi_ms < self._t_end and not sampled_before:
                     self._fail(
                         oc.PROTOCOL,
-                        f"node {node}: ip mode inactive at SYNC {m}, {self._t_end - elapsed} ms "
+                        f"node {node}: ip mode inactive at SYNC {m}, {self._t_end - hi_ms} ms "
                         f"before the stream ends",
                         node,
                     )
-                return
-            if fs is FeederState.STARTING:
+                    return
+            if fs is FeederState.STARTING and active:
                 f.fire(FeederInput.ACTIVE)
                 f.start_sync = s
                 fs = FeederState.STREAMING
-        failure = f.account(m, consumed, fill, self._slack_ms, self._congested)
+        plan_lo = consumed_at(self._ends, lo_ms) if activated else 0
+        plan_hi = consumed_at(self._ends, hi_ms) if activated else 0
+        hidden = 1 if f.hides_target and active else 0
+        failure = f.account(m, f.stream_consumed(plan_lo, activated), fill, lambda i: self._slack_ms(f, i),
+                            self._congested, consumed_hi=f.stream_consumed(plan_hi, activated), hidden=hidden)
         if failure is not None:
             self._fail(failure.code, failure.message, node, failure.detail)
             return
         if started:
-            remaining = len(f.sends) - consumed
+            remaining = len(self._ends) - plan_hi  # plan records not yet consumed (the tail never is)
+            # what the drive holds of the plan: its count, plus the target it leaves out, minus the tail
+            tail_in_fifo = max(0, f.confirmed - f.lead - f.plan_len)
+            fill_plan = fill + hidden - tail_in_fifo
             f.observe_fill(fill, bs, remaining >= self._u)
             needed = needed_fill(self._u, remaining)
             missing = f.repair_pending > 0 or f.suspect_sync is not None
@@ -777,9 +891,10 @@ class Coordinator:
             # it is a late master (a real-time runtime that lagged a cycle), which the next top-up
             # repairs, so it fails only when what the FIFO holds runs out within two SYNC periods (a
             # top-up sent now still arrives in time for one more, with a period to spare).
-            covered_ms = self._ends[min(consumed + fill, len(self._ends)) - 1] - elapsed if fill else 0
-            danger = covered_ms < 2 * self._period and consumed + fill < len(self._ends)
-            if fill < needed and (self._congested or (not missing and danger)):
+            covered_ms = (self._ends[min(plan_lo + fill_plan, len(self._ends)) - 1] - hi_ms
+                          if fill_plan > 0 else 0)
+            danger = covered_ms < 2 * self._period and plan_lo + fill_plan < len(self._ends)
+            if fill_plan < needed and (self._congested or (not missing and danger)):
                 self._fail(
                     oc.BUS_OVERLOAD,
                     f"node {node}: FIFO down to {fill} records (< {needed}) at SYNC {m}: records could not "
@@ -790,14 +905,14 @@ class Coordinator:
                 )
                 return
         if fs is FeederState.PRIMING:
-            if not f.pending and f.confirmed >= self._prime_level:
+            if not f.pending and f.confirmed >= f.stream_prefix(self._prime_level):
                 f.fire(FeederInput.PRIMED)
                 fs = FeederState.PRIMED
         elif fs is FeederState.STREAMING and not f.pending and f.confirmed >= len(f.sends):
             f.fire(FeederInput.END_QUEUED)
             fs = FeederState.DRAINING
         if fs is FeederState.DRAINING:
-            if started and elapsed >= self._t_end and not active and sw & SW_TARGET_REACHED:
+            if started and hi_ms >= self._t_end and not active and sw & SW_TARGET_REACHED:
                 f.fire(FeederInput.STOPPED)
                 f.end_sync = m
         elif fs in _FEEDING and self._state in _SENDING:
@@ -875,7 +990,7 @@ class Coordinator:
         f = self._by_node.get(ev.node)
         if f is None:
             return
-        m = self._attribute(ev.sync_count)
+        m = self._attribute(f, 2, ev.sync_count, ev.t)
         if m is None or m <= f.last_tpdo2:
             return
         f.last_tpdo2 = m
@@ -887,30 +1002,41 @@ class Coordinator:
         if self._state is JobState.HALTING or f.state is FeederState.FAULTED:
             return  # under halt each drive ramps down on its own: there is no plan to check against
         s = self._start_sync
-        elapsed = 0 if s is None or m <= s else (m - s) * self._period
-        expected = f.expected_demand(elapsed, self._ends)
-        if expected is None:
-            return
-        err = abs(ev.position_demand - expected)
+        demand = ev.position_demand
+        clock = self._clocks[f.node_id]
+        if s is None or m <= s or clock.exact:
+            candidates = f.demand_candidates(self._elapsed(m), self._ends)
+            if not candidates:
+                return
+            err = min(abs(demand - c) for c in candidates)
+            expected = min(candidates, key=lambda c: abs(demand - c))
+        else:
+            # a drive with its own clock: the ticks its demand matches pin its clock down
+            t_m = self._sync_time(m)
+            ticks, err = clock.matching(m, t_m, lambda k: f.demand_candidates(k, self._ends), demand,
+                                        self._settings.demand_tolerance_counts)
+            clock.observe(m, t_m, ticks)
+            lo, _ = clock.ticks(m, t_m)
+            expected = (f.demand_candidates(lo, self._ends) or (demand,))[0]
         if err > f.max_demand_error:
             f.max_demand_error = err
         if err > self._settings.demand_tolerance_counts:
             if s is None or m <= s:
                 self._fail(
                     oc.START_MISMATCH,
-                    f"node {f.node_id}: position demand moved to {ev.position_demand} "
+                    f"node {f.node_id}: position demand moved to {demand} "
                     f"before the start (plan start {expected})",
                     f.node_id,
-                    {"position_demand": ev.position_demand, "expected": expected},
+                    {"position_demand": demand, "expected": expected},
                 )
             else:
                 self._fail(
                     oc.PROTOCOL,
-                    f"node {f.node_id}: position demand {ev.position_demand} at SYNC {m} is "
+                    f"node {f.node_id}: position demand {demand} at SYNC {m} is "
                     f"{err} counts from the plan's {expected}: records executed out of order, twice or "
                     f"not at all",
                     f.node_id,
-                    {"position_demand": ev.position_demand, "expected": expected, "sync": m},
+                    {"position_demand": demand, "expected": expected, "sync": m},
                 )
 
     def _on_emcy(self, ev: Emcy) -> None:
@@ -973,7 +1099,7 @@ class Coordinator:
 
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
-        k = max(f.max_sent for f in self._feeders)
+        k = max(min(len(self._ends), f.max_sent - f.lead) for f in self._feeders)  # plan records queued
         n_segments = len(self._ends) - 1
         if k >= n_segments:
             self._cancel_info = {
@@ -1011,7 +1137,8 @@ class Coordinator:
         t0 = self._ends[k - 1]
         new_ends = self._ends[:k] + [t0 + e for e in segment_ends(stop.segment_ms)]
         assert self._sync is not None
-        short = dry_run(new_ends, self._policy, self._step, k, self._elapsed(self._sync))
+        _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
+        short = dry_run(new_ends, self._policy, self._step, k, now_hi)
         if short is not None:
             self._halt(
                 f"the stop trajectory cannot be streamed in time ({short.fill} records left at "
@@ -1020,8 +1147,7 @@ class Coordinator:
             return
         for axis, f in enumerate(self._feeders):
             rid = rpdo2_id(f.node_id)
-            f.records = f.records[:k] + list(stop.records[axis])
-            f.sends = f.sends[:k] + [Send(rid, frame) for frame in stop.frames[axis]]
+            f.splice(k, list(stop.records[axis]), [Send(rid, frame) for frame in stop.frames[axis]])
         self._ends = new_ends
         self._t_end = new_ends[-1]
         self._lockstep = min(self._lockstep, k)

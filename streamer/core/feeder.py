@@ -47,6 +47,17 @@ records per period an isolated loss is repaired only when it takes the whole bat
 
 Reordering inside a batch (two records of one axis swapped) leaves the fill right; it is caught when
 executed, by the position-demand check against the plan (coordinator, PositionFeedback).
+
+The drive's readings (planner/readings.py) shape the stream and the accounting, per axis:
+- the stream is `lead` + the plan's records + `tail`: a drive that takes the first record as the
+  path's point at time zero gets an origin record first (the start position at rest, consumed the
+  moment interpolation starts), so its motion is timed like every other drive's; a drive that counts
+  the record being interpolated towards out of the FIFO gets a second end record, so that it never
+  holds fewer than two while interpolating (the every-tick underflow reading) and ends with one left;
+- the fill it reports is lower by one while it interpolates (`hidden`) when it counts that way;
+- with a drive clock known only as an interval (streamer/core/drive_time.py) the records consumed are
+  an interval too: a fill inside the expected interval is no loss, one below it is, and one that could be
+  either (a record boundary inside the interval) is held like a late batch until time tells.
 """
 
 from __future__ import annotations
@@ -58,7 +69,7 @@ from enum import Enum
 from typing import Any, NamedTuple
 
 from bus.events import Send
-from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
+from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms, truncate_counts
 from planner.record import PvtRecord
 from streamer.core import outcome as oc
 
@@ -153,12 +164,23 @@ class FifoFeeder:
         loss_confirm_syncs: int,
         repair_margin_ms: int,
         counts_per_rev: int | None,
+        lead: Send | None = None,
+        tail: Send | None = None,
+        hides_target: bool = False,
+        rounding: str | None = "nearest",
     ) -> None:
         self.axis = axis
         self.node_id = node_id
         self.start_position = start_position
-        self.records = records  # replaced on cancel (the stop trajectory is spliced in)
-        self.sends = sends
+        self.records = records  # the plan's records; replaced on cancel (the stop trajectory is spliced in)
+        self.lead = 1 if lead is not None else 0
+        self._lead_send = lead
+        self._tail_send = tail
+        self.tail = 1 if tail is not None else 0
+        self.sends = self._stream(sends)  # lead + the plan's frames + tail
+        self.hides_target = hides_target  # the reported fill leaves out the record being interpolated towards
+        self._rounders = {"nearest": (round_counts,), "toward_zero": (truncate_counts,),
+                          None: (round_counts, truncate_counts)}[rounding]
         self.state = FeederState.WAITING
         self._period = sync_period_ms
         self._confirm_syncs = loss_confirm_syncs
@@ -202,6 +224,35 @@ class FifoFeeder:
         self.state = nxt
         return nxt
 
+    def _stream(self, plan_sends: list[Send]) -> list[Send]:
+        out = [self._lead_send] if self._lead_send is not None else []
+        out += plan_sends
+        if self._tail_send is not None:
+            out.append(self._tail_send)
+        return out
+
+    @property
+    def plan_len(self) -> int:
+        return len(self.sends) - self.lead - self.tail
+
+    def stream_prefix(self, plan_prefix: int) -> int:
+        """Records of this axis' stream to have sent for the first `plan_prefix` records of the plan."""
+        if plan_prefix <= 0:
+            return 0
+        if plan_prefix >= self.plan_len:
+            return len(self.sends)
+        return plan_prefix + self.lead
+
+    def stream_consumed(self, plan_consumed: int, activated: bool) -> int:
+        """Stream records the drive has consumed when it consumed `plan_consumed` plan records."""
+        return plan_consumed + self.lead if activated else 0
+
+    def splice(self, k: int, records: list[PvtRecord], sends: list[Send]) -> None:
+        """Replace the plan after record k (a stop trajectory); the stream keeps its lead and tail."""
+        self.records = self.records[:k] + records
+        plan_sends = self.sends[self.lead:self.lead + k] + sends
+        self.sends = self._stream(plan_sends)
+
     @property
     def pending(self) -> bool:
         """An unconfirmed batch is out, or a deficit is being watched: send nothing new."""
@@ -209,19 +260,35 @@ class FifoFeeder:
 
     # ---- accounting -------------------------------------------------------------------------------
     def account(
-        self, sync: int, consumed: int, fill: int, slack_ms: Callable[[int], float], congested: bool = False
+        self, sync: int, consumed: int, fill: int, slack_ms: Callable[[int], float], congested: bool = False,
+        consumed_hi: int | None = None, hidden: int = 0,
     ) -> Failure | None:
         """Check the fill the drive reported at SYNC `sync` against the records sent and consumed.
 
-        `slack_ms(i)` is the time from SYNC `sync` until record i becomes the interpolation target
+        `consumed`..`consumed_hi` are the stream records the drive may have consumed by then (one value
+        for a drive locked to SYNC), `hidden` the record it interpolates towards when it does not count
+        it. `slack_ms(i)` is the time from SYNC `sync` until record i becomes the interpolation target
         (infinite before the start). `congested`: the measured bus load is over the limit, so missing
         records are presumed late, not lost: keep waiting while there is time, never resend (a late
         original would then arrive twice), and fail BUS_OVERLOAD when the time is up. Returns a Failure,
         or None (possibly after scheduling a resend).
         """
         visible = self.sent_end > self.confirmed and self.batch_tag <= sync
-        expected = (self.sent_end if visible else self.confirmed) - consumed
-        if fill == expected:
+        base = (self.sent_end if visible else self.confirmed) - hidden
+        c_hi = consumed if consumed_hi is None else max(consumed, consumed_hi)
+        expected = base - consumed  # the fill with nothing missing and the least consumption
+        lowest = base - c_hi  # ... and the most consumption the drive's clock allows
+        batch = self.sent_end - self.confirmed if visible else 0
+        lo, hi = self.confirmed, self.sent_end
+        node = self.node_id
+        if fill > expected:
+            return Failure(
+                oc.PROTOCOL,
+                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {fill - expected} more "
+                f"than sent and not consumed ({expected}): a record arrived twice",
+                {"expected_fill": expected, "fill": fill},
+            )
+        if fill >= lowest and (batch == 0 or fill == expected):
             if visible:
                 self.confirmed = self.sent_end
                 if self.repair_pending:
@@ -231,32 +298,33 @@ class FifoFeeder:
                 self.late_batches += 1
                 self.suspect_sync = None
             return None
-        node = self.node_id
-        if fill > expected:
+        # missing records: between d_min and d_max of the unconfirmed batch (a range only when the drive's
+        # clock leaves the consumption open)
+        d_min = max(0, lowest - fill)
+        d_max = expected - fill
+        if d_min > batch:
             return Failure(
                 oc.PROTOCOL,
-                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {fill - expected} more "
-                f"than sent and not consumed ({expected}): a record arrived twice",
-                {"expected_fill": expected, "fill": fill},
-            )
-        deficit = expected - fill
-        batch = self.sent_end - self.confirmed if visible else 0
-        lo, hi = self.confirmed, self.sent_end
-        if deficit > batch:
-            return Failure(
-                oc.PROTOCOL,
-                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {deficit} fewer than expected "
-                f"({expected}) but only {batch} are unconfirmed: the drive consumed records the "
+                f"node {node}: the FIFO holds {fill} records at SYNC {sync}, {d_min} fewer than expected "
+                f"({lowest}) but only {batch} are unconfirmed: the drive consumed records the "
                 f"plan does not explain",
-                {"expected_fill": expected, "fill": fill, "unconfirmed": batch},
+                {"expected_fill": lowest, "fill": fill, "unconfirmed": batch},
             )
         if self.suspect_sync is None:
             self.suspect_sync = sync
         slack = slack_ms(lo)
+        ambiguous = d_min < d_max and (d_min == 0 or d_min < batch <= d_max)
         if slack >= self._period + self._margin and (
-            congested or sync - self.suspect_sync < self._confirm_syncs
+            congested or ambiguous or sync - self.suspect_sync < self._confirm_syncs
         ):
-            return None  # maybe late, not lost: wait one more SYNC, send nothing new meanwhile
+            return None  # maybe late (or consumed early), not lost: wait, send nothing new meanwhile
+        if d_min == 0:
+            # out of time with a reading that needs no loss: take it (a resend could arrive twice)
+            self.confirmed = self.sent_end
+            self.late_batches += 1
+            self.suspect_sync = None
+            return None
+        deficit = d_min if d_min == d_max else (batch if d_min <= batch <= d_max else d_min)
         if congested:
             return Failure(
                 oc.BUS_OVERLOAD,
@@ -301,20 +369,26 @@ class FifoFeeder:
 
     # ---- position demand prediction ---------------------------------------------------------------
     def expected_demand(self, elapsed_ms: int, ends: Sequence[int]) -> int | None:
-        """The drive's position demand after `elapsed_ms` of interpolation (None: not predictable here,
-        i.e. inside a segment without counts_per_rev)."""
+        """The drive's position demand after `elapsed_ms` of interpolation, rounded to nearest (None: not
+        predictable here, i.e. inside a segment without counts_per_rev)."""
+        out = self.demand_candidates(elapsed_ms, ends)
+        return out[0] if out else None
+
+    def demand_candidates(self, elapsed_ms: int, ends: Sequence[int]) -> tuple[int, ...]:
+        """The position demand after `elapsed_ms` ms of interpolation under each rounding reading the axis
+        may have (one when known, nearest and toward zero when not); () when not predictable."""
         recs = self.records
         if elapsed_ms <= 0:
-            return self.start_position
+            return (self.start_position,)
         if elapsed_ms >= ends[-1]:
-            return recs[-1].position
+            return (recs[-1].position,)
         k = bisect_right(ends, elapsed_ms)  # records consumed; record k is the current target
         prev_end = ends[k - 1] if k else 0
         if elapsed_ms == prev_end:
-            return recs[k - 1].position
+            return (recs[k - 1].position,)
         cpr = self._cpr
         if cpr is None:
-            return None
+            return ()
         rec = recs[k]
         if k:
             prev = recs[k - 1]
@@ -324,7 +398,8 @@ class FifoFeeder:
         coeffs = coefficients(
             p_prev, v_prev, rec.position, rpm_to_counts_per_ms(rec.velocity, cpr), rec.time_ms
         )
-        return round_counts(evaluate(coeffs, elapsed_ms - ends[k])[0])
+        x = evaluate(coeffs, elapsed_ms - ends[k])[0]
+        return tuple(r(x) for r in self._rounders)
 
     def end_acceleration(self, index: int) -> float | None:
         """The drive's Hermite acceleration (counts/ms^2) at the end of record `index`'s segment."""

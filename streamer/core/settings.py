@@ -14,6 +14,14 @@ Policy knobs and why they exist:
 - `repair_margin_ms`: a resend must arrive this long before its record becomes the interpolation
   target; default one SYNC period (a real drive interpolates in real time, not at the SYNC).
 - `prime_records_per_sync`: priming pace per axis; 1 keeps every priming loss repairable.
+
+What the core knows of each drive's readings of the points the manuals leave open (`readings`, per node
+id; planner/readings.py): a node missing from the mapping is taken to read them as the product's
+reference drive does. `tpdo_sampling` and `rounding` may be unknown (None): the core accepts either
+reading. `fifo_count`, `first_record` and `clock` change what the drive does with the stream and must be
+known: the runtime measures them at configuration (bus/probe.py) when the cell does not say.
+`feedback`: TPDO2 every n-th SYNC (bus.profile.FeedbackSchedule; None = every SYNC). `time_stamp`: the
+runtime sends 0x1013 after every SYNC, so drives with their own clock follow the master's.
 """
 
 from __future__ import annotations
@@ -24,8 +32,14 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
+from bus.profile import FeedbackSchedule
+from planner.readings import DriveReadings, SimDriveOptions
+
 FIFO_SIZE = 64
 _EMPTY_CPR: Mapping[int, int] = MappingProxyType({})
+_EMPTY_READINGS: Mapping[int, DriveReadings] = MappingProxyType({})
+REFERENCE_READINGS = DriveReadings.of_sim(SimDriveOptions())
+MUST_KNOW = ("fifo_count", "first_record", "clock")
 
 
 @dataclass(frozen=True)
@@ -50,6 +64,9 @@ class StreamerSettings:
     counts_per_rev: Mapping[int, int] = field(default_factory=lambda: _EMPTY_CPR)
     sync_gap_factor: float | None = None  # core-side SYNC_LOST when a SYNC comes this many periods late
     fifo_size: int = FIFO_SIZE
+    readings: Mapping[int, DriveReadings] = field(default_factory=lambda: _EMPTY_READINGS)
+    feedback: FeedbackSchedule | None = None
+    time_stamp: bool = False
 
     def __post_init__(self) -> None:
         def bad(name: str, value: object, why: str) -> ValueError:
@@ -103,6 +120,19 @@ class StreamerSettings:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise bad(f"counts_per_rev[{node}]", value, "must be a positive integer")
         object.__setattr__(self, "counts_per_rev", MappingProxyType(cpr))
+        readings = dict(self.readings)
+        for node, r in readings.items():
+            if not isinstance(r, DriveReadings):
+                raise bad(f"readings[{node}]", r, "must be a DriveReadings")
+            unknown = [k for k in MUST_KNOW if getattr(r, k) is None]
+            if unknown:
+                raise bad(f"readings[{node}]", r, f"{', '.join(unknown)} of node {node} not known: the "
+                          "runtime measures them at configuration (pvt probe), or set them in [axis.probed]")
+        object.__setattr__(self, "readings", MappingProxyType(readings))
+
+    def reading(self, node: int) -> DriveReadings:
+        """What the core assumes of `node`: its entry in `readings`, else the reference drive's readings."""
+        return self.readings.get(node, REFERENCE_READINGS)
 
     @property
     def margin_ms(self) -> int:
@@ -119,5 +149,6 @@ class StreamerSettings:
             overflow_watermark=cell.drive.overflow_warning,
             heartbeat_ms=cell.drive.heartbeat_ms,
             counts_per_rev={a.node_id: int(a.counts_per_rev) for a in cell.axes},
+            time_stamp=bool(getattr(cell, "time_stamp", False)),
         )
         return replace(base, **overrides) if overrides else base

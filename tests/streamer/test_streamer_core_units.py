@@ -9,6 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from streamer_doubles import CPR, FakeTrajectory, Rig, make_plan, make_trajectory
 
+from bus.budget import cycle_budget
 from bus.events import BufferStatus, Cancel, Sync
 from planner.errors import EncodingRangeError
 from planner.record import PvtRecord
@@ -26,7 +27,6 @@ from streamer.core import (
     frame_bits,
 )
 from streamer.core import outcome as oc
-from streamer.core.bus_load import cycle_budget
 from streamer.core.coordinator import _DISPATCH, _EVENT_TYPES, _JOB_TRANSITIONS, TERMINAL
 from streamer.core.feeder import _TRANSITIONS, FeederInput
 from streamer.core.schedule import (

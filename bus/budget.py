@@ -1,0 +1,80 @@
+"""Bus-load accounting: worst-case bit length of standard CAN frames, the per-SYNC frame budget, and
+how often the drives send their position feedback so that a cell fits.
+
+The streamer keeps its own traffic plus the traffic it causes (SYNC, the time stamp, TPDO1 of every
+drive per SYNC, TPDO2 of every drive every n-th SYNC, heartbeats) under a fraction of the bitrate (70% by
+default). Lengths are worst case, so the budget holds whatever the payload bits are. TPDO2 (position
+feedback) every n-th SYNC is staggered with the CiA 301 SYNC counter (`bus.profile.FeedbackSchedule`):
+the busiest cycle carries ceil(nodes / n) of them, and that is what the budget counts.
+
+A classic CAN 2.0A data frame with n data bytes has 44 + 8n bits between SOF and EOF, plus 3 bits of
+intermission before the next frame may start: 47 + 8n. Bit stuffing applies from SOF to the end of the
+CRC sequence, 34 + 8n bits, and adds at most floor((34 + 8n - 1) / 4) bits (a stuff bit after every
+4 equal bits once the first 5 have been counted; Davis et al., "Controller Area Network (CAN)
+schedulability analysis: refuted, revisited and revised", 2007). So 8 data bytes cost 135 bits and
+an empty SYNC 55. The formula itself is `bus.codec.frame_bits` (one definition for the whole product).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from bus.codec import frame_bits
+
+RECORD_FRAME_BITS = frame_bits(8)  # RPDO2 0x20C1 record
+CONTROLWORD_FRAME_BITS = frame_bits(2)  # RPDO1 controlword
+TPDO_FRAME_BITS = frame_bits(8)  # TPDO1 (2+2+4 bytes) and TPDO2 (4+4 bytes)
+SYNC_FRAME_BITS = frame_bits(0)
+COUNTED_SYNC_FRAME_BITS = frame_bits(1)  # SYNC with the counter byte
+TIME_STAMP_FRAME_BITS = frame_bits(4)  # 0x1013 after every SYNC
+HEARTBEAT_FRAME_BITS = frame_bits(1)
+MAX_FEEDBACK_EVERY = 16
+
+
+@dataclass(frozen=True)
+class CycleBudget:
+    """Bits per SYNC cycle: the limit, the part the drives and the SYNC use anyway, and what is left."""
+
+    cycle_bits: float  # bitrate * period
+    limit_bits: float  # bus_load_limit * cycle_bits
+    fixed_bits: float  # SYNC (+ time stamp) + TPDO1 per node + the busiest cycle's TPDO2s + heartbeats
+
+    @property
+    def streamer_bits(self) -> float:
+        """Bits per cycle left for the streamer's own frames."""
+        return self.limit_bits - self.fixed_bits
+
+    def record_frames_per_axis(self, n_axes: int) -> int:
+        """How many records every axis may get per cycle, all axes the same, within the budget."""
+        return max(0, int(self.streamer_bits // (n_axes * RECORD_FRAME_BITS)))
+
+
+def cycle_budget(
+    n_nodes: int, sync_period_ms: int, bitrate: int, bus_load_limit: float, heartbeat_ms: int,
+    *, feedback_every: int = 1, time_stamp: bool = False,
+) -> CycleBudget:
+    cycle_bits = bitrate * sync_period_ms / 1000.0
+    heartbeats_per_cycle = sync_period_ms / heartbeat_ms if heartbeat_ms > 0 else 0.0
+    sync = COUNTED_SYNC_FRAME_BITS if feedback_every > 1 else SYNC_FRAME_BITS
+    feedback_frames = math.ceil(n_nodes / max(1, feedback_every))
+    fixed = (sync + (TIME_STAMP_FRAME_BITS if time_stamp else 0)
+             + n_nodes * (TPDO_FRAME_BITS + heartbeats_per_cycle * HEARTBEAT_FRAME_BITS)
+             + feedback_frames * TPDO_FRAME_BITS)
+    return CycleBudget(cycle_bits=cycle_bits, limit_bits=bus_load_limit * cycle_bits, fixed_bits=fixed)
+
+
+def feedback_every(
+    n_nodes: int, sync_period_ms: int, bitrate: int, bus_load_limit: float, heartbeat_ms: int,
+    *, requested: int = 0, time_stamp: bool = False,
+) -> int:
+    """TPDO2 every n-th SYNC: `requested` when given (>= 1), else the smallest n (1..16) whose budget
+    leaves every axis one record per SYNC (16 when none does: the core then refuses BUS_OVERLOAD)."""
+    if requested >= 1:
+        return requested
+    for n in range(1, MAX_FEEDBACK_EVERY + 1):
+        budget = cycle_budget(n_nodes, sync_period_ms, bitrate, bus_load_limit, heartbeat_ms,
+                              feedback_every=n, time_stamp=time_stamp)
+        if budget.record_frames_per_axis(n_nodes) >= 1:
+            return n
+    return MAX_FEEDBACK_EVERY

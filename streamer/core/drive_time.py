@@ -1,0 +1,109 @@
+"""Drive time: how far each drive has interpolated at a SYNC, as the master can know it.
+
+A drive locked to SYNC (reading `clock = "sync"`) runs exactly one period of 1 ms ticks per SYNC, so by
+SYNC s + j (s = the start SYNC) it has interpolated j * period ms: the master knows it to the tick, and
+every check stays exact. A drive with its own clock (`clock = "own"`) started its 1 kHz grid at the
+enabling SYNC and runs it at 1 + e of true time, |e| <= the stated bound (`clock_ppm_max`); with the
+0x1013 time stamp it follows the master's clock instead, to within a small residual. The master then
+knows the drive's interpolation time tau (ms) only as an interval, which it propagates from SYNC to
+SYNC with the SYNC's own time stamps (tau grows by dt * (1 -+ e)) and narrows with every position
+demand the drive reports (TPDO2): the ticks k whose predicted demand matches the reported one bound
+tau to [min k, max k + 1). In motion that pins tau to about a tick; at standstill the interval only
+grows by the drift (0.2 ms per second at 200 ppm) until motion resumes.
+
+Everything downstream (which records are consumed, the expected fill, the expected demand, when a
+record is due) is computed from [lo, hi] instead of one number; for a SYNC-locked drive lo == hi and
+the core behaves exactly as with a single clock. Pure: SYNC counts and times in, intervals out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+
+# the drive anchors its grid when it processes the enabling SYNC; the master's time stamp of that SYNC
+# differs from the drive's reception by bus and processing delays
+_ANCHOR_SLACK_MS = 0.25
+
+
+class DriveTime:
+    """Interpolation time of one drive since the start SYNC (ms), exact or as an interval."""
+
+    def __init__(self, period_ms: int, *, own_clock: bool, ppm_max: float, time_stamped: bool) -> None:
+        self.period_ms = period_ms
+        self.exact = not own_clock
+        # with time stamps the drive follows master time; what is left is its estimator's error
+        self.rho = (min(ppm_max, 50.0) if time_stamped else ppm_max) * 1e-6
+        self._start: int | None = None
+        self._t_start = 0.0
+        self._ref_sync = 0
+        self._ref_t = 0.0
+        self._lo = 0.0
+        self._hi = 0.0
+        self.narrowings = 0
+
+    def start(self, sync: int, t: float) -> None:
+        """Interpolation began at SYNC `sync`, sent at time `t` (s)."""
+        self._start = sync
+        self._t_start = t
+        self._ref_sync, self._ref_t = sync, t
+        self._lo, self._hi = -_ANCHOR_SLACK_MS, _ANCHOR_SLACK_MS
+
+    @property
+    def started(self) -> bool:
+        return self._start is not None
+
+    def bounds(self, sync: int, t: float) -> tuple[float, float]:
+        """[lo, hi] of the drive's interpolation time (ms) at SYNC `sync` sent at time `t`."""
+        s = self._start
+        if s is None or sync <= s:
+            return 0.0, 0.0
+        if self.exact:
+            e = float((sync - s) * self.period_ms)
+            return e, e
+        dt_ms = max(0.0, (t - self._ref_t) * 1000.0)
+        lo = max(0.0, self._lo + dt_ms * (1.0 - self.rho))
+        hi = max(lo, self._hi + dt_ms * (1.0 + self.rho))
+        return lo, hi
+
+    def ticks(self, sync: int, t: float) -> tuple[int, int]:
+        """The whole ticks the drive may have run by SYNC `sync`: [floor(lo), floor(hi)]."""
+        lo, hi = self.bounds(sync, t)
+        return math.floor(lo + 1e-9), math.floor(hi + 1e-9)
+
+    def observe(self, sync: int, t: float, matching_ticks: Iterable[int]) -> None:
+        """The drive's report at SYNC `sync` is explained by these tick counts only: narrow tau."""
+        if self.exact or self._start is None:
+            return
+        ks = list(matching_ticks)
+        if not ks:
+            return
+        lo, hi = self.bounds(sync, t)
+        new_lo = max(lo, float(min(ks)))
+        new_hi = min(hi, float(max(ks) + 1) - 1e-6)
+        if new_lo > new_hi:  # numerical edge: keep the observation, it is the stronger statement
+            new_lo, new_hi = float(min(ks)), float(max(ks) + 1) - 1e-6
+        if new_hi - new_lo < hi - lo:
+            self.narrowings += 1
+        self._ref_sync, self._ref_t = sync, t
+        self._lo, self._hi = new_lo, new_hi
+
+    def matching(self, sync: int, t: float, predict: Callable[[int], Iterable[int]], demand: int,
+                 tolerance: int) -> tuple[list[int], int]:
+        """Ticks k in the current interval whose predicted demands (one per rounding reading) hit `demand`
+        exactly, and the smallest |demand - prediction| over the interval (for the tolerance check)."""
+        k_lo, k_hi = self.ticks(sync, t)
+        exact: list[int] = []
+        best = math.inf
+        for k in range(k_lo, k_hi + 1):
+            for p in predict(k):
+                err = abs(demand - p)
+                if err < best:
+                    best = err
+                if err == 0:
+                    exact.append(k)
+        if not exact and best <= tolerance:
+            for k in range(k_lo, k_hi + 1):
+                if any(abs(demand - p) <= tolerance for p in predict(k)):
+                    exact.append(k)
+        return exact, int(best) if math.isfinite(best) else 2**31
