@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from bus.codec import frame_bits
 
@@ -78,3 +79,9 @@ def feedback_every(
         if budget.record_frames_per_axis(n_nodes) >= 1:
             return n
     return MAX_FEEDBACK_EVERY
+
+
+def cell_feedback_every(cell: Any, bus_load_limit: float = 0.7) -> int:
+    """`feedback_every` for a `planner.config.CellConfig` (its `feedback_every_syncs`, 0 = auto)."""
+    return feedback_every(len(cell.axes), cell.sync_period_ms, cell.bus.bitrate, bus_load_limit,
+                          cell.drive.heartbeat_ms, requested=cell.feedback_every_syncs, time_stamp=cell.time_stamp)

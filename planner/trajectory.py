@@ -196,17 +196,20 @@ class PvtTrajectory:
             )
         return pos, vel, acc
 
-    def demand(self) -> IntArray:
-        """The drive's position demand (0x6062) at every ms 0..M: whole counts, (n_axes, M+1)."""
-        return hermite.round_counts_array(self.drive_profile()[0])
+    def demand(self, toward_zero: bool = False) -> IntArray:
+        """The drive's position demand (0x6062) at every ms 0..M: whole counts, (n_axes, M+1). The drive
+        rounds to nearest, or (`toward_zero`, the other reading the manuals permit) truncates."""
+        pos = self.drive_profile()[0]
+        return hermite.truncate_counts_array(pos) if toward_zero else hermite.round_counts_array(pos)
 
-    def planned_demand(self) -> IntArray:
+    def planned_demand(self, toward_zero: bool = False) -> IntArray:
         """The plan rounded to whole counts as the drive rounds, at every ms: (n_axes, M+1)."""
-        return hermite.round_counts_array(np.asarray(self.plan.positions))
+        pos = np.asarray(self.plan.positions)
+        return hermite.truncate_counts_array(pos) if toward_zero else hermite.round_counts_array(pos)
 
-    def deviation(self) -> IntArray:
-        """demand() - planned_demand(): whole counts, within +-tolerance_counts at every ms."""
-        out: IntArray = self.demand() - self.planned_demand()
+    def deviation(self, toward_zero: bool = False) -> IntArray:
+        """demand() - planned_demand() for one rounding reading: whole counts at every ms."""
+        out: IntArray = self.demand(toward_zero) - self.planned_demand(toward_zero)
         return out
 
     def knot_state(self, k: int) -> tuple[FloatArray, FloatArray, FloatArray]:

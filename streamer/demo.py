@@ -117,13 +117,14 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
 
         rt = VirtualRuntime(cell, vcell=vcell, log=log)
         result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync)
-    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out)
+    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
+                   rt.settings.readings)
 
 
 def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any, first: int, last: int,
-            out: Path) -> tuple[dict[str, Any], Any]:
+            out: Path, readings: Any = None) -> tuple[dict[str, Any], Any]:
     report = build_report(traj, core.report(), trace, sync_period_ms=cell.sync_period_ms,
-                          first_sync=first, last_sync=last)
+                          first_sync=first, last_sync=last, readings=readings, time_stamp=cell.time_stamp)
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
                 underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning)

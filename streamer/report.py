@@ -13,6 +13,7 @@ two ways and the larger is reported:
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -20,9 +21,11 @@ from typing import Any
 import numpy as np
 
 from bus.cob import RPDO2_BASE
+from planner.readings import DriveReadings
 from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import JobReport
+from streamer.core.settings import REFERENCE_READINGS
 from streamer.runtime.trace import JobTrace
 
 
@@ -41,22 +44,47 @@ def build_report(
     first_sync: int,
     last_sync: int,
     faults: Sequence[Mapping[str, Any]] = (),
+    readings: Mapping[int, DriveReadings] | None = None,
+    time_stamp: bool = False,
 ) -> dict[str, Any]:
+    """`readings`: what the master knew of each drive (rounding: the plan is rounded as the drive rounds;
+    an own clock: the demand is compared with the plan at the drive's own time, and against SYNC time
+    within what the clock's stated error explains)."""
     outcome = core.outcome
     result = outcome.result.value if outcome is not None else core.state
-    planned = traj.planned_demand()
-    encoder_dev = np.abs(traj.deviation()).max(axis=1)
+    by_rounding = {tz: (traj.planned_demand(tz), np.abs(traj.deviation(tz)).max(axis=1)) for tz in (False, True)}
     axes_out: list[dict[str, Any]] = []
     telemetry = {t.node_id: t for t in core.axes}
     for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True)):
         ax = trace.axes[node]
         tel = telemetry.get(node)
-        sampled_dev = 0
+        r = (readings or {}).get(node, REFERENCE_READINGS)
+        # the plan rounded as the drive rounds; unknown rounding: the worse of both readings
+        tz = r.rounding == "toward_zero"
+        planned, encoder_dev = by_rounding[tz]
+        if r.rounding is None:
+            encoder_dev = np.maximum(by_rounding[False][1], by_rounding[True][1])
+        own_clock = r.clock == "own"
+        rho = (min(r.clock_ppm_max, 50.0) if time_stamp else r.clock_ppm_max) * 1e-6
+        sampled_dev = explained = unexplained = 0
         for s, d in zip(ax.pos_sync, ax.demand, strict=True):
             if core.start_sync is not None and s > core.start_sync + traj.duration_ms // sync_period_ms + 1:
                 break  # after the plan's end: the stop or hold is not the plan
             k = _plan_index(s, core.start_sync, sync_period_ms, traj.duration_ms)
-            sampled_dev = max(sampled_dev, abs(int(d) - int(planned[i, k])))
+            dev = abs(int(d) - int(planned[i, k]))
+            sampled_dev = max(sampled_dev, dev)
+            if own_clock:
+                # the drive may be a tick off its grid's phase plus what the drift added since the start
+                delta = 1 + math.ceil(rho * k)
+                window = planned[i, max(0, k - delta):min(traj.duration_ms, k + delta) + 1]
+                bound = int(np.abs(window - planned[i, k]).max())
+                explained = max(explained, bound)
+                unexplained = max(unexplained, dev - bound - traj.tolerance_counts)
+        if own_clock:
+            # the deviation proper is the one at the drive's own time (the core checks every TPDO2 there)
+            drive_time_dev = max(int(encoder_dev[i]), tel.max_demand_error_counts if tel else 0)
+        else:
+            drive_time_dev = max(int(encoder_dev[i]), sampled_dev)
         final_actual = trace.final_actual(node)
         target = int(traj.positions[i, -1])
         ends = [s for s in ax.ip_active_syncs]
@@ -69,13 +97,16 @@ def build_report(
                 "points_sent": tel.points_sent if tel else 0,
                 "min_fifo": tel.min_fifo if tel else None,
                 "max_fifo": tel.max_fifo if tel else None,
-                "max_deviation_counts": int(max(int(encoder_dev[i]), sampled_dev)),
+                "max_deviation_counts": int(drive_time_dev),
                 "max_following_error_counts": ax.max_following_error(),
                 "final_position_error_counts": (final_actual - target) if final_actual is not None else None,
                 "underflow_warnings": tel.underflow_warnings if tel else 0,
                 "overflow_warnings": tel.overflow_warnings if tel else 0,
                 "resends": tel.resends if tel else 0,
                 "errors": list(tel.errors) if tel else [],
+                **({"drive_clock": "own", "max_deviation_sync_time_counts": sampled_dev,
+                    "clock_explained_counts": explained, "unexplained_counts": max(0, unexplained)}
+                   if own_clock else {}),
             }
         )
     fault_list = list(faults)
@@ -90,6 +121,7 @@ def build_report(
         "duration_s": traj.duration_s,
         "planned_points": traj.n_points,
         "syncs": last_sync - first_sync + 1,
+        "job_start_s": min(trace.sync_times.values()) if trace.sync_times else None,
         "frames": trace.frames,
         "frames_per_point": core.frames_per_point,
         "bus_load_peak": round(trace.bus_load_peak(), 4),
@@ -102,8 +134,10 @@ def write_report(report: Mapping[str, Any], path: Path) -> None:
     path.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
 
 
-def decode_candump(path: Path, node_ids: Iterable[int]) -> dict[int, list[PvtRecord]]:
-    """The 0x20C1 records sent to each node, in bus order, read back from a candump (-L) log."""
+def decode_candump(path: Path, node_ids: Iterable[int], since_s: float | None = None) -> dict[int, list[PvtRecord]]:
+    """The 0x20C1 records sent to each node, in bus order, read back from a candump (-L) log; from
+    `since_s` on (the report's `job_start_s`: the standstill probe's records before the job are not the
+    job's)."""
     import can
 
     wanted = {RPDO2_BASE + n: n for n in node_ids}
@@ -111,7 +145,7 @@ def decode_candump(path: Path, node_ids: Iterable[int]) -> dict[int, list[PvtRec
     with can.LogReader(str(path)) as reader:
         for msg in reader:
             node = wanted.get(msg.arbitration_id)
-            if node is not None:
+            if node is not None and (since_s is None or msg.timestamp >= since_s - 1e-6):
                 out[node].append(unpack(bytes(msg.data)))
     return out
 

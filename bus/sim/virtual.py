@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from bus import codec
+from bus.budget import cell_feedback_every
 from bus.codec import Frame
 from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, feedback_schedule
 from bus.sim.model import DriveModel
@@ -32,7 +33,7 @@ class VirtualCell:
         initial_positions: Mapping[int, float] | None = None,
         sync_gap_factor: float = 1.5,
         profile: DriveProfile = EPOS_IPM,
-        feedback_every: int = 1,
+        feedback_every: int | None = None,
     ):
         self.cell = cell
         self.models: dict[int, DriveModel] = {}
@@ -44,10 +45,11 @@ class VirtualCell:
                            sync_gap_factor=sync_gap_factor, profile=profile)
             self.boot_frames += m.power_on(t0)
             self.models[axis.node_id] = m
-        # what the master configures: TPDO2 staggered when the cell asks for it and every drive has the
-        # SYNC counter (the master learns that over SDO; here each model says so itself)
+        # what the master configures: TPDO2 staggered when the cell needs it (bus.budget) and every drive
+        # has the SYNC counter (the master learns that over SDO; here each model says so itself)
+        every = feedback_every if feedback_every is not None else cell_feedback_every(cell)
         self.feedback: FeedbackSchedule | None = feedback_schedule(
-            [a.node_id for a in cell.axes], feedback_every, all(m.has_object(0x1019) for m in self.models.values()))
+            [a.node_id for a in cell.axes], every, all(m.has_object(0x1019) for m in self.models.values()))
         if configure:
             for m in self.models.values():
                 self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=t0, feedback=self.feedback,

@@ -46,6 +46,9 @@ def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
         n = a["name"]
         if a["max_deviation_counts"] > tolerance_counts:
             problems.append(f"axis {n}: deviation {a['max_deviation_counts']} counts > tolerance {tolerance_counts}")
+        if a.get("unexplained_counts", 0) > 0:
+            problems.append(f"axis {n}: demand off the plan by {a['unexplained_counts']} counts more than its "
+                            f"clock's stated error explains")
         if a["final_position_error_counts"] != 0:
             problems.append(f"axis {n}: final position error {a['final_position_error_counts']} counts")
         if a["errors"]:

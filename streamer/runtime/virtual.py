@@ -40,19 +40,34 @@ import heapq
 import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple, Protocol
 
-from bus.cob import SYNC_COB_ID, classify
+from bus import codec
+from bus.cob import SYNC_COB_ID, TIME_STAMP_COB_ID, classify
 from bus.codec import Frame, frame_bits
 from bus.errors import ProtocolError
-from bus.events import AdapterError, BusLoad, Cancel, Event, HeartbeatLost, Send, SendFailed, Sync
+from bus.events import (
+    AdapterError,
+    BufferStatus,
+    BusLoad,
+    Cancel,
+    Emcy,
+    Event,
+    HeartbeatLost,
+    PositionFeedback,
+    Send,
+    SendFailed,
+    Sync,
+)
+from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
 from bus.profile import EPOS_IPM, DriveProfile
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
+from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState, Reaction
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
-from streamer.core.settings import StreamerSettings
+from streamer.core.settings import MUST_KNOW, StreamerSettings
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
@@ -194,7 +209,15 @@ class VirtualRuntime:
         self.period_s = cell.sync_period_s
         self.vcell = vcell if vcell is not None else VirtualCell(cell)
         self.profile = profile
-        self.settings = settings if settings is not None else StreamerSettings.from_cell(cell)
+        # settings given by the caller are taken as they are; else the cell's, with what the master knows
+        # of each drive ([axis.probed]) completed by the standstill probe before the first job
+        self._settings_given = settings is not None
+        self.settings = settings if settings is not None else replace(
+            StreamerSettings.from_cell(cell), feedback=self.vcell.feedback)
+        self.known: dict[int, DriveReadings] = {a.node_id: a.probed for a in cell.axes}
+        self.probe_result: ProbeResult | None = None
+        self._probe: StandstillProbe | None = None
+        self._time_offset = 0.0  # SYNC times after a probe continue from where the probe left off
         self.nodes = frozenset(a.node_id for a in cell.axes)
         self._log = log
         self._link = link
@@ -227,7 +250,10 @@ class VirtualRuntime:
     @property
     def now(self) -> float:
         """The release time of the current SYNC cycle."""
-        return self._sync_time(self._cycle) if self._cycle >= 0 else 0.0
+        return self._cycle_time(self._cycle) if self._cycle >= 0 else self._time_offset
+
+    def _cycle_time(self, n: int) -> float:
+        return self._sync_time(n) + self._time_offset
 
     # ---- frames onto the bus from outside the protocol flow
     def drive_frames(self, frames: Iterable[Frame], t: float) -> None:
@@ -265,6 +291,10 @@ class VirtualRuntime:
 
     def _on_wire(self, q: _Queued, start: float, end: float) -> None:
         frame = q.frame
+        if q.sender == _MASTER and frame.cob_id == SYNC_COB_ID and self.cell.time_stamp:
+            # seed 001: the master latches the SYNC's transmit time and sends it (0x1013, us) right after
+            stamp = round(start * 1e6) % (1 << 32)
+            self._bus.submit(Frame(TIME_STAMP_COB_ID, stamp.to_bytes(4, "little")), end, _MASTER)
         dlc = len(frame.data)
         if self._log is not None:
             self._log(start, frame.cob_id, frame.data)
@@ -280,7 +310,7 @@ class VirtualRuntime:
                 self._arrive_master(f, end)
         if q.sender == _MASTER:
             if frame.cob_id == SYNC_COB_ID:
-                self._sync_echo(start)
+                self._sync_echo(start, frame.data)
             self._deliver(frame, end, to_drives=True)
         elif q.sender == _DRIVES:
             self._deliver(frame, end, to_drives=False)
@@ -311,7 +341,7 @@ class VirtualRuntime:
 
     def _arrive_drives(self, frame: Frame, t: float) -> None:
         is_sync = frame.cob_id == SYNC_COB_ID
-        answers = self.vcell.sync(t) if is_sync else self.vcell.deliver(frame.cob_id, frame.data, t)
+        answers = self.vcell.sync(t, frame.data) if is_sync else self.vcell.deliver(frame.cob_id, frame.data, t)
         for f in answers:
             self._bus.submit(f, t, _DRIVES)
 
@@ -330,18 +360,23 @@ class VirtualRuntime:
             self.counters["unknown_cob_id" if kind == "OTHER" else "other_node"] += 1
         if ev is None:
             return
+        if self._probe is not None:
+            self._feed_probe(ev)
         if self._core is not None:
             self._apply(self._core, ev, t)
 
-    def _sync_echo(self, t: float) -> None:
+    def _sync_echo(self, t: float, data: bytes = b"") -> None:
         self._sync += 1
         n = self._sync
         last, self._last_sync_t = self._last_sync_t, t
         core = self._core
         if self.trace is not None:
             self.trace.on_sync(n, t)
+        if self._probe is not None:
+            for f in self._probe.on_sync(n, t, data[0] if data else None):
+                self._send(f, t)
         if core is not None:
-            self._apply(core, Sync(n, t), t)
+            self._apply(core, Sync(n, t, data[0] if data else None), t)
         if last is not None and self._bus_load_events:
             load = self._window_bits / (self._bitrate * max(t - last, self.period_s))
             if core is not None:
@@ -398,26 +433,53 @@ class VirtualRuntime:
                 lost.append(HeartbeatLost(node, t))
         return lost
 
-    def _cycle_once(self) -> float:
-        """One SYNC cycle (see the module docstring); returns the SYNC's release time."""
+    def _cycle_once(self, t: float | None = None, t_next: float | None = None) -> float:
+        """One SYNC cycle (see the module docstring); returns the SYNC's release time. `t`/`t_next`
+        override the SYNC timing (the probe sets its own)."""
         self._cycle += 1
-        t = self._sync_time(self._cycle)
-        t_next = self._sync_time(self._cycle + 1)
-        self._run_bus(t)
+        if t is None:
+            t = self._cycle_time(self._cycle)
+        if t_next is None:
+            t_next = self._cycle_time(self._cycle + 1)
+        self._run_until(t)
         self._advance_drives(t)
         self._consumer_check(t)
-        reason = self._send(Frame(SYNC_COB_ID, b""), t)
+        reason = self._send(Frame(SYNC_COB_ID, self._sync_data()), t)
         if reason is not None:
             self.counters["sync_refused"] += 1
             if self._core is not None:
                 self._apply(self._core, SendFailed(f"{reason}: SYNC not sent", t), t)
-        # the bus up to the next SYNC, stopping at each heartbeat consumer deadline on the way (the
-        # master's consumer timer fires when the timeout passes, not at the next SYNC)
-        while (d := self._next_consumer_deadline()) is not None and d < t_next:
-            self._run_bus(d)
-            self._consumer_check(d)
-        self._run_bus(t_next)
+        self._run_until(t_next)
         return t
+
+    def _sync_data(self) -> bytes:
+        """The SYNC's counter byte 1..N when TPDO2 is staggered (CiA 301 0x1019), else none."""
+        fb = self.vcell.feedback
+        if fb is None:
+            return b""
+        return bytes([1 + self._cycle % fb.counter_overflow])
+
+    def _run_until(self, until: float) -> None:
+        """The bus up to `until`, stopping at each drive timer (a TPDO held for its latency, an own
+        clock's segment end, a heartbeat) and each heartbeat consumer deadline on the way (the master's
+        consumer timer fires when the timeout passes, not at the next SYNC)."""
+        last = -math.inf
+        for _ in range(100_000):
+            d_drive = self.vcell.next_deadline()
+            d_cons = self._next_consumer_deadline()
+            d = min(x for x in (d_drive, d_cons, math.inf) if x is not None)
+            if d >= until - 1e-9:
+                break  # due at `until` (a heartbeat at the SYNC's time): the next cycle runs it before its SYNC
+            if d <= last:  # a timer that did not move: take it at the next instant
+                d = math.nextafter(last, math.inf)
+            self._run_bus(d)
+            last = d
+            if d_drive is not None and d_drive <= d:
+                for f in self.vcell.advance(d):
+                    self._bus.submit(f, d, _DRIVES)
+            if d_cons is not None and d_cons <= d:
+                self._consumer_check(d)
+        self._run_bus(until)
 
     def _next_consumer_deadline(self) -> float | None:
         live = [seen for node, seen in self._last_heartbeat.items() if node not in self._hb_lost]
@@ -436,7 +498,6 @@ class VirtualRuntime:
         actual position, and the next plan starts at the demand), enable operation 0x000F (bit 4 low, so
         the start is a rising edge), ip buffer clear 0x60C4:06 = 0 then enable = 1. What the drives
         answer (EMCY "error reset") goes on the bus."""
-        from bus import codec
 
         S = codec.Cia402State
         cw = self.profile.obj("controlword")
@@ -456,6 +517,67 @@ class VirtualRuntime:
             for index, sub, value in writes:
                 for f in self.vcell.sdo_write(node, index, sub, value, t):
                     self._bus.submit(f, t, _DRIVES)
+
+    # ---- the standstill probe
+    def probe(self, experiments: Sequence[Phase] = AUTO_EXPERIMENTS) -> ProbeResult:
+        """Run the standstill probe (bus/probe.py) on every drive of the cell, as the master does at
+        configuration: SYNC at the probe's times, its frames on the bus, SDO work (enable, buffer clear,
+        fault reset) written straight into the models as `enable_drives` does."""
+        self._core = None
+        self.trace = None
+        nodes = sorted(self.nodes)
+        t0 = self._last_sync_t if self._last_sync_t is not None else self.now
+        demand = self.profile.obj("position_demand")
+        probe = StandstillProbe(nodes, self.cell.sync_period_ms, self.profile,
+                                {n: self.vcell.sdo_read(n, demand.index, demand.sub) for n in nodes},
+                                experiments=experiments, t0=t0, feedback=self.vcell.feedback)
+        self._probe = probe
+        try:
+            t = t0
+            for _ in range(10_000):
+                if probe.done:
+                    break
+                if probe.wants_enable:
+                    t_en = t + self.period_s / 2
+                    self._run_until(t_en)
+                    self.enable_drives(t_en)
+                    probe.enabled({n: self.vcell.sdo_read(n, demand.index, demand.sub) for n in nodes})
+                t = probe.next_sync_time()
+                self._cycle_once(t, t + self.period_s)
+            else:  # pragma: no cover - the probe's phases are bounded
+                raise ProbeError("the probe did not finish")
+        finally:
+            self._probe = None
+        # jobs after the probe: SYNC continues one period after the probe's last
+        self._time_offset = t + self.period_s - self._sync_time(self._cycle + 1)
+        result = probe.result()
+        self.probe_result = result
+        return result
+
+    def _feed_probe(self, ev: Event) -> None:
+        probe = self._probe
+        assert probe is not None
+        if isinstance(ev, BufferStatus):
+            probe.on_tpdo1(ev.node, ev.statusword, ev.buffer_status, ev.free_size, ev.t)
+        elif isinstance(ev, PositionFeedback):
+            probe.on_tpdo2(ev.node, ev.position_actual, ev.position_demand, ev.t)
+        elif isinstance(ev, Emcy):
+            probe.on_emcy(ev.node, ev.code, ev.t)
+
+    def ensure_readings(self) -> None:
+        """Measure what the master does not know yet of the drives (MUST_KNOW points, TPDO latency),
+        once, with the standstill probe; the job settings then carry every drive's readings."""
+        if self._settings_given:
+            return
+        missing = [n for n, r in self.known.items()
+                   if any(getattr(r, k) is None for k in MUST_KNOW) or r.tpdo_latency_ms is None]
+        if missing:
+            result = self.probe()
+            bad = result.failures()
+            if bad:
+                raise ProbeError("the drives' readings could not be measured: " + "; ".join(bad))
+            self.known = {n: r.merged(result.nodes[n].readings) for n, r in self.known.items()}
+        self.settings = replace(self.settings, readings=dict(self.known))
 
     def idle(self, duration_s: float, *, on_sync: Callable[[int], None] | None = None) -> None:
         """Keep SYNC running with no job for `duration_s` (what the drives do is seen in the models)."""
@@ -480,9 +602,10 @@ class VirtualRuntime:
         on_sync: Callable[[Coordinator, int], None] | None = None,
     ) -> VirtualResult:
         """Stream one trajectory to the drives. Returns when the job ended and the axes settled."""
-        t_enable = self._sync_time(self._cycle + 1) - self.period_s / 2
+        self.ensure_readings()
+        t_enable = self._cycle_time(self._cycle + 1) - self.period_s / 2
         self._core = None
-        self._run_bus(t_enable)  # frames still in flight from before belong to no job
+        self._run_until(t_enable)  # frames still in flight from before belong to no job
         self.enable_drives(t_enable)
         core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)
         job_nodes = set(core.node_ids)
@@ -499,6 +622,7 @@ class VirtualRuntime:
         cancelled = False
         settle_until: float | None = None
         settled = False
+        settled_at: int | None = None
         try:
             while True:
                 t = self._cycle_once()
@@ -514,6 +638,9 @@ class VirtualRuntime:
                         settle_until = t + settle_s
                     if self._settled() or t >= settle_until:
                         settled = self._settled()
+                        if settled and settled_at is None:
+                            settled_at = self._sync  # one more cycle: TPDOs held for their latency come in
+                            continue
                         break
                 if elapsed > limit_s:
                     raise TimeoutError(

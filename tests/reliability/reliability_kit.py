@@ -34,6 +34,7 @@ from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig, load_cell
 from planner.job import job_from_dict
 from planner.plan import plan_job
+from planner.readings import DriveReadings, SimDriveOptions
 from planner.record import PvtRecord
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
@@ -88,6 +89,18 @@ def slow_sync_cell(sync_ms: int = 20) -> CellConfig:
     return dataclasses.replace(cell3(), sync_period_ms=sync_ms)
 
 
+def probed_as_simulated(cell: CellConfig) -> CellConfig:
+    """The cell with every axis' [axis.probed] set to what its simulated drive does."""
+    return dataclasses.replace(cell, axes=tuple(dataclasses.replace(a, probed=DriveReadings.of_sim(a.sim))
+                                                for a in cell.axes))
+
+
+def with_variant(cell: CellConfig, **options: Any) -> CellConfig:
+    """The cell with every axis' simulated drive set to the given readings (planner/readings.py)."""
+    sim = SimDriveOptions(**options)
+    return dataclasses.replace(cell, axes=tuple(dataclasses.replace(a, sim=sim) for a in cell.axes))
+
+
 def start_positions(traj: PvtTrajectory) -> dict[int, float]:
     return {int(n): float(traj.positions[i, 0]) for i, n in enumerate(traj.node_ids)}
 
@@ -117,6 +130,9 @@ class Rig:
     ticks_at: dict[int, dict[int, int]] = field(default_factory=dict)  # SYNC -> node -> drive ticks run
 
     def __post_init__(self) -> None:
+        # the master knows the drives' readings (as after `pvt probe --write`): the scenarios inject their
+        # faults into jobs, not into the standstill probe
+        self.cell = probed_as_simulated(self.cell)
         self.vcell = VirtualCell(self.cell, initial_positions=start_positions(self.traj))
         for node, model in self.vcell.models.items():
             self._instrument(node, model)

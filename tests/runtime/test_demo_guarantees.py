@@ -28,7 +28,7 @@ def _check(report: dict, traj, out: Path, cell) -> None:
         assert a["final_position_error_counts"] == 0, a
         assert a["points_sent"] == traj.n_points, a  # N records + the time-0 end record
     # the bus log decodes back to the planned PVT records exactly, in order
-    sent = decode_candump(out / "bus.log", traj.node_ids)
+    sent = decode_candump(out / "bus.log", traj.node_ids, report["job_start_s"])
     for i, node in enumerate(traj.node_ids):
         assert sent[node] == traj.records(i), f"node {node}: the wire differs from the plan"
     assert guarantees(report, traj.tolerance_counts) == []

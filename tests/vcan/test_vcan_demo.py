@@ -47,7 +47,7 @@ def test_vcan_demo_meets_the_guarantees(vcan_demo: tuple[dict, Path]) -> None:
         assert a["underflow_warnings"] == 0 and a["errors"] == []
         assert a["max_deviation_counts"] <= traj.tolerance_counts
         assert a["final_position_error_counts"] == 0
-    sent = decode_candump(out / "bus.log", traj.node_ids)
+    sent = decode_candump(out / "bus.log", traj.node_ids, report["job_start_s"])
     for i, node in enumerate(traj.node_ids):
         assert sent[node] == traj.records(i)
     assert cell.bus.interface == "socketcan"
