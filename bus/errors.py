@@ -2,7 +2,8 @@
 
 `BusError` is what the master-side adapter raises when the wire does not do what the product needs: a
 drive that does not answer (`NO_RESPONSE`), refuses a write (`SDO_ABORT`), reads back a different
-value (`VERIFY`), a bus that cannot be opened (`BUS_OPEN`) or refuses a frame (`SEND_FAILED`).
+value (`VERIFY`), lacks an object the product needs (`MISSING_OBJECT`), could not be probed (`PROBE`),
+a bus that cannot be opened (`BUS_OPEN`) or refuses a frame (`SEND_FAILED`).
 The message always names the node and the object ("node 3 did not answer reading 0x1000:00").
 
 `ProtocolError` is what the pure codecs raise for a frame that cannot be decoded (wrong length,
@@ -24,8 +25,11 @@ CLOSED = "CLOSED"
 PROTOCOL = "PROTOCOL"
 CALLBACK = "CALLBACK"
 CONFIG = "CONFIG"
+MISSING_OBJECT = "MISSING_OBJECT"  # the drive lacks an object the product cannot do without
+PROBE = "PROBE"  # the standstill probe could not tell how a drive settles the manuals' open points
 
-CODES = frozenset({BUS_OPEN, NO_RESPONSE, SDO_ABORT, VERIFY, SEND_FAILED, CLOSED, PROTOCOL, CALLBACK, CONFIG})
+CODES = frozenset({BUS_OPEN, NO_RESPONSE, SDO_ABORT, VERIFY, SEND_FAILED, CLOSED, PROTOCOL, CALLBACK, CONFIG,
+                   MISSING_OBJECT, PROBE})
 
 
 class BusError(Exception):

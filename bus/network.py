@@ -6,16 +6,24 @@ one is given), a canopen `Network` with one `RemoteNode` per axis (for SDO only)
 listener and a monitor thread.
 
 What it does:
-- `configure_drives()`: every drive over SDO from the profile (`DriveProfile.configuration`: mode 7,
-  sub-mode -1, watermarks, limits, PDO mappings and transmission types, heartbeat producer), read back
-  and compared, then NMT start. A drive that does not answer, refuses a write or reads back another
-  value raises `BusError` (NO_RESPONSE / SDO_ABORT / VERIFY) naming the node and the object.
+- `configure_drives()`: first a survey of every drive (which optional objects it lacks, and that its
+  interpolation period 0x60C2 is the 1 ms the product interpolates at), then every drive over SDO from the
+  profile (`DriveProfile.configuration`: mode 7, sub-mode -1, watermarks, limits, PDO mappings and
+  transmission types, heartbeat producer; TPDO2 every n-th SYNC staggered by the SYNC counter when the
+  cell needs it and every drive has 0x1019; the time stamp consumer when the cell sends 0x1013), read back
+  and compared, then NMT start. What a drive lacks of the optional objects is skipped (`absent`); a
+  missing essential object, a drive that does not answer, refuses a write or reads back another value
+  raises `BusError` (MISSING_OBJECT / NO_RESPONSE / SDO_ABORT / VERIFY) naming the node, the object and
+  why the product needs it.
 - Received frames become events, in bus order, on the receive thread: TPDO1 -> BufferStatus,
   TPDO2 -> PositionFeedback, EMCY -> Emcy (code 0x0000 is CiA 301 "error reset", sent after a fault
   reset), boot-up -> Bootup, our own SYNC (received back: the bus is opened with
-  `receive_own_messages`) -> Sync(count, t) with count 0, 1, 2, ... from `start_sync`, followed by
+  `receive_own_messages`) -> Sync(count, t, counter) with count 0, 1, 2, ... from `start_sync` (and the
+  SYNC's counter byte, if it carries one), followed by
   BusLoad (worst-case frame bits of everything seen since the previous SYNC, all senders, over
-  max(measured interval, SYNC period)). TPDO events carry `sync_count`, the SYNC they answer.
+  max(measured interval, SYNC period)). TPDO events carry `sync_count`, the newest SYNC on the wire when
+  they arrived (the core works out which one they answer). With `cell.time_stamp` the adapter sends the
+  high-resolution time stamp (0x1013: the echo's time in us) right after each SYNC echo (seed 001).
 - The monitor thread: heartbeat consumer (HeartbeatLost once per loss, re-armed by the next
   heartbeat, armed for a node when it is configured) and a check that SYNC echoes arrive.
 - A malformed frame or an exception anywhere in the adapter's callbacks becomes an `AdapterError`
@@ -42,11 +50,13 @@ import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from bus import cob, codec
+from bus.budget import cell_feedback_every
 from bus.errors import (
     BUS_OPEN,
     CALLBACK,
     CLOSED,
     CONFIG,
+    MISSING_OBJECT,
     NO_RESPONSE,
     SDO_ABORT,
     SEND_FAILED,
@@ -55,10 +65,15 @@ from bus.errors import (
     ProtocolError,
 )
 from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, SendFailed, Sync
-from bus.profile import EPOS_IPM, DriveProfile, SdoWrite
+from bus.probe import AbsentObject, WriteOnly
+from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule
 from planner.config import AxisConfig, BusConfig, CellConfig
+from planner.readings import OPTIONAL_OBJECTS
 
 EventCallback = Callable[[Event], None]
+ABORT_NO_OBJECT = 0x06020000
+ABORT_NO_SUBINDEX = 0x06090011
+ABORT_WRITE_ONLY = 0x06010001
 MONITOR_PERIOD_S = 0.02
 NOTIFIER_CYCLE_S = 0.1  # canopen's default 1 s makes every close() wait up to 1 s
 
@@ -130,6 +145,8 @@ class MasterAdapter:
             self.remote[axis.node_id] = node
         self._sync_task: Any = None
         self._sync_count = 0
+        self.absent: dict[int, tuple[int, ...]] = {}  # node -> optional objects it lacks (after the survey)
+        self.feedback: FeedbackSchedule | None = None  # TPDO2 schedule (after configure_drives)
         self._sync_started_at: float | None = None
         self._sync_period_s = cell.sync_period_s
         self._sync_echo_warned = False
@@ -162,22 +179,75 @@ class MasterAdapter:
             raise BusError(CLOSED, "the bus adapter has no running notifier")
         notifier.add_listener(listener)
 
-    def configure_drives(self, *, start: bool = True) -> None:
-        """Configure and verify every drive of the cell over SDO, then (if `start`) NMT start them."""
+    def configure_drives(self, *, start: bool = True, feedback_every: int | None = None) -> None:
+        """Survey, configure and verify every drive of the cell over SDO, then (if `start`) NMT start them.
+        `feedback_every`: TPDO2 every n-th SYNC (default: what the cell needs, bus.budget)."""
         self._check_open()
+        for axis in self.cell.axes:
+            self.nmt(codec.NmtCommand.ENTER_PRE_OPERATIONAL, axis.node_id)
+            self.absent[axis.node_id] = self.survey(axis.node_id)
+        every = feedback_every if feedback_every is not None else cell_feedback_every(self.cell)
+        self.feedback = feedback_schedule([a.node_id for a in self.cell.axes], every,
+                                          all(0x1019 not in self.absent[a.node_id] for a in self.cell.axes))
         for axis in self.cell.axes:
             self.configure_drive(axis)
         if start:
             for axis in self.cell.axes:
                 self.nmt(codec.NmtCommand.START, axis.node_id)
 
+    def read_object(self, node_id: int, index: int, sub: int = 0) -> int:
+        """An SDO read for the survey and the probe: AbsentObject / WriteOnly for those aborts."""
+        try:
+            return self.read(node_id, index, sub)
+        except BusError as e:
+            code = e.detail.get("abort_code") if e.detail else None
+            if code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
+                raise AbsentObject(f"0x{index:04X}:{sub:02X}") from None
+            if code == ABORT_WRITE_ONLY:
+                raise WriteOnly(f"0x{index:04X}:{sub:02X}") from None
+            raise
+
+    def survey(self, node_id: int) -> tuple[int, ...]:
+        """The optional objects a drive lacks; checks its interpolation period (0x60C2) is 1 ms, the tick
+        the product's interpolation model (planner.hermite) assumes. Raises BusError for anything else."""
+        self.read(node_id, self.profile.obj("device_type").index)
+        absent: list[int] = []
+        for index in OPTIONAL_OBJECTS:
+            sub = 1 if index in (0x1010, 0x1011, 0x60C2) else 0
+            try:
+                self.read_object(node_id, index, sub)
+            except (AbsentObject, WriteOnly) as e:
+                if isinstance(e, AbsentObject):
+                    absent.append(index)
+        if 0x60C2 not in absent:
+            value = self.read(node_id, 0x60C2, 1)
+            exp = self.read(node_id, 0x60C2, 2)
+            exp = exp - 256 if exp > 127 else exp
+            if value * 10.0 ** exp != 1e-3:
+                raise BusError(CONFIG, f"node {node_id}: interpolation period 0x60C2 is {value} x 10^{exp} s; the "
+                               "product interpolates at 1 ms (seed 000 4.3.6.4)", node=node_id, obj=(0x60C2, 1))
+        return tuple(absent)
+
     def configure_drive(self, axis: AxisConfig) -> None:
         node = self._remote(axis.node_id)
-        self.nmt(codec.NmtCommand.ENTER_PRE_OPERATIONAL, axis.node_id)
-        self.read(axis.node_id, self.profile.obj("device_type").index)
-        writes = self.profile.configuration(axis, self.cell.drive, self.cell.sync_period_ms)
+        n = axis.node_id
+        self.nmt(codec.NmtCommand.ENTER_PRE_OPERATIONAL, n)
+        absent = self.absent.get(n)
+        if absent is None:
+            absent = self.absent[n] = self.survey(n)
+        writes = [w for w in self.profile.configuration(axis, self.cell.drive, self.cell.sync_period_ms,
+                                                        feedback=self.feedback, time_stamp=self.cell.time_stamp)
+                  if w.index not in absent]
         for w in writes:
-            self._write(node, w)
+            try:
+                self._write(node, w)
+            except BusError as e:
+                code = e.detail.get("abort_code") if e.detail else None
+                if code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX) and w.essential:
+                    raise BusError(MISSING_OBJECT, f"node {n} has no object {w.ref} ({w.what}): {w.why}; the "
+                                   "product cannot run this drive without it", node=n,
+                                   obj=(w.index, w.sub)) from None
+                raise
         final: dict[tuple[int, int], SdoWrite] = {}
         for w in writes:
             if w.verify:
@@ -282,7 +352,13 @@ class MasterAdapter:
         if not period > 0:
             raise BusError(CONFIG, f"SYNC period must be > 0, got {period}")
         frame = codec.sync_frame()
-        msg = can.Message(arbitration_id=frame.cob_id, data=frame.data, is_extended_id=False)
+        fb = self.feedback
+        if fb is not None:
+            # the SYNC counter 1..N (CiA 301 0x1019): the periodic task cycles through N frames
+            msgs: Any = [can.Message(arbitration_id=frame.cob_id, data=bytes([c]), is_extended_id=False)
+                         for c in range(1, fb.counter_overflow + 1)]
+        else:
+            msgs = can.Message(arbitration_id=frame.cob_id, data=frame.data, is_extended_id=False)
         with self._emit_lock:
             self._sync_count = 0
             self._last_sync_t = None
@@ -290,7 +366,7 @@ class MasterAdapter:
             self._sync_started_at = self.now()
             self._sync_echo_warned = False
         try:
-            task: Any = self._bus.send_periodic(msg, period, autostart=False)
+            task: Any = self._bus.send_periodic(msgs, period, autostart=False)
             if hasattr(task, "on_error"):  # python-can's thread-based task: report a refused SYNC
                 task.on_error = self._on_sync_send_error
             task.start()  # every concrete task (thread-based, socketcan BCM) has start()
@@ -412,7 +488,9 @@ class MasterAdapter:
                 if cob_id == cob.SYNC_COB_ID:
                     count = self._sync_count
                     self._sync_count += 1
-                    self._emit(Sync(count, t))
+                    self._emit(Sync(count, t, msg.data[0] if msg.dlc else None))
+                    if self.cell.time_stamp:
+                        self._send_time_stamp(t)
                     last, self._last_sync_t = self._last_sync_t, t
                     if last is not None:
                         # everything seen since the previous SYNC, this SYNC included, over the cycle;
@@ -442,6 +520,18 @@ class MasterAdapter:
             self._emit(AdapterError(f"decode 0x{cob_id:03X}", str(e), t))
         except Exception as e:
             self._emit(AdapterError(f"receive 0x{cob_id:03X}", f"{type(e).__name__}: {e}", t))
+
+    def _send_time_stamp(self, t: float) -> None:
+        """0x1013 after a SYNC: the time (us) the SYNC was on the wire, as the echo's timestamp says."""
+        stamp = round(t * 1e6) % (1 << 32)
+        try:
+            self._network.send_message(cob.TIME_STAMP_COB_ID, stamp.to_bytes(4, "little"))
+        except Exception as e:
+            self._emit(SendFailed(f"time stamp: {type(e).__name__}: {e}", t))
+
+    def send_sync(self, counter: int | None = None) -> None:
+        """One SYNC now (the probe paces SYNC itself; the periodic task must be stopped)."""
+        self.send(cob.SYNC_COB_ID, b"" if counter is None else bytes([counter]))
 
     def _run_monitor(self) -> None:
         while not self._stop.wait(min(MONITOR_PERIOD_S, self._hb_timeout_s / 4)):

@@ -102,6 +102,14 @@ class ProbeResult:
     def failures(self) -> list[str]:
         return [f"node {n}: {r.unexplained}" for n, r in self.nodes.items() if r.unexplained]
 
+    def complete(self, known: Mapping[int, DriveReadings]) -> dict[int, DriveReadings]:
+        """`known` readings with every unknown point taken from this probe; ProbeError when the probe
+        could not explain a drive."""
+        bad = self.failures()
+        if bad:
+            raise ProbeError("the drives' readings could not be measured: " + "; ".join(bad))
+        return {n: r.merged(self.nodes[n].readings) if n in self.nodes else r for n, r in known.items()}
+
 
 @dataclass(frozen=True)
 class TimingPlan:
@@ -209,6 +217,10 @@ class StandstillProbe:
         if self.phase is Phase.TIMING and j is not None and j >= 1:
             return self._t + self.plan.interval_ms(j, self.period_ms) / 1000.0
         return self._t + p
+
+    @property
+    def syncs_seen(self) -> int:
+        return len(self._sync_t)
 
     def on_sync(self, count: int, t: float, counter: int | None = None) -> list[Frame]:
         self._sync = count

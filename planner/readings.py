@@ -41,6 +41,10 @@ OPEN_POINTS: Mapping[str, tuple[str, ...]] = {
     "clock": ("sync", "own"),
 }
 
+# what the master must know before a job (they change what the drive does with the stream); the others it
+# tolerates by design (docs/streamer.md)
+MUST_KNOW = ("fifo_count", "first_record", "clock")
+
 # objects a drive may lack without the master losing a function it cannot do without (seed 000 4.3.6
 # marks none of them mandatory; CiA 301 makes 0x1006, 0x1010-0x1013 and 0x1019 optional)
 OPTIONAL_OBJECTS: Mapping[int, str] = {
@@ -156,6 +160,12 @@ class DriveReadings:
     def unknown(self) -> tuple[str, ...]:
         """The open points not known yet."""
         return tuple(k for k in OPEN_POINTS if getattr(self, k) is None)
+
+    @property
+    def needs_probe(self) -> bool:
+        """Unknown points the master measures at configuration (the standstill probe): what it must know,
+        the rounding (the plan is encoded for it) and the TPDO latency (attributing late TPDOs)."""
+        return any(getattr(self, k) is None for k in (*MUST_KNOW, "rounding")) or self.tpdo_latency_ms is None
 
     def merged(self, other: DriveReadings) -> DriveReadings:
         """These readings with every unknown point taken from `other` (what a probe measured)."""

@@ -195,4 +195,5 @@ def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_d
         finally:
             rt.close()
     time.sleep(0.05)
-    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out)
+    return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
+                   rt.settings.readings)

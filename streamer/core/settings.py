@@ -33,13 +33,12 @@ from types import MappingProxyType
 from typing import Any
 
 from bus.profile import FeedbackSchedule
-from planner.readings import DriveReadings, SimDriveOptions
+from planner.readings import MUST_KNOW, DriveReadings, SimDriveOptions
 
 FIFO_SIZE = 64
 _EMPTY_CPR: Mapping[int, int] = MappingProxyType({})
 _EMPTY_READINGS: Mapping[int, DriveReadings] = MappingProxyType({})
 REFERENCE_READINGS = DriveReadings.of_sim(SimDriveOptions())
-MUST_KNOW = ("fifo_count", "first_record", "clock")
 
 
 @dataclass(frozen=True)

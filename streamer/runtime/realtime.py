@@ -11,6 +11,10 @@ cancel request (a `threading.Event`) becomes a `Cancel` event; both go through t
 
 The same core, the same decoding and the same trace as the virtual-time runtime (`streamer.runtime.virtual`),
 so what the tests prove in virtual time is what runs here.
+
+Before the first job it completes what the cell does not state of each drive's readings ([axis.probed])
+with the standstill probe (bus/probe.py): the periodic SYNC stops, this thread paces the probe's SYNCs
+and sends its frames, the adapter does the SDO work, and the periodic SYNC starts again.
 """
 
 from __future__ import annotations
@@ -25,10 +29,12 @@ from typing import Any
 
 import can
 
-from bus.errors import BusError
+from bus.errors import PROBE, BusError
 from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync
 from bus.network import MasterAdapter
+from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
 from planner.config import CellConfig
+from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
@@ -107,7 +113,14 @@ class RealtimeRuntime:
     ):
         self.cell = cell
         self.adapter = adapter
-        self.settings = settings if settings is not None else StreamerSettings.from_cell(cell)
+        # settings given by the caller are taken as they are; else the cell's, with what the master knows
+        # of each drive ([axis.probed]) completed by the standstill probe before the first job
+        self._settings_given = settings is not None
+        self.settings = settings if settings is not None else replace(
+            StreamerSettings.from_cell(cell), feedback=adapter.feedback)
+        self.known: dict[int, DriveReadings] = {a.node_id: a.probed for a in cell.axes}
+        self.probe_result: ProbeResult | None = None
+        self._probing = False
         self._events: queue.Queue[Event] = queue.Queue()
         self._sync = -1
         self._tap = _Tap(log_path)
@@ -124,7 +137,7 @@ class RealtimeRuntime:
         if snap is not None:
             with self._snap_lock:
                 snap.update(ev)
-        if self._running:
+        if self._running or self._probing:
             self._events.put(ev)
 
     def snapshot(self) -> dict[int, NodeSnapshot]:
@@ -134,6 +147,80 @@ class RealtimeRuntime:
     def close(self) -> None:
         self.adapter.stop_sync()
         self._tap.stop()
+
+    # ---- the standstill probe
+    def probe(self, experiments: tuple[Phase, ...] = AUTO_EXPERIMENTS) -> ProbeResult:
+        """Run the standstill probe on every drive of the cell (see the module docstring)."""
+        adapter = self.adapter
+        was_running = adapter.sync_running
+        adapter.stop_sync()
+        nodes = sorted(a.node_id for a in self.cell.axes)
+        demand = adapter.profile.obj("position_demand")
+
+        def demands() -> dict[int, int]:
+            return {n: adapter.read(n, demand.index, demand.sub) for n in nodes}
+
+        adapter.enable_drives()
+        probe = StandstillProbe(nodes, self.cell.sync_period_ms, adapter.profile, demands(),
+                                experiments=experiments, t0=adapter.now(), feedback=adapter.feedback)
+        fb = adapter.feedback
+        counter = 0
+        while self._drain(0.0) is not None:
+            pass
+        self._probing = True
+        try:
+            while not probe.done:
+                if probe.wants_enable:
+                    adapter.enable_drives()
+                    probe.enabled(demands())
+                t_next = probe.next_sync_time()
+                while (now := adapter.now()) < t_next:
+                    ev = self._drain(min(0.002, t_next - now))
+                    if ev is not None:
+                        self._feed_probe(probe, ev)
+                if fb is not None:
+                    counter = counter % fb.counter_overflow + 1
+                adapter.send_sync(counter if fb is not None else None)
+                # the SYNC's echo (probe.on_sync) and its answers come through the queue
+                deadline = time.monotonic() + 0.2
+                seen = probe.syncs_seen
+                while probe.syncs_seen == seen and time.monotonic() < deadline:
+                    ev = self._drain(0.005)
+                    if ev is not None:
+                        self._feed_probe(probe, ev)
+                if probe.syncs_seen == seen:
+                    raise ProbeError("no SYNC echo: the interface does not deliver own messages")
+        except ProbeError as e:
+            raise BusError(PROBE, str(e)) from None
+        finally:
+            self._probing = False
+            if was_running:
+                adapter.start_sync()
+        result = probe.result()
+        self.probe_result = result
+        return result
+
+    def _feed_probe(self, probe: StandstillProbe, ev: Event) -> None:
+        if isinstance(ev, Sync):
+            for f in probe.on_sync(ev.count, ev.t, ev.counter):
+                self.adapter.send(f.cob_id, f.data)
+        elif isinstance(ev, BufferStatus):
+            probe.on_tpdo1(ev.node, ev.statusword, ev.buffer_status, ev.free_size, ev.t)
+        elif isinstance(ev, PositionFeedback):
+            probe.on_tpdo2(ev.node, ev.position_actual, ev.position_demand, ev.t)
+        elif isinstance(ev, Emcy):
+            probe.on_emcy(ev.node, ev.code, ev.t)
+
+    def ensure_readings(self) -> None:
+        """Measure what the master does not know yet of the drives, once (see the virtual runtime)."""
+        if self._settings_given:
+            return
+        if any(r.needs_probe for r in self.known.values()):
+            try:
+                self.known = self.probe().complete(self.known)
+            except ProbeError as e:
+                raise BusError(PROBE, str(e)) from None
+        self.settings = replace(self.settings, readings=dict(self.known), feedback=self.adapter.feedback)
 
     def _drain(self, timeout_s: float) -> Event | None:
         try:
@@ -153,6 +240,7 @@ class RealtimeRuntime:
     ) -> RealtimeResult:
         """Stream one trajectory: enable the drives, start SYNC if it is not running, run to the end."""
         cell = self.cell
+        self.ensure_readings()
         wall0 = time.monotonic()
         self.adapter.enable_drives()
         core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)

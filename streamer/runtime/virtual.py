@@ -67,7 +67,7 @@ from planner.config import CellConfig
 from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState, Reaction
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
-from streamer.core.settings import MUST_KNOW, StreamerSettings
+from streamer.core.settings import StreamerSettings
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
@@ -565,18 +565,12 @@ class VirtualRuntime:
             probe.on_emcy(ev.node, ev.code, ev.t)
 
     def ensure_readings(self) -> None:
-        """Measure what the master does not know yet of the drives (MUST_KNOW points, TPDO latency),
-        once, with the standstill probe; the job settings then carry every drive's readings."""
+        """Measure what the master does not know yet of the drives (`DriveReadings.needs_probe`), once,
+        with the standstill probe; the job settings then carry every drive's readings."""
         if self._settings_given:
             return
-        missing = [n for n, r in self.known.items()
-                   if any(getattr(r, k) is None for k in MUST_KNOW) or r.tpdo_latency_ms is None]
-        if missing:
-            result = self.probe()
-            bad = result.failures()
-            if bad:
-                raise ProbeError("the drives' readings could not be measured: " + "; ".join(bad))
-            self.known = {n: r.merged(result.nodes[n].readings) for n, r in self.known.items()}
+        if any(r.needs_probe for r in self.known.values()):
+            self.known = self.probe().complete(self.known)
         self.settings = replace(self.settings, readings=dict(self.known))
 
     def idle(self, duration_s: float, *, on_sync: Callable[[int], None] | None = None) -> None:

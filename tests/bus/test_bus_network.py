@@ -199,11 +199,11 @@ def test_a_refused_write_is_named(cell: CellConfig, sim: SimulatedCell) -> None:
 
 class _WrongReadBack(DriveProfile):
     def configuration(
-        self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int
+        self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int, **kw: Any
     ) -> tuple[SdoWrite, ...]:
         # 0x60C4:04 accepts writes that have no effect (seed 000 4.3.6.5), so it reads back the fill
         extra = SdoWrite(0x60C4, 4, 5, "buffer position")
-        return (*super().configuration(axis, settings, sync_period_ms), extra)
+        return (*super().configuration(axis, settings, sync_period_ms, **kw), extra)
 
 
 def test_a_wrong_read_back_is_named(cell: CellConfig, sim: SimulatedCell) -> None:
