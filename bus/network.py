@@ -74,6 +74,7 @@ EventCallback = Callable[[Event], None]
 ABORT_NO_OBJECT = 0x06020000
 ABORT_NO_SUBINDEX = 0x06090011
 ABORT_WRITE_ONLY = 0x06010001
+ABORT_UNSUPPORTED_ACCESS = 0x06010000
 MONITOR_PERIOD_S = 0.02
 NOTIFIER_CYCLE_S = 0.1  # canopen's default 1 s makes every close() wait up to 1 s
 
@@ -203,7 +204,7 @@ class MasterAdapter:
             code = e.detail.get("abort_code") if e.detail else None
             if code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
                 raise AbsentObject(f"0x{index:04X}:{sub:02X}") from None
-            if code == ABORT_WRITE_ONLY:
+            if code in (ABORT_WRITE_ONLY, ABORT_UNSUPPORTED_ACCESS):
                 raise WriteOnly(f"0x{index:04X}:{sub:02X}") from None
             raise
 

@@ -44,7 +44,7 @@ from planner.readings import OPEN_POINTS, OPTIONAL_OBJECTS, DriveReadings
 CW_ENABLE_OPERATION = 0x000F
 CW_START_IP = 0x001F
 STRETCH = 0.3  # of a period, per stretched SYNC interval (well inside the drives' 1.5-period SYNC watch)
-LATENCY_SYNCS = 8
+LATENCY_SYNCS = 12
 OWN_CLOCK_PPM = 5000.0  # the probe's own bound on a drive clock: wider than any crystal
 
 

@@ -114,10 +114,10 @@ from bus.events import (
     SendFailed,
     Sync,
 )
-from planner.record import PvtRecord, pack
+from planner.record import pack
 from streamer.core import outcome as oc
 from streamer.core.drive_time import DriveTime
-from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder, stream_framing
 from streamer.core.outcome import JobOutcome, JobResult
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
 from streamer.core.schedule import (
@@ -337,7 +337,7 @@ class Coordinator:
             rid = rpdo2_id(node)
             r = readings[node]
             start = self._plan.start_positions[axis]
-            end = self._plan.records[axis][-1]
+            lead, tail = stream_framing(start, self._plan.records[axis][-1], r.first_record, r.fifo_count)
             feeder = FifoFeeder(
                 axis,
                 node,
@@ -348,10 +348,8 @@ class Coordinator:
                 loss_confirm_syncs=s.loss_confirm_syncs,
                 repair_margin_ms=s.margin_ms,
                 counts_per_rev=s.counts_per_rev.get(node),
-                # time_zero: the origin record (the start at rest) is the point at time zero
-                lead=Send(rid, pack(PvtRecord(start, 0, 1))) if r.first_record == "time_zero" else None,
-                # until_segment_start: a second end record keeps two behind the target to the end
-                tail=Send(rid, pack(end)) if r.fifo_count == "until_segment_start" else None,
+                lead=Send(rid, pack(lead)) if lead is not None else None,
+                tail=Send(rid, pack(tail)) if tail is not None else None,
                 hides_target=r.fifo_count == "until_segment_start",
                 rounding=r.rounding,
             )

@@ -149,6 +149,23 @@ class AxisTelemetry:
     errors: tuple[str, ...] = field(default=())
 
 
+def stream_framing(start_position: int, end: PvtRecord, first_record: str | None,
+                   fifo_count: str | None) -> tuple[PvtRecord | None, PvtRecord | None]:
+    """(lead, tail) records around the plan's for a drive with these readings: the origin record (the
+    start at rest) for a drive that takes the first record as the point at time zero, a second end record
+    for one that counts the target out of its FIFO (see the module docstring); None where none is needed."""
+    lead = PvtRecord(start_position, 0, 1) if first_record == "time_zero" else None
+    tail = end if fifo_count == "until_segment_start" else None
+    return lead, tail
+
+
+def framed(records: Sequence[PvtRecord], start_position: int, first_record: str | None,
+           fifo_count: str | None) -> list[PvtRecord]:
+    """Every record a drive with these readings is sent for the plan's `records` (end record included)."""
+    lead, tail = stream_framing(start_position, records[-1], first_record, fifo_count)
+    return [*([lead] if lead else []), *records, *([tail] if tail else [])]
+
+
 class FifoFeeder:
     """One axis. The coordinator owns the timing and calls `account`, `take` and `fire`."""
 

@@ -200,6 +200,10 @@ class RealtimeRuntime:
         self.probe_result = result
         return result
 
+    def read_object(self, node: int, index: int, sub: int = 0) -> int:
+        """An SDO read of a drive (for the object survey): AbsentObject / WriteOnly for those aborts."""
+        return self.adapter.read_object(node, index, sub)
+
     def _feed_probe(self, probe: StandstillProbe, ev: Event) -> None:
         if isinstance(ev, Sync):
             for f in probe.on_sync(ev.count, ev.t, ev.counter):

@@ -60,8 +60,9 @@ from bus.events import (
     SendFailed,
     Sync,
 )
-from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
+from bus.probe import AUTO_EXPERIMENTS, AbsentObject, Phase, ProbeError, ProbeResult, StandstillProbe, WriteOnly
 from bus.profile import EPOS_IPM, DriveProfile
+from bus.sim.od import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, ABORT_UNSUPPORTED_ACCESS, ABORT_WRITE_ONLY, SdoAbort
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
 from planner.readings import DriveReadings
@@ -553,6 +554,17 @@ class VirtualRuntime:
         result = probe.result()
         self.probe_result = result
         return result
+
+    def read_object(self, node: int, index: int, sub: int = 0) -> int:
+        """An SDO read of a drive (for the object survey): AbsentObject / WriteOnly for those aborts."""
+        try:
+            return self.vcell.sdo_read(node, index, sub)
+        except SdoAbort as e:
+            if e.code in (ABORT_NO_OBJECT, ABORT_NO_SUBINDEX):
+                raise AbsentObject(f"0x{index:04X}:{sub:02X}") from None
+            if e.code in (ABORT_WRITE_ONLY, ABORT_UNSUPPORTED_ACCESS):
+                raise WriteOnly(f"0x{index:04X}:{sub:02X}") from None
+            raise
 
     def _feed_probe(self, ev: Event) -> None:
         probe = self._probe

@@ -1,5 +1,7 @@
 """Reliability suite fixtures: every FaultModel a test creates through `faults` has its seed printed
-when the test fails (replay with PVT_FAULT_SEED=<seed>)."""
+when the test fails (replay with PVT_FAULT_SEED=<seed>); `variant` runs a scenario on the reference
+drive and on the drive variants issue 11 names for it (TPDO sampled before the RPDOs, FIFO counted
+without the target, the drive's own clock, TPDO latency)."""
 
 from __future__ import annotations
 
@@ -34,3 +36,18 @@ def faults(request: pytest.FixtureRequest) -> Iterator[Callable[..., FaultModel]
     if rep is not None and rep.failed:
         for m in made:
             print(f"[reliability] {m.describe()} -- replay with PVT_FAULT_SEED={m.seed}")
+
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "reference": {},
+    "tpdo_before_rpdo": {"tpdo_sampling": "before_rpdo"},
+    "fifo_until_start": {"fifo_count": "until_segment_start"},
+    "own_clock": {"clock": "own", "clock_drift_ppm": 200.0},
+    "tpdo_latency": {"tpdo_latency_ms": 9.0},
+}
+
+
+@pytest.fixture(params=list(VARIANTS))
+def variant(request: pytest.FixtureRequest) -> dict[str, Any]:
+    """The simulated drives' readings of the manuals' open points (planner/readings.py) for a scenario."""
+    return VARIANTS[request.param]

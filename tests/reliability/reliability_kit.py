@@ -38,6 +38,7 @@ from planner.readings import DriveReadings, SimDriveOptions
 from planner.record import PvtRecord
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
+from streamer.core.feeder import framed
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.virtual import ForeignTraffic, VirtualResult, VirtualRuntime
 from streamer.stop import make_stop_planner
@@ -128,10 +129,20 @@ class Rig:
     states: dict[int, dict[int, tuple[Cia402State, bool, float]]] = field(default_factory=dict)
     wire: list[WireFrame] = field(default_factory=list)
     ticks_at: dict[int, dict[int, int]] = field(default_factory=dict)  # SYNC -> node -> drive ticks run
+    variant: dict[str, Any] = field(default_factory=dict)  # simulated drives' readings (with_variant)
+
+    def stream(self, i: int) -> list[PvtRecord]:
+        """The records the master sends axis i: the plan's, framed as the drive's readings need (an origin
+        record for a drive that takes the first record as time zero, a second end record for one that
+        counts the target out of its FIFO; streamer/core/feeder.py)."""
+        r = self.cell.axes[[a.node_id for a in self.cell.axes].index(self.traj.node_ids[i])].probed
+        return framed(self.traj.records(i), int(self.traj.positions[i, 0]), r.first_record, r.fifo_count)
 
     def __post_init__(self) -> None:
         # the master knows the drives' readings (as after `pvt probe --write`): the scenarios inject their
         # faults into jobs, not into the standstill probe
+        if self.variant:
+            self.cell = with_variant(self.cell, **self.variant)
         self.cell = probed_as_simulated(self.cell)
         self.vcell = VirtualCell(self.cell, initial_positions=start_positions(self.traj))
         for node, model in self.vcell.models.items():

@@ -36,14 +36,17 @@ def check_run(rig: Rig, model: FaultModel) -> tuple[int, int]:
     repaired = sum(t.losses_repaired for t in tel.values())
     fail_sync = core.outcome.sync if core.state is JobState.FAILED and core.outcome else None
     # every loss detected within 2 SYNCs: its resend goes out at most 2 SYNCs after the lost frame,
-    # or the job has already failed by then
+    # or the job has already failed by then. A drive with its own clock is known to about a tick: when a
+    # record boundary falls inside that tick the fill cannot tell a lost record from one consumed early,
+    # and the core waits one SYNC more (streamer/core/feeder.py)
+    within = 3 if rig.cell.axes[0].probed.clock == "own" else 2
     for d in drops:
         lost_sync = rig.sync_at(d.t)
         resend = next((w for w in rig.wire if w.t > d.t and w.cob_id == d.cob_id and w.data == d.data), None)
         if resend is not None:
-            assert rig.sync_at(resend.t) - lost_sync <= 2, (d, resend, model.describe())
+            assert rig.sync_at(resend.t) - lost_sync <= within, (d, resend, model.describe())
         else:
-            assert fail_sync is not None and fail_sync - lost_sync <= 2, (d, core.outcome, model.describe())
+            assert fail_sync is not None and fail_sync - lost_sync <= within, (d, core.outcome, model.describe())
     assert detected == len(drops) or fail_sync is not None, (detected, len(drops), model.describe())
     tol = traj.tolerance_counts
     if core.state is JobState.DONE:
@@ -51,7 +54,7 @@ def check_run(rig: Rig, model: FaultModel) -> tuple[int, int]:
         # followed the plan at every ms
         assert repaired == len(drops), model.describe()
         for i, node in enumerate(traj.node_ids):
-            assert rig.entered[node] == traj.records(i), (node, model.describe())
+            assert rig.entered[node] == rig.stream(i), (node, model.describe())
         assert max(rig.ms_deviation().values()) <= tol, model.describe()
         assert rig.result.settled
     else:
@@ -66,9 +69,9 @@ def check_run(rig: Rig, model: FaultModel) -> tuple[int, int]:
 
 
 @pytest.mark.parametrize("offset", range(3))
-def test_one_percent_random_loss_is_repaired_or_point_lost(faults, offset: int) -> None:
+def test_one_percent_random_loss_is_repaired_or_point_lost(faults, offset: int, variant: dict) -> None:
     model = faults([drop("RPDO2", LOSS, direction=TO_DRIVES)], seed=SEED + offset)
-    rig = Rig(long_traj(), faults=model)
+    rig = Rig(long_traj(), faults=model, variant=variant)
     rig.run()
     losses, repaired = check_run(rig, model)
     assert losses >= 20  # ~1% of ~4400 records
@@ -77,17 +80,18 @@ def test_one_percent_random_loss_is_repaired_or_point_lost(faults, offset: int) 
 
 
 @pytest.mark.parametrize("batch", [1, 2])
-def test_loss_in_a_one_record_batch_is_repaired_in_a_two_record_batch_point_lost(faults, batch: int) -> None:
+def test_loss_in_a_one_record_batch_is_repaired_in_a_two_record_batch_point_lost(
+        faults, batch: int, variant: dict) -> None:
     """At a 20 ms SYNC some cycles carry 2 records of an axis. One lost record of a 1-record batch is
     resent (DONE, exact); one of a 2-record batch cannot be (which one is missing is unknown): POINT_LOST,
     all axes stopped within 1 SYNC, nothing executed out of order."""
     cell = slow_sync_cell()
-    nominal = Rig(long_traj(), cell=cell)
+    nominal = Rig(long_traj(), cell=cell, variant=variant)
     nominal.run()
     assert nominal.core.state is JobState.DONE
     k = batch_index(nominal, 2, batch)
     model = faults([drop("RPDO2", nodes=2, start_after=k, direction=TO_DRIVES)])
-    rig = Rig(long_traj(), faults=model, cell=cell)
+    rig = Rig(long_traj(), faults=model, cell=cell, variant=variant)
     rig.run()
     assert [d.cob_id for d in model.injected("drop")] == [RPDO2_BASE + 2]
     check_run(rig, model)

@@ -13,26 +13,26 @@ from streamer.core import outcome as oc
 BURST = 40
 
 
-def test_burst_while_priming_is_covered(faults) -> None:
+def test_burst_while_priming_is_covered(faults, variant: dict) -> None:
     """Before the start nothing is due: every lost record is resent until it arrives; the start waits."""
     model = faults([drop("RPDO2", nodes=2, burst=BURST, start_after=1, direction=TO_DRIVES)])
-    rig = Rig(demo_traj(), faults=model)
+    rig = Rig(demo_traj(), faults=model, variant=variant)
     rig.run()
     assert len(model.injected("drop")) == BURST
     assert rig.core.state is JobState.DONE, (rig.core.outcome, model.describe())
     for i, node in enumerate(rig.traj.node_ids):
-        assert rig.entered[node] == rig.traj.records(i)
+        assert rig.entered[node] == rig.stream(i)
     assert max(rig.ms_deviation().values()) <= rig.traj.tolerance_counts
     assert rig.result.settled
-    nominal = Rig(demo_traj())
+    nominal = Rig(demo_traj(), variant=variant)
     nominal.run()
     assert rig.core.start_sync is not None and nominal.core.start_sync is not None
     assert rig.core.start_sync > nominal.core.start_sync + BURST - 5  # the start waited for the repair
 
 
-def test_burst_in_motion_is_buffer_underflow_and_everything_stops(faults) -> None:
+def test_burst_in_motion_is_buffer_underflow_and_everything_stops(faults, variant: dict) -> None:
     model = faults([drop("RPDO2", nodes=2, burst=BURST, start_after=30, direction=TO_DRIVES)])
-    rig = Rig(demo_traj(), faults=model)
+    rig = Rig(demo_traj(), faults=model, variant=variant)
     rig.run()
     core = rig.core
     outcome = core.outcome

@@ -37,16 +37,16 @@ def first_anomaly(entered: list[PvtRecord], planned: list[PvtRecord]) -> int | N
 
 
 @pytest.mark.parametrize("sync_ms", [10, 20])
-def test_duplicates_and_swaps_never_enter_a_fifo_undetected(faults, sync_ms: int) -> None:
+def test_duplicates_and_swaps_never_enter_a_fifo_undetected(faults, sync_ms: int, variant: dict) -> None:
     cell = slow_sync_cell(sync_ms) if sync_ms != 10 else None
     tally = {"done": 0, "dup_detected": 0, "swap_detected": 0, "swap_drive_limit": 0, "late_resend_dup": 0}
     for k in range(RUNS):
         model = faults([duplicate("RPDO2", 0.005, direction=TO_DRIVES),
                         reorder("RPDO2", 0.005, direction=TO_DRIVES)], seed=SEED + k)
-        rig = Rig(long_traj(), faults=model, **({"cell": cell} if cell is not None else {}))
+        rig = Rig(long_traj(), faults=model, variant=variant, **({"cell": cell} if cell is not None else {}))
         rig.run()
         core, traj = rig.core, rig.traj
-        anomalies = {node: first_anomaly(rig.entered[node], traj.records(i))
+        anomalies = {node: first_anomaly(rig.entered[node], rig.stream(i))
                      for i, node in enumerate(traj.node_ids)}
         bad = {n: j for n, j in anomalies.items() if j is not None}
         if not bad:
@@ -84,15 +84,15 @@ def test_duplicates_and_swaps_never_enter_a_fifo_undetected(faults, sync_ms: int
     assert sum(tally.values()) == RUNS
 
 
-def test_a_swap_inside_a_batch_is_caught_when_executed(faults) -> None:
+def test_a_swap_inside_a_batch_is_caught_when_executed(faults, variant: dict) -> None:
     """20 ms SYNC, the first record of a 2-record batch held until its follower passed: the fill is
     right, the drive executes them swapped, the next TPDO2 (or the drive's limit check) fails the job."""
     cell = slow_sync_cell(20)
-    nominal = Rig(long_traj(), cell=cell)
+    nominal = Rig(long_traj(), cell=cell, variant=variant)
     nominal.run()
     k = batch_index(nominal, 1, 2)
     model = faults([reorder("RPDO2", nodes=1, start_after=k, direction=TO_DRIVES, max_hold_s=0.005)])
-    rig = Rig(long_traj(), faults=model, cell=cell)
+    rig = Rig(long_traj(), faults=model, cell=cell, variant=variant)
     rig.run()
     planned = rig.traj.records(0)
     assert rig.entered[1][k] == planned[k + 1] and rig.entered[1][k + 1] == planned[k]  # swapped in the FIFO

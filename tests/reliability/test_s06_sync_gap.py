@@ -11,14 +11,14 @@ from streamer.core import outcome as oc
 
 
 @pytest.mark.parametrize("gap", [1.6, 3.0])
-def test_sync_gap_over_one_and_a_half_periods_is_sync_lost(gap: float) -> None:
+def test_sync_gap_over_one_and_a_half_periods_is_sync_lost(gap: float, variant: dict) -> None:
     period_s = 0.01
     gap_cycle = 150
 
     def sync_time(n: int) -> float:
         return n * period_s + ((gap - 1.0) * period_s if n >= gap_cycle else 0.0)
 
-    rig = Rig(demo_traj(), sync_time=sync_time)
+    rig = Rig(demo_traj(), sync_time=sync_time, variant=variant)
     rig.run()
     core = rig.core
     outcome = core.outcome

@@ -16,10 +16,10 @@ NODE = 2
 SILENT_FROM_S = 1.5
 
 
-def test_heartbeat_loss_is_node_lost_and_a_later_bootup_does_not_resume(faults) -> None:
+def test_heartbeat_loss_is_node_lost_and_a_later_bootup_does_not_resume(faults, variant: dict) -> None:
     silence = drop("HEARTBEAT", 1.0, nodes=NODE, direction=TO_MASTER, start_s=SILENT_FROM_S)
     model = faults([silence])
-    rig = Rig(demo_traj(), faults=model)
+    rig = Rig(demo_traj(), faults=model, variant=variant)
     cell = rig.cell
     rebooted: list[float] = []
 

@@ -14,8 +14,8 @@ from streamer.core.coordinator import Coordinator
 NODE = 3
 
 
-def test_following_error_fails_the_job_within_one_sync_with_node_and_code() -> None:
-    rig = Rig(demo_traj())
+def test_following_error_fails_the_job_within_one_sync_with_node_and_code(variant: dict) -> None:
+    rig = Rig(demo_traj(), variant=variant)
 
     def block_axis(core: Coordinator, n: int) -> None:
         s = core.start_sync
