@@ -104,7 +104,7 @@ def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:
 
 
 def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
-             on_sync: Any = None) -> tuple[dict[str, Any], Any]:
+             on_sync: Any = None, readings_out: dict[int, Any] | None = None) -> tuple[dict[str, Any], Any]:
     from bus.sim.virtual import VirtualCell
 
     out.mkdir(parents=True, exist_ok=True)
@@ -117,6 +117,8 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
 
         rt = VirtualRuntime(cell, vcell=vcell, log=log)
         result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync)
+    if readings_out is not None:
+        readings_out.update(rt.settings.readings)
     return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
                    rt.settings.readings)
 
