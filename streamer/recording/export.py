@@ -104,7 +104,7 @@ def job_series(rec: JobRecording) -> tuple[list[Series], ReportOptions]:
             if rec.overflow_watermark is not None:
                 levels.append(Level(f"{a.name} overflow watermark {rec.overflow_watermark}", fifo,
                                     rec.overflow_watermark, color="#9467bd"))
-            panels.append(PanelSpec(fifo, "FIFO fill [records]"))
+            panels.append(PanelSpec(fifo, "FIFO fill [records]", left_range=(-1.0, rec.fifo_size + 2.0)))
         if has_setpoint:
             series.append(Series(f"{a.name} set point", pos, s.t, units(s.setpoint), unit="unit", color="#17becf",
                                  dash="dash", group=a.name))

@@ -118,6 +118,7 @@ class PanelSpec:
     name: str
     left_title: str = ""
     right_title: str = ""
+    left_range: tuple[float, float] | None = None  # fixed left scale (e.g. a FIFO's 0..64); None: auto
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,8 @@ def build_figure(title: str, series: Sequence[Series], events: Sequence[Marker],
         left = (spec.left_title if spec and spec.left_title else units.get((p, "left"), ""))
         right = (spec.right_title if spec and spec.right_title else units.get((p, "right"), ""))
         fig.update_yaxes(title_text=left, row=row_of[p], col=1, secondary_y=False)
+        if spec is not None and spec.left_range is not None:
+            fig.update_yaxes(range=list(spec.left_range), row=row_of[p], col=1, secondary_y=False)
         fig.update_yaxes(title_text=right, row=row_of[p], col=1, secondary_y=True, showgrid=False)
     fig.update_xaxes(showspikes=True, spikemode="across", spikesnap="cursor", spikethickness=1,
                      spikedash="dot", spikecolor="#555")
