@@ -264,7 +264,7 @@ def figure_to_html(fig: Figure) -> str:
     meta = json.dumps(fig.meta).replace("</", "<\\/")
     tag = f'<script type="application/json" id="pvt-report-meta">{meta}</script>\n'
     title = f"<title>{html.escape(str(fig.meta.get('title', 'pvt report')))}</title>"
-    page = page.replace("<head>", f"<head><meta charset=\"utf-8\" />{title}", 1)
+    page = page.replace("<head>", f"<head>{title}", 1)
     return page.replace("</body>", tag + "</body>", 1)
 
 
