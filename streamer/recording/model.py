@@ -276,9 +276,12 @@ def build_recording(
     t0 = sync_times[first_sync] if first_sync in sync_times else min(sync_times.values(), default=0.0)
     period_s = sync_period_ms / 1000.0
 
+    def rel(t: float) -> float:  # seconds since the first SYNC, to the microsecond (CAN timestamps' grain)
+        return round(t - t0, 6)
+
     def t_of(sync: int) -> float:
         t = sync_times.get(sync)
-        return (t - t0) if t is not None else (sync - first_sync) * period_s
+        return rel(t) if t is not None else round((sync - first_sync) * period_s, 6)
 
     planned_ms = traj.planned_demand()
     duration_ms = int(traj.duration_ms)
@@ -312,7 +315,7 @@ def build_recording(
     for noted in trace.changes:
         c = noted.change
         state = getattr(c.state, "value", str(c.state))
-        t = (c.t - t0) if c.t else t_of(c.sync if c.sync is not None else first_sync)
+        t = rel(c.t) if c.t else t_of(c.sync if c.sync is not None else first_sync)
         outcome = c.outcome
         message = outcome.message if outcome is not None else ""
         events.append(RecordedEvent(t, c.sync, STATE, state=state, message=message))
@@ -321,7 +324,7 @@ def build_recording(
                                         message=outcome.message))
     for noted in trace.noted:
         ev = noted.event
-        events.append(_event_from_noted(noted.sync, ev, float(ev.t) - t0))
+        events.append(_event_from_noted(noted.sync, ev, rel(float(ev.t))))
     if start_sync is not None:
         events.append(RecordedEvent(t_of(start_sync), start_sync, START,
                                     message=f"every axis in ip mode from SYNC {start_sync}"))
@@ -331,7 +334,7 @@ def build_recording(
     log = trace.frame_log
     for k in range(len(log)):
         ft, cob_id, dlc, data = log.frame(k)
-        frames.append(ft - t0, cob_id, dlc, data)
+        frames.append(rel(ft), cob_id, dlc, data)
 
     return JobRecording(
         job_id=job_id,

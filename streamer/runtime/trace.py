@@ -33,6 +33,7 @@ FIFO_SIZE = 64
 # 6-axis job at a 10 ms SYNC; beyond that the frames are counted, not kept
 DEFAULT_MAX_FRAMES = 1_000_000
 _NOTED = (Emcy, HeartbeatLost, Bootup, Cancel, SendFailed, AdapterError)
+_PAD = bytes(8)
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,12 @@ class FrameLog:
         self.t.append(t)
         self.cob_id.append(cob_id)
         self.dlc.append(dlc)
-        self.data += bytes(data[:8]).ljust(8, b"\0")
+        n = len(data)
+        if n == 8:  # most frames (PVT records, TPDOs): one copy, no padding
+            self.data += data
+        else:
+            self.data += data[:8]
+            self.data += _PAD[min(n, 8):]
 
     def frame(self, i: int) -> tuple[float, int, int, bytes]:
         n = self.dlc[i]
