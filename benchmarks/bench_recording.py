@@ -23,10 +23,9 @@ from __future__ import annotations
 import io
 import statistics
 import time
-from typing import Any
 
 from benchmarks.bench_streamer_core import PERIOD_MS, LoopbackDrive, make_plan
-from bus.cob import SYNC_COB_ID, pack_tpdo1, pack_tpdo2, unpack_tpdo1, unpack_tpdo2
+from bus.cob import SYNC_COB_ID, unpack_tpdo1, unpack_tpdo2
 from bus.events import BufferStatus, PositionFeedback, Sync
 from streamer.core import Coordinator, JobState, StreamerSettings, StreamPlan
 from streamer.runtime.trace import JobTrace

@@ -93,10 +93,10 @@ def _find(args: argparse.Namespace) -> tuple[Path, Any]:
     from streamer.recording.model import RecordingError
 
     given = Path(args.job)
-    if given.suffix == ".mcap" or given.is_file():
-        if not given.is_file():
-            raise _Lookup(f"no recording {given}", 1)
+    if given.is_file():
         return given, None
+    if given.suffix == ".mcap" and len(given.parts) > 1:  # a path, not a job id (ids have no "/")
+        raise _Lookup(f"no recording {given}", 1)
     try:
         journal = _journal_path(args)
     except PlanningError as exc:
