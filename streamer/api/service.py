@@ -18,12 +18,14 @@ into a queue (they run on Zenoh's threads and must return at once):
   order. Backends may emit from any thread; emitting never blocks (progress is throttled).
 - telemetry: publishes the backend's per-axis snapshot at `telemetry_hz`.
 
-Recordings: a backend that has `take_recording()` (the real one does) hands over each job's
-`JobRecording` after `execute`; the executor writes it to `<recordings dir>/<job_id>.mcap` (default:
-beside the journal, `<journal stem>.recordings/`) and applies the retention (`ServiceOptions`), after
-the motion ended and before the final event, so a `done` job's recording is already on disk and the
-next job starts after the write, never during it. The report gets `recording: {file, bytes,
-messages}` (or `{error}`: a recording that cannot be written does not fail a job that moved).
+Recordings: a backend that has `take_recording()` (the real one does) hands over each job's recording
+(a `JobRecording`, or the `RecordingInputs` to build it from) after `execute`; the executor has it
+built and written to `<recordings dir>/<job_id>.mcap` (default: beside the journal, `<journal
+stem>.recordings/`) by a low-priority worker process (streamer/recording/writer.py: this process keeps
+its GIL for SYNC and the drives) and applies the retention (`ServiceOptions`), after the motion ended
+and before the final event, so a `done` job's recording is already on disk and the next job starts
+after the write, never during it. The report gets `recording: {file, bytes, messages}` (or `{error}`:
+a recording that cannot be written does not fail a job that moved).
 
 On start, jobs the journal shows queued or running (the previous process died) are failed with
 SERVICE_RESTART and those events published before the service answers anything. A liveliness token
@@ -34,7 +36,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import dataclasses
 import logging
 import math
 import queue
@@ -55,6 +56,7 @@ from streamer.api.model import Event, EventType, InvalidTransition, JobRecord, J
 from streamer.api.payload import DEFAULT_LIMITS, PayloadLimits, Submission, decode_submission, pack, plain
 from streamer.api.store import JobStore
 from streamer.recording.files import RecordingFiles, RecordingRetention, default_recordings_dir
+from streamer.recording.writer import RecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -219,9 +221,11 @@ class JobService:
         self._closed = False
         self.counters: collections.Counter[str] = collections.Counter()
         self.recordings: RecordingFiles | None = None
+        self._writer: RecordingWriter | None = None
         if self.options.record_jobs:
             folder = self.options.recordings_dir or default_recordings_dir(store.path)
             self.recordings = RecordingFiles(folder, self.options.recordings)
+            self._writer = RecordingWriter(self.recordings)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> JobService:
@@ -229,6 +233,8 @@ class JobService:
             raise RuntimeError("service already started")
         self._started = True
         self._started_t = self._clock()
+        if self._writer is not None:
+            self._writer.start()
         self._spawn("events", self._events_loop)
         self._recover()
         self._spawn("intake", self._intake_loop)
@@ -290,6 +296,8 @@ class JobService:
         if current is not None:
             current.token.cancel()
         threads["executor"].join(timeout=self.options.shutdown_timeout_s)
+        if self._writer is not None:
+            self._writer.close()
         self._control_q.put(_STOP)
         threads["control"].join(timeout=10.0)
         self._stop_telemetry.set()
@@ -577,13 +585,13 @@ class JobService:
     def _record(self, job_id: str, report: Any) -> Any:
         """Write the job's recording (if the backend made one); the report says where, or why not."""
         take = getattr(self.backend, "take_recording", None)
-        if self.recordings is None or not callable(take):
+        if self._writer is None or not callable(take):
             return report
         try:
             rec = take()
             if rec is None:
                 return report
-            saved = self.recordings.save(job_id, dataclasses.replace(rec, job_id=job_id, cell=self.cell))
+            saved = self._writer.save(job_id, rec, cell=self.cell)
             info: dict[str, Any] = saved.info()
             self.counters["recordings"] += 1
             self.counters["recordings_deleted"] += len(saved.deleted)

@@ -312,16 +312,12 @@ def build_recording(
         samples[str(name)] = series
 
     events: list[RecordedEvent] = []
-    for noted in trace.changes:
-        c = noted.change
-        state = getattr(c.state, "value", str(c.state))
+    for c in trace.changes:
         t = rel(c.t) if c.t else t_of(c.sync if c.sync is not None else first_sync)
-        outcome = c.outcome
-        message = outcome.message if outcome is not None else ""
-        events.append(RecordedEvent(t, c.sync, STATE, state=state, message=message))
-        if outcome is not None and outcome.code is not None:
-            events.append(RecordedEvent(t, c.sync, FAULT, state=state, code=str(outcome.code), node=outcome.node,
-                                        message=outcome.message))
+        events.append(RecordedEvent(t, c.sync, STATE, state=c.state, message=c.message))
+        if c.code is not None:
+            events.append(RecordedEvent(t, c.sync, FAULT, state=c.state, code=str(c.code), node=c.node,
+                                        message=c.message))
     for noted in trace.noted:
         ev = noted.event
         events.append(_event_from_noted(noted.sync, ev, rel(float(ev.t))))

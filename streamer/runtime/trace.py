@@ -46,10 +46,26 @@ class NotedEvent:
 
 @dataclass(frozen=True)
 class NotedChange:
-    """A job state change the core reported (`streamer.core.coordinator.StateChange`, duck-typed:
-    `state` an enum with `.value`, `sync`, `t`, `outcome` or None)."""
+    """A job state change the core reported, as plain data (the trace is pickled to the process that
+    writes the recording): the new state's value, the SYNC and time, and the outcome's code, node and
+    message when the change carried one."""
 
-    change: Any
+    state: str
+    sync: int | None
+    t: float
+    code: str | None = None
+    node: int | None = None
+    message: str = ""
+
+    @classmethod
+    def of(cls, change: Any) -> NotedChange:
+        """From a `streamer.core.coordinator.StateChange` (duck-typed: `state` an enum with `.value`,
+        `sync`, `t`, `outcome` None or with `code`, `node`, `message`)."""
+        state = getattr(change.state, "value", change.state)
+        outcome = change.outcome
+        if outcome is None:
+            return cls(str(state), change.sync, float(change.t))
+        return cls(str(state), change.sync, float(change.t), outcome.code, outcome.node, str(outcome.message))
 
 
 class FrameLog:
@@ -146,7 +162,7 @@ class JobTrace:
         """The job state changes of one `Reaction` (usually none)."""
         if self.record:
             for c in changes:
-                self.changes.append(NotedChange(c))
+                self.changes.append(NotedChange.of(c))
 
     def on_setpoint(self, node: int, sync: int, setpoint: int) -> None:
         """The set point (counts) a cyclic drive family sent to `node` for SYNC `sync`."""

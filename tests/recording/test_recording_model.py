@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -37,7 +38,7 @@ def test_trace_keeps_frames_events_and_status_only_when_recording() -> None:
         trace.on_event(Emcy(1, 0x8611, 0x20, b"\x00" * 5, 0.5))
         trace.on_event(Emcy(9, 0x8611, 0x20, b"\x00" * 5, 0.5))  # not a node of the job
         trace.on_event(Cancel(0.51))
-        trace.on_changes([object()])
+        trace.on_changes([SimpleNamespace(state=JobState.RUNNING, sync=0, t=0.5, outcome=None)])
         trace.on_setpoint(1, 0, 1234)
         ax = trace.axes[1]
         assert trace.frames == 3 and ax.fill == [4] and ax.actual == [10]  # what the report needs: always

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from collections.abc import Iterator
@@ -80,6 +81,26 @@ def test_retention_by_count_and_size(tmp_path: Path) -> None:
     assert default_recordings_dir("/x/demo.jobs.sqlite") == Path("/x/demo.jobs.recordings")
 
 
+def test_writer_builds_from_the_inputs_and_checks_the_job_id(tmp_path: Path) -> None:
+    from streamer import demo
+    from streamer.recording.writer import PlanView, RecordingInputs, RecordingWriter
+    from tests.recording.recording_kit import record_virtual
+
+    cell, _job, traj = demo.prepare(axes=2)
+    result, report, direct = record_virtual(cell, traj)
+    inputs = RecordingInputs(PlanView.of(traj), result.trace, report, result.first_sync,
+                             result.coordinator.start_sync, cell.sync_period_ms, cell=cell.name,
+                             epoch_s=direct.epoch_s, underflow_watermark=cell.drive.underflow_warning,
+                             overflow_watermark=cell.drive.overflow_warning)
+    writer = RecordingWriter(RecordingFiles(tmp_path / "rec"), in_process=True)
+    saved = writer.save("w-1", inputs, cell="c1")
+    back = read_mcap(saved.path)
+    assert back == dataclasses.replace(direct, job_id="w-1", cell="c1")  # the same recording, built elsewhere
+    assert writer.last_writer_pid == os.getpid()
+    with pytest.raises(RecordingError):
+        writer.save("a/b", inputs, cell="c1")
+
+
 @pytest.fixture
 def service(tmp_path: Path, demo_cell: CellConfig) -> Iterator[Any]:
     opened: list[tuple[JobService, JobStore, zenoh.Session]] = []
@@ -111,6 +132,8 @@ def test_service_keeps_one_recording_per_job_with_retention(service: Any, demo_c
     for k, s in enumerate(statuses):
         assert s.report["recording"]["file"] == f"rec-{k}.mcap" and s.report["recording"]["bytes"] > 0
     assert sorted(p.name for p in folder.iterdir()) == ["rec-1.mcap", "rec-2.mcap"]  # max_count 2
+    writer = svc._writer
+    assert writer is not None and writer.last_writer_pid not in (None, os.getpid())  # written off-process
     rec = read_mcap(folder / "rec-2.mcap")
     assert rec.job_id == "rec-2" and rec.cell == demo_cell.name  # the service names the recording
     store = str(tmp_path / "cell.jobs.sqlite")
