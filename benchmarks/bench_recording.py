@@ -15,12 +15,19 @@ After the job (off the SYNC loop, on the service's executor thread between jobs)
 `JobRecording` from the trace, writing the MCAP file, and rendering the HTML report, per second of
 job, with the file size.
 
+Between jobs SYNC keeps running: on python-can's virtual bus it is a Python thread, and the cell's
+simulated drives run in the same process (`pvt serve --sim`). The last table is the SYNC interval
+(from the frames' timestamps) while the demo job's recording is written over and over: in this
+process (`RecordingWriter(in_process=True)`) and in the service's worker process, against idle
+windows, interleaved; gaps > 30 ms are what the simulated drives report as SYNC lost (EMCY 0x8780).
+
 Run: `python -m benchmarks.bench_recording` or call `main()`.
 """
 
 from __future__ import annotations
 
 import io
+import itertools
 import statistics
 import time
 
@@ -166,7 +173,71 @@ def main() -> dict[str, float]:
               f"{r['messages']:>10.0f}{per_s:>14.1f}{r['bytes'] / 1000 / r['job_s']:>14.1f}")
         results[f"record_ms_per_job_s[{label}]"] = per_s
         results[f"mcap_kb_per_job_s[{label}]"] = r["bytes"] / 1000 / r["job_s"]
+    print()
+    print("SYNC interval between jobs while recordings are written (10 ms SYNC, 6 simulated drives in-process,")
+    print("4 x 2 s windows each, interleaved)")
+    print(f"{'while':<28}{'SYNCs':>7}{'p50 ms':>8}{'p99 ms':>8}{'max ms':>8}{'> 30 ms':>9}")
+    for kind, row in _sync_jitter().items():
+        print(f"{kind:<28}{row['n']:>7.0f}{row['p50']:>8.1f}{row['p99']:>8.1f}{row['max']:>8.1f}{row['gaps']:>9.0f}")
+        results[f"sync_p99_ms[{kind}]"] = row["p99"]
     return results
+
+
+def _sync_jitter() -> dict[str, dict[str, float]]:
+    import tempfile
+    from pathlib import Path
+
+    import can
+
+    from planner.config import load_cell
+    from streamer import demo
+    from streamer.recording.files import RecordingFiles
+    from streamer.recording.writer import RecordingWriter
+    from streamer.runtime.backend import RuntimeBackend
+
+    folder = Path(tempfile.mkdtemp(prefix="pvt-bench-rec-"))
+    cell, _job, traj = demo.prepare()
+    demo.run_fast(cell, traj, folder / "demo")
+    from streamer.recording.mcap_io import read_mcap
+
+    rec = read_mcap(folder / "demo" / "job.mcap")
+    files = RecordingFiles(folder / "rec")
+    writers = {"writing in this process": RecordingWriter(files, in_process=True),
+               "writing in the worker": RecordingWriter(files)}
+    writers["writing in the worker"].start()
+    backend = RuntimeBackend(load_cell(demo.ROOT / "configs" / "demo.toml"), sim=True)
+    stamps: list[float] = []
+
+    class Syncs(can.Listener):
+        def on_message_received(self, msg: can.Message) -> None:
+            if msg.arbitration_id == SYNC_COB_ID:
+                stamps.append(msg.timestamp)
+
+    backend.adapter.add_listener(Syncs())
+    gaps: dict[str, list[float]] = {"idle": [], **{k: [] for k in writers}}
+    try:
+        time.sleep(1.0)
+        for _ in range(4):
+            for kind in gaps:
+                t0 = time.time()
+                while time.time() - t0 < 2.0:
+                    if kind == "idle":
+                        time.sleep(0.05)
+                    else:
+                        writers[kind].save("bench", rec, cell="demo")
+                t1 = time.time()
+                sel = [t for t in stamps if t0 <= t <= t1]
+                gaps[kind] += [b - a for a, b in itertools.pairwise(sel)]
+    finally:
+        backend.close()
+        for w in writers.values():
+            w.close()
+    out = {}
+    for kind, d in gaps.items():
+        d.sort()
+        out[kind] = {"n": len(d), "p50": d[len(d) // 2] * 1e3, "p99": d[int(len(d) * 0.99)] * 1e3,
+                     "max": d[-1] * 1e3, "gaps": sum(g > 0.030 for g in d)}
+    return out
 
 
 if __name__ == "__main__":
