@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench vcan-test clean
+.PHONY: demo test lint bench vcan-test clean chromium
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -16,12 +16,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/pvt demo
 
-test: $(STAMP) lint
+test: $(STAMP) lint chromium
 	$(PY) -m pytest -q
+
+# Debian's chromium for the HTML report test (installed once when root and missing; else that test skips)
+chromium:
+	tools/ensure-chromium
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
-	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py
+	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py \
+		streamer/recording
 
 # every benchmark; the soak runs 1 h of virtual time here (about 2 min), the full 8 h with
 # `.venv/bin/python -m benchmarks.bench_soak --hours 8` (about 13 min)

@@ -3,7 +3,8 @@
 A python-can `virtual` bus (or any bus given with --bus), the cell's simulated drives, the master
 adapter, the streamer core and the default 6-axis path job. In real time at the cell's SYNC period by
 default; `--fast` runs the same core and drive models in virtual time. Writes report.json,
-motion.png and bus.log (candump -L format) to the output folder and prints a summary.
+motion.png, bus.log (candump -L format) and job.mcap (the job's recording, streamer/recording: built
+from the trace after the job) to the output folder and prints a summary.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ from planner.job import Job, job_from_dict, job_to_dict, load_job
 from planner.plan import plan_job
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import Coordinator
+from streamer.recording.mcap_io import write_mcap
+from streamer.recording.model import build_recording
 from streamer.report import build_report, plot_motion, write_report
 from streamer.runtime.virtual import VirtualRuntime
 from streamer.stop import make_stop_planner
@@ -116,20 +119,28 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
             )
 
         rt = VirtualRuntime(cell, vcell=vcell, log=log)
+        wall0 = time.time()  # virtual time starts at 0: the recording's wall clock is the run's start
         result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync)
     if readings_out is not None:
         readings_out.update(rt.settings.readings)
+    epoch = wall0 + result.trace.sync_times.get(result.first_sync, 0.0)
     return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
-                   rt.settings.readings)
+                   rt.settings.readings, epoch_s=epoch)
 
 
 def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any, first: int, last: int,
-            out: Path, readings: Any = None) -> tuple[dict[str, Any], Any]:
-    report = build_report(traj, core.report(), trace, sync_period_ms=cell.sync_period_ms,
+            out: Path, readings: Any = None, *, epoch_s: float | None = None) -> tuple[dict[str, Any], Any]:
+    core_report = core.report()
+    report = build_report(traj, core_report, trace, sync_period_ms=cell.sync_period_ms,
                           first_sync=first, last_sync=last, readings=readings, time_stamp=cell.time_stamp)
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
                 underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning)
+    recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
+                                sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
+                                underflow_watermark=cell.drive.underflow_warning,
+                                overflow_watermark=cell.drive.overflow_warning)
+    write_mcap(recording, out / "job.mcap")
     return report, trace
 
 

@@ -53,6 +53,10 @@ Contract, method by method (which service thread calls it, what it may raise):
 - `reset()`: clear a fault (fault reset on the drives); returns `ready()` afterwards. Called by the
   control thread only while no job runs.
 - `close()`: release the bus. Called once, after the executor has stopped.
+- optional `take_recording()`: the recording of the job the last `execute` ran (a
+  `streamer.recording.JobRecording`, or `streamer.recording.writer.RecordingInputs` to build it from),
+  or None; each once. Called on the executor thread right after `execute`; the service writes it
+  beside its journal (docs/recording.md). A backend without it has no recordings.
 
 `load_backend(spec, cell, ...)` imports a backend factory by "module:function" name; `pvt serve`
 uses `DEFAULT_BACKEND` unless `--backend` names another (tests use this to run the fake).

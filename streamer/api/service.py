@@ -9,13 +9,23 @@ into a queue (they run on Zenoh's threads and must return at once):
   `planned`, one transaction) and only then replies (query) or publishes (put). Planning happens
   here, never on the motion runtime's SYNC thread.
 - executor: takes queued jobs one at a time, emits `priming`, calls `backend.execute` (blocking) with
-  an `emit` for progress and a `CancelToken`, then journals the result (`done`/`failed`/`cancelled`).
+  an `emit` for progress and a `CancelToken`, writes the job's recording (below), then journals the
+  result (`done`/`failed`/`cancelled`).
 - control: status, list, event history, cancel, service status and reset queries (cheap, separate
   from intake so a long planning job does not stall them).
 - events: the only writer of the journal. Every event gets the job's next sequence number, passes
   the transition table (model.py), is committed, and is then published on the job's events key, in
   order. Backends may emit from any thread; emitting never blocks (progress is throttled).
 - telemetry: publishes the backend's per-axis snapshot at `telemetry_hz`.
+
+Recordings: a backend that has `take_recording()` (the real one does) hands over each job's recording
+(a `JobRecording`, or the `RecordingInputs` to build it from) after `execute`; the executor has it
+built and written to `<recordings dir>/<job_id>.mcap` (default: beside the journal, `<journal
+stem>.recordings/`) by a low-priority worker process (streamer/recording/writer.py: this process keeps
+its GIL for SYNC and the drives) and applies the retention (`ServiceOptions`), after the motion ended
+and before the final event, so a `done` job's recording is already on disk and the next job starts
+after the write, never during it. The report gets `recording: {file, bytes, messages}` (or `{error}`:
+a recording that cannot be written does not fail a job that moved).
 
 On start, jobs the journal shows queued or running (the previous process died) are failed with
 SERVICE_RESTART and those events published before the service answers anything. A liveliness token
@@ -45,6 +55,8 @@ from streamer.api.errors import MotionError, error_from_exception
 from streamer.api.model import Event, EventType, InvalidTransition, JobRecord, JobState, transition
 from streamer.api.payload import DEFAULT_LIMITS, PayloadLimits, Submission, decode_submission, pack, plain
 from streamer.api.store import JobStore
+from streamer.recording.files import RecordingFiles, RecordingRetention, default_recordings_dir
+from streamer.recording.writer import RecordingWriter
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +75,9 @@ class ServiceOptions:
     intake_limit: int = 256  # submissions waiting to be decoded; more -> BUSY at once
     shutdown_timeout_s: float = 10.0  # how long close() waits for a cancelled job to stop
     list_limit_max: int = 10_000
+    record_jobs: bool = True  # write each job's recording (when the backend has take_recording)
+    recordings_dir: str | None = None  # None: beside the journal, <journal stem>.recordings/
+    recordings: RecordingRetention = field(default_factory=RecordingRetention)  # 200 files, 1 GiB
 
     def __post_init__(self) -> None:
         if self.queue_limit < 1:
@@ -205,6 +220,12 @@ class JobService:
         self._started = False
         self._closed = False
         self.counters: collections.Counter[str] = collections.Counter()
+        self.recordings: RecordingFiles | None = None
+        self._writer: RecordingWriter | None = None
+        if self.options.record_jobs:
+            folder = self.options.recordings_dir or default_recordings_dir(store.path)
+            self.recordings = RecordingFiles(folder, self.options.recordings)
+            self._writer = RecordingWriter(self.recordings)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def start(self) -> JobService:
@@ -212,6 +233,8 @@ class JobService:
             raise RuntimeError("service already started")
         self._started = True
         self._started_t = self._clock()
+        if self._writer is not None:
+            self._writer.start()
         self._spawn("events", self._events_loop)
         self._recover()
         self._spawn("intake", self._intake_loop)
@@ -273,6 +296,8 @@ class JobService:
         if current is not None:
             current.token.cancel()
         threads["executor"].join(timeout=self.options.shutdown_timeout_s)
+        if self._writer is not None:
+            self._writer.close()
         self._control_q.put(_STOP)
         threads["control"].join(timeout=10.0)
         self._stop_telemetry.set()
@@ -319,6 +344,7 @@ class JobService:
             "telemetry_hz": self.telemetry_hz,
             "started_t": self._started_t,
             "store": str(self.store.path),
+            "recordings": str(self.recordings.directory) if self.recordings is not None else None,
         }
 
     def _ready(self) -> tuple[bool, str]:
@@ -552,8 +578,27 @@ class JobService:
             }
         finally:
             emitter.close()
+        report = self._record(item.job_id, report)
         etype, data, updates = self._final_from_report(report)
         self._post(item.job_id, [(etype, data, updates)]).wait(60)
+
+    def _record(self, job_id: str, report: Any) -> Any:
+        """Write the job's recording (if the backend made one); the report says where, or why not."""
+        take = getattr(self.backend, "take_recording", None)
+        if self._writer is None or not callable(take):
+            return report
+        try:
+            rec = take()
+            if rec is None:
+                return report
+            saved = self._writer.save(job_id, rec, cell=self.cell)
+            info: dict[str, Any] = saved.info()
+            self.counters["recordings"] += 1
+            self.counters["recordings_deleted"] += len(saved.deleted)
+        except Exception as exc:
+            log.exception("could not write the recording of job %s", job_id)
+            info = {"error": f"{type(exc).__name__}: {exc}"[:500]}
+        return {**report, "recording": info} if isinstance(report, Mapping) else report
 
     def _final_from_report(self, report: Any) -> tuple[EventType, dict[str, Any], dict[str, Any]]:
         rep = plain(report) if isinstance(report, Mapping) else {"result": "failed", "raw": plain(report)}

@@ -2,9 +2,9 @@
 
 With no arguments: python-can `virtual` bus, the cell's simulated EPOS-style drives, the streamer, in
 real time at the cell's SYNC period (10 ms). A live progress bar shows every axis' FIFO fill. Writes
-report.json, motion.png and bus.log (candump -L) to --out (default demo-out/). Exit status 0 when
-the job is done with every guarantee met, 1 when the job failed or a guarantee was missed, 2 when the
-job or config was rejected.
+report.json, motion.png, bus.log (candump -L) and job.mcap (the job's recording) to --out (default
+demo-out/). Exit status 0 when the job is done with every guarantee met, 1 when the job failed or a
+guarantee was missed, 2 when the job or config was rejected.
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
     console.print(table)
     for f in report["faults"]:
         console.print(f"[red]fault[/red] {f}")
-    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}")
+    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}, {out / 'job.mcap'}")
 
 
 def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli.demo`

@@ -1,10 +1,15 @@
-"""`pvt jobs`: list the jobs journalled by a cell's job service (read from its SQLite journal).
+"""`pvt jobs`: list the jobs journalled by a cell's job service (read from its SQLite journal), and
+show or export one job's recording.
 
     pvt jobs --config configs/demo.toml            # the journal next to the config
     pvt jobs --store /var/lib/pvt/demo.jobs.sqlite --state failed --json
     pvt jobs --config configs/demo.toml --events JOB_ID
+    pvt jobs show JOB_ID [--config CELL | --store PATH] [--json]
+    pvt jobs export JOB_ID [--csv PATH] [--html PATH] [--mcap PATH]
 
 Reads the journal directly (no Zenoh, works while the service is down, and while it runs: WAL).
+`show` and `export` read the job's MCAP recording beside the journal (`<journal stem>.recordings/`,
+or `--recordings DIR`); JOB_ID may also be the path of an .mcap file (e.g. `demo-out/job.mcap`).
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,7 +38,192 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--events", metavar="JOB_ID", default=None, help="print the events of one job instead")
     p.add_argument("--json", action="store_true", help="JSON output")
     p.set_defaults(func=run)
+    actions = p.add_subparsers(dest="jobs_action", metavar="{show,export}")
+    show = actions.add_parser("show", help="summary of one job and its recording",
+                              description="Summary of one job: its journal row and its recording (per axis "
+                                          "numbers from the samples, events, messages per channel).")
+    show.add_argument("job", metavar="ID", help="job id, or the path of a recording (.mcap)")
+    _location(show)
+    show.add_argument("--json", action="store_true", default=argparse.SUPPRESS, help="JSON output")
+    show.set_defaults(func=run_show)
+    export = actions.add_parser("export", help="export one job's recording (CSV, HTML report, MCAP)",
+                                description="Export one job's recording: --csv (one row per SYNC), --html "
+                                            "(the interactive report, one self-contained file), --mcap (the "
+                                            "recording itself, for Foxglove or PlotJuggler).")
+    export.add_argument("job", metavar="ID", help="job id, or the path of a recording (.mcap)")
+    export.add_argument("--csv", type=Path, default=None, metavar="PATH", help="per-SYNC samples as CSV")
+    export.add_argument("--html", type=Path, default=None, metavar="PATH", help="the interactive report")
+    export.add_argument("--mcap", type=Path, default=None, metavar="PATH", help="a copy of the MCAP recording")
+    _location(export)
+    export.set_defaults(func=run_export)
     return p
+
+
+def _location(p: argparse.ArgumentParser) -> None:
+    # SUPPRESS: given before the action (`pvt jobs --store X show ID`) the value is kept
+    p.add_argument("--config", type=Path, default=argparse.SUPPRESS, help="cell config (default configs/demo.toml)")
+    p.add_argument("--store", type=Path, default=argparse.SUPPRESS, help="journal file (default: next to the config)")
+    p.add_argument("--recordings", type=Path, default=argparse.SUPPRESS, metavar="DIR",
+                   help="recordings folder (default: beside the journal, <journal stem>.recordings/)")
+
+
+def _journal_path(args: argparse.Namespace) -> Path:
+    """The journal `--store` names, or the one next to `--config` (raises PlanningError for a bad config)."""
+    from planner.config import default_config_path, load_cell
+    from streamer.api.store import default_store_path
+
+    if args.store is not None:
+        return Path(args.store)
+    config_path = args.config or default_config_path()
+    cell = load_cell(config_path)
+    return default_store_path(cell.source or str(config_path), cell.name)
+
+
+class _Lookup(Exception):
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
+
+
+def _find(args: argparse.Namespace) -> tuple[Path, Any]:
+    """(recording path, journal record or None) of `args.job`: a path to an .mcap file, or a job id."""
+    from planner.errors import PlanningError
+    from streamer.api.store import JobStore, StoreError
+    from streamer.recording.files import RecordingFiles, default_recordings_dir
+    from streamer.recording.model import RecordingError
+
+    given = Path(args.job)
+    if given.is_file():
+        return given, None
+    if given.suffix == ".mcap" and len(given.parts) > 1:  # a path, not a job id (ids have no "/")
+        raise _Lookup(f"no recording {given}", 1)
+    try:
+        journal = _journal_path(args)
+    except PlanningError as exc:
+        raise _Lookup(f"{exc.code}: {exc.message}", 2) from None
+    record = None
+    if journal.exists():
+        try:
+            with JobStore(journal, readonly=True) as store:
+                record = store.get(args.job)
+        except StoreError as exc:
+            raise _Lookup(str(exc), 2) from None
+    folder = getattr(args, "recordings", None) or default_recordings_dir(journal)
+    try:
+        path = RecordingFiles(folder).find(args.job)
+    except RecordingError as exc:
+        raise _Lookup(f"{exc.code}: {exc.message}", 2) from None
+    if path is None:
+        if record is None:
+            raise _Lookup(f"no job {args.job!r} in {journal} and no recording of it in {folder}", 1)
+        why = ("it never started, so nothing was recorded" if not record.started_t
+               else "retention removed it, or the job streamed nothing (or ran with recording off)")
+        raise _Lookup(f"job {args.job!r} ({record.state.value}) has no recording in {folder}: {why}", 1)
+    return path, record
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from streamer.recording.export import summary
+    from streamer.recording.mcap_io import read_mcap
+    from streamer.recording.model import RecordingError
+
+    err = Console(stderr=True)
+    try:
+        path, record = _find(args)
+        rec = read_mcap(path)
+    except _Lookup as exc:
+        err.print(f"pvt jobs show: {exc}")
+        return exc.status
+    except RecordingError as exc:
+        err.print(f"pvt jobs show: {exc.code}: {exc.message}")
+        return 2
+    info = summary(rec)
+    info["file"] = str(path)
+    info["bytes"] = path.stat().st_size
+    if record is not None:
+        info["journal"] = {k: v for k, v in record.to_status().items() if k != "report"}
+    if getattr(args, "json", False):
+        print(json.dumps(info, indent=2, default=str))
+        return 0
+    out = Console()
+    journal = info.get("journal")
+    state = journal["state"] if journal else rec.result
+    out.print(f"[bold]job {rec.job_id or '-'}[/bold] on cell {rec.cell or '-'}: {state}; recording {path} "
+              f"({info['bytes']} bytes)")
+    if journal:
+        out.print(f"kind {journal.get('kind')}, submitted {_time(journal.get('submitted_t'))}, started "
+                  f"{_time(journal.get('started_t'))}, finished {_time(journal.get('finished_t'))}")
+        if journal.get("error"):
+            e = journal["error"]
+            out.print(f"[red]error {e.get('code')}[/red]: {e.get('message', '')}")
+    out.print(f"SYNC {rec.sync_period_ms} ms, first SYNC {rec.first_sync}, start SYNC {rec.start_sync}, "
+              f"{info['duration_s']:.3f} s recorded, {info['frames']} CAN frames"
+              + (f" ({rec.frames_dropped} more not kept)" if rec.frames_dropped else ""))
+    table = Table(title="axes (from the recorded samples, counts)")
+    for col in ("axis", "node", "samples", "max following error", "FIFO min/max", "max |demand - plan|",
+                "final actual", "final plan"):
+        table.add_column(col, justify="right")
+    for a in info["axes"]:
+        table.add_row(a["name"], str(a["node_id"]), str(a["samples"]), _opt(a["max_following_error_counts"]),
+                      f"{_opt(a['fifo_min'])}/{_opt(a['fifo_max'])}", _opt(a["max_demand_vs_plan_counts"]),
+                      _opt(a["final_actual_counts"]), _opt(a["final_planned_counts"]))
+    out.print(table)
+    events = Table(title="events")
+    for col in ("t [s]", "SYNC", "event"):
+        events.add_column(col)
+    for e in info["events"]:
+        events.add_row(f"{e['t']:.3f}", _opt(e["sync"]), e["label"])
+    out.print(events)
+    out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()))
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from streamer.recording.export import write_csv, write_html
+    from streamer.recording.mcap_io import read_mcap
+    from streamer.recording.model import RecordingError
+
+    err = Console(stderr=True)
+    if args.csv is None and args.html is None and args.mcap is None:
+        err.print("pvt jobs export: say what to write: --csv PATH, --html PATH and/or --mcap PATH")
+        return 2
+    try:
+        path, _record = _find(args)
+        rec = read_mcap(path)
+    except _Lookup as exc:
+        err.print(f"pvt jobs export: {exc}")
+        return exc.status
+    except RecordingError as exc:
+        err.print(f"pvt jobs export: {exc.code}: {exc.message}")
+        return 2
+    out = Console()
+    try:
+        if args.mcap is not None:
+            args.mcap.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(path, args.mcap)
+            out.print(f"wrote {args.mcap} (MCAP, {args.mcap.stat().st_size} bytes)")
+        if args.csv is not None:
+            args.csv.parent.mkdir(parents=True, exist_ok=True)
+            rows = write_csv(rec, args.csv)
+            out.print(f"wrote {args.csv} ({rows} rows, one per SYNC)")
+        if args.html is not None:
+            args.html.parent.mkdir(parents=True, exist_ok=True)
+            fig = write_html(rec, args.html)
+            out.print(f"wrote {args.html} (interactive report, {fig.series_traces} curves, "
+                      f"{args.html.stat().st_size} bytes)")
+    except OSError as exc:
+        err.print(f"pvt jobs export: cannot write: {exc}")
+        return 2
+    return 0
+
+
+def _opt(v: Any) -> str:
+    return "-" if v is None else str(v)
 
 
 def _time(t: float | None) -> str:

@@ -66,6 +66,14 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--store", type=Path, default=None, help="job journal (default: next to the config)")
     p.add_argument("--queue", type=int, default=16, help="queued jobs before BUSY (default 16)")
+    p.add_argument("--recordings", type=Path, default=None, metavar="DIR",
+                   help="where each job's MCAP recording goes (default: beside the journal, "
+                        "<journal stem>.recordings/)")
+    p.add_argument("--keep-recordings", type=int, default=200, metavar="N",
+                   help="keep the newest N recordings (default 200)")
+    p.add_argument("--recordings-max-mb", type=int, default=1024, metavar="MB",
+                   help="and at most MB megabytes of them (default 1024)")
+    p.add_argument("--no-record", action="store_true", help="do not record jobs")
     p.add_argument("--telemetry-hz", type=float, default=None, help="telemetry rate (default: config, 20 Hz)")
     p.add_argument(
         "--backend",
@@ -125,6 +133,8 @@ def _serve(
     from streamer.api.service import JobService, ServiceOptions
     from streamer.api.store import JobStore, ServiceLock, StoreError
     from streamer.api.zenoh_config import service_config
+    from streamer.recording.files import RecordingRetention
+    from streamer.recording.model import RecordingError
 
     lock = ServiceLock(store_path)
     try:
@@ -155,7 +165,15 @@ def _serve(
         except zenoh.ZError as exc:
             print(f"pvt serve: cannot open the Zenoh session: {exc}", file=sys.stderr)
             return 2
-        options = ServiceOptions(queue_limit=args.queue, telemetry_hz=args.telemetry_hz)
+        try:
+            retention = RecordingRetention(max_count=args.keep_recordings,
+                                           max_bytes=args.recordings_max_mb * 1024 * 1024)
+        except RecordingError as exc:
+            print(f"pvt serve: {exc.code}: {exc.message}", file=sys.stderr)
+            return 2
+        options = ServiceOptions(queue_limit=args.queue, telemetry_hz=args.telemetry_hz,
+                                 record_jobs=not args.no_record, recordings=retention,
+                                 recordings_dir=str(args.recordings) if args.recordings else None)
         service = JobService(session, backend, store, options).start()
         listen = args.listen or list(cell.zenoh.listen)
         print(

@@ -7,6 +7,11 @@ jobs so heartbeats and TPDOs keep the telemetry live. Each `execute` streams one
 `RealtimeRuntime` on the service's executor thread (the SYNC-driven loop; planning happened on the
 intake thread) and returns the demo's report shape.
 
+Every job that streamed is recorded: after the job `execute` keeps its raw material (the trace, the
+plan's demand per ms, the report: `RecordingInputs`, no Python loop over the samples here) until the
+service takes it with `take_recording()` and has it built and written beside its journal, in a worker
+process (streamer/recording/writer.py). The SYNC loop pays only the trace's appends.
+
 A failed job leaves the cell NOT ready until `reset()` (fault reset + re-enable over SDO): after a
 fault nothing moves again without a deliberate act (STYLE.md rule 4).
 """
@@ -26,6 +31,7 @@ from planner.job import Job, job_from_dict
 from planner.plan import plan_job
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
 from streamer.core.coordinator import Coordinator
+from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
 from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import make_stop_planner
@@ -39,6 +45,7 @@ class RuntimeBackend:
         self._sim: Any = None
         self._lock = threading.Lock()
         self._fault: str = ""
+        self._recording: RecordingInputs | None = None
         if sim:
             from bus.sim.node import SimulatedCell
             from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
@@ -77,6 +84,8 @@ class RuntimeBackend:
 
     # ---- motion (executor thread)
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]:
+        with self._lock:
+            self._recording = None
         if cancel.cancelled:
             return {"result": "cancelled", "message": "cancelled before it started", "faults": [], "axes": []}
         ok, why = self.ready()
@@ -111,7 +120,20 @@ class RuntimeBackend:
                                "sync": outcome.sync, "detail": dict(outcome.detail)}
             with self._lock:
                 self._fault = f"{outcome.code}: {outcome.message}"
+        recording = RecordingInputs(PlanView.of(traj), result.trace, dict(report), result.first_sync,
+                                    core.start_sync, self.cell.sync_period_ms, cell=self.cell.name,
+                                    underflow_watermark=self.cell.drive.underflow_warning,
+                                    overflow_watermark=self.cell.drive.overflow_warning)
+        with self._lock:
+            self._recording = recording
         return report
+
+    def take_recording(self) -> RecordingInputs | None:
+        """The recording (to build) of the job the last `execute` streamed (None if it streamed nothing),
+        once."""
+        with self._lock:
+            recording, self._recording = self._recording, None
+        return recording
 
     # ---- state (any thread)
     def telemetry(self) -> Sequence[Mapping[str, Any]]:

@@ -56,7 +56,7 @@ class _Tap(can.Listener):
             if self.writer is not None:
                 self.writer.on_message_received(msg)
             if self.trace is not None:
-                self.trace.on_frame(msg.arbitration_id, msg.dlc)
+                self.trace.on_frame(msg.arbitration_id, msg.dlc, msg.data, msg.timestamp)
 
     def stop(self) -> None:
         with self._lock:
@@ -312,6 +312,8 @@ class RealtimeRuntime:
             e = pending.pop(0)
             trace.on_event(e)
             reaction = core.handle(e, wire_sync=self.adapter.latest_sync)
+            if reaction.changes:
+                trace.on_changes(reaction.changes)
             for s in reaction.sends:
                 try:
                     self.adapter.send(s.cob_id, s.data)

@@ -5,19 +5,102 @@ bus-load measurement) and keeps, per axis, one sample per SYNC: FIFO fill, posit
 position demand. It is shared by the virtual-time and the real-time runtimes, so the report and the
 plot are built the same way whatever bus ran the job. No I/O, no clock: timestamps come with the
 events.
+
+With `record=True` (the default) it also keeps what the job's recording needs (streamer/recording):
+every frame with its data and time (in compact arrays, up to `max_frames`, then counted in
+`frames_dropped`), the statusword and buffer status of every TPDO1, the events that are not
+per-SYNC samples (EMCY, heartbeat lost, boot-up, cancel, send failed, adapter errors), the core's
+job state changes (`on_changes`, fed the `Reaction.changes` the core returns) and the set point a
+cyclic drive family sends per SYNC (`on_setpoint`). Each is an append, so the streaming thread pays
+a few hundred nanoseconds per event for it (benchmarks/bench_recording.py); the MCAP file is written
+from this trace after the job, never during it. `record=False` keeps only what the report needs.
 """
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 from bus.cob import SYNC_COB_ID
 from bus.codec import frame_bits
-from bus.events import BufferStatus, PositionFeedback
+from bus.events import AdapterError, Bootup, BufferStatus, Cancel, Emcy, HeartbeatLost, PositionFeedback, SendFailed
 
 IP_ACTIVE_BIT = 1 << 15  # 0x20C4:01 bit 15
 FIFO_SIZE = 64
+# 1e6 frames keep about 19 MB (8 data bytes, a double, a COB-ID and a DLC each): about 8 minutes of a
+# 6-axis job at a 10 ms SYNC; beyond that the frames are counted, not kept
+DEFAULT_MAX_FRAMES = 1_000_000
+_NOTED = (Emcy, HeartbeatLost, Bootup, Cancel, SendFailed, AdapterError)
+_PAD = bytes(8)
+
+
+@dataclass(frozen=True)
+class NotedEvent:
+    """An event of the job that is not a per-SYNC sample, with the last SYNC fed before it."""
+
+    sync: int
+    event: object
+
+
+@dataclass(frozen=True)
+class NotedChange:
+    """A job state change the core reported, as plain data (the trace is pickled to the process that
+    writes the recording): the new state's value, the SYNC and time, and the outcome's code, node and
+    message when the change carried one."""
+
+    state: str
+    sync: int | None
+    t: float
+    code: str | None = None
+    node: int | None = None
+    message: str = ""
+
+    @classmethod
+    def of(cls, change: Any) -> NotedChange:
+        """From a `streamer.core.coordinator.StateChange` (duck-typed: `state` an enum with `.value`,
+        `sync`, `t`, `outcome` None or with `code`, `node`, `message`)."""
+        state = getattr(change.state, "value", change.state)
+        outcome = change.outcome
+        if outcome is None:
+            return cls(str(state), change.sync, float(change.t))
+        return cls(str(state), change.sync, float(change.t), outcome.code, outcome.node, str(outcome.message))
+
+
+class FrameLog:
+    """Frames in compact arrays: time (s, the runtime's clock), COB-ID, DLC and 8 data bytes each."""
+
+    def __init__(self, max_frames: int):
+        if max_frames < 0:
+            raise ValueError(f"max_frames must be >= 0, got {max_frames}")
+        self.max_frames = max_frames
+        self.t = array("d")
+        self.cob_id = array("H")
+        self.dlc = array("B")
+        self.data = bytearray()
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def add(self, t: float, cob_id: int, dlc: int, data: bytes) -> None:
+        if len(self.t) >= self.max_frames:
+            self.dropped += 1
+            return
+        self.t.append(t)
+        self.cob_id.append(cob_id)
+        self.dlc.append(dlc)
+        n = len(data)
+        if n == 8:  # most frames (PVT records, TPDOs): one copy, no padding
+            self.data += data
+        else:
+            self.data += data[:8]
+            self.data += _PAD[min(n, 8):]
+
+    def frame(self, i: int) -> tuple[float, int, int, bytes]:
+        n = self.dlc[i]
+        return self.t[i], self.cob_id[i], n, bytes(self.data[8 * i: 8 * i + min(n, 8)])
 
 
 @dataclass
@@ -30,6 +113,12 @@ class AxisTrace:
     actual: list[int] = field(default_factory=list)
     demand: list[int] = field(default_factory=list)
     ip_active_syncs: list[int] = field(default_factory=list)  # SYNCs answered with ip mode active
+    # recorded only with JobTrace(record=True): TPDO1's other two objects, aligned with fill_sync
+    statusword: list[int] = field(default_factory=list)
+    buffer_status: list[int] = field(default_factory=list)
+    # the set point sent per SYNC by a cyclic (one set point per SYNC) drive family, counts
+    setpoint_sync: list[int] = field(default_factory=list)
+    setpoint: list[int] = field(default_factory=list)
 
     def max_following_error(self) -> int:
         return max((abs(a - d) for a, d in zip(self.actual, self.demand, strict=True)), default=0)
@@ -38,7 +127,8 @@ class AxisTrace:
 class JobTrace:
     """Per-axis samples per SYNC and the bus traffic per SYNC cycle (for bus-load peak)."""
 
-    def __init__(self, nodes: Sequence[tuple[int, str]], *, sync_period_s: float, bitrate: int):
+    def __init__(self, nodes: Sequence[tuple[int, str]], *, sync_period_s: float, bitrate: int,
+                 record: bool = True, max_frames: int = DEFAULT_MAX_FRAMES):
         self.axes: dict[int, AxisTrace] = {n: AxisTrace(n, name) for n, name in nodes}
         self.sync_period_s = sync_period_s
         self.bitrate = bitrate
@@ -47,19 +137,39 @@ class JobTrace:
         self._sync = -1
         self._cycle = 0
         self.sync_times: dict[int, float] = {}
+        self.record = record
+        self.frame_log = FrameLog(max_frames if record else 0)
+        self.noted: list[NotedEvent] = []
+        self.changes: list[NotedChange] = []
 
     # ---- feeding
     def on_sync(self, count: int, t: float) -> None:
         self._sync = count
         self.sync_times[count] = t
 
-    def on_frame(self, cob_id: int, dlc: int) -> None:
+    def on_frame(self, cob_id: int, dlc: int, data: bytes | None = None, t: float | None = None) -> None:
         """Every frame on the bus, whoever sent it. A SYNC frame opens a new cycle for the bus-load tally
-        (counted from the frames themselves, so it does not matter which thread sees the events)."""
+        (counted from the frames themselves, so it does not matter which thread sees the events).
+        With `data` and `t` given and record=True the frame is also kept for the recording."""
         self.frames += 1
         if cob_id == SYNC_COB_ID:
             self._cycle += 1
         self._cycle_bits[self._cycle] = self._cycle_bits.get(self._cycle, 0) + frame_bits(dlc)
+        if self.record and data is not None and t is not None:
+            self.frame_log.add(t, cob_id, dlc, data)
+
+    def on_changes(self, changes: Sequence[Any]) -> None:
+        """The job state changes of one `Reaction` (usually none)."""
+        if self.record:
+            for c in changes:
+                self.changes.append(NotedChange.of(c))
+
+    def on_setpoint(self, node: int, sync: int, setpoint: int) -> None:
+        """The set point (counts) a cyclic drive family sent to `node` for SYNC `sync`."""
+        ax = self.axes.get(node)
+        if ax is not None:
+            ax.setpoint_sync.append(sync)
+            ax.setpoint.append(setpoint)
 
     def on_event(self, ev: object) -> None:
         if isinstance(ev, BufferStatus):
@@ -71,6 +181,9 @@ class JobTrace:
             ax.fill.append(FIFO_SIZE - ev.free_size)
             if ev.buffer_status & IP_ACTIVE_BIT:
                 ax.ip_active_syncs.append(s)
+            if self.record:
+                ax.statusword.append(ev.statusword)
+                ax.buffer_status.append(ev.buffer_status)
         elif isinstance(ev, PositionFeedback):
             ax = self.axes.get(ev.node)
             if ax is None:
@@ -78,6 +191,10 @@ class JobTrace:
             ax.pos_sync.append(self._sync if ev.sync_count is None else ev.sync_count)
             ax.actual.append(ev.position_actual)
             ax.demand.append(ev.position_demand)
+        elif self.record and isinstance(ev, _NOTED):
+            node = getattr(ev, "node", None)
+            if node is None or node in self.axes:
+                self.noted.append(NotedEvent(self._sync, ev))
 
     def feed(self, events: Iterable[object]) -> None:
         for ev in events:

@@ -300,7 +300,7 @@ class VirtualRuntime:
         if self._log is not None:
             self._log(start, frame.cob_id, frame.data)
         if self.trace is not None:
-            self.trace.on_frame(frame.cob_id, dlc)
+            self.trace.on_frame(frame.cob_id, dlc, frame.data, start)
         self._window_bits += frame_bits(dlc)
         self.counters["frames"] += 1
         if self._release is not None:
@@ -402,6 +402,8 @@ class VirtualRuntime:
             if self.trace is not None:
                 self.trace.on_event(e)
             reaction: Reaction = core.handle(e)
+            if reaction.changes and self.trace is not None:
+                self.trace.on_changes(reaction.changes)
             for s in reaction.sends:
                 reason = self._send(Frame(s.cob_id, s.data), t)
                 if reason is not None:

@@ -1,0 +1,288 @@
+"""A job's recording as an MCAP file: JSON messages with JSON Schema channels.
+
+Theory of operation. MCAP (the `mcap` library) is a chunked, indexed, zstd-compressed container of
+timestamped messages on channels; Foxglove and PlotJuggler both open it, and both decode channels
+whose message encoding is `json` (the schema encoding `jsonschema` tells Foxglove the fields).
+Channels (docs/recording.md has the schemas and an example of each message):
+
+- `/axis/<name>` (schema `pvt.AxisSample`): one message per SYNC the axis answered: t, sync, node,
+  planned, actual, demand, following_error, and the optional fifo_fill, setpoint, statusword,
+  buffer_status (a field without a value is left out, never null);
+- `/job/events` (schema `pvt.JobEvent`): state changes, the start SYNC, faults, cancel, EMCY,
+  heartbeat lost, boot-up, refused frames, adapter errors;
+- `/can/frames` (schema `pvt.CanFrame`): every frame on the bus during the job: t, id, dlc, data (hex).
+
+A metadata record `pvt.job` holds the job's identity and settings (job id, cell, result, SYNC period,
+first and start SYNC, epoch, watermarks, tolerance, axes as JSON) and the attachment `report.json` the
+job's report, so one file is the whole job: `read_mcap` rebuilds the `JobRecording` from it alone.
+Log and publish times are nanoseconds since the Unix epoch (`epoch_s + t`), so Foxglove shows the
+wall-clock time of the job; `t` in each message is seconds since the job's first SYNC.
+
+Written after the job (never on the streaming thread), to a temporary name and renamed, so a reader
+never sees half a file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import IO, Any
+
+from streamer.recording.model import (
+    FORMAT_VERSION,
+    SAMPLE_FIELDS,
+    AxisInfo,
+    AxisSamples,
+    Frames,
+    JobRecording,
+    RecordedEvent,
+    RecordingError,
+)
+
+PROFILE = ""  # no well-known MCAP profile fits (ros1/ros2 need their own message encodings)
+LIBRARY = "pvt-motion recording"
+METADATA_NAME = "pvt.job"
+REPORT_ATTACHMENT = "report.json"
+AXIS_TOPIC_PREFIX = "/axis/"
+EVENTS_TOPIC = "/job/events"
+FRAMES_TOPIC = "/can/frames"
+
+_INT = {"type": "integer"}
+
+AXIS_SAMPLE_SCHEMA: dict[str, Any] = {
+    "title": "pvt.AxisSample",
+    "description": "One axis at one SYNC: the plan and what the drive reported (positions in counts).",
+    "type": "object",
+    "properties": {
+        "t": {"type": "number", "description": "seconds since the job's first SYNC"},
+        "sync": {"type": "integer", "description": "SYNC counter (the master's count since SYNC started)"},
+        "node": {"type": "integer", "description": "CANopen node id"},
+        "planned": {"type": "integer", "description": "the plan's position demand at this SYNC, counts"},
+        "actual": {"type": "integer", "description": "position actual value 0x6064, counts"},
+        "demand": {"type": "integer", "description": "position demand value 0x6062, counts"},
+        "following_error": {"type": "integer", "description": "actual - demand, counts"},
+        "fifo_fill": {"type": "integer", "description": "records in the drive's FIFO (EPOS), 0..64"},
+        "setpoint": {"type": "integer", "description": "set point sent for this SYNC (cyclic drives), counts"},
+        "statusword": {"type": "integer", "description": "statusword 0x6041"},
+        "buffer_status": {"type": "integer", "description": "interpolation buffer status 0x20C4:01"},
+    },
+    "required": ["t", "sync", "node", "planned"],
+    "additionalProperties": False,
+}
+
+JOB_EVENT_SCHEMA: dict[str, Any] = {
+    "title": "pvt.JobEvent",
+    "description": "Something that happened to the job (not a per-SYNC sample).",
+    "type": "object",
+    "properties": {
+        "t": {"type": "number", "description": "seconds since the job's first SYNC"},
+        "sync": {"type": "integer", "description": "the last SYNC before the event"},
+        "kind": {"type": "string", "enum": ["state", "start", "fault", "cancel", "emcy", "heartbeat_lost",
+                                            "bootup", "send_failed", "adapter_error"]},
+        "state": {"type": "string", "description": "the job state (kind state, fault)"},
+        "code": {"type": "string", "description": "error code (fault) or EMCY code 0xNNNN (emcy)"},
+        "node": {"type": "integer", "description": "the node concerned, when one is"},
+        "message": {"type": "string"},
+    },
+    "required": ["t", "kind"],
+    "additionalProperties": False,
+}
+
+CAN_FRAME_SCHEMA: dict[str, Any] = {
+    "title": "pvt.CanFrame",
+    "description": "One CAN frame on the bus (11-bit identifier).",
+    "type": "object",
+    "properties": {
+        "t": {"type": "number", "description": "seconds since the job's first SYNC"},
+        "id": {"type": "integer", "description": "COB-ID"},
+        "dlc": {"type": "integer", "description": "data length code, 0..8"},
+        "data": {"type": "string", "description": "data bytes, hex, 2*dlc characters"},
+    },
+    "required": ["t", "id", "dlc", "data"],
+    "additionalProperties": False,
+}
+
+SCHEMAS = {s["title"]: s for s in (AXIS_SAMPLE_SCHEMA, JOB_EVENT_SCHEMA, CAN_FRAME_SCHEMA)}
+
+
+def _dumps(obj: Mapping[str, Any]) -> bytes:
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+
+
+def _ns(epoch_s: float, t: float) -> int:
+    return max(0, round((epoch_s + t) * 1e9))
+
+
+def _metadata(rec: JobRecording) -> dict[str, str]:
+    def opt(v: int | None) -> str:
+        return "" if v is None else str(v)
+
+    return {
+        "format_version": str(rec.format_version),
+        "job_id": rec.job_id,
+        "cell": rec.cell,
+        "result": rec.result,
+        "sync_period_ms": str(rec.sync_period_ms),
+        "first_sync": str(rec.first_sync),
+        "start_sync": opt(rec.start_sync),
+        "epoch_s": repr(rec.epoch_s),
+        "fifo_size": str(rec.fifo_size),
+        "underflow_watermark": opt(rec.underflow_watermark),
+        "overflow_watermark": opt(rec.overflow_watermark),
+        "tolerance_counts": opt(rec.tolerance_counts),
+        "frames_dropped": str(rec.frames_dropped),
+        "axes": json.dumps([{"name": a.name, "node_id": a.node_id, "counts_per_unit": a.counts_per_unit}
+                            for a in rec.axes]),
+    }
+
+
+def write_mcap_stream(rec: JobRecording, out: IO[bytes]) -> int:
+    """Write `rec` to a binary stream; returns the number of messages."""
+    from mcap.writer import Writer
+
+    writer = Writer(out)
+    writer.start(profile=PROFILE, library=LIBRARY)
+    ids = {title: writer.register_schema(name=title, encoding="jsonschema", data=_dumps(schema))
+           for title, schema in SCHEMAS.items()}
+    axis_channels = {
+        a.name: writer.register_channel(topic=f"{AXIS_TOPIC_PREFIX}{a.name}", message_encoding="json",
+                                        schema_id=ids["pvt.AxisSample"],
+                                        metadata={"node_id": str(a.node_id),
+                                                  "counts_per_unit": repr(a.counts_per_unit)})
+        for a in rec.axes
+    }
+    events_channel = writer.register_channel(topic=EVENTS_TOPIC, message_encoding="json",
+                                             schema_id=ids["pvt.JobEvent"])
+    frames_channel = writer.register_channel(topic=FRAMES_TOPIC, message_encoding="json",
+                                             schema_id=ids["pvt.CanFrame"])
+    # messages go in time order across channels (readers replay in log-time order anyway; chunks whose
+    # time ranges overlap cost the reader a merge)
+    queue: list[tuple[float, int, int, bytes]] = []
+    for a in rec.axes:
+        s = rec.samples[a.name]
+        ch = axis_channels[a.name]
+        for k in range(len(s)):
+            msg: dict[str, Any] = {"t": s.t[k], "sync": s.sync[k], "node": a.node_id}
+            for name in SAMPLE_FIELDS:
+                v = getattr(s, name)[k]
+                if v is not None:
+                    msg[name] = v
+            queue.append((s.t[k], 0, ch, _dumps(msg)))
+    for e in rec.events:
+        ev: dict[str, Any] = {"t": e.t, "kind": e.kind}
+        if e.sync is not None:
+            ev["sync"] = e.sync
+        if e.state is not None:
+            ev["state"] = e.state
+        if e.code is not None:
+            ev["code"] = e.code
+        if e.node is not None:
+            ev["node"] = e.node
+        if e.message:
+            ev["message"] = e.message
+        queue.append((e.t, 1, events_channel, _dumps(ev)))
+    f = rec.frames
+    for k in range(len(f)):
+        queue.append((f.t[k], 2, frames_channel,
+                      _dumps({"t": f.t[k], "id": f.cob_id[k], "dlc": f.dlc[k], "data": f.data[k].hex()})))
+    queue.sort(key=lambda q: (q[0], q[1]))
+    seq: dict[int, int] = {}
+    for t, _, ch, data in queue:
+        n = seq.get(ch, 0)
+        seq[ch] = n + 1
+        ns = _ns(rec.epoch_s, t)
+        writer.add_message(channel_id=ch, log_time=ns, publish_time=ns, data=data, sequence=n)
+    writer.add_metadata(METADATA_NAME, _metadata(rec))
+    now = _ns(rec.epoch_s, 0.0)
+    writer.add_attachment(create_time=now, log_time=now, name=REPORT_ATTACHMENT, media_type="application/json",
+                          data=json.dumps(rec.report, indent=2, default=str).encode())
+    writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
+    return len(queue)
+
+
+def write_mcap(rec: JobRecording, path: Path) -> int:
+    """Write `rec` to `path` (via a temporary file in the same folder, then renamed); returns messages."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as out:
+            n = write_mcap_stream(rec, out)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return n
+
+
+def _opt_int(text: str | None) -> int | None:
+    return int(text) if text not in (None, "") else None
+
+
+def read_mcap(path: Path) -> JobRecording:
+    """The `JobRecording` stored in an MCAP file written by `write_mcap`."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            meta: dict[str, str] | None = None
+            for m in reader.iter_metadata():
+                if m.name == METADATA_NAME:
+                    meta = dict(m.metadata)
+            if meta is None:
+                raise RecordingError("NOT_A_RECORDING", f"{path} has no {METADATA_NAME!r} metadata record: "
+                                     "not a pvt job recording", "metadata")
+            report: dict[str, Any] = {}
+            for att in reader.iter_attachments():
+                if att.name == REPORT_ATTACHMENT:
+                    report = json.loads(att.data)
+            axes = tuple(AxisInfo(str(a["name"]), int(a["node_id"]), float(a["counts_per_unit"]))
+                         for a in json.loads(meta["axes"]))
+            samples = {a.name: AxisSamples() for a in axes}
+            events: list[RecordedEvent] = []
+            frames = Frames()
+            for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                obj = json.loads(message.data)
+                topic = channel.topic
+                if topic == FRAMES_TOPIC:
+                    frames.append(float(obj["t"]), int(obj["id"]), int(obj["dlc"]), bytes.fromhex(obj["data"]))
+                elif topic == EVENTS_TOPIC:
+                    events.append(RecordedEvent(float(obj["t"]), obj.get("sync"), str(obj["kind"]), obj.get("state"),
+                                                obj.get("code"), obj.get("node"), str(obj.get("message", ""))))
+                elif topic.startswith(AXIS_TOPIC_PREFIX):
+                    name = topic[len(AXIS_TOPIC_PREFIX):]
+                    if name in samples:
+                        samples[name].append(int(obj["sync"]), float(obj["t"]), obj)
+    except (McapError, OSError, KeyError, ValueError) as exc:
+        if isinstance(exc, RecordingError):
+            raise
+        raise RecordingError("NOT_A_RECORDING", f"cannot read {path} as a job recording: "
+                             f"{type(exc).__name__}: {exc}") from exc
+    version = int(meta.get("format_version", "0"))
+    if version > FORMAT_VERSION:
+        raise RecordingError("NOT_A_RECORDING", f"{path} has recording format {version}; this pvt reads up to "
+                             f"{FORMAT_VERSION}", "format_version")
+    return JobRecording(
+        job_id=meta.get("job_id", ""),
+        cell=meta.get("cell", ""),
+        result=meta.get("result", ""),
+        sync_period_ms=int(meta["sync_period_ms"]),
+        first_sync=int(meta["first_sync"]),
+        start_sync=_opt_int(meta.get("start_sync")),
+        epoch_s=float(meta["epoch_s"]),
+        axes=axes,
+        samples=samples,
+        events=tuple(events),
+        frames=frames,
+        report=report,
+        fifo_size=int(meta.get("fifo_size", "64")),
+        underflow_watermark=_opt_int(meta.get("underflow_watermark")),
+        overflow_watermark=_opt_int(meta.get("overflow_watermark")),
+        tolerance_counts=_opt_int(meta.get("tolerance_counts")),
+        frames_dropped=int(meta.get("frames_dropped", "0")),
+        format_version=version,
+    )

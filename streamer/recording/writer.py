@@ -1,0 +1,155 @@
+"""Building and writing recordings in a separate, low-priority process (for the job service).
+
+Theory of operation. Between two jobs the service's process still runs real-time work: SYNC (a
+Python thread on python-can's virtual bus), the adapter's receive thread, and with `--sim` the
+simulated drives, which fault with EMCY 0x8780 when a SYNC comes more than 3 periods late. Building
+a recording and encoding tens of thousands of JSON messages is a few hundred ms of pure Python: done
+in that process it holds the GIL in long stretches, and here it raised the SYNC interval's p99 from
+14 ms to 39 ms with gaps past 30 ms (measured on the loaded 2-core development machine; a child
+process: p99 17 ms). So the service hands the job's raw material (`RecordingInputs`: the trace's
+compact arrays and lists, the plan's demand per ms as one numpy array, the report) to one worker
+process started with `spawn` (no fork of a threaded process) at a lower CPU priority (nice 10); the
+worker builds the `JobRecording` and writes the MCAP file; the service's executor thread waits for it
+without holding the GIL. Pickling the inputs takes about 2 ms for the demo's 3.7 s job.
+
+The worker is started with the service (`start()`: its imports, about a second of CPU, then do not
+compete with a job) and kept; a worker that died is replaced on the next recording. `in_process=True`
+does the same work on the calling thread (for tools that have no SYNC to protect).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import multiprocessing
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from streamer.recording.files import RecordingFiles, SavedRecording
+from streamer.recording.model import JobRecording, build_recording
+
+WRITE_TIMEOUT_S = 300.0
+WORKER_NICE = 10
+
+
+@dataclass(frozen=True)
+class PlanView:
+    """What `build_recording` needs of a `PvtTrajectory`, as plain picklable data."""
+
+    axis_names: tuple[str, ...]
+    node_ids: tuple[int, ...]
+    counts_per_unit: tuple[float, ...]
+    tolerance_counts: int
+    duration_ms: int
+    demand_per_ms: Any  # numpy int array (n_axes, duration_ms + 1): `PvtTrajectory.planned_demand()`
+
+    @classmethod
+    def of(cls, traj: Any) -> PlanView:
+        return cls(tuple(str(n) for n in traj.axis_names), tuple(int(n) for n in traj.node_ids),
+                   tuple(float(c) for c in traj.counts_per_unit), int(traj.tolerance_counts),
+                   int(traj.duration_ms), traj.planned_demand())
+
+    def planned_demand(self) -> Any:
+        return self.demand_per_ms
+
+
+@dataclass(frozen=True)
+class RecordingInputs:
+    """A finished job's raw material for its recording (built where it is written)."""
+
+    plan: PlanView
+    trace: Any  # streamer.runtime.trace.JobTrace (record=True)
+    report: Mapping[str, Any]
+    first_sync: int
+    start_sync: int | None
+    sync_period_ms: int
+    cell: str = ""
+    epoch_s: float | None = None
+    underflow_watermark: int | None = None
+    overflow_watermark: int | None = None
+
+    def build(self, job_id: str = "", cell: str | None = None) -> JobRecording:
+        return build_recording(self.plan, self.trace, self.report, first_sync=self.first_sync,
+                               start_sync=self.start_sync, sync_period_ms=self.sync_period_ms, job_id=job_id,
+                               cell=self.cell if cell is None else cell, epoch_s=self.epoch_s,
+                               underflow_watermark=self.underflow_watermark,
+                               overflow_watermark=self.overflow_watermark)
+
+
+def as_recording(item: JobRecording | RecordingInputs, job_id: str, cell: str) -> JobRecording:
+    if isinstance(item, RecordingInputs):
+        return item.build(job_id, cell)
+    return replace(item, job_id=job_id, cell=cell)
+
+
+def _lower_priority() -> None:
+    with contextlib.suppress(OSError):  # not allowed here: the worker still has its own GIL
+        os.nice(WORKER_NICE)
+
+
+def _warm_up() -> int:
+    import numpy  # noqa: F401  (the plan's demand arrives as a numpy array)
+
+    import streamer.recording.mcap_io  # noqa: F401
+
+    return os.getpid()
+
+
+def _write(path: str, item: JobRecording | RecordingInputs, job_id: str, cell: str) -> tuple[int, int]:
+    """In the worker: build and write; (messages, the worker's pid)."""
+    from streamer.recording.mcap_io import write_mcap
+
+    messages = write_mcap(as_recording(item, job_id, cell), Path(path))
+    return messages, os.getpid()
+
+
+class RecordingWriter:
+    """Writes each job's recording into `files`, in a worker process (see the module docstring)."""
+
+    def __init__(self, files: RecordingFiles, *, in_process: bool = False):
+        self.files = files
+        self.in_process = in_process
+        self.last_writer_pid: int | None = None
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+
+    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority)
+        return self._pool
+
+    def start(self) -> None:
+        """Start the worker and let it import what it needs now (about a second of CPU), so that burst
+        does not land between two jobs."""
+        if not self.in_process:
+            self._executor().submit(_warm_up).result(timeout=WRITE_TIMEOUT_S)
+
+    def save(self, job_id: str, item: JobRecording | RecordingInputs, *, cell: str) -> SavedRecording:
+        path = self.files.path(job_id)  # checks the job id before anything is sent
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if self.in_process:
+            messages, pid = _write(str(path), item, job_id, cell)
+        else:
+            try:
+                messages, pid = self._executor().submit(_write, str(path), item, job_id, cell).result(
+                    timeout=WRITE_TIMEOUT_S)
+            except concurrent.futures.process.BrokenProcessPool:
+                self._drop_pool()  # the worker died (killed, out of memory): a new one next time
+                raise
+        self.last_writer_pid = pid
+        deleted = self.files.prune(keep=path)
+        return SavedRecording(path, path.stat().st_size, messages, deleted)
+
+    def _drop_pool(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self) -> None:
+        pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+
