@@ -55,6 +55,11 @@ class RuntimeBackend:
             self.adapter = MasterAdapter(None, self.cell)
             self.adapter.configure_drives()
             self.runtime = RealtimeRuntime(self.cell, self.adapter)
+            # what the cell does not state of the drives' readings, measured once at start-up (no motion);
+            # the plans are then made for the drives as they are (bus/probe.py)
+            self.runtime.ensure_readings()
+            self.cell = dataclasses.replace(self.cell, axes=tuple(
+                dataclasses.replace(a, probed=self.runtime.known[a.node_id]) for a in self.cell.axes))
             self.adapter.enable_drives()
             self.adapter.start_sync()
         except BaseException:
@@ -113,7 +118,8 @@ class RuntimeBackend:
                                   on_change=on_change)
         core = result.coordinator
         report = build_report(traj, core.report(), result.trace, sync_period_ms=self.cell.sync_period_ms,
-                              first_sync=result.first_sync, last_sync=result.last_sync)
+                              first_sync=result.first_sync, last_sync=result.last_sync,
+                              readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp)
         outcome = core.outcome
         if outcome is not None and report["result"] == "failed":
             report["error"] = {"code": outcome.code, "node": outcome.node, "message": outcome.message,

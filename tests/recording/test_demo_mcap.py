@@ -74,7 +74,7 @@ def test_demo_mcap_agrees_with_report_json(demo_run: tuple[Path, Any, Any, dict[
     assert len(syncs) == report["syncs"]
     assert all(a["t"] <= b["t"] for a, b in itertools.pairwise(frames))
     # the PVT records on /can/frames are the plan's records, in order, and what bus.log holds
-    logged = decode_candump(out / "bus.log", traj.node_ids)
+    logged = decode_candump(out / "bus.log", traj.node_ids, report["job_start_s"])
     for i, node in enumerate(traj.node_ids):
         sent = [unpack(bytes.fromhex(f["data"])) for f in frames if f["id"] == RPDO2_BASE + node]
         assert sent == traj.records(i) == logged[node]
