@@ -59,8 +59,8 @@ def run_job(plan: StreamPlan, record: bool) -> tuple[float, float, int, JobTrace
         wire: list[tuple[int, bytes]] = [(SYNC_COB_ID, b"")]
         events: list[object] = [Sync(count, t)]
         for d, (tp1, _) in zip(drives, frames, strict=True):
-            sw, bs, free = unpack_tpdo1(tp1)
-            events.append(BufferStatus(d.node, sw, bs, free, t, count))
+            sw, free = unpack_tpdo1(tp1)
+            events.append(BufferStatus(d.node, sw, 0x8000 if sw & 0x1000 else 0, free, t, count))
             wire.append((0x180 + d.node, tp1))
         for d, (_, tp2) in zip(drives, frames, strict=True):
             actual, demand = unpack_tpdo2(tp2)

@@ -116,8 +116,7 @@ class LoopbackDrive:
             self.cw = pending
             self.pending = None
         sw = 0x0027 | (0x1000 if self.active else 0x0400)
-        bs = 0x4000 | (0x8000 if self.active else 0)
-        return pack_tpdo1(sw, bs, 64 - len(self.fifo)), pack_tpdo2(self.demand, self.demand)
+        return pack_tpdo1(sw, 64 - len(self.fifo)), pack_tpdo2(self.demand, self.demand)
 
 
 def run_job(plan: StreamPlan, drop: Callable[[Send], bool] | None = None) -> tuple[Coordinator, float, int]:
@@ -134,8 +133,8 @@ def run_job(plan: StreamPlan, drop: Callable[[Send], bool] | None = None) -> tup
         t = count * PERIOD_MS / 1000.0
         events: list[object] = [Sync(count, t)]
         for d, (tp1, _) in zip(drives, frames, strict=True):
-            sw, bs, free = unpack_tpdo1(tp1)
-            events.append(BufferStatus(d.node, sw, bs, free, t, count))
+            sw, free = unpack_tpdo1(tp1)
+            events.append(BufferStatus(d.node, sw, 0x8000 if sw & 0x1000 else 0, free, t, count))
         for d, (_, tp2) in zip(drives, frames, strict=True):
             actual, demand = unpack_tpdo2(tp2)
             events.append(PositionFeedback(d.node, actual, demand, t, count))
@@ -155,11 +154,11 @@ def run_job(plan: StreamPlan, drop: Callable[[Send], bool] | None = None) -> tup
 
 def decode_baseline(n_items: int) -> float:
     """Seconds to decode n TPDO1+TPDO2 pairs into the core's events (the adapter's share)."""
-    tp1, tp2 = pack_tpdo1(0x1027, 0xC000, 40), pack_tpdo2(123_456, 123_450)
+    tp1, tp2 = pack_tpdo1(0x1027, 40), pack_tpdo2(123_456, 123_450)
     t0 = time.perf_counter()
     for i in range(n_items):
-        sw, bs, free = unpack_tpdo1(tp1)
-        BufferStatus(1, sw, bs, free, 0.0, i)
+        sw, free = unpack_tpdo1(tp1)
+        BufferStatus(1, sw, 0x8000 if sw & 0x1000 else 0, free, 0.0, i)
         actual, demand = unpack_tpdo2(tp2)
         PositionFeedback(1, actual, demand, 0.0, i)
     return time.perf_counter() - t0

@@ -25,7 +25,8 @@ from bus.codec import frame_bits
 
 RECORD_FRAME_BITS = frame_bits(8)  # RPDO2 0x20C1 record
 CONTROLWORD_FRAME_BITS = frame_bits(2)  # RPDO1 controlword
-TPDO_FRAME_BITS = frame_bits(8)  # TPDO1 (2+2+4 bytes) and TPDO2 (4+4 bytes)
+TPDO_FRAME_BITS = frame_bits(8)  # TPDO2 (4+4 bytes), the larger of the two
+TPDO1_FRAME_BITS = frame_bits(6)  # TPDO1 (statusword 2 + free size 4 bytes)
 SYNC_FRAME_BITS = frame_bits(0)
 COUNTED_SYNC_FRAME_BITS = frame_bits(1)  # SYNC with the counter byte
 TIME_STAMP_FRAME_BITS = frame_bits(4)  # 0x1013 after every SYNC
@@ -59,8 +60,11 @@ def cycle_budget(
     heartbeats_per_cycle = sync_period_ms / heartbeat_ms if heartbeat_ms > 0 else 0.0
     sync = COUNTED_SYNC_FRAME_BITS if feedback_every > 1 else SYNC_FRAME_BITS
     feedback_frames = math.ceil(n_nodes / max(1, feedback_every))
+    # heartbeats: the drives' producer times are spread (bus.profile), so a cycle carries about the
+    # average number, plus a margin for the cycles where a few coincide
+    heartbeat_frames = min(n_nodes, math.ceil(n_nodes * heartbeats_per_cycle) + 2) if heartbeat_ms > 0 else 0
     fixed = (sync + (TIME_STAMP_FRAME_BITS if time_stamp else 0)
-             + n_nodes * (TPDO_FRAME_BITS + heartbeats_per_cycle * HEARTBEAT_FRAME_BITS)
+             + n_nodes * TPDO1_FRAME_BITS + heartbeat_frames * HEARTBEAT_FRAME_BITS
              + feedback_frames * TPDO_FRAME_BITS)
     return CycleBudget(cycle_bits=cycle_bits, limit_bits=bus_load_limit * cycle_bits, fixed_bits=fixed)
 

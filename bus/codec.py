@@ -482,8 +482,13 @@ def decode_heartbeat(data: bytes | bytearray | memoryview) -> NmtState:
 
 class Tpdo1(NamedTuple):
     statusword: int
-    buffer_status: int
     free_size: int
+
+    @property
+    def buffer_status(self) -> int:
+        """0x20C4:01 as far as TPDO1 tells: ip mode active (statusword bit 12) in bit 15; the buffer
+        status itself is not in the PDO (bus/cob.py)."""
+        return BS_IP_ACTIVE if self.statusword & SW_IP_ACTIVE else 0
 
 
 class Tpdo2(NamedTuple):

@@ -147,6 +147,13 @@ class EmcyCodes:
 
 
 FEEDBACK_TPDO = 2  # TPDO2 carries the position feedback (0x6064, 0x6062)
+HEARTBEAT_SPREAD_MS = 11  # producer times heartbeat_ms + (node id mod 11): the drives' heartbeats drift
+# apart instead of all landing in one SYNC cycle (24 of them are 1560 bits, 16 % of a 10 ms cycle)
+
+
+def heartbeat_producer_ms(heartbeat_ms: int, node: int) -> int:
+    """0x1017 for `node`: the cell's heartbeat time, spread by node id (see HEARTBEAT_SPREAD_MS)."""
+    return heartbeat_ms + node % HEARTBEAT_SPREAD_MS if heartbeat_ms > 0 else 0
 TIME_STAMP_CONSUME = 1 << 31  # 0x1012 bit 31: the node consumes the time stamp
 
 
@@ -271,8 +278,8 @@ class DriveProfile:
 
         writes: list[SdoWrite] = [
             w("sync_period", sync_period_ms * 1000, "communication cycle period (us)", essential=False),
-            w("heartbeat_producer", settings.heartbeat_ms, "producer heartbeat time (ms)",
-              "the master detects a lost drive by its heartbeat"),
+            w("heartbeat_producer", heartbeat_producer_ms(settings.heartbeat_ms, axis.node_id),
+              "producer heartbeat time (ms)", "the master detects a lost drive by its heartbeat"),
             w("mode", self.ip_mode, "modes of operation = interpolated position", "selects the PVT mode"),
             w("ip_submode", self.ip_submode, "interpolation sub mode", "cubic PVT interpolation"),
             w("underflow_warning", settings.underflow_warning, "buffer underflow warning level",
@@ -431,8 +438,7 @@ EPOS_IPM = DriveProfile(
     pdos=(
         PdoLayout("rx", 1, cob.RPDO1_BASE, 1, (PdoEntry(0x6040, 0, 16),)),
         PdoLayout("rx", 2, cob.RPDO2_BASE, 255, (PdoEntry(0x20C1, 0, 64),)),
-        PdoLayout("tx", 1, cob.TPDO1_BASE, 1, (PdoEntry(0x6041, 0, 16), PdoEntry(0x20C4, 1, 16),
-                                               PdoEntry(0x60C4, 2, 32))),
+        PdoLayout("tx", 1, cob.TPDO1_BASE, 1, (PdoEntry(0x6041, 0, 16), PdoEntry(0x60C4, 2, 32))),
         PdoLayout("tx", 2, cob.TPDO2_BASE, 1, (PdoEntry(0x6064, 0, 32), PdoEntry(0x6062, 0, 32))),
     ),
     objects=MappingProxyType(_EPOS_OBJECTS),

@@ -153,6 +153,13 @@ class DriveSettings:
     profile_deceleration: float = 0.0  # 0x6084 in user units/s^2 for halt; 0 = use axis acceleration
 
     def __post_init__(self) -> None:
+        if self.heartbeat_ms > 0 and self.heartbeat_timeout_ms < self.heartbeat_ms + 10 + 50:
+            raise PlanningError(
+                CONFIG,
+                f"drive.heartbeat_timeout_ms {self.heartbeat_timeout_ms} must be at least heartbeat_ms "
+                f"({self.heartbeat_ms}) + 60: the drives' producer times are spread up to 10 ms above it",
+                path="drive.heartbeat_timeout_ms",
+            )
         if not (0 <= self.underflow_warning < self.overflow_warning <= 64):
             raise PlanningError(
                 CONFIG,

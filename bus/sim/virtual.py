@@ -21,6 +21,8 @@ from bus.sim.model import DriveModel
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams
 from planner.config import CellConfig
 
+CONFIG_SPACING_S = 0.002
+
 
 class VirtualCell:
     def __init__(
@@ -39,11 +41,16 @@ class VirtualCell:
         self.models: dict[int, DriveModel] = {}
         self.boot_frames: list[Frame] = []
         positions = dict(initial_positions or {})
+        # a master configures drives one after another (tens of SDO exchanges each), so their heartbeat
+        # producers start at different times: drive k is powered on and configured CONFIG_SPACING_S before
+        # drive k + 1, the last one at t0
+        n = len(cell.axes)
+        self._config_t = {a.node_id: t0 - (n - 1 - k) * CONFIG_SPACING_S for k, a in enumerate(cell.axes)}
         for axis in cell.axes:
             m = DriveModel(axis.node_id, axis, cell.drive, motor=motor,
                            initial_position=positions.get(axis.node_id, 0.0),
                            sync_gap_factor=sync_gap_factor, profile=profile)
-            self.boot_frames += m.power_on(t0)
+            self.boot_frames += m.power_on(self._config_t[axis.node_id])
             self.models[axis.node_id] = m
         # what the master configures: TPDO2 staggered when the cell needs it (bus.budget) and every drive
         # has the SYNC counter (the master learns that over SDO; here each model says so itself)
@@ -51,9 +58,9 @@ class VirtualCell:
         self.feedback: FeedbackSchedule | None = feedback_schedule(
             [a.node_id for a in cell.axes], every, all(m.has_object(0x1019) for m in self.models.values()))
         if configure:
-            for m in self.models.values():
-                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=t0, feedback=self.feedback,
-                                                        time_stamp=cell.time_stamp)
+            for node, m in self.models.items():
+                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=self._config_t[node],
+                                                        feedback=self.feedback, time_stamp=cell.time_stamp)
         self._models = tuple(self.models.values())
         self._routes: dict[int, tuple[DriveModel, ...]] = {}
         self._versions: dict[int, int] = {}

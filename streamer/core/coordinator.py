@@ -880,7 +880,7 @@ class Coordinator:
             # what the drive holds of the plan: its count, plus the target it leaves out, minus the tail
             tail_in_fifo = max(0, f.confirmed - f.lead - f.plan_len)
             fill_plan = fill + hidden - tail_in_fifo
-            f.observe_fill(fill, bs, remaining >= self._u)
+            f.observe_fill(fill, self._u, self._o, remaining >= self._u)
             needed = needed_fill(self._u, remaining)
             missing = f.repair_pending > 0 or f.suspect_sync is not None
             # with records missing, the feeder's due-time check decides (resend in time, or predicted
@@ -929,8 +929,6 @@ class Coordinator:
             why = ""
             if sw & SW_STATE_MASK != SW_OPERATION_ENABLED:
                 why = f"not operation enabled (statusword 0x{sw:04X})"
-            elif not bs & BS_BUFFER_ENABLED:
-                why = f"IP buffer not enabled (buffer status 0x{bs:04X})"
             elif bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
                 why = "ip mode already active"
             elif fill != 0:

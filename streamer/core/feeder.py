@@ -435,16 +435,19 @@ class FifoFeeder:
         return evaluate(coeffs, 0.0)[2]
 
     # ---- telemetry --------------------------------------------------------------------------------
-    def observe_fill(self, fill: int, buffer_status: int, in_window: bool) -> None:
+    def observe_fill(self, fill: int, underflow_warning: int, overflow_warning: int, in_window: bool) -> None:
+        """The drive's fill at a SYNC; its warnings are what 0x20C4:01 bits 0 and 1 say (seed 000
+        4.3.6.2: below the underflow level 0x20C4:02, above the overflow level 0x20C4:03), counted from
+        the fill since TPDO1 does not carry the buffer status."""
         self.last_fill = fill
-        if buffer_status & 0x0002:
+        if fill > overflow_warning:
             self.overflow_warnings += 1
         if in_window:
             if self.min_fifo is None or fill < self.min_fifo:
                 self.min_fifo = fill
             if self.max_fifo is None or fill > self.max_fifo:
                 self.max_fifo = fill
-            if buffer_status & 0x0001:
+            if fill < underflow_warning:
                 self.underflow_warnings += 1
 
     def telemetry(self) -> AxisTelemetry:

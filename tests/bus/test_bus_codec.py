@@ -203,10 +203,12 @@ def test_frame_bits_worst_case_stuffing() -> None:
             codec.frame_bits(bad)  # type: ignore[arg-type]
 
 
-@given(st.integers(0, 0xFFFF), st.integers(0, 0xFFFF), st.integers(0, 64),
+@given(st.integers(0, 0xFFFF), st.integers(0, 64),
        st.integers(-(2**31), 2**31 - 1), st.integers(-(2**31), 2**31 - 1))
-def test_tpdo_round_trip(sw: int, bs: int, free: int, actual: int, demand: int) -> None:
-    assert codec.decode_tpdo1(cob.pack_tpdo1(sw, bs, free)) == (sw, bs, free)
+def test_tpdo_round_trip(sw: int, free: int, actual: int, demand: int) -> None:
+    t1 = codec.decode_tpdo1(cob.pack_tpdo1(sw, free))
+    assert t1 == (sw, free)
+    assert t1.buffer_status == (codec.BS_IP_ACTIVE if sw & codec.SW_IP_ACTIVE else 0)
     assert codec.decode_tpdo2(cob.pack_tpdo2(actual, demand)) == (actual, demand)
 
 
@@ -230,8 +232,8 @@ def test_frame_to_event_parses_or_raises_protocol_error(cob_id: int, data: bytes
 def test_frame_to_event_ignores_other_nodes_and_maps_each_kind() -> None:
     nodes = frozenset({3})
     assert EPOS_IPM.frame_to_event(0x184, b"\x00" * 8, 0.0, nodes) is None
-    ev = EPOS_IPM.frame_to_event(0x183, cob.pack_tpdo1(0x1637, 0xC000, 40), 2.0, nodes, 9)
-    assert ev == BufferStatus(3, 0x1637, 0xC000, 40, 2.0, 9)
+    ev = EPOS_IPM.frame_to_event(0x183, cob.pack_tpdo1(0x1637, 40), 2.0, nodes, 9)
+    assert ev == BufferStatus(3, 0x1637, 0x8000, 40, 2.0, 9)  # ip mode active mirrored from the statusword
     ev = EPOS_IPM.frame_to_event(0x283, cob.pack_tpdo2(-5, 7), 2.0, nodes)
     assert ev == PositionFeedback(3, -5, 7, 2.0)
     ev = EPOS_IPM.frame_to_event(0x83, codec.encode_emcy(0x8611, 0x21), 2.0, nodes)

@@ -74,7 +74,7 @@ def test_profile_pdo_layout_is_the_cob_contract() -> None:
     tx1, tx2 = EPOS_IPM.pdo("tx", 1), EPOS_IPM.pdo("tx", 2)
     assert (rx1.cob_id(3), rx1.transmission_type, rx1.size_bytes) == (cob.rpdo1_id(3), 1, 2)
     assert (rx2.cob_id(3), rx2.transmission_type, rx2.size_bytes) == (cob.rpdo2_id(3), 255, 8)
-    assert [e.word for e in tx1.entries] == [0x60410010, 0x20C40110, 0x60C40220]
+    assert [e.word for e in tx1.entries] == [0x60410010, 0x60C40220]
     assert [e.word for e in tx2.entries] == [0x60640020, 0x60620020]
     assert tx1.cob_id(3) == cob.tpdo1_id(3) and tx2.cob_id(3) == cob.tpdo2_id(3)
     assert EPOS_IPM.record_cob_id(3) == cob.rpdo2_id(3) and EPOS_IPM.controlword_cob_id(3) == cob.rpdo1_id(3)
@@ -102,5 +102,5 @@ def test_configuration_is_accepted_and_in_range() -> None:
     assert disable < first_map
     # the simulated drive accepts every write (the SDO path is tested in test_bus_network.py)
     d = VDrive(axis, sync_period_ms=4)
-    assert d.model.sdo_read(0x1A00, 0) == 3 and d.model.sdo_read(0x1601, 1) == 0x20C10040
+    assert d.model.sdo_read(0x1A00, 0) == 2 and d.model.sdo_read(0x1601, 1) == 0x20C10040
     assert d.model.sdo_read(0x1402, 1) & 0x80000000 and d.model.sdo_read(0x1803, 1) & 0x80000000

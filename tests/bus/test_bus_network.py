@@ -83,7 +83,7 @@ def test_configure_enable_and_stream_a_synchronous_start(cell: CellConfig, sim: 
         m.configure_drives()
         for node in (1, 2):
             assert m.read(node, 0x6060) == 7 and m.read(node, 0x60C0) == -1
-            assert m.read(node, 0x1A00, 2) == 0x20C40110 and m.read(node, 0x1401, 2) == 255
+            assert m.read(node, 0x1A00, 2) == 0x60C40220 and m.read(node, 0x1401, 2) == 255
         m.enable_drives()
         assert all(sim.model(n).state == codec.Cia402State.OPERATION_ENABLED for n in (1, 2))
         m.start_sync()

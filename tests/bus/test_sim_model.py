@@ -532,5 +532,8 @@ def test_virtual_cell_routes_frames_and_enables_like_the_master() -> None:
     vc.models[1].sdo_write(0x1400, 1, 0x80000201)
     vc.deliver(cob.rpdo1_id(1), b"\x06\x00", 0.02)  # RPDO1 of node 1 disabled: not routed
     assert vc.models[1].state == S.OPERATION_ENABLED
-    assert vc.next_deadline() == pytest.approx(0.1)  # heartbeats (100 ms) configured like the master
-    assert len(vc.advance(0.1)) == 3
+    # heartbeats configured like the master: one drive after another (2 ms apart, the last at t0), 100 ms
+    # + node id mod 11, so they do not land in one SYNC cycle
+    assert vc.next_deadline() == pytest.approx(-0.004 + 0.101)
+    assert [f.cob_id for f in vc.advance(0.0975)] == [0x701]
+    assert [f.cob_id for f in vc.advance(0.1035)] == [0x702, 0x703]

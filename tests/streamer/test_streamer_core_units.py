@@ -54,7 +54,9 @@ def test_frame_bits_worst_case_stuffing() -> None:
 def test_cycle_budget() -> None:
     b = cycle_budget(6, 10, 1_000_000, 0.7, 100)
     assert b.cycle_bits == 10_000 and b.limit_bits == pytest.approx(7000)
-    assert b.fixed_bits == pytest.approx(55 + 6 * (270 + 0.1 * 65))
+    # SYNC + TPDO1 (6 bytes: 115 bits) + TPDO2 (135) per node + the heartbeats a cycle may carry
+    # (the average 0.6, rounded up, plus 2 for the cycles where a few coincide)
+    assert b.fixed_bits == pytest.approx(55 + 6 * (115 + 135) + 3 * 65)
     assert b.record_frames_per_axis(6) == int((7000 - b.fixed_bits) // (6 * 135))
 
 

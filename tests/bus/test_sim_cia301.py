@@ -1,0 +1,127 @@
+"""CiA 301 behaviours a stock canopen master configures and expects (issue 11 section 1), driven in real
+time by canopen's own RemoteNode against the simulated drive: event-driven TPDOs with an event timer
+(0x18xx:05, sent periodically even unchanged) and an inhibit time (0x18xx:03, never two within it), and
+store / restore parameters 0x1010:01 / 0x1011:01 with the signatures of seed 000 6.12 ("save"
+0x65766173, "load" 0x64616F6C); a wrong signature is refused (SDO abort 0x08000020)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+
+import can
+import canopen
+import pytest
+from bus_testkit import make_cell, remote_network, unique_channel, wait_until
+from canopen.sdo.exceptions import SdoAbortedError
+
+from bus import cob
+from bus.sim.eds import EDS_PATH
+from bus.sim.node import SimulatedCell
+
+SAVE, LOAD = 0x65766173, 0x64616F6C
+
+
+class Stamps(can.Listener):
+    """Arrival times of one COB-ID."""
+
+    def __init__(self, cob_id: int):
+        self.cob_id = cob_id
+        self.times: list[float] = []
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == self.cob_id:
+            with self.lock:
+                self.times.append(msg.timestamp)
+
+
+@pytest.fixture
+def drive() -> Iterator[tuple[SimulatedCell, canopen.Network, canopen.RemoteNode]]:
+    channel = unique_channel("cia301")
+    sim = SimulatedCell(make_cell(1, channel=channel)).start()
+    try:
+        with remote_network(channel) as net:
+            yield sim, net, net.add_node(1, str(EDS_PATH))
+    finally:
+        sim.stop()
+
+
+def map_tpdo3_statusword(node: canopen.RemoteNode, *, inhibit_100us: int, event_timer_ms: int) -> None:
+    """TPDO3 = statusword 0x6041, event driven (type 255), through canopen's own PDO API."""
+    node.tpdo.read()
+    pdo = node.tpdo[3]
+    pdo.clear()
+    pdo.add_variable(0x6041)
+    pdo.trans_type = 255
+    pdo.inhibit_time = inhibit_100us
+    pdo.event_timer = event_timer_ms
+    pdo.enabled = True
+    pdo.save()
+
+
+def test_event_timer_sends_an_unchanged_tpdo_periodically(drive) -> None:
+    sim, net, node = drive
+    map_tpdo3_statusword(node, inhibit_100us=0, event_timer_ms=50)
+    stamps = Stamps(cob.TPDO1_BASE + 0x200 + 1)  # TPDO3 of node 1: 0x381
+    net.notifier.add_listener(stamps)
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.6)
+    with stamps.lock:
+        times = list(stamps.times)
+    assert len(times) >= 9, times  # the statusword does not change: only the timer sends it
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    assert min(gaps) > 0.040 and sorted(gaps)[len(gaps) // 2] == pytest.approx(0.050, abs=0.010), gaps
+
+
+def test_inhibit_time_spaces_a_changing_tpdo(drive) -> None:
+    sim, net, node = drive
+    map_tpdo3_statusword(node, inhibit_100us=1000, event_timer_ms=0)  # 100 ms between two
+    stamps = Stamps(0x381)
+    net.notifier.add_listener(stamps)
+    node.nmt.state = "OPERATIONAL"
+    assert wait_until(lambda: len(stamps.times) >= 1, 1.0)
+    # change the statusword every ~10 ms for 0.6 s: shutdown / disable voltage back and forth
+    t_end = time.monotonic() + 0.6
+    flip = False
+    while time.monotonic() < t_end:
+        node.sdo[0x6040].raw = 0x0006 if flip else 0x0000
+        flip = not flip
+        time.sleep(0.01)
+    time.sleep(0.15)  # the change made inside the last inhibit time goes out when it ends
+    with stamps.lock:
+        times = list(stamps.times)
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    assert len(times) >= 5, times
+    assert min(gaps) >= 0.095, gaps  # never two within the inhibit time (time.time resolution aside)
+    assert len(times) <= 9  # without the inhibit: ~60 changes
+
+
+def test_store_and_restore_parameters_with_signatures(drive) -> None:
+    sim, net, node = drive
+    assert node.sdo[0x1010][1].raw & 1 and node.sdo[0x1011][1].raw & 1  # saves / restores on command
+    node.sdo[0x1017].raw = 250
+    node.sdo[0x6065].raw = 12345
+    with pytest.raises(SdoAbortedError) as e:
+        node.sdo[0x1010][1].raw = 0x12345678
+    assert e.value.code == 0x08000020
+    node.sdo[0x1010][1].raw = SAVE
+    node.sdo[0x6065].raw = 999  # not saved
+    node.nmt.send_command(0x81)  # reset node: stored values come back, unsaved ones do not
+    assert wait_until(lambda: _read(node, 0x6065) == 12345, 2.0)
+    assert node.sdo[0x1017].raw == 250
+    with pytest.raises(SdoAbortedError):
+        node.sdo[0x1011][1].raw = SAVE  # "save" is not the restore signature
+    node.sdo[0x1011][1].raw = LOAD
+    assert node.sdo[0x6065].raw == 12345  # restore takes effect at the next reset (CiA 301)
+    node.nmt.send_command(0x81)
+    assert wait_until(lambda: _read(node, 0x6065) == 2000, 2.0)  # the default again
+    assert node.sdo[0x1017].raw == 0
+
+
+def _read(node: canopen.RemoteNode, index: int) -> int | None:
+    try:
+        return int(node.sdo[index].raw)
+    except (SdoAbortedError, canopen.SdoCommunicationError):
+        return None
