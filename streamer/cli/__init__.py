@@ -19,6 +19,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.submit",
     "streamer.cli.jobs",
     "streamer.cli.sim",
+    "streamer.cli.certs",
 )
 
 
