@@ -40,7 +40,7 @@ from streamer.api.store import JobStore
 from streamer.api.zenoh_config import service_config
 
 
-def _security(certs: CertSet, acl: bool) -> SecuritySettings:
+def _security(certs: CertSet) -> SecuritySettings:
     return SecuritySettings(
         enabled=True,
         ca=str(certs.ca_certificate),
@@ -49,7 +49,7 @@ def _security(certs: CertSet, acl: bool) -> SecuritySettings:
         operator=("cn:pvt-operator",),
         observer=("cn:pvt-observer",),
         service=("cn:pvt-service",),
-    ) if acl else SecuritySettings()
+    )
 
 
 def measure(
@@ -60,7 +60,7 @@ def measure(
     endpoint = f"{'tls' if certs else 'tcp'}/127.0.0.1:{port}"
     settings = ZenohSettings(listen=(endpoint,))
     if certs is not None:
-        conf = service_config(settings, security=_security(certs, acl=True))
+        conf = service_config(settings, security=_security(certs))
         if not acl:  # TLS and mutual TLS as configured, but the rules switched off
             conf.insert_json5("access_control/enabled", "false")
         client_security: ClientSecurity | None = ClientSecurity(
@@ -121,7 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 ("tls", {"certs": certs, "acl": False}),
                 ("tls+acl", {"certs": certs, "acl": True}),
             ):
-                lat, opens = measure(cell, job, args.n // 2, **kw)  # type: ignore[arg-type]
+                lat, opens = measure(cell, job, args.n // 2, **kw)
                 runs[name][0].extend(lat)
                 runs[name][1].extend(opens)
     plain = _pct(runs["plain"][0], 0.5)
