@@ -389,6 +389,7 @@ class MotionClient:
         self.cell = keys.check_cell(cell)
         self.timeout = float(timeout)
         self.connect = connect
+        self.security = security
         self._own_session = session is None
         self.session: zenoh.Session = session if session is not None else open_session(connect, mode, security)
         self._jobs: list[Job] = []
@@ -428,10 +429,13 @@ class MotionClient:
             if any(r.ok is not None for r in replies):
                 return
             if time.monotonic() >= deadline:
+                secured = self.security is not None or "tls/" in str(self.connect)
                 raise MotionError(
                     E.TIMEOUT,
                     f"no job service for cell {self.cell!r} appeared within {timeout} s "
-                    f"(connect {self.connect!r})",
+                    f"(connect {self.connect!r}"
+                    + ("; or the service refused this client's certificate or login" if secured else "")
+                    + ")",
                 )
             time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
 

@@ -79,7 +79,10 @@ def test_operator_moves_the_simulated_drives_while_an_observer_watches(
         backend.close()
 
 
-def test_observer_writes_are_refused_while_it_reads_events_and_telemetry(serve: Serve, certs: CertSet) -> None:
+@pytest.mark.parametrize("mode", ["auto", "peer"])
+def test_observer_writes_are_refused_while_it_reads_events_and_telemetry(
+    serve: Serve, certs: CertSet, mode: str
+) -> None:
     served = serve(security=secure_settings(certs))
     # a stand-in for the change request of issue 15: a handler the service declares on its session
     changes: list[str] = []
@@ -90,8 +93,8 @@ def test_observer_writes_are_refused_while_it_reads_events_and_telemetry(serve: 
 
     change_handler = served.session.declare_queryable(f"{keys.base('demo')}/jobs/*/change", on_change)
     with (
-        served.client(security=identity(certs, "operator")) as op,
-        served.client(security=identity(certs, "observer")) as ob,
+        served.client(security=identity(certs, "operator"), mode=mode) as op,
+        served.client(security=identity(certs, "observer"), mode=mode) as ob,
     ):
         op.wait_for_service(timeout=5)
         ob.wait_for_service(timeout=5)
@@ -194,6 +197,7 @@ def _cannot_connect(endpoint: str, security: ClientSecurity | None) -> None:
         with pytest.raises(MotionError) as info:
             peer.wait_for_service(timeout=1)
         assert info.value.code == "TIMEOUT"
+        assert ("refused this client's certificate or login" in info.value.message) == (security is not None)
 
 
 def test_no_certificate_or_one_from_another_ca_cannot_connect(
