@@ -34,16 +34,14 @@ from __future__ import annotations
 
 import enum
 import ipaddress
-import logging
 import os
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from streamer.api.keys import PREFIX
-
-log = logging.getLogger(__name__)
 
 OBSERVER = "observer"
 OPERATOR = "operator"
@@ -274,7 +272,15 @@ def exposure_warnings(
 
 
 # -- files ---------------------------------------------------------------------------------------
+_PEM = {
+    "CERTIFICATE": re.compile(r"-----BEGIN CERTIFICATE-----"),
+    "PRIVATE KEY": re.compile(r"-----BEGIN (?:EC |RSA )?PRIVATE KEY-----"),
+}
+
+
 def _file(path: str | os.PathLike[str], setting: str, *, base: Path | None = None, pem: str = "") -> str:
+    """The file's path (relative ones against `base`) after checking it reads and holds the PEM block:
+    Zenoh's own errors for a missing or wrong file do not name the setting."""
     p = Path(path)
     if base is not None and not p.is_absolute():
         p = base / p
@@ -282,9 +288,7 @@ def _file(path: str | os.PathLike[str], setting: str, *, base: Path | None = Non
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise SecurityError(SECURITY_FILE, f"{setting} {str(p)!r} cannot be read: {exc}", path=setting) from None
-    if pem and f"-----BEGIN {pem}" not in text.replace("BEGIN EC PRIVATE", "BEGIN PRIVATE").replace(
-        "BEGIN RSA PRIVATE", "BEGIN PRIVATE"
-    ):
+    if pem and not _PEM[pem].search(text):
         raise SecurityError(SECURITY_FILE, f"{setting} {str(p)!r} holds no PEM {pem.lower()}", path=setting)
     return str(p)
 
