@@ -11,6 +11,7 @@ own units (counts, rpm) only where the drive has them (`max_profile_velocity_rpm
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
@@ -182,6 +183,59 @@ class ZenohSettings:
                                 path="zenoh.mode")
 
 
+_SUBJECT = re.compile(r"^(cn:[^+:]+|user:[^+:]+|cn:[^+:]+\+user:[^+:]+|user:[^+:]+\+cn:[^+:]+)$")
+
+
+@dataclass(frozen=True)
+class SecuritySettings:
+    """[security]: TLS links, logins and the roles of the job API (docs/security.md); off by default.
+
+    Role lists hold subjects: 'cn:NAME' (a certificate's common name), 'user:NAME' (a login) or
+    'cn:NAME+user:NAME' (both). Files are relative to the cell config; streamer/api/security.py reads them.
+    """
+
+    enabled: bool = False
+    ca: str = ""  # the CA certificate (PEM) that signs every certificate of the deployment
+    certificate: str = ""  # the service's certificate (PEM)
+    private_key: str = ""  # the service's private key (PEM)
+    mtls: bool = True  # clients must present a certificate signed by `ca`
+    users_file: str = ""  # "user:password" lines: clients must also log in
+    user: str = ""  # the service's own login when it dials a router that asks for one
+    password_file: str = ""  # the file holding that login's password
+    operator: tuple[str, ...] = ()
+    observer: tuple[str, ...] = ()
+    service: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        def bad(key: str, message: str) -> PlanningError:
+            return PlanningError(CONFIG, f"security.{key}: {message}", path=f"security.{key}")
+
+        seen: dict[str, str] = {}
+        for role in ("operator", "observer", "service"):
+            for subject in getattr(self, role):
+                text = subject.replace(" ", "")
+                if not _SUBJECT.match(text):
+                    raise bad(role, f"subject {subject!r} must be 'cn:NAME', 'user:NAME' or 'cn:NAME+user:NAME'")
+                if text in seen:
+                    raise bad(role, f"subject {subject!r} is in both {seen[text]} and {role}")
+                seen[text] = role
+                if "cn:" in text and not self.mtls:
+                    raise bad(role, f"subject {subject!r} names a certificate but mtls = false")
+                if "user:" in text and not self.users_file:
+                    raise bad(role, f"subject {subject!r} names a login but there is no users_file")
+        if bool(self.user) != bool(self.password_file):
+            raise bad("user", "user and password_file go together")
+        if not self.enabled:
+            return
+        for key in ("ca", "certificate", "private_key"):
+            if not getattr(self, key):
+                raise bad(key, "is required when security is enabled")
+        if not self.mtls and not self.users_file:
+            raise bad("mtls", "false needs a users_file: clients must be identified by certificate or login")
+        if not (self.operator or self.observer or self.service):
+            raise bad("operator", "no role has a subject: nobody could use the service")
+
+
 @dataclass(frozen=True)
 class CellConfig:
     name: str
@@ -190,6 +244,7 @@ class CellConfig:
     bus: BusConfig = field(default_factory=BusConfig)
     drive: DriveSettings = field(default_factory=DriveSettings)
     zenoh: ZenohSettings = field(default_factory=ZenohSettings)
+    security: SecuritySettings = field(default_factory=SecuritySettings)
     source: str = ""  # file the config was loaded from, for messages and default store location
     # the master sends the high-resolution time stamp 0x1013 after every SYNC (seed 001 3.6.2) so that
     # drives with their own clock correct it
@@ -270,6 +325,10 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
             v = int(_number(path, f.name, v, integer=True))
         elif f.type in ("float",) or f.type is float:
             v = _number(path, f.name, v)
+        elif f.type == "bool":
+            if not isinstance(v, bool):
+                raise PlanningError(CONFIG, f"{path}.{f.name} must be true or false, got {v!r}",
+                                    path=f"{path}.{f.name}")
         elif "tuple" in str(f.type):
             if not isinstance(v, list) or not all(isinstance(s, str) for s in v):
                 raise PlanningError(CONFIG, f"{path}.{f.name} must be a list of strings",
@@ -287,7 +346,7 @@ _AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in ("probed",
 
 def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     """Build a validated CellConfig from parsed TOML."""
-    allowed = {"cell", "axis", "bus", "drive", "zenoh", "sim", "probed"}
+    allowed = {"cell", "axis", "bus", "drive", "zenoh", "sim", "probed", "security"}
     unknown = sorted(set(data) - allowed)
     if unknown:
         raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})",
@@ -344,6 +403,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         bus=_section(data, "bus", BusConfig, "bus"),
         drive=_section(data, "drive", DriveSettings, "drive"),
         zenoh=_section(data, "zenoh", ZenohSettings, "zenoh"),
+        security=_section(data, "security", SecuritySettings, "security"),
         source=source,
         time_stamp=time_stamp,
         feedback_every_syncs=every,

@@ -41,6 +41,7 @@ from streamer.api import keys
 from streamer.api.errors import JobFailedError, MotionError
 from streamer.api.model import JobState
 from streamer.api.payload import encode_submission, unpack
+from streamer.api.security import ClientSecurity
 from streamer.api.zenoh_config import DEFAULT_CONNECT, client_config
 
 FINAL_EVENTS = frozenset({"done", "failed", "cancelled"})
@@ -333,23 +334,36 @@ class Job:
         self._unsubscribe()
 
 
-def open_session(connect: str | Sequence[str] = DEFAULT_CONNECT, mode: str = "auto") -> zenoh.Session:
+def open_session(
+    connect: str | Sequence[str] = DEFAULT_CONNECT,
+    mode: str = "auto",
+    security: ClientSecurity | None = None,
+) -> zenoh.Session:
     """Open a client-side Zenoh session (no listen endpoint, multicast scouting off).
 
     mode "auto" (the default): with one endpoint, Zenoh client mode (one link, opens in ~1 ms, good
     for short-lived clients), falling back to a peer that keeps retrying in the background when
     nothing listens there yet (so `wait_for_service` can wait for a service that starts later);
     with several endpoints, a peer that connects to all of them. "peer"/"client" force the mode.
+    `security`: TLS (CA, client certificate and key) and login for a secured service.
     """
     endpoints = [connect] if isinstance(connect, str) else list(connect)
     if mode == "auto":
         if len(endpoints) == 1:
             try:
-                return zenoh.open(client_config(endpoints, mode="client"))
+                return zenoh.open(client_config(endpoints, mode="client", security=security))
             except zenoh.ZError:
                 pass  # nothing listens yet: a peer retries in the background
-        return zenoh.open(client_config(endpoints, mode="peer"))
-    return zenoh.open(client_config(endpoints, mode=mode))
+        return zenoh.open(client_config(endpoints, mode="peer", security=security))
+    try:
+        return zenoh.open(client_config(endpoints, mode=mode, security=security))
+    except zenoh.ZError as exc:
+        hint = (
+            "nothing listens there, or the service refused this client's certificate or login"
+            if security is not None or any(e.startswith("tls/") for e in endpoints)
+            else "nothing listens there (a TLS-only service needs tls/ endpoints and --ca/--cert/--key)"
+        )
+        raise MotionError(E.NO_SERVICE, f"cannot connect to {endpoints}: {hint} ({exc})"[:800]) from None
 
 
 class MotionClient:
@@ -358,6 +372,8 @@ class MotionClient:
     `connect`: the service's (or a router's) endpoint(s). `mode`: "auto" (see `open_session`), "client"
     or "peer"; the session never listens and never scouts by multicast. `session`: use an already open
     session instead (it is not closed by `close()`). `timeout`: default seconds for every query.
+    `security`: the CA, this client's certificate and key, and its login, for a secured service
+    (docs/security.md); a request its role does not allow raises MotionError PERMISSION_DENIED.
     """
 
     def __init__(
@@ -368,12 +384,14 @@ class MotionClient:
         mode: str = "auto",
         timeout: float = 10.0,
         session: zenoh.Session | None = None,
+        security: ClientSecurity | None = None,
     ):
         self.cell = keys.check_cell(cell)
         self.timeout = float(timeout)
         self.connect = connect
+        self.security = security
         self._own_session = session is None
-        self.session: zenoh.Session = session if session is not None else open_session(connect, mode)
+        self.session: zenoh.Session = session if session is not None else open_session(connect, mode, security)
         self._jobs: list[Job] = []
         self._closed = False
 
@@ -411,10 +429,13 @@ class MotionClient:
             if any(r.ok is not None for r in replies):
                 return
             if time.monotonic() >= deadline:
+                secured = self.security is not None or "tls/" in str(self.connect)
                 raise MotionError(
                     E.TIMEOUT,
                     f"no job service for cell {self.cell!r} appeared within {timeout} s "
-                    f"(connect {self.connect!r})",
+                    f"(connect {self.connect!r}"
+                    + ("; or the service refused this client's certificate or login" if secured else "")
+                    + ")",
                 )
             time.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
 
@@ -555,8 +576,25 @@ class MotionClient:
             raise MotionError(E.NO_SERVICE, f"query {key!r} failed: {exc}") from None
         if time.monotonic() - t0 >= 0.9 * t:  # a service matched but did not answer in time
             raise MotionError(E.TIMEOUT, f"no answer to {key!r} within {t} s")
+        if self._service_alive():
+            # The service is up, yet nothing answered: its access rules dropped the request (Zenoh
+            # answers a refused query with no reply at all, so this is the only way to tell).
+            raise MotionError(
+                E.PERMISSION_DENIED,
+                f"the job service of cell {self.cell!r} is up but refused {key!r} from this client: "
+                "the identity it connected with (certificate common name or login) has no role that "
+                "allows it (writes need the operator role; see docs/security.md)",
+                path=key,
+            )
         raise MotionError(
             E.NO_SERVICE,
             f"no job service answered {key!r} (is `pvt serve` for cell "
             f"{self.cell!r} running and reachable at {self.connect!r}?)",
         )
+
+    def _service_alive(self) -> bool:
+        try:
+            replies = self.session.liveliness().get(keys.alive(self.cell), timeout=min(1.0, self.timeout))
+            return any(r.ok is not None for r in replies)
+        except zenoh.ZError:
+            return False

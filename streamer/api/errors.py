@@ -28,6 +28,7 @@ SERVICE_RESTART = "SERVICE_RESTART"  # the service died while the job was queued
 SERVICE_STOPPED = "SERVICE_STOPPED"  # the service was shut down while the job was queued
 TIMEOUT = "TIMEOUT"  # client side: no answer in time
 NO_SERVICE = "NO_SERVICE"  # client side: no service answered for this cell
+PERMISSION_DENIED = "PERMISSION_DENIED"  # client side: the service is up but its access rules refused
 
 API_CODES = frozenset(
     {
@@ -46,6 +47,7 @@ API_CODES = frozenset(
         SERVICE_STOPPED,
         TIMEOUT,
         NO_SERVICE,
+        PERMISSION_DENIED,
     }
 )
 

@@ -4,15 +4,25 @@ A default Zenoh peer listens on every interface and scouts by UDP multicast. Thi
 that: every config built here has multicast scouting off and explicit endpoints only. Services listen
 on `tcp/127.0.0.1:7447` unless the cell config says otherwise; clients are connecting peers (or
 clients) with no listen endpoint at all.
+
+Security (TLS, logins, access rules) comes from streamer/api/security.py: `service_config` adds the
+cell's `[security]` settings and logs a warning when a service is reachable beyond loopback without
+TLS and access control; `client_config` adds a `ClientSecurity`.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import zenoh
+
+from streamer.api import security as sec
+
+log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 DEFAULT_LISTEN = ("tcp/127.0.0.1:7447",)
@@ -60,21 +70,40 @@ def service_config(
     mode: str | None = None,
     listen: Sequence[str] | None = None,
     connect: Sequence[str] | None = None,
+    security: Any = None,
+    base: Path | None = None,
 ) -> zenoh.Config:
     """The service's config from a cell's `[zenoh]` section (a `planner.config.ZenohSettings`),
-    with overrides."""
-    return build_config(
-        mode=mode or settings.mode,
-        listen=tuple(listen) if listen is not None else tuple(settings.listen),
-        connect=tuple(connect) if connect is not None else tuple(settings.connect),
-    )
+    with overrides, and its `[security]` section (a `planner.config.SecuritySettings`; files relative
+    to `base`). Raises `security.SecurityError` when security is on and an endpoint is not TLS or a
+    file is missing; warns (log) when the service is reachable beyond loopback unprotected."""
+    listen_eps = tuple(listen) if listen is not None else tuple(settings.listen)
+    connect_eps = tuple(connect) if connect is not None else tuple(settings.connect)
+    extra: dict[str, Any] = {}
+    enabled = security is not None and security.enabled
+    if enabled:
+        sec.check_service_endpoints(security, listen_eps, connect_eps)
+        extra = sec.service_settings(security, base=base)
+    for warning in sec.exposure_warnings(listen_eps, connect_eps, tls=enabled, access_control=enabled):
+        log.warning("%s", warning)
+    return build_config(mode=mode or settings.mode, listen=listen_eps, connect=connect_eps, extra=extra)
 
 
-def client_config(connect: str | Sequence[str] = DEFAULT_CONNECT, *, mode: str = "peer") -> zenoh.Config:
-    """A connecting peer (or client) with no listen endpoint: it only dials `connect`."""
+def client_config(
+    connect: str | Sequence[str] = DEFAULT_CONNECT,
+    *,
+    mode: str = "peer",
+    security: sec.ClientSecurity | None = None,
+) -> zenoh.Config:
+    """A connecting peer (or client) with no listen endpoint: it only dials `connect` (with TLS
+    and a login when `security` says so)."""
     endpoints = [connect] if isinstance(connect, str) else list(connect)
     if not endpoints:
         raise ValueError("a client needs at least one connect endpoint")
     if mode == "router":
         raise ValueError("a client session cannot be a router")
-    return build_config(mode=mode, listen=(), connect=endpoints)
+    extra: dict[str, Any] = {}
+    if security is not None:
+        security.check_endpoints(endpoints)
+        extra = security.zenoh_settings()
+    return build_config(mode=mode, listen=(), connect=endpoints, extra=extra)

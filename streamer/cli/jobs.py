@@ -6,8 +6,10 @@ show or export one job's recording.
     pvt jobs --config configs/demo.toml --events JOB_ID
     pvt jobs show JOB_ID [--config CELL | --store PATH] [--json]
     pvt jobs export JOB_ID [--csv PATH] [--html PATH] [--mcap PATH]
+    pvt jobs --connect tls/127.0.0.1:7447 --cell demo --ca ca.pem --cert observer.pem --key observer.key
 
-Reads the journal directly (no Zenoh, works while the service is down, and while it runs: WAL).
+Reads the journal directly (no Zenoh, works while the service is down, and while it runs: WAL), or,
+with --connect, asks a running service over the job API (an observer's read; docs/security.md).
 `show` and `export` read the job's MCAP recording beside the journal (`<journal stem>.recordings/`,
 or `--recordings DIR`); JOB_ID may also be the path of an .mcap file (e.g. `demo-out/job.mcap`).
 """
@@ -21,6 +23,8 @@ import shutil
 import sys
 from pathlib import Path
 from typing import Any
+
+from streamer.cli import tls_options
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -37,6 +41,16 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--limit", type=int, default=50, help="newest N jobs (default 50; 0 = all)")
     p.add_argument("--events", metavar="JOB_ID", default=None, help="print the events of one job instead")
     p.add_argument("--json", action="store_true", help="JSON output")
+    p.add_argument(
+        "--connect",
+        default=None,
+        action="append",
+        metavar="ENDPOINT",
+        help="ask a running service over Zenoh instead of reading the journal file",
+    )
+    p.add_argument("--cell", default="demo", help="with --connect: the cell name (default demo)")
+    p.add_argument("--timeout", type=float, default=10.0, help="with --connect: seconds to wait (default 10)")
+    tls_options.add_arguments(p)
     p.set_defaults(func=run)
     actions = p.add_subparsers(dest="jobs_action", metavar="{show,export}")
     show = actions.add_parser("show", help="summary of one job and its recording",
@@ -236,6 +250,9 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
+    if args.connect:
+        return _run_remote(args)
+
     from planner.config import default_config_path, load_cell
     from planner.errors import PlanningError
     from streamer.api.model import JobState
@@ -313,6 +330,72 @@ def run(args: argparse.Namespace) -> int:
                 error,
             )
         out.print(table)
+    return 0
+
+
+def _run_remote(args: argparse.Namespace) -> int:
+    """The same listing from a running service's job API (`pvt/<cell>/jobs`, `.../events`)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from streamer.api.client import MotionClient
+    from streamer.api.errors import MotionError
+
+    err = Console(stderr=True)
+    out = Console()
+    states = [s.strip() for s in args.state.split(",") if s.strip()] if args.state else None
+    try:
+        client = MotionClient(
+            connect=args.connect, cell=args.cell, timeout=args.timeout, security=tls_options.client_security(args)
+        )
+    except Exception as exc:
+        err.print(f"pvt jobs: cannot open the Zenoh session: {exc}")
+        return 2
+    with client:
+        try:
+            client.wait_for_service(timeout=args.timeout)
+            if args.events:
+                events = [dict(e.data) for e in client.job(args.events).history()]
+                if not events:
+                    client.job(args.events).status()  # NOT_FOUND for an unknown job
+            else:
+                statuses = [dict(st.raw) for st in client.jobs(state=states, limit=args.limit or 10_000)]
+        except MotionError as exc:
+            err.print(f"pvt jobs: {exc}")
+            return 1 if exc.code == "NOT_FOUND" else 2
+    if args.events:
+        if args.json:
+            print(json.dumps(events, indent=2))
+            return 0
+        table = Table(title=f"events of {args.events} (cell {args.cell})")
+        for col in ("seq", "time", "type", "state", "details"):
+            table.add_column(col)
+        for e in events:
+            details = {k: v for k, v in e.items() if k not in ("report", "job_id", "cell", "seq", "t", "type", "state")}
+            table.add_row(str(e["seq"]), _time(e["t"]), e["type"], e["state"], json.dumps(details)[:80])
+        out.print(table)
+        return 0
+    if args.json:
+        print(json.dumps(statuses, indent=2))
+        return 0
+    table = Table(title=f"jobs of cell {args.cell} at {', '.join(args.connect)}")
+    for col in ("#", "job_id", "kind", "state", "via", "planned s", "points", "submitted", "error"):
+        table.add_column(col)
+    for st in statuses:
+        error = st.get("error") or None
+        planned = st.get("planned_duration_s")
+        table.add_row(
+            str(st.get("number", "")),
+            str(st.get("job_id", "")),
+            str(st.get("kind", "")),
+            str(st.get("state", "")),
+            str(st.get("via", "")),
+            f"{planned:.3f}" if isinstance(planned, int | float) else "-",
+            str(st.get("points") if st.get("points") is not None else "-"),
+            _time(st.get("submitted_t")),
+            f"{error.get('code')}: {error.get('message', '')}"[:60] if isinstance(error, dict) else "",
+        )
+    out.print(table)
     return 0
 
 

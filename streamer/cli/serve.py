@@ -4,7 +4,9 @@
     pvt serve --config cell.toml --bus socketcan:can0 --bitrate 500000 --listen tcp/127.0.0.1:7447
 
 The Zenoh session defaults to the cell config's `[zenoh]` section (peer mode, listening on
-tcp/127.0.0.1:7447, multicast scouting always off); `--mode/--listen/--connect` override it. The job
+tcp/127.0.0.1:7447, multicast scouting always off); `--mode/--listen/--connect` override it. The
+config's `[security]` section turns on TLS, logins and the role-based access rules (docs/security.md);
+without it the service warns when it listens beyond loopback. The job
 journal defaults to `<config dir>/<config stem>.jobs.sqlite`. Stops cleanly on SIGINT/SIGTERM (queued jobs
 fail SERVICE_STOPPED, the running job is cancelled with its jerk-limited stop); after a crash the next
 start reports the interrupted jobs as SERVICE_RESTART.
@@ -113,7 +115,7 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, lambda *_: stop.set())
     try:
-        return _serve(args, cell, store_path, interface, channel, stop)
+        return _serve(args, cell, Path(config_path), store_path, interface, channel, stop)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -122,6 +124,7 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
 def _serve(
     args: argparse.Namespace,
     cell: Any,
+    config_path: Path,
     store_path: Path,
     interface: str | None,
     channel: str | None,
@@ -130,12 +133,25 @@ def _serve(
     import zenoh
 
     from streamer.api.backend import DEFAULT_BACKEND, BackendUnavailable, load_backend
+    from streamer.api.security import SecurityError
     from streamer.api.service import JobService, ServiceOptions
     from streamer.api.store import JobStore, ServiceLock, StoreError
     from streamer.api.zenoh_config import service_config
     from streamer.recording.files import RecordingRetention
     from streamer.recording.model import RecordingError
 
+    try:  # before the bus and the journal: a security mistake must not start anything
+        conf = service_config(
+            cell.zenoh,
+            mode=args.mode,
+            listen=args.listen,
+            connect=args.connect,
+            security=cell.security,
+            base=Path(cell.source or config_path).parent,
+        )
+    except SecurityError as exc:
+        print(f"pvt serve: {exc}", file=sys.stderr)
+        return 2
     lock = ServiceLock(store_path)
     try:
         lock.acquire()
@@ -159,7 +175,6 @@ def _serve(
         except BackendUnavailable as exc:
             print(f"pvt serve: motion backend unavailable: {exc}", file=sys.stderr)
             return 2
-        conf = service_config(cell.zenoh, mode=args.mode, listen=args.listen, connect=args.connect)
         try:
             session = zenoh.open(conf)
         except zenoh.ZError as exc:
@@ -178,7 +193,8 @@ def _serve(
         listen = args.listen or list(cell.zenoh.listen)
         print(
             f"pvt serve: cell {cell.name!r} ready on {', '.join(listen) or '(no listen endpoint)'}; "
-            f"journal {store_path}",
+            f"journal {store_path}"
+            + ("; TLS and access control on" if cell.security.enabled else ""),
             flush=True,
         )
         while not stop.wait(0.5):

@@ -1,6 +1,7 @@
 """`pvt submit`: send a job file to a cell's job service; with --wait, follow it with a progress bar.
 
     pvt submit configs/jobs/pick.toml --connect tcp/127.0.0.1:7447 --cell demo --wait
+    pvt submit JOB --connect tls/127.0.0.1:7447 --ca ca.pem --cert operator.pem --key operator.key
 
 Exit status: 0 accepted (or, with --wait, done); 1 the job failed or was cancelled; 2 rejected, no
 service, or bad usage. Ctrl-C while waiting cancels the job (its jerk-limited stop) and waits for it.
@@ -14,6 +15,8 @@ import re
 import uuid
 from pathlib import Path
 from typing import Any
+
+from streamer.cli import tls_options
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -40,6 +43,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--put", action="store_true", help="submit by put (fire and forget) instead of a query")
     p.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the service (default 30)")
     p.add_argument("--json", action="store_true", help="print the reply / final status as JSON")
+    tls_options.add_arguments(p)
     p.set_defaults(func=run)
     return p
 
@@ -75,7 +79,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     job_id = args.job_id or run_id(body.pop("job_id", None))
     try:
-        client = MotionClient(connect=_endpoints(args), cell=args.cell, timeout=args.timeout)
+        client = MotionClient(
+            connect=_endpoints(args),
+            cell=args.cell,
+            timeout=args.timeout,
+            security=tls_options.client_security(args),
+        )
     except Exception as exc:
         console.print(f"[red]pvt submit: cannot open the Zenoh session: {exc}[/red]")
         return 2

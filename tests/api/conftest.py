@@ -10,11 +10,13 @@ from typing import Any
 import pytest
 import zenoh
 
-from planner.config import CellConfig
+from planner.config import CellConfig, SecuritySettings, ZenohSettings
+from streamer.api.certs import DEFAULT_IDENTITIES, CertSet, init_certs
 from streamer.api.client import MotionClient
+from streamer.api.security import ClientSecurity
 from streamer.api.service import JobService, ServiceOptions
 from streamer.api.store import JobStore
-from streamer.api.zenoh_config import build_config
+from streamer.api.zenoh_config import build_config, service_config
 from tests.api.fakes import FakeBackend
 
 
@@ -48,19 +50,25 @@ class Served:
 
 @pytest.fixture
 def serve(tmp_path: Path, demo_cell: CellConfig) -> Iterator[Callable[..., Served]]:
-    """serve(backend=None, options=None, **fake_kwargs) -> Served; everything is closed at teardown."""
+    """serve(backend=None, options=None, security=None, **fake_kwargs) -> Served; everything is closed at
+    teardown. With `security` (enabled), the service listens on tls/127.0.0.1 with its access rules."""
     opened: list[tuple[JobService, JobStore, zenoh.Session]] = []
 
     def _serve(
         backend: FakeBackend | None = None,
         options: ServiceOptions | None = None,
         store_path: Path | None = None,
+        security: SecuritySettings | None = None,
         **kw: Any,
     ) -> Served:
         be = backend or FakeBackend(demo_cell, **kw)
         port = free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
-        session = zenoh.open(build_config(mode="peer", listen=[endpoint]))
+        if security is not None and security.enabled:
+            endpoint = f"tls/127.0.0.1:{port}"
+            session = zenoh.open(service_config(ZenohSettings(listen=(endpoint,)), security=security))
+        else:
+            endpoint = f"tcp/127.0.0.1:{port}"
+            session = zenoh.open(build_config(mode="peer", listen=[endpoint]))
         store = JobStore(store_path or tmp_path / f"jobs-{port}.db", synchronous="NORMAL")
         service = JobService(session, be, store, options).start()
         opened.append((service, store, session))
@@ -74,3 +82,40 @@ def serve(tmp_path: Path, demo_cell: CellConfig) -> Iterator[Callable[..., Serve
         service.close()
         store.close()
         session.close()
+
+
+@pytest.fixture(scope="session")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> CertSet:
+    """A CA and certificates made for this test run: service, operator, observer, and `stranger` (same
+    CA, a common name in no role)."""
+    return init_certs(
+        tmp_path_factory.mktemp("certs"), identities={**DEFAULT_IDENTITIES, "stranger": "pvt-stranger"}
+    )
+
+
+@pytest.fixture(scope="session")
+def other_certs(tmp_path_factory: pytest.TempPathFactory) -> CertSet:
+    """Another CA with certificates of the same names: trusted by nobody here."""
+    return init_certs(tmp_path_factory.mktemp("other-certs"))
+
+
+def secure_settings(certs: CertSet, **changes: Any) -> SecuritySettings:
+    """[security] on with the test certificates and the default roles (pvt-operator, ...)."""
+    values: dict[str, Any] = {
+        "enabled": True,
+        "ca": str(certs.ca_certificate),
+        "certificate": str(certs["service"].certificate),
+        "private_key": str(certs["service"].private_key),
+        "operator": ("cn:pvt-operator",),
+        "observer": ("cn:pvt-observer",),
+        "service": ("cn:pvt-service",),
+    }
+    values.update(changes)
+    return SecuritySettings(**values)
+
+
+def identity(certs: CertSet, name: str, **kw: Any) -> ClientSecurity:
+    """A client's security options: the CA of `certs`, and the certificate `name` of `certs`."""
+    return ClientSecurity(
+        ca=certs.ca_certificate, certificate=certs[name].certificate, private_key=certs[name].private_key, **kw
+    )
