@@ -208,33 +208,33 @@ def false_faults(jobs: int, variants: dict[str, dict[str, Any]]) -> None:
             failures: dict[str, int] = {}
             examples: list[str] = []
             t0 = time.perf_counter()
-            with SimulatedCell(cell, sync_gap_factor=demo.IN_PROCESS_SYNC_GAP_FACTOR):
-                with MasterAdapter(None, cell) as adapter:
-                    adapter.configure_drives()
-                    rt = RealtimeRuntime(cell, adapter)
-                    try:
-                        k = 0
-                        while k < jobs:
-                            traj = trajs[k % 2]
-                            res = rt.run(traj, stop_planner=make_stop_planner(cell, traj), settle_s=0.5)
-                            k += 1
-                            core = res.coordinator
-                            if core.outcome is None or core.outcome.code is not None:
-                                code = str(core.outcome.code if core.outcome else "none")
-                                failures[code] = failures.get(code, 0) + 1
-                                if len(examples) < 3 and core.outcome is not None:
-                                    examples.append(core.outcome.message)
-                                # back to the start from wherever the axes stopped, then go on
-                                adapter.enable_drives()
-                                time.sleep(0.3)
-                                snap = rt.snapshot()
-                                here = [(snap[a.node_id].position_demand or 0) / a.counts_per_unit
-                                        for a in cell.axes]
-                                home = plan_job(job_from_dict(back, cell), cell, start=here)
-                                rt.run(home, stop_planner=make_stop_planner(cell, home), settle_s=0.5)
-                                k += k % 2  # the next job starts at 0 again
-                    finally:
-                        rt.close()
+            with SimulatedCell(cell, sync_gap_factor=demo.IN_PROCESS_SYNC_GAP_FACTOR), \
+                    MasterAdapter(None, cell) as adapter:
+                adapter.configure_drives()
+                rt = RealtimeRuntime(cell, adapter)
+                try:
+                    k = 0
+                    while k < jobs:
+                        traj = trajs[k % 2]
+                        res = rt.run(traj, stop_planner=make_stop_planner(cell, traj), settle_s=0.5)
+                        k += 1
+                        core = res.coordinator
+                        if core.outcome is None or core.outcome.code is not None:
+                            code = str(core.outcome.code if core.outcome else "none")
+                            failures[code] = failures.get(code, 0) + 1
+                            if len(examples) < 3 and core.outcome is not None:
+                                examples.append(core.outcome.message)
+                            # back to the start from wherever the axes stopped, then go on
+                            adapter.enable_drives()
+                            time.sleep(0.3)
+                            snap = rt.snapshot()
+                            here = [(snap[a.node_id].position_demand or 0) / a.counts_per_unit
+                                    for a in cell.axes]
+                            home = plan_job(job_from_dict(back, cell), cell, start=here)
+                            rt.run(home, stop_planner=make_stop_planner(cell, home), settle_s=0.5)
+                            k += k % 2  # the next job starts at 0 again
+                finally:
+                    rt.close()
             print(f"  {name:22s}: {k - sum(failures.values())}/{k} jobs DONE, false faults {failures or 0} "
                   f"({time.perf_counter() - t0:.0f} s)")
             for msg in examples:

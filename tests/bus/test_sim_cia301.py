@@ -6,6 +6,7 @@ store / restore parameters 0x1010:01 / 0x1011:01 with the signatures of seed 000
 
 from __future__ import annotations
 
+import itertools
 import threading
 import time
 from collections.abc import Iterator
@@ -62,7 +63,7 @@ def map_tpdo3_statusword(node: canopen.RemoteNode, *, inhibit_100us: int, event_
 
 
 def test_event_timer_sends_an_unchanged_tpdo_periodically(drive) -> None:
-    sim, net, node = drive
+    _sim, net, node = drive
     map_tpdo3_statusword(node, inhibit_100us=0, event_timer_ms=50)
     stamps = Stamps(cob.TPDO1_BASE + 0x200 + 1)  # TPDO3 of node 1: 0x381
     net.notifier.add_listener(stamps)
@@ -71,12 +72,12 @@ def test_event_timer_sends_an_unchanged_tpdo_periodically(drive) -> None:
     with stamps.lock:
         times = list(stamps.times)
     assert len(times) >= 9, times  # the statusword does not change: only the timer sends it
-    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
     assert min(gaps) > 0.040 and sorted(gaps)[len(gaps) // 2] == pytest.approx(0.050, abs=0.010), gaps
 
 
 def test_inhibit_time_spaces_a_changing_tpdo(drive) -> None:
-    sim, net, node = drive
+    _sim, net, node = drive
     map_tpdo3_statusword(node, inhibit_100us=1000, event_timer_ms=0)  # 100 ms between two
     stamps = Stamps(0x381)
     net.notifier.add_listener(stamps)
@@ -92,14 +93,14 @@ def test_inhibit_time_spaces_a_changing_tpdo(drive) -> None:
     time.sleep(0.15)  # the change made inside the last inhibit time goes out when it ends
     with stamps.lock:
         times = list(stamps.times)
-    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
     assert len(times) >= 5, times
     assert min(gaps) >= 0.095, gaps  # never two within the inhibit time (time.time resolution aside)
     assert len(times) <= 9  # without the inhibit: ~60 changes
 
 
 def test_store_and_restore_parameters_with_signatures(drive) -> None:
-    sim, net, node = drive
+    _sim, _net, node = drive
     assert node.sdo[0x1010][1].raw & 1 and node.sdo[0x1011][1].raw & 1  # saves / restores on command
     node.sdo[0x1017].raw = 250
     node.sdo[0x6065].raw = 12345
