@@ -105,7 +105,7 @@ def long_path(minutes: float) -> Any:
 
 def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict[str, Any]:
     """Each drive's demand at the true time of each of its ticks against the plan at that time."""
-    from bus.sim.model import DriveModel
+    from bus.sim.epos import EposDrive
     from bus.sim.virtual import VirtualCell
     from streamer import demo
     from streamer.runtime.virtual import VirtualRuntime
@@ -115,7 +115,7 @@ def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict
     vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
     samples: dict[int, list[tuple[float, int]]] = {n: [] for n in vcell.models}
 
-    def instrument(node: int, m: DriveModel) -> None:
+    def instrument(node: int, m: EposDrive) -> None:
         catch_up, integrate = m._catch_up, m._integrate
         pending: list[float] = []
 

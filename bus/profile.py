@@ -3,7 +3,7 @@
 A `DriveProfile` names a family's object indices, its PDO layout, its EMCY codes, its buffer (a FIFO
 of PVT records with watermarks, or one point per SYNC), and produces the ordered list of SDO writes
 that configures one axis (`configuration`). The master adapter (`bus.network`) writes that list over
-SDO and reads it back; the simulated drive (`bus.sim.model.DriveModel.configure_for_ipm`) applies the
+SDO and reads it back; the simulated drive (`bus.sim.device.DriveDevice.configure`) applies the
 same list directly in virtual time. The streamer only asks the profile (`fifo_depth`,
 `points_per_sync`, `encode_point`, the COB-IDs, `frame_to_event`), so a second family can be added by
 writing a second profile.
@@ -224,6 +224,8 @@ class DriveProfile:
     emcy: EmcyCodes = field(default_factory=EmcyCodes)
     default_underflow_warning: int = 4
     default_overflow_warning: int = 60
+    # writes after the drive is operation enabled, before a job (EPOS: buffer clear, then enable)
+    after_enable: tuple[tuple[str, int], ...] = ()
     encode_point: Callable[[int, int, int], bytes] = field(default=lambda p, v, t: _pack_pvt(p, v, t))
 
     def obj(self, name: str) -> ObjectRef:
@@ -442,6 +444,7 @@ EPOS_IPM = DriveProfile(
         PdoLayout("tx", 2, cob.TPDO2_BASE, 1, (PdoEntry(0x6064, 0, 32), PdoEntry(0x6062, 0, 32))),
     ),
     objects=MappingProxyType(_EPOS_OBJECTS),
+    after_enable=(("buffer_clear", 0), ("buffer_clear", 1)),
 )
 
 PROFILES: Mapping[str, DriveProfile] = MappingProxyType({EPOS_IPM.name: EPOS_IPM})

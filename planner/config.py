@@ -55,6 +55,13 @@ class AxisConfig:
     # for a simulated drive, what it does ([axis.sim]); see planner/readings.py
     probed: DriveReadings = field(default_factory=DriveReadings)
     sim: SimDriveOptions = field(default_factory=SimDriveOptions)
+    # the drive family (bus/profile.py): "epos-ipm" (PVT FIFO), "xtrapuls-ip" (one set point per SYNC in
+    # interpolated position mode), "cia402-csp" (cyclic synchronous position); for xtrapuls-ip the
+    # interpolation sub-mode ("linear", "pv", "p3") and the multiplexed RPDO group (up to 4 axes share one
+    # frame of 16-bit set points; 0 = an RPDO of its own)
+    profile: str = "epos-ipm"
+    ip_submode: str = "pv"
+    mux_group: int = 0
 
     def __post_init__(self) -> None:
         where = f"axis '{self.name}'"
@@ -75,6 +82,15 @@ class AxisConfig:
             if getattr(self, key) <= 0:
                 raise PlanningError(LIMITS, f"{key} of {where} must be > 0, got {getattr(self, key)}",
                                     path=f"axis.{key}")
+        if self.profile not in PROFILE_NAMES:
+            raise PlanningError(CONFIG, f"profile of {where} must be one of {list(PROFILE_NAMES)}, got "
+                                f"{self.profile!r}", path="axis.profile")
+        if self.ip_submode not in IP_SUBMODES:
+            raise PlanningError(CONFIG, f"ip_submode of {where} must be one of {list(IP_SUBMODES)}, got "
+                                f"{self.ip_submode!r}", path="axis.ip_submode")
+        if not 0 <= self.mux_group <= 127 or (self.mux_group and self.profile != "xtrapuls-ip"):
+            raise PlanningError(CONFIG, f"mux_group of {where} must be 0..127 (an XtrapulsPac axis' multiplexed "
+                                f"RPDO group, 0 = none), got {self.mux_group}", path="axis.mux_group")
         if self.position_min >= self.position_max:
             raise PlanningError(
                 LIMITS,
@@ -114,7 +130,9 @@ class AxisConfig:
         return self.rpm_to_user(self.max_profile_velocity_rpm)
 
 
-_AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim")
+_AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim", "profile", "ip_submode", "mux_group")
+PROFILE_NAMES = ("epos-ipm", "xtrapuls-ip", "cia402-csp")
+IP_SUBMODES = ("linear", "pv", "p3")
 
 
 @dataclass(frozen=True)
@@ -341,7 +359,8 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
     return cls(**kwargs)
 
 
-_AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in ("probed", "sim")]
+_AXIS_OPTIONAL = ("probed", "sim", "profile", "ip_submode", "mux_group")
+_AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in _AXIS_OPTIONAL]
 
 
 def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
@@ -377,7 +396,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         if not isinstance(ax, Mapping):
             raise PlanningError(CONFIG, f"{p} must be a table", path=p)
         missing = [k for k in _AXIS_REQUIRED if k not in ax]
-        unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED) - {"probed", "sim"})
+        unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED) - set(_AXIS_OPTIONAL))
         if missing:
             raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}",
                                 path=f"{p}.{missing[0]}")
@@ -390,6 +409,13 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
             integer = k in ("node_id", "counts_per_rev")
             val = _number(p, k, ax[k], integer=integer)
             kw[k] = int(val) if integer else val
+        for key in ("profile", "ip_submode"):
+            if key in ax:
+                if not isinstance(ax[key], str):
+                    raise PlanningError(CONFIG, f"{p}.{key} must be a string, got {ax[key]!r}", path=f"{p}.{key}")
+                kw[key] = ax[key]
+        if "mux_group" in ax:
+            kw["mux_group"] = int(_number(p, "mux_group", ax["mux_group"], integer=True))
         kw["probed"] = drive_readings(data.get("probed"), ax.get("probed"), p)
         kw["sim"] = sim_options(data.get("sim"), ax.get("sim"), p)
         try:

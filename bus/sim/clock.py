@@ -1,7 +1,7 @@
 """A simulated drive's own motion clock: a 1 kHz tick grid with a drift, corrected by 0x1013 time stamps.
 
 The manuals leave open whose clock times the interpolation (docs/drive-model.md, "Variants"). A drive
-locked to SYNC needs nothing here (each SYNC is one period of ticks, `DriveModel._sync`). A drive with
+locked to SYNC needs nothing here (each SYNC is one period of ticks, `DriveDevice._sync`). A drive with
 its own clock ticks at 1 kHz of its own oscillator, which runs `drift_ppm` fast (or slow) against true
 time; the grid is re-anchored when interpolation starts, so the first tick comes 1 ms of drive time after
 the enabling SYNC ("the drive's own 1 kHz clock, started at the enabling SYNC").

@@ -1,4 +1,5 @@
-"""Run `DriveModel`s in real time on any python-can bus, through canopen `LocalNode`s.
+"""Run simulated drives (bus/sim/device.py and a family model each) in real time on any python-can bus,
+through canopen `LocalNode`s.
 
 What it owns: one python-can bus (unless given one), one canopen `Network`, one `LocalNode` per
 simulated drive (object dictionary from configs/drives/epos-ipm.eds), a timer thread, and the lock
@@ -39,8 +40,9 @@ from bus.codec import Frame, NmtState
 from bus.errors import CALLBACK, BusError
 from bus.network import NOTIFIER_CYCLE_S, open_bus
 from bus.profile import EPOS_IPM, DriveProfile
+from bus.sim import make_drive
 from bus.sim import od as odm
-from bus.sim.model import DriveModel
+from bus.sim.device import DriveDevice
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams
 from bus.sim.od import SdoAbort
 from planner.config import BusConfig, CellConfig
@@ -91,8 +93,8 @@ class SimulatedCell:
         self.clock = clock
         self.errors: list[BusError] = []
         positions = dict(initial_positions or {})
-        self.models: dict[int, DriveModel] = {
-            a.node_id: DriveModel(a.node_id, a, cell.drive, motor=motor,
+        self.models: dict[int, DriveDevice] = {
+            a.node_id: make_drive(a, cell.drive, motor=motor,
                                   initial_position=positions.get(a.node_id, 0.0),
                                   sync_gap_factor=sync_gap_factor, profile=profile)
             for a in cell.axes
@@ -185,12 +187,12 @@ class SimulatedCell:
             raise self.errors[0]
 
     @contextmanager
-    def locked(self) -> Iterator[dict[int, DriveModel]]:
+    def locked(self) -> Iterator[dict[int, DriveDevice]]:
         """Inspect or poke the models consistently (the bus threads wait meanwhile)."""
         with self._lock:
             yield self.models
 
-    def model(self, node: int) -> DriveModel:
+    def model(self, node: int) -> DriveDevice:
         return self.models[node]
 
     # ---- internals ----------------------------------------------------------------------------------
@@ -274,9 +276,9 @@ class SimulatedCell:
 
         return on_request
 
-    def _read_callback(self, model: DriveModel) -> Callable[..., int | None]:
+    def _read_callback(self, model: DriveDevice) -> Callable[..., int | None]:
         def on_read(index: int, subindex: int, od: Any) -> int | None:
-            spec = odm.OBJECTS.get((index, subindex))
+            spec = model.objects.objects.get((index, subindex))
             if spec is None or spec.dtype == odm.DataType.VISIBLE_STRING:
                 return None
             with self._lock:
@@ -290,11 +292,11 @@ class SimulatedCell:
 
         return on_read
 
-    def _write_callback(self, model: DriveModel) -> Callable[..., None]:
+    def _write_callback(self, model: DriveDevice) -> Callable[..., None]:
         def on_write(index: int, subindex: int, od: Any, data: bytes) -> None:
             with self._lock:
                 try:
-                    spec = odm.spec(index, subindex)
+                    spec = model.objects.spec(index, subindex)
                     value = odm.decode_value(spec, bytes(data))
                     self._pending += model.sdo_write(index, subindex, value, self.clock())
                 except SdoAbort as e:

@@ -1,13 +1,15 @@
-"""The object dictionary of the simulated EPOS-like IPM drive: one table, three uses.
+"""The object dictionaries of the simulated drive families: one table per family, three uses.
 
-The table below is the single definition of every object the simulated drive has: its type, access,
-default and range (seed 000 section 4.3.6 for the IPM objects, CiA 301/402 for the rest; values the
-manuals leave open are chosen and listed in docs/drive-model.md). It is used
+Each table (`EPOS_TABLE`: maxon IPM, seed 000 4.3.6; `XTRAPULS_TABLE`: Infranor XtrapulsPac IP, seed
+003; `CSP_TABLE`: CiA 402 cyclic synchronous position) is the single definition of every object that
+family's simulated drive has: its type, access, default and range (the CiA 301 communication profile and
+the CiA 402 objects are shared; values the manuals leave open are chosen and listed in
+docs/drive-model.md). It is used
 
-- by `bus.sim.eds` to render configs/drives/epos-ipm.eds (a test checks the committed file matches),
+- by `bus.sim.eds` to render configs/drives/<family>.eds (a test checks the committed files match),
   which canopen loads as a `LocalNode` (the simulated drive) or a `RemoteNode` (the master);
-- by the pure `DriveModel` as its object store (`ObjectStore`), through which every SDO read/write
-  and every PDO-mapped write goes, with the same access and range checks a drive makes;
+- by the pure drive (bus/sim/device.py) as its object store, through which every SDO read/write and
+  every PDO-mapped write goes, with the same access and range checks a drive makes;
 - by the PDO mapping validation (size, mappability, direction).
 
 No I/O; `SdoAbort` carries the CiA 301 abort code the SDO server answers with.
@@ -145,28 +147,39 @@ PDO_RTR_NOT_ALLOWED = 1 << 30
 MAX_PDO_ENTRIES = 8
 
 
-def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
-    o: list[ObjectSpec] = []
-    g: list[GroupSpec] = []
+_Entry = tuple[int, str, DataType, Access, int | None, int | None, int | None, bool, bool]
 
-    def var(index: int, name: str, dtype: DataType, access: Access, default: int | str | None = None,
+
+class _Builder:
+    """Collects the objects of one table (`var`, `group`)."""
+
+    def __init__(self) -> None:
+        self.objects: list[ObjectSpec] = []
+        self.groups: list[GroupSpec] = []
+
+    def var(self, index: int, name: str, dtype: DataType, access: Access, default: int | str | None = None,
             low: int | None = None, high: int | None = None, pdo: bool = False, rel: bool = False) -> None:
-        o.append(ObjectSpec(index, 0, name, dtype, access, default, low, high, pdo, rel))
+        self.objects.append(ObjectSpec(index, 0, name, dtype, access, default, low, high, pdo, rel))
 
-    def group(index: int, name: str, kind: Literal[8, 9], entries: list[tuple[int, str, DataType, Access,
-              int | None, int | None, int | None, bool, bool]]) -> None:
-        g.append(GroupSpec(index, name, kind))
+    def group(self, index: int, name: str, kind: Literal[8, 9], entries: list[_Entry]) -> None:
+        self.groups.append(GroupSpec(index, name, kind))
         for sub, n, dt, acc, default, low, high, pdo, rel in entries:
-            o.append(ObjectSpec(index, sub, n, dt, acc, default, low, high, pdo, rel))
+            self.objects.append(ObjectSpec(index, sub, n, dt, acc, default, low, high, pdo, rel))
 
-    # ---- communication profile (CiA 301)
+
+def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: list[list[int]],
+            rx_types: list[int], tx_defaults: list[list[int]], tx_types: list[int], max_entries: int,
+            sync_period: tuple[int, int, int]) -> None:
+    """The communication profile every simulated drive has (CiA 301)."""
+    var, group = b.var, b.group
     var(0x1000, "Device type", U32, "ro", 0x00020192)  # CiA 402 servo drive
     var(0x1001, "Error register", U8, "ro", 0, pdo=True)
     var(0x1005, "COB-ID SYNC", U32, "rw", 0x00000080)
-    var(0x1006, "Communication cycle period", U32, "rw", 0, 0, 255_000)  # us; 0 = not configured
-    var(0x1008, "Manufacturer device name", STR, "const", "EPOS-IPM simulated drive")
-    # store / restore (CiA 301; seed 000 6.12: "save" 0x65766173, "load" 0x64616F6C); reading sub 1 gives
-    # bit 0 = the device saves / restores on command
+    default, low, high = sync_period
+    var(0x1006, "Communication cycle period", U32, "rw", default, low, high)  # us; 0 = not configured
+    var(0x1008, "Manufacturer device name", STR, "const", device_name)
+    # store / restore (CiA 301; seed 000 6.12 and seed 003: "save" 0x65766173, "load" 0x64616F6C); reading
+    # sub 1 gives bit 0 = the device saves / restores on command
     group(0x1010, "Store parameters", 8, [
         (0, "Highest sub-index supported", U8, "ro", 1, None, None, False, False),
         (1, "Save all parameters", U32, "rw", 1, None, None, False, False),
@@ -189,60 +202,52 @@ def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
     var(0x1019, "Synchronous counter overflow value", U8, "rw", 0, 0, 240)
     group(0x1018, "Identity object", 9, [
         (0, "Number of entries", U8, "ro", 4, None, None, False, False),
-        (1, "Vendor-ID", U32, "ro", 0x00000000, None, None, False, False),
-        (2, "Product code", U32, "ro", 0x49504D31, None, None, False, False),  # "IPM1"
+        (1, "Vendor-ID", U32, "ro", 0x00000000, None, None, False, False),  # a simulation claims no vendor
+        (2, "Product code", U32, "ro", product_code, None, None, False, False),
         (3, "Revision number", U32, "ro", 0x00010000, None, None, False, False),
         (4, "Serial number", U32, "ro", 0x00000000, None, None, False, True),
     ])
-    # PDO communication and mapping: EPOS-like factory defaults (all event driven, statusword/controlword
-    # first); the master remaps them to the product layout (bus/cob.py, bus/profile.py).
-    rx_defaults = [[0x60400010], [0x60400010, 0x60600008], [0x60400010], []]
-    tx_defaults = [[0x60410010], [0x60410010, 0x60610008], [0x60410010, 0x60640020], [0x60410010, 0x606C0020]]
+    # PDO communication and mapping: the family's factory defaults; the master remaps them
     for n in range(4):
         rx_cob = 0x200 + 0x100 * n
         tx_cob = 0x180 + 0x100 * n
-        rx_enabled = n < 3
+        rx_enabled = bool(rx_defaults[n])
         group(0x1400 + n, f"Receive PDO {n + 1} parameter", 9, [
             (0, "Highest sub-index supported", U8, "ro", 2, None, None, False, False),
             (1, "COB-ID used by RPDO", U32, "rw", rx_cob | (0 if rx_enabled else PDO_DISABLED), None, None,
              False, True),
-            (2, "Transmission type", U8, "rw", 255, None, None, False, False),
+            (2, "Transmission type", U8, "rw", rx_types[n], None, None, False, False),
         ])
-        entries: list[tuple[int, str, DataType, Access, int | None, int | None, int | None, bool, bool]] = [
-            (0, "Number of mapped objects", U8, "rw", len(rx_defaults[n]), 0, MAX_PDO_ENTRIES, False, False)]
-        for k in range(1, MAX_PDO_ENTRIES + 1):
+        entries: list[_Entry] = [
+            (0, "Number of mapped objects", U8, "rw", len(rx_defaults[n]), 0, max_entries, False, False)]
+        for k in range(1, max_entries + 1):
             d = rx_defaults[n][k - 1] if k <= len(rx_defaults[n]) else 0
             entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
         group(0x1600 + n, f"Receive PDO {n + 1} mapping", 9, entries)
         group(0x1800 + n, f"Transmit PDO {n + 1} parameter", 9, [
             (0, "Highest sub-index supported", U8, "ro", 6, None, None, False, False),
-            (1, "COB-ID used by TPDO", U32, "rw", tx_cob, None, None, False, True),
-            (2, "Transmission type", U8, "rw", 255, None, None, False, False),
+            (1, "COB-ID used by TPDO", U32, "rw", tx_cob | (0 if tx_defaults[n] else PDO_DISABLED), None, None,
+             False, True),
+            (2, "Transmission type", U8, "rw", tx_types[n], None, None, False, False),
             (3, "Inhibit time", U16, "rw", 0, None, None, False, False),  # 100 us units (event TPDOs)
             (5, "Event timer", U16, "rw", 0, None, None, False, False),  # ms (event TPDOs)
             (6, "SYNC start value", U8, "rw", 0, None, None, False, False),  # with a SYNC counter
         ])
-        entries = [(0, "Number of mapped objects", U8, "rw", len(tx_defaults[n]), 0, MAX_PDO_ENTRIES, False,
-                    False)]
-        for k in range(1, MAX_PDO_ENTRIES + 1):
+        entries = [(0, "Number of mapped objects", U8, "rw", len(tx_defaults[n]), 0, max_entries, False, False)]
+        for k in range(1, max_entries + 1):
             d = tx_defaults[n][k - 1] if k <= len(tx_defaults[n]) else 0
             entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
         group(0x1A00 + n, f"Transmit PDO {n + 1} mapping", 9, entries)
 
-    # ---- manufacturer specific (seed 000 4.3.6)
-    var(0x20C1, "Interpolation data record", U64, "wo", None, pdo=True)
-    group(0x20C4, "Interpolation status", 9, [
-        (0, "Number of entries", U8, "ro", 3, None, None, False, False),
-        (1, "Interpolation buffer status", U16, "ro", 0, None, None, True, False),
-        (2, "Interpolation buffer underflow warning", U16, "rw", 4, 0, 63, False, False),
-        (3, "Interpolation buffer overflow warning", U16, "rw", 60, 1, 64, False, False),
-    ])
 
-    # ---- device profile (CiA 402; seed 000 4.3.3-4.3.6)
+def _cia402(b: _Builder, *, quick_stop: tuple[int, int, int], quick_stop_decel: int) -> None:
+    """The device profile every family shares (CiA 402; seed 000 4.3.3-4.3.6, seed 003 2)."""
+    var, group = b.var, b.group
     var(0x603F, "Error code", U16, "ro", 0, pdo=True)
     var(0x6040, "Controlword", U16, "rw", 0, pdo=True)
     var(0x6041, "Statusword", U16, "ro", 0, pdo=True)
-    var(0x605A, "Quick stop option code", I16, "rw", 2, 0, 6)
+    qs_default, qs_low, qs_high = quick_stop
+    var(0x605A, "Quick stop option code", I16, "rw", qs_default, qs_low, qs_high)
     var(0x6060, "Modes of operation", I8, "rw", 0, pdo=True)
     var(0x6061, "Modes of operation display", I8, "ro", 0, pdo=True)
     var(0x6062, "Position demand value", I32, "ro", 0, pdo=True)
@@ -260,7 +265,29 @@ def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
     var(0x6081, "Profile velocity", U32, "rw", 1000, pdo=True)
     var(0x6083, "Profile acceleration", U32, "rw", 10000, pdo=True)
     var(0x6084, "Profile deceleration", U32, "rw", 10000, pdo=True)
-    var(0x6085, "Quick stop deceleration", U32, "rw", 10000, pdo=True)
+    var(0x6085, "Quick stop deceleration", U32, "rw", quick_stop_decel, pdo=True)
+    var(0x60C5, "Max acceleration", U32, "rw", 0xFFFFFFFF, pdo=True)
+    var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
+
+
+def _epos() -> _Builder:
+    b = _Builder()
+    _cia301(b, device_name="EPOS-IPM simulated drive", product_code=0x49504D31,  # "IPM1"
+            # EPOS-like factory defaults (all event driven, statusword/controlword first)
+            rx_defaults=[[0x60400010], [0x60400010, 0x60600008], [0x60400010], []], rx_types=[255] * 4,
+            tx_defaults=[[0x60410010], [0x60410010, 0x60610008], [0x60410010, 0x60640020],
+                         [0x60410010, 0x606C0020]], tx_types=[255] * 4,
+            max_entries=MAX_PDO_ENTRIES, sync_period=(0, 0, 255_000))
+    _cia402(b, quick_stop=(2, 0, 6), quick_stop_decel=10000)
+    var, group = b.var, b.group
+    # ---- manufacturer specific (seed 000 4.3.6)
+    var(0x20C1, "Interpolation data record", U64, "wo", None, pdo=True)
+    group(0x20C4, "Interpolation status", 9, [
+        (0, "Number of entries", U8, "ro", 3, None, None, False, False),
+        (1, "Interpolation buffer status", U16, "ro", 0, None, None, True, False),
+        (2, "Interpolation buffer underflow warning", U16, "rw", 4, 0, 63, False, False),
+        (3, "Interpolation buffer overflow warning", U16, "rw", 60, 1, 64, False, False),
+    ])
     var(0x60C0, "Interpolation sub mode select", I16, "rw", -1, -1, -1)
     group(0x60C2, "Interpolation time period", 9, [
         (0, "Number of entries", U8, "ro", 2, None, None, False, False),
@@ -276,27 +303,109 @@ def _build() -> tuple[list[ObjectSpec], list[GroupSpec]]:
         (5, "Size of data record", U8, "wo", 8, 8, 8, False, False),
         (6, "Buffer clear", U8, "wo", 0, 0, 1, False, False),
     ])
-    var(0x60C5, "Max acceleration", U32, "rw", 0xFFFFFFFF, pdo=True)
-    var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
     var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # bit 6: interpolated position mode
-    return o, g
+    return b
 
 
-_OBJECTS, _GROUPS = _build()
+def _xtrapuls() -> _Builder:
+    """Infranor XtrapulsPac in interpolated position mode (seed 003; digest in ../shared/reference/)."""
+    b = _Builder()
+    _cia301(b, device_name="XtrapulsPac IP simulated drive", product_code=0x58495031,  # "XIP1"
+            # seed 003 1 PDO defaults: RPDO1 controlword, RPDO2 0x60FF, RPDO3 IP data (type 1), RPDO4 off;
+            # TPDO1 statusword and TPDO2 velocity RTR only (253), TPDO3 position actual (type 1)
+            rx_defaults=[[0x60400010], [0x60FF0020], [0x60C10120], []], rx_types=[255, 255, 1, 0],
+            tx_defaults=[[0x60410010], [0x606C0020], [0x60640020], []], tx_types=[253, 253, 1, 0],
+            max_entries=4, sync_period=(10_000, 0, 150_000))
+    _cia402(b, quick_stop=(1, 0, 7), quick_stop_decel=0x00200000)
+    var, group = b.var, b.group
+    # dummy objects for multiplexed RPDOs: PDO-only (CiA 301; seed 003 "Multiplexed RPDO")
+    for index, name, dt in ((0x0002, "Dummy INTEGER8", I8), (0x0003, "Dummy INTEGER16", I16),
+                            (0x0004, "Dummy INTEGER32", I32), (0x0005, "Dummy UNSIGNED8", U8),
+                            (0x0006, "Dummy UNSIGNED16", U16), (0x0007, "Dummy UNSIGNED32", U32)):
+        var(index, name, dt, "wo", None, pdo=True)
+    group(0x2006, "Sync control", 9, [  # the PLL (seed 003: the header says 4 elements, the list has 5)
+        (0, "Number of entries", U8, "ro", 5, None, None, False, False),
+        (1, "Sync phase", I16, "rw", 0, None, None, False, False),  # us
+        (2, "Adjustment threshold", U16, "rw", 20, None, None, False, False),  # us
+        (3, "Adjustment value", U16, "rw", 2, None, None, False, False),  # us
+        (4, "Sync error limit", U16, "rw", 500, None, None, False, False),  # us
+        (5, "Sync filter", U8, "rw", 0, 0, 4, False, False),
+    ])
+    var(0x2010, "Boot-up message", U16, "rw", 0, 0, 1)  # 0: none (seed 003), 1: on entering pre-op
+    var(0x205F, "EMCY mode", U16, "rw", 1, 0, 2)  # 0 none, 1 on error, 2 on error and reset
+    var(0x30C1, "Interpolator output", I32, "ro", 0, pdo=True)
+    var(0x3350, "16-bit IP references", U8, "rw", 0, 0, 1)
+    var(0x6080, "Max motor speed", U32, "rw", 3000, 100, 60000)  # rpm
+    group(0x6093, "Position factor", 9, [
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Numerator", U32, "rw", 4096, 1, None, False, False),  # motor increments
+        (2, "Denominator", U32, "rw", 4096, 1, None, False, False),  # user units
+    ])
+    var(0x60C0, "Interpolation sub mode select", I16, "rw", 0, -2, 0)  # 0 linear, -1 PV, -2 P3
+    group(0x60C1, "Interpolation data record", 8, [
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Position", I32, "rw", 0, None, None, True, False),
+        (2, "Velocity", I32, "rw", 0, None, None, True, False),  # user units/s, PV only
+    ])
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # IP (no cyclic modes on CANopen)
+    return b
 
-OBJECTS: MappingProxyType[Key, ObjectSpec] = MappingProxyType({s.key: s for s in _OBJECTS})
-GROUPS: MappingProxyType[int, GroupSpec] = MappingProxyType({gr.index: gr for gr in _GROUPS})
-INDICES: tuple[int, ...] = tuple(sorted({s.index for s in _OBJECTS}))
+
+def _csp() -> _Builder:
+    """A CiA 402 drive in cyclic synchronous position mode (mode 8: 0x607A every SYNC; seed 000 2.6, 6.7)."""
+    b = _Builder()
+    _cia301(b, device_name="CiA 402 CSP simulated drive", product_code=0x43535031,  # "CSP1"
+            rx_defaults=[[0x60400010], [0x607A0020], [], []], rx_types=[255, 1, 255, 255],
+            tx_defaults=[[0x60410010], [0x60640020], [], []], tx_types=[255, 1, 255, 255],
+            max_entries=MAX_PDO_ENTRIES, sync_period=(0, 0, 255_000))
+    _cia402(b, quick_stop=(2, 0, 6), quick_stop_decel=10000)
+    var, group = b.var, b.group
+    var(0x607A, "Target position", I32, "rw", 0, pdo=True)
+    group(0x60C2, "Interpolation time period", 9, [  # in CSP: the set point cycle (= the SYNC period)
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Interpolation time period value", U8, "rw", 10, 1, 255, False, False),
+        (2, "Interpolation time index", I8, "rw", -3, -3, -3, False, False),
+    ])
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000080)  # bit 7: cyclic synchronous position
+    return b
 
 
-def spec(index: int, sub: int) -> ObjectSpec:
-    """The spec of (index, sub). Raises SdoAbort with the CiA 301 code for a missing object/sub-index."""
-    s = OBJECTS.get((index, sub))
-    if s is None:
-        if any(k[0] == index for k in OBJECTS):
-            raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X} has no sub-index {sub}")
-        raise SdoAbort(ABORT_NO_OBJECT, f"object 0x{index:04X} does not exist")
-    return s
+@dataclass(frozen=True)
+class ObjectTable:
+    """One family's object dictionary: the single definition its drive, its EDS and the PDO checks use."""
+
+    name: str
+    eds_name: str
+    objects: MappingProxyType[Key, ObjectSpec]
+    groups: MappingProxyType[int, GroupSpec]
+    indices: frozenset[int]
+
+    @classmethod
+    def build(cls, name: str, eds_name: str, b: _Builder) -> ObjectTable:
+        return cls(name, eds_name, MappingProxyType({s.key: s for s in b.objects}),
+                   MappingProxyType({gr.index: gr for gr in b.groups}), frozenset(s.index for s in b.objects))
+
+    def spec(self, index: int, sub: int) -> ObjectSpec:
+        """The spec of (index, sub). Raises SdoAbort with the CiA 301 code for a missing object/sub-index."""
+        s = self.objects.get((index, sub))
+        if s is None:
+            if index in self.indices:
+                raise SdoAbort(ABORT_NO_SUBINDEX, f"0x{index:04X} has no sub-index {sub}")
+            raise SdoAbort(ABORT_NO_OBJECT, f"object 0x{index:04X} does not exist")
+        if index < 0x1000:
+            raise SdoAbort(ABORT_NO_OBJECT, f"0x{index:04X} is a dummy object (PDO mapping only)")
+        return s
+
+    def defaults(self, node_id: int) -> dict[Key, int]:
+        """Power-on values of every integer object for `node_id`."""
+        return {k: s.default_for(node_id) for k, s in self.objects.items() if isinstance(s.default, int)}
+
+
+EPOS_TABLE = ObjectTable.build("epos-ipm", "epos-ipm.eds", _epos())
+XTRAPULS_TABLE = ObjectTable.build("xtrapuls-ip", "xtrapuls-ip.eds", _xtrapuls())
+CSP_TABLE = ObjectTable.build("cia402-csp", "cia402-csp.eds", _csp())
+TABLES: MappingProxyType[str, ObjectTable] = MappingProxyType(
+    {t.name: t for t in (EPOS_TABLE, XTRAPULS_TABLE, CSP_TABLE)})
 
 
 def check_value(s: ObjectSpec, value: int) -> None:
@@ -310,11 +419,6 @@ def check_value(s: ObjectSpec, value: int) -> None:
         raise SdoAbort(ABORT_VALUE_TOO_HIGH, f"0x{s.index:04X}:{s.sub:02X} value {value} above {hi}")
     if value < lo:
         raise SdoAbort(ABORT_VALUE_TOO_LOW, f"0x{s.index:04X}:{s.sub:02X} value {value} below {lo}")
-
-
-def defaults(node_id: int) -> dict[Key, int]:
-    """Power-on values of every integer object for `node_id`."""
-    return {k: s.default_for(node_id) for k, s in OBJECTS.items() if isinstance(s.default, int)}
 
 
 def decode_value(s: ObjectSpec, data: bytes) -> int:

@@ -1,7 +1,7 @@
 """The simulated drives of one cell in virtual time: frames in, frames out, no bus, no threads.
 
-A `VirtualCell` holds one `DriveModel` per axis of a `CellConfig`, boots them, and (by default)
-configures them exactly as the master would over SDO (`DriveModel.configure_for_ipm`, i.e. the
+A `VirtualCell` holds one simulated drive per axis of a `CellConfig` (of the axis' family), boots them,
+and (by default) configures them exactly as the master would over SDO (`DriveDevice.configure`, i.e. the
 profile's configuration list) and starts them (NMT operational). A virtual-time runtime then plays
 the bus: `deliver(cob_id, data, t)` hands a frame the master sent to the drives that consume that
 COB-ID and returns what they answer; `sync(t)` is a SYNC; `advance(t)` runs the drives' timers.
@@ -17,7 +17,8 @@ from bus import codec
 from bus.budget import cell_feedback_every
 from bus.codec import Frame
 from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, feedback_schedule
-from bus.sim.model import DriveModel
+from bus.sim import make_drive
+from bus.sim.device import DriveDevice
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams
 from planner.config import CellConfig
 
@@ -38,7 +39,7 @@ class VirtualCell:
         feedback_every: int | None = None,
     ):
         self.cell = cell
-        self.models: dict[int, DriveModel] = {}
+        self.models: dict[int, DriveDevice] = {}
         self.boot_frames: list[Frame] = []
         positions = dict(initial_positions or {})
         # a master configures drives one after another (tens of SDO exchanges each), so their heartbeat
@@ -47,7 +48,7 @@ class VirtualCell:
         n = len(cell.axes)
         self._config_t = {a.node_id: t0 - (n - 1 - k) * CONFIG_SPACING_S for k, a in enumerate(cell.axes)}
         for axis in cell.axes:
-            m = DriveModel(axis.node_id, axis, cell.drive, motor=motor,
+            m = make_drive(axis, cell.drive, motor=motor,
                            initial_position=positions.get(axis.node_id, 0.0),
                            sync_gap_factor=sync_gap_factor, profile=profile)
             self.boot_frames += m.power_on(self._config_t[axis.node_id])
@@ -59,18 +60,18 @@ class VirtualCell:
             [a.node_id for a in cell.axes], every, all(m.has_object(0x1019) for m in self.models.values()))
         if configure:
             for node, m in self.models.items():
-                self.boot_frames += m.configure_for_ipm(cell.sync_period_ms, t=self._config_t[node],
+                self.boot_frames += m.configure(cell.sync_period_ms, t=self._config_t[node],
                                                         feedback=self.feedback, time_stamp=cell.time_stamp)
         self._models = tuple(self.models.values())
-        self._routes: dict[int, tuple[DriveModel, ...]] = {}
+        self._routes: dict[int, tuple[DriveDevice, ...]] = {}
         self._versions: dict[int, int] = {}
         self._rebuild_routes()
 
-    def model(self, node: int) -> DriveModel:
+    def model(self, node: int) -> DriveDevice:
         return self.models[node]
 
     def _rebuild_routes(self) -> None:
-        routes: dict[int, list[DriveModel]] = {}
+        routes: dict[int, list[DriveDevice]] = {}
         for m in self._models:
             for cob_id in m.rx_cob_ids():
                 routes.setdefault(cob_id, []).append(m)
@@ -108,7 +109,8 @@ class VirtualCell:
 
     def enable_drives(self, t: float | None = None) -> list[Frame]:
         """What `MasterAdapter.enable_drives` does over SDO: fault reset if faulted, 0x0006, 0x000F
-        (bit 4 low), buffer clear then enable. Raises RuntimeError if a drive does not get there."""
+        (bit 4 low), then the family's writes (EPOS: buffer clear then enable). Raises RuntimeError if a
+        drive does not get there."""
         S = codec.Cia402State
         out: list[Frame] = []
         for node, m in self.models.items():
@@ -122,9 +124,10 @@ class VirtualCell:
             commands.append(codec.Command.ENABLE_OPERATION)
             for command in commands:
                 out += m.sdo_write(0x6040, 0, command.value, t)
-            out += m.sdo_write(0x60C4, 6, 0, t)
-            out += m.sdo_write(0x60C4, 6, 1, t)
-            if m.state != S.OPERATION_ENABLED or not m.buffer_enabled:
+            for name, value in m.profile.after_enable:
+                ref = m.profile.obj(name)
+                out += m.sdo_write(ref.index, ref.sub, value, t)
+            if not m.ready_for_job:
                 raise RuntimeError(f"drive {node} is {m.state.value!r} after the enable sequence")
         return out
 

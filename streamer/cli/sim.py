@@ -3,7 +3,7 @@
     pvt sim --config configs/demo.toml                       # the cell's [bus] (default: virtual)
     pvt sim --config CELL --bus socketcan:vcan0 --bitrate 1000000
 
-The drives (bus/sim: one canopen LocalNode + pure DriveModel per axis) boot (boot-up message), answer
+The drives (bus/sim: one canopen LocalNode + pure drive model per axis) boot (boot-up message), answer
 SDO, follow NMT, SYNC and RPDOs, and send TPDOs, EMCYs and heartbeats, until SIGINT or SIGTERM (or
 `--duration` seconds); then they leave the bus cleanly. A second process (`pvt serve`, any CANopen
 master) talks to them over the same bus. On the `virtual` interface only masters in this process can

@@ -15,7 +15,7 @@ runtime
 2. queues SYNC n at `sync_time(n)` (jitter and gaps come from that hook);
 3. runs the bus until the next SYNC's release time (what is still queued competes with that SYNC),
    firing the master's heartbeat consumer timer (HeartbeatLost) at the moment a node's timeout runs out.
-The same `Coordinator`, `DriveModel` and decoding code run here as on a real bus (`streamer.runtime.realtime`),
+The same `Coordinator`, simulated drives and decoding code run here as on a real bus (`streamer.runtime.realtime`),
 only the transport differs, so a minute of motion runs in well under a second, every timing branch is
 reachable from a test, and a candump log of the same run is byte-identical.
 

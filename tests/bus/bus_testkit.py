@@ -17,7 +17,7 @@ import canopen
 
 from bus import cob, codec
 from bus.codec import Frame
-from bus.sim.model import DriveModel
+from bus.sim.epos import EposDrive
 from planner import record
 from planner.config import AxisConfig, BusConfig, CellConfig, DriveSettings
 from planner.hermite import counts_per_ms_to_rpm
@@ -70,7 +70,7 @@ def ramp_records(distance_counts: int, *, cruise_rpm: float = 600.0, seg_ms: int
 
 
 class VDrive:
-    """A DriveModel in virtual time, configured like the master would, with frame bookkeeping."""
+    """A EposDrive in virtual time, configured like the master would, with frame bookkeeping."""
 
     def __init__(self, axis: AxisConfig | None = None, *, sync_period_ms: int = 10, configure: bool = True,
                  settings: DriveSettings | None = None, **model_kw: object):
@@ -79,10 +79,10 @@ class VDrive:
         self.period_ms = sync_period_ms
         self.t = 0.0
         self.frames: list[Frame] = []
-        self.model = DriveModel(self.node, self.axis, settings or DriveSettings(), **model_kw)  # type: ignore[arg-type]
+        self.model = EposDrive(self.node, self.axis, settings or DriveSettings(), **model_kw)  # type: ignore[arg-type]
         self.frames += self.model.power_on(self.t)
         if configure:
-            self.frames += self.model.configure_for_ipm(sync_period_ms, t=self.t)
+            self.frames += self.model.configure(sync_period_ms, t=self.t)
 
     # ---- bus
     def frame(self, cob_id: int, data: bytes) -> list[Frame]:
@@ -137,7 +137,7 @@ class VDrive:
         return records[k:]
 
     def run(self, pending: list[tuple[int, int, int]], *, keep: int = 8, max_syncs: int = 10_000,
-            until: Callable[[DriveModel], bool] | None = None) -> int:
+            until: Callable[[EposDrive], bool] | None = None) -> int:
         """Feed `pending` keeping the FIFO at `keep`, SYNC by SYNC, until ip inactive (or `until`)."""
         pending = list(pending)
         for i in range(max_syncs):

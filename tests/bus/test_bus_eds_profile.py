@@ -61,12 +61,12 @@ def test_issue_objects_and_seed_4_3_6_values() -> None:
         (0x60C4, 6): (0, 0, 1, False, "wo"),
     }
     for (index, sub), (default, low, high, pdo, access) in seed.items():
-        s = odm.OBJECTS[(index, sub)]
+        s = odm.EPOS_TABLE.objects[(index, sub)]
         got = (s.default, s.low, s.high, s.pdo, s.access)
         assert got == (default, low, high, pdo, access), (hex(index), sub)
     for key in ((0x20C1, 0), (0x20C4, 1), (0x60C4, 2), (0x6041, 0), (0x6040, 0), (0x6062, 0), (0x6064, 0)):
-        assert odm.OBJECTS[key].pdo
-    assert odm.OBJECTS[(0x20C1, 0)].access == "wo" and odm.OBJECTS[(0x20C1, 0)].dtype.bits == 64
+        assert odm.EPOS_TABLE.objects[key].pdo
+    assert odm.EPOS_TABLE.objects[(0x20C1, 0)].access == "wo" and odm.EPOS_TABLE.objects[(0x20C1, 0)].dtype.bits == 64
 
 
 def test_profile_pdo_layout_is_the_cob_contract() -> None:
@@ -94,7 +94,7 @@ def test_configuration_is_accepted_and_in_range() -> None:
     assert values[(0x6060, 0)] == 7 and values[(0x60C0, 0)] == -1
     assert values[(0x20C4, 2)] == 6 and values[(0x20C4, 3)] == 50 and values[(0x1006, 0)] == 4000
     for w in writes:
-        odm.check_value(odm.OBJECTS[(w.index, w.sub)], w.value)
+        odm.check_value(odm.EPOS_TABLE.objects[(w.index, w.sub)], w.value)
     # the mapping is only written while the PDO is invalid (CiA 301 order)
     order = [(w.index, w.sub, w.value) for w in writes]
     first_map = next(i for i, (ix, s, _) in enumerate(order) if ix == 0x1A00)

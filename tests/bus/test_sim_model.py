@@ -1,4 +1,4 @@
-"""The pure DriveModel in virtual time: every behaviour of issue 3 section 3, deterministic.
+"""The pure EposDrive in virtual time: every behaviour of issue 3 section 3, deterministic.
 
 The same behaviours are driven in real time by the stock canopen RemoteNode in
 test_sim_faithfulness.py; here each timing branch is exact (time is an argument).
@@ -13,7 +13,7 @@ from bus import cob, codec
 from bus.codec import Cia402State as S
 from bus.codec import NmtState
 from bus.sim import od as odm
-from bus.sim.model import DriveModel
+from bus.sim.epos import EposDrive
 from bus.sim.od import SdoAbort
 from bus.sim.virtual import VirtualCell
 from planner.config import DriveSettings
@@ -25,7 +25,7 @@ def emcy_codes(d: VDrive) -> list[int]:
 
 # ---- NMT, heartbeat, boot ----------------------------------------------------------------------------
 def test_boot_sends_bootup_and_enters_pre_operational() -> None:
-    m = DriveModel(5, make_axis(5))
+    m = EposDrive(5, make_axis(5))
     assert m.on_sync(0.0) == []  # not powered: deaf
     frames = m.power_on(0.0)
     assert frames == [codec.Frame(0x705, b"\x00")]

@@ -232,7 +232,7 @@ def test_tpdo2_every_nth_sync_from_its_start_value() -> None:
     assert [fb.start_value(n) for n in (1, 2, 3, 4, 5)] == [1, 2, 3, 4, 1]
     assert fb.counter_overflow == 240
     d = VDrive(make_axis(2), configure=False)
-    d.frames += d.model.configure_for_ipm(10, t=0.0, feedback=fb)
+    d.frames += d.model.configure(10, t=0.0, feedback=fb)
     assert d.model.sdo_read(0x1019, 0) == 240 and d.model.sdo_read(0x1801, 2) == 4
     assert d.model.sdo_read(0x1801, 6) == 2
     carried = []

@@ -9,7 +9,7 @@
   drives: every record that entered each FIFO (`entered`), the drive's position demand at every
   interpolation tick (`demand_ms`), each drive's state at the end of every SYNC cycle (`states`), and
   every frame on the wire (`wire`).
-Instrumenting wraps two private methods of each `DriveModel` instance (`_append_record`, `_integrate`):
+Instrumenting wraps two private methods of each `EposDrive` instance (`_append_record`, `_integrate`):
 the only places where "a record entered the FIFO" and "the drive ran one 1 ms tick" are visible.
 """
 
@@ -29,7 +29,7 @@ import can
 from bus.cob import RPDO1_BASE, RPDO2_BASE, SYNC_COB_ID, classify, unpack_controlword
 from bus.codec import Cia402State
 from bus.faults import FaultLink, FaultModel
-from bus.sim.model import DriveModel
+from bus.sim.epos import EposDrive
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig, load_cell
 from planner.job import job_from_dict
@@ -158,7 +158,7 @@ class Rig:
             settings=self.settings,
         )
 
-    def _instrument(self, node: int, m: DriveModel) -> None:
+    def _instrument(self, node: int, m: EposDrive) -> None:
         entered = self.entered.setdefault(node, [])
         ticks = self.demand_ms.setdefault(node, {})
         append, integrate = m._append_record, m._integrate

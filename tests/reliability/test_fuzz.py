@@ -25,7 +25,7 @@ from reliability_kit import cell3
 
 from bus.cob import RPDO1_BASE, RPDO2_BASE
 from bus.codec import Frame, decode_emcy
-from bus.sim.model import DriveModel
+from bus.sim.epos import EposDrive
 from planner.config import CellConfig
 from streamer.api.errors import MotionError
 from streamer.api.payload import decode_job, pack
@@ -80,11 +80,11 @@ def test_job_shaped_maps_become_a_job_or_a_coded_rejection(body: dict[str, objec
         assert list(job.axes) and all(a in {"j1", "j2", "j3"} for a in job.axes)
 
 
-def _running_drive(cell: CellConfig) -> DriveModel:
+def _running_drive(cell: CellConfig) -> EposDrive:
     axis = cell.axes[1]
-    m = DriveModel(axis.node_id, axis, cell.drive)
+    m = EposDrive(axis.node_id, axis, cell.drive)
     m.power_on(0.0)
-    m.configure_for_ipm(cell.sync_period_ms, t=0.0)
+    m.configure(cell.sync_period_ms, t=0.0)
     for cw in (0x0006, 0x000F):
         m.sdo_write(0x6040, 0, cw, 0.0)
     m.sdo_write(0x60C4, 6, 0, 0.0)

@@ -1,37 +1,35 @@
-"""The simulated EPOS-like drive as a pure state machine: frames and time in, frames out.
+"""A simulated CiA 402 servo drive as a pure state machine: frames and time in, frames out.
 
-What it owns: one drive's object dictionary (bus/sim/od.py), NMT state and heartbeat producer, the
-CiA 402 power state machine (bus.codec.TRANSITIONS), interpolated position mode with maxon's PVT
-FIFO (seed 000 chapter 4, seed 001), the position controller and motor (bus/sim/motor.py), PDOs and
-EMCYs. No sleeps, no wall clock, no canopen, no threads: every entry point takes the time `t`
-(seconds, any monotonic origin) and returns the frames the drive sends in response.
+This is the part every drive family shares; a family (bus/sim/epos.py: maxon's IPM FIFO;
+bus/sim/xtrapuls.py: one set point per SYNC; bus/sim/csp.py: cyclic synchronous position) adds its
+mode, its objects and what it does at each SYNC through the hooks below. No sleeps, no wall clock, no
+canopen, no threads: every entry point takes the time `t` (seconds, any monotonic origin) and returns the
+frames the drive sends in response.
+
+What it owns: the object dictionary (`objects`: the family's table, bus/sim/od.py), NMT state and
+heartbeat producer/consumer, the CiA 402 power state machine (bus.codec.TRANSITIONS), the position
+controller and motor (bus/sim/motor.py), the demand sources (an interpolation segment: a cubic over n
+ticks, or a stop ramp), PDOs (CiA 301 mapping rules, synchronous and event TPDOs with inhibit time and
+event timer, TPDO latency, the SYNC counter), EMCYs, store/restore, the drive's clock (locked to SYNC,
+or its own: bus/sim/clock.py) and the readings of the manuals' open points (planner/readings.py).
 
 What it is fed:
-- `power_on(t)`: boot (boot-up message, NMT pre-operational).
+- `power_on(t)`: boot (boot-up message, NMT pre-operational; a family may stay silent).
 - `on_frame(cob_id, data, t)`: NMT, SYNC, RPDOs (checked against the current mapping), heartbeats
-  of a monitored producer (0x1016). SDO frames are not handled here: the canopen LocalNode adapter
-  (bus/sim/node.py) serves SDO through `sdo_read`/`sdo_write`, and a virtual-time runtime calls those
-  (or `configure_for_ipm`) directly.
-- `on_sync(t)`: the drive clock. The drive is locked to SYNC: on each SYNC it (1) runs the control
-  ticks of the period that just ended (0x1006 / 1 ms ticks; the interpolator advances only while ip
-  mode is active), (2) applies what synchronous RPDOs delivered since the last SYNC (the controlword
-  of the synchronous start, seed 001), (3) sends its synchronous TPDOs in PDO-number order (TPDO1
-  then TPDO2), so they report the state after steps 1-2.
-- `advance(t)`: timers between frames: heartbeat production, SYNC loss while ip mode is active
-  (no SYNC within 1.5 periods -> EMCY 0x8780 + fault), heartbeat consumer timeout (EMCY 0x8130).
+  of a monitored producer (0x1016), the time stamp. SDO frames are not handled here: the canopen
+  LocalNode adapter (bus/sim/node.py) serves SDO through `sdo_read`/`sdo_write`, and a virtual-time
+  runtime calls those (or `configure`) directly.
+- `on_sync(t)`: the drive clock. A drive locked to SYNC on each SYNC (1) runs the control ticks of the
+  period that just ended (0x1006 / 1 ms ticks), (2) applies what synchronous RPDOs delivered since the
+  last SYNC, (3) lets the family act (`_after_sync_rpdos`), (4) sends its synchronous TPDOs in
+  PDO-number order, so they report the state after 1-3 (or before 2, reading `tpdo_sampling`).
+- `advance(t)`: timers between frames: heartbeat production, SYNC loss while interpolating, heartbeat
+  consumer timeout (EMCY 0x8130), TPDOs held for their latency, event TPDO timers, the own clock's ticks.
   `next_deadline()` says when it next has something to do.
 
-The IPM FIFO follows the project's agreed semantics (briefs/common.md): the interpolator's segment
-target is the FIFO head, popped when its segment completes; activation (controlword bit 4 rising
-edge in operation enabled, mode 7) needs >= 2 records or raises the underflow error; a completed
-segment with nothing behind it raises the underflow error; a head with time 0 ends interpolation
-without error; a record arriving at a full FIFO raises the overflow error. Errors send an EMCY whose
-manufacturer bytes 0-1 carry 0x20C4:01, and start the fault reaction (quick-stop ramp, then Fault).
-
-The per-tick loop (`_integrate`) is the hot spot: it runs on locals, and work that does not need to
-be per tick is done per segment (the demand list comes from planner.hermite.segment_demand, the very
-function the encoder verifies with; velocity/acceleration limit crossings are found once per segment
-and scheduled as events).
+The per-tick loop (`_integrate`) is the hot spot: it runs on locals, and work that does not need to be
+per tick is done per segment (the demand list of a segment is computed once; limit crossings are found
+once per segment and scheduled as events).
 """
 
 from __future__ import annotations
@@ -40,26 +38,13 @@ import itertools
 import math
 import random
 import struct
-from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from enum import Enum
 
 from bus import codec
 from bus.codec import (
-    BS_ACCELERATION_ERROR,
-    BS_ACCELERATION_WARNING,
-    BS_BUFFER_ENABLED,
-    BS_IP_ACTIVE,
-    BS_OVERFLOW_ERROR,
-    BS_OVERFLOW_WARNING,
-    BS_UNDERFLOW_ERROR,
-    BS_UNDERFLOW_WARNING,
-    BS_VELOCITY_ERROR,
-    BS_VELOCITY_WARNING,
-    CW_ENABLE_IP,
     CW_FAULT_RESET,
-    CW_HALT,
     Cia402State,
     Command,
     Frame,
@@ -74,21 +59,17 @@ from bus.sim import od as odm
 from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key, SdoAbort
-from planner import hermite, record
+from planner import hermite
 from planner.config import AxisConfig, DriveSettings
 from planner.readings import SimDriveOptions
-from planner.record import PvtRecord
 
 ST = Cia402State
-IP_MODE = 7
-SUPPORTED_MODES = frozenset({0, IP_MODE})
 QUICK_STOP_OPTIONS = frozenset({0, 1, 2, 5, 6})
 MAX_RAMP_TICKS = 600_000  # a stop ramp longer than 10 min of drive time ends with an abrupt stop
 SAVE_SIGNATURE = 0x65766173  # "save" (seed 000 6.12; CiA 301 0x1010)
 LOAD_SIGNATURE = 0x64616F6C  # "load" (seed 000 6.12; CiA 301 0x1011)
-# what 0x1010 "save all parameters" keeps: every writable integer object but commands and the FIFO
-_NOT_STORED = frozenset({(0x6040, 0), (0x20C1, 0), (0x60C4, 6), (0x60C4, 4), (0x1010, 1), (0x1011, 1),
-                         (0x1013, 0)})
+# what 0x1010 "save all parameters" never keeps (a family adds its commands and buffers)
+_NOT_STORED = frozenset({(0x6040, 0), (0x1010, 1), (0x1011, 1), (0x1013, 0)})
 COAST_STOP_COUNTS_PER_MS = 1e-4  # below this a coasting motor is taken as standing still
 
 _EMCY_REGISTER = {
@@ -197,8 +178,14 @@ def _first_violation(
     return 0  # pragma: no cover - the candidates found one
 
 
-class DriveModel:
-    """One simulated drive. See the module docstring for what it is fed and what it returns."""
+class DriveDevice:
+    """One simulated drive of some family (a subclass). See the module docstring."""
+
+    # ---- what a family sets
+    family = "cia402"
+    supported_modes: frozenset[int] = frozenset({0})
+    interpolation_mode = 7  # the mode whose interpolation the family implements
+    not_stored: frozenset[tuple[int, int]] = frozenset()
 
     def __init__(
         self,
@@ -223,7 +210,7 @@ class DriveModel:
         self.axis = axis
         self.settings = settings or DriveSettings()
         self.profile = profile
-        self._fifo_depth = profile.fifo_depth
+        self.objects: odm.ObjectTable = self._object_table()
         self.motor = motor
         self.counts_per_rev = int(counts_per_rev or (axis.counts_per_rev if axis else 8192))
         self.sync_gap_factor = float(sync_gap_factor)
@@ -263,18 +250,13 @@ class DriveModel:
         self._next_event = 0
         self._seg_events: list[tuple[int, int]] = []
         self._seg_coeffs = (0.0, 0.0, 0.0, 0.0)
-        self._seg_target: PvtRecord | None = None
         self._ramp_v0 = 0.0
         self._ramp_dec = 0.0
         # drive state
         self._nmt = NmtState.BOOTUP  # = not powered yet
         self._state = ST.NOT_READY_TO_SWITCH_ON
         self._cw = 0
-        self._fifo: deque[PvtRecord] = deque()
-        self._buffer_enabled = False
         self._ip_active = False
-        self._latched = 0
-        self._prev_warn = 0
         self._error_code = 0
         self._error_register = 0
         self._pending_sync: dict[int, list[tuple[Key, int]]] = {}
@@ -300,12 +282,10 @@ class DriveModel:
             (0x606C, 0): lambda: self.velocity_actual_rpm_int,
             (0x6078, 0): lambda: max(-32768, min(32767, round(self._current * 1000.0))),
             (0x60F4, 0): lambda: self._demand - self._get_position_actual(),
-            (0x20C4, 1): self._get_buffer_status,
-            (0x60C4, 2): lambda: self._fifo_depth - len(self._fifo),
-            (0x60C4, 4): lambda: len(self._fifo),
             (0x6040, 0): lambda: self._cw,
+            **self._family_dynamic(),
         }
-        self._handlers: dict[Key, Callable[[int], None]] = self._build_handlers()
+        self._handlers: dict[Key, Callable[[int], None]] = {**self._build_handlers(), **self._family_handlers()}
         self._reset_application(first=True)
 
     # ============================================================================================
@@ -390,10 +370,10 @@ class DriveModel:
     def _spec(self, index: int, sub: int) -> odm.ObjectSpec:
         if index in self._absent:
             raise SdoAbort(odm.ABORT_NO_OBJECT, f"object 0x{index:04X} does not exist on this drive")
-        return odm.spec(index, sub)
+        return self.objects.spec(index, sub)
 
     def has_object(self, index: int) -> bool:
-        return index not in self._absent and any(k[0] == index for k in odm.OBJECTS)
+        return index not in self._absent and index in self.objects.indices
 
     def sdo_read(self, index: int, sub: int) -> int:
         """SDO upload of an integer object (raises SdoAbort like the drive's SDO server)."""
@@ -422,7 +402,7 @@ class DriveModel:
         self._flush_event_tpdos()
         return self._out
 
-    def configure_for_ipm(
+    def configure(
         self,
         sync_period_ms: int,
         axis: AxisConfig | None = None,
@@ -440,7 +420,7 @@ class DriveModel:
         """
         axis = axis or self.axis
         if axis is None:
-            raise ValueError("configure_for_ipm needs an AxisConfig (constructor or argument)")
+            raise ValueError("configure needs an AxisConfig (constructor or argument)")
         settings = settings or self.settings
         if t is not None:
             self._t_now = t
@@ -478,22 +458,6 @@ class DriveModel:
     @property
     def ip_active(self) -> bool:
         return self._ip_active
-
-    @property
-    def buffer_enabled(self) -> bool:
-        return self._buffer_enabled
-
-    @property
-    def fifo_fill(self) -> int:
-        return len(self._fifo)
-
-    @property
-    def free_size(self) -> int:
-        return self.profile.fifo_depth - len(self._fifo)
-
-    @property
-    def fifo_records(self) -> tuple[PvtRecord, ...]:
-        return tuple(self._fifo)
 
     @property
     def position_demand(self) -> int:
@@ -545,29 +509,17 @@ class DriveModel:
         return self._clock
 
     @property
-    def buffer_status(self) -> int:
-        return self._get_buffer_status()
-
-    @property
     def statusword(self) -> int:
         return self._get_statusword()
+
+    @property
+    def ready_for_job(self) -> bool:
+        """Operation enabled and whatever else the family needs before a job (EPOS: the buffer enabled)."""
+        return self._state == ST.OPERATION_ENABLED
 
     def _get_position_actual(self) -> int:
         x = self._pos
         return math.floor(x + 0.5) if x >= 0 else -math.floor(-x + 0.5)
-
-    def _get_buffer_status(self) -> int:
-        bs = self._latched
-        if self._buffer_enabled:
-            bs |= BS_BUFFER_ENABLED
-            fill = len(self._fifo)
-            if fill < self._uw:
-                bs |= BS_UNDERFLOW_WARNING
-            if fill > self._ow:
-                bs |= BS_OVERFLOW_WARNING
-        if self._ip_active:
-            bs |= BS_IP_ACTIVE
-        return bs
 
     def _get_statusword(self) -> int:
         sw = self._state.statusword_bits | codec.SW_REMOTE
@@ -621,13 +573,10 @@ class DriveModel:
     def _reset_application(self, first: bool = False) -> None:
         """Power-on / NMT reset node: every object to its default (or to what 0x1010 stored), the drive to
         switch on disabled."""
-        self._od = odm.defaults(self.node_id)
+        self._od = self.objects.defaults(self.node_id)
         self._od.update(self._stored)
-        self._fifo.clear()
-        self._buffer_enabled = False
+        self._reset_family()
         self._ip_active = False
-        self._latched = 0
-        self._prev_warn = 0
         self._error_code = 0
         self._error_register = 0
         self._cw = 0
@@ -644,7 +593,7 @@ class DriveModel:
             self._nmt = NmtState.BOOTUP
 
     def _reset_communication(self) -> None:
-        defaults = odm.defaults(self.node_id)
+        defaults = self.objects.defaults(self.node_id)
         for key, value in defaults.items():
             if 0x1000 <= key[0] < 0x2000:
                 self._od[key] = value
@@ -677,8 +626,7 @@ class DriveModel:
 
     def _refresh_caches(self) -> None:
         od = self._od
-        self._uw = od[(0x20C4, 2)]
-        self._ow = od[(0x20C4, 3)]
+        self._refresh_family(od)
         few = od[(0x6065, 0)]
         self._fe_window = math.inf if few == 0xFFFFFFFF else float(few)
         pw = od[(0x6067, 0)]
@@ -716,8 +664,7 @@ class DriveModel:
     def _write(self, key: Key, value: int, via_sdo: bool) -> None:
         handler = self._handlers.get(key)
         if handler is not None:
-            if key == (0x20C1, 0) and via_sdo and not self._buffer_enabled:
-                raise SdoAbort(odm.ABORT_DEVICE_STATE, "interpolation buffer access is disabled (0x60C4:06)")
+            self._check_write(key, via_sdo)
             handler(value)
         else:
             self._od[key] = value
@@ -727,9 +674,6 @@ class DriveModel:
         h: dict[Key, Callable[[int], None]] = {
             (0x6040, 0): self._apply_controlword,
             (0x6060, 0): self._write_mode,
-            (0x20C1, 0): lambda v: self._append_record(record.unpack(v.to_bytes(8, "little"))),
-            (0x60C4, 6): self._write_buffer_clear,
-            (0x60C4, 4): lambda v: None,  # "writing to this object has no effect" (seed 000 4.3.6.5)
             (0x1017, 0): self._write_heartbeat_producer,
             (0x1005, 0): self._write_sync_cob,
             (0x605A, 0): self._write_quick_stop_option,
@@ -754,22 +698,14 @@ class DriveModel:
         self._refresh_caches()
 
     def _write_mode(self, value: int) -> None:
-        if value not in SUPPORTED_MODES:
+        if value not in self.supported_modes:
             raise SdoAbort(odm.ABORT_INVALID_VALUE, f"mode of operation {value} is not supported (0x6502)")
         old = self._mode
         self._store((0x6060, 0), value)
-        if value == IP_MODE and old != IP_MODE:
-            self._fifo.clear()  # seed 000 table 4-26 transition I: ip mode selected -> clear data buffer
-        if old == IP_MODE and value != IP_MODE:
-            self._stop_interpolation()  # table 4-26 II; the demand holds where it is
-
-    def _write_buffer_clear(self, value: int) -> None:
-        if value == 0:
-            self._fifo.clear()
-            self._buffer_enabled = False
-            self._latched &= ~codec.BS_ERRORS
-        else:
-            self._buffer_enabled = True
+        if value != old:
+            self._mode_changed(old, value)
+        if old == self.interpolation_mode and value != old:
+            self._stop_interpolation()  # the demand holds where it is (seed 000 table 4-26 II)
 
     def _write_heartbeat_producer(self, value: int) -> None:
         self._store((0x1017, 0), value)
@@ -791,7 +727,7 @@ class DriveModel:
             raise SdoAbort(odm.ABORT_CANNOT_STORE, f"0x1010:01 needs the signature \"save\" (0x{SAVE_SIGNATURE:08X}), "
                            f"got 0x{value:08X}")
         self._stored = {k: v for k, v in self._od.items()
-                        if k not in _NOT_STORED and odm.OBJECTS[k].writable}
+                        if k not in _NOT_STORED and k not in self.not_stored and self.objects.objects[k].writable}
 
     def _write_restore(self, value: int) -> None:
         if value != LOAD_SIGNATURE:
@@ -842,7 +778,7 @@ class DriveModel:
         if word == 0:
             return 0
         index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
-        s = odm.OBJECTS.get((index, sub))
+        s = self.objects.objects.get((index, sub))
         if s is None or index in self._absent or not s.pdo or bits != s.dtype.bits:
             raise SdoAbort(odm.ABORT_CANNOT_MAP, f"0x{index:04X}:{sub:02X} ({bits} bits) cannot be mapped")
         if (direction == "rx" and not s.writable) or (direction == "tx" and not s.readable):
@@ -895,16 +831,16 @@ class DriveModel:
             if not cob & odm.PDO_DISABLED and count:
                 words = [od[(0x1600 + n, k)] for k in range(1, count + 1)]
                 keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
-                fmt = "<" + "".join(odm.OBJECTS[k].dtype.struct_code for k in keys)
+                fmt = "<" + "".join(self._struct_code(k) for k in keys)
                 st = struct.Struct(fmt)
                 rx[cob & 0x7FF] = _RxPdo(n + 1, cob & 0x7FF, od[(0x1400 + n, 2)] <= 240, st.size, keys, st,
-                                         keys == ((0x20C1, 0),))
+                                         self._is_record_pdo(keys))
             cob = od[(0x1800 + n, 1)]
             count = od[(0x1A00 + n, 0)]
             if not cob & odm.PDO_DISABLED and count:
                 words = [od[(0x1A00 + n, k)] for k in range(1, count + 1)]
                 keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
-                fmt = "<" + "".join(odm.OBJECTS[k].dtype.struct_code for k in keys)
+                fmt = "<" + "".join(self._struct_code(k) for k in keys)
                 ttype = od[(0x1800 + n, 2)]
                 pdo = _TxPdo(n + 1, cob & 0x7FF, ttype,
                              _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)),
@@ -927,7 +863,7 @@ class DriveModel:
             self._fault(code, 0, t)
             return
         if pdo.is_record and not pdo.synchronous:
-            self._append_record(record.unpack(data))
+            self._on_record(data)
             return
         pairs = list(zip(pdo.keys, pdo.unpacker.unpack(data), strict=True))
         if pdo.synchronous:
@@ -938,7 +874,7 @@ class DriveModel:
     def _apply_pdo_pairs(self, pairs: list[tuple[Key, int]]) -> None:
         for key, value in pairs:
             try:
-                odm.check_value(odm.OBJECTS[key], value)
+                odm.check_value(self.objects.objects[key], value)
                 self._write(key, value, via_sdo=False)
             except SdoAbort:
                 self.counters.pdo_writes_rejected += 1
@@ -1042,13 +978,7 @@ class DriveModel:
             self._pending_sync = {}
             for number in sorted(pending):
                 self._apply_pdo_pairs(pending[number])
-        warn = self.buffer_status & (BS_UNDERFLOW_WARNING | BS_OVERFLOW_WARNING)
-        rising = warn & ~self._prev_warn
-        if rising & BS_UNDERFLOW_WARNING:
-            self.counters.underflow_warnings += 1
-        if rising & BS_OVERFLOW_WARNING:
-            self.counters.overflow_warnings += 1
-        self._prev_warn = warn
+        self._after_sync_rpdos(t)
         if self._nmt == NmtState.OPERATIONAL:
             self._send_sync_tpdos(sampled if sampled is not None else self._sample_sync_tpdos(counter), t)
 
@@ -1197,103 +1127,33 @@ class DriveModel:
         else:
             self._next_event = self._seg_events[0][0] if self._seg_events else len(src)
 
-    def _limit_event(self, bit: int, t: float) -> None:
-        if bit == BS_VELOCITY_WARNING:
-            self.counters.velocity_warnings += 1
-            self._latched |= bit
-        elif bit == BS_ACCELERATION_WARNING:
-            self.counters.acceleration_warnings += 1
-            self._latched |= bit
-        elif bit == BS_VELOCITY_ERROR:
-            self._fault(codec.EMCY_IP_VELOCITY, bit, t)
-        elif bit == BS_ACCELERATION_ERROR:
-            self._fault(codec.EMCY_IP_ACCELERATION, bit, t)
-
     def _source_done(self, t: float) -> None:
         kind = self._src_kind
         self._src = None
         if kind == Source.SEGMENT:
             self.counters.segments_completed += 1
-            target = self._seg_target
-            if not self._count_started and self._fifo and self._fifo[0] is target:
-                self._fifo.popleft()  # until_segment_end: the target left the FIFO when its segment ended
-            assert target is not None
-            self._next_segment(target, t)
+            self._segment_done(t)
         elif kind == Source.QUICK_STOP:
             if self._qs_option in (0, 1, 2):
                 self._transition(Internal.QUICK_STOP_DONE)
         elif kind == Source.FAULT:
             self._transition(Internal.FAULT_REACTION_DONE)
 
-    def _next_segment(self, prev: PvtRecord, t: float) -> None:
-        if not self._fifo:
-            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, t)
-            return
-        head = self._fifo[0]
-        if head.time_ms == 0:
-            self._fifo.popleft()
-            self._ip_active = False  # seed 000 4.3.6.1: time 0 -> interpolation inactive, no error
-            return
-        self._begin_segment(prev.position, prev.velocity * self._rpm_to_cpms, head)
-
-    def _begin_segment(self, p_prev: int, v_prev: float, target: PvtRecord) -> None:
-        n_ms = target.time_ms
-        v_end = target.velocity * self._rpm_to_cpms
-        coeffs = hermite.coefficients(p_prev, v_prev, target.position, v_end, n_ms)
+    def _start_segment(self, coeffs: tuple[float, float, float, float], n_ms: int) -> None:
+        """Interpolate the demand along the seed's cubic (planner.hermite) over the next n_ms ticks,
+        rounded as the drive rounds; the family's limit checks become events at their ticks."""
         self._set_source(hermite.demand_from_coefficients(coeffs, n_ms, self._toward_zero), Source.SEGMENT)
-        self._seg_target = target
         self._seg_coeffs = coeffs
-        self._seg_events = self._limit_events(coeffs, n_ms)
+        self._seg_events = self._segment_limit_events(coeffs, n_ms)
         if self._seg_events:
             self._next_event = self._seg_events[0][0]
-        if self._count_started and self._fifo and self._fifo[0] is target:
-            self._fifo.popleft()  # until_segment_start: the target leaves the FIFO as its segment starts
-        if self._tick_underflow and len(self._fifo) < 2:
-            # every_tick: "at least two data records have to be in the FIFO" while ip mode is active; the
-            # count only drops when a segment starts, so checking here is checking at every tick
-            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, self._t_now)
 
-    def _limit_events(self, coeffs: tuple[float, float, float, float], n_ms: int) -> list[tuple[int, int]]:
-        """Ticks (1..n_ms) at which the segment first exceeds 0x6081/0x607F (velocity) and
-        0x6083/0x60C5 (acceleration), as (tick, buffer status bit), sorted."""
-        a, b, c, _ = coeffs
-        # fast path: bounds on |V| and |A| over the whole segment below every limit -> no event
-        tau1 = 1.0 - n_ms
-        v_bound = max(abs((3.0 * a * tau1 + 2.0 * b) * tau1 + c), abs(c))
-        if a != 0.0:
-            tau_star = -b / (3.0 * a)
-            if tau1 < tau_star < 0.0:
-                v_bound = max(v_bound, abs((3.0 * a * tau_star + 2.0 * b) * tau_star + c))
-        a_bound = max(abs(6.0 * a * tau1 + 2.0 * b), abs(2.0 * b))
-        if v_bound <= self._v_limit_min and a_bound <= self._a_limit_min:
-            return []
+    def _segment_limit_events(self, coeffs: tuple[float, float, float, float], n_ms: int) -> list[tuple[int, int]]:
+        """(tick, status bit) at which the segment first crosses a limit the family checks."""
+        return []
 
-        def vel(k: int) -> float:
-            tau = k - n_ms
-            return (3.0 * a * tau + 2.0 * b) * tau + c
-
-        def acc(k: int) -> float:
-            return 6.0 * a * (k - n_ms) + 2.0 * b
-
-        cands = {1, n_ms}
-        if a != 0.0:
-            k_star = n_ms - b / (3.0 * a)
-            for k in (math.floor(k_star), math.ceil(k_star)):
-                if 1 <= k <= n_ms:
-                    cands.add(k)
-        events: list[tuple[int, int]] = []
-        for fn, limit_key, bit, cand in (
-            (vel, (0x6081, 0), BS_VELOCITY_WARNING, cands),
-            (vel, (0x607F, 0), BS_VELOCITY_ERROR, cands),
-            (acc, (0x6083, 0), BS_ACCELERATION_WARNING, {1, n_ms}),
-            (acc, (0x60C5, 0), BS_ACCELERATION_ERROR, {1, n_ms}),
-        ):
-            limit = self._rpm_limit(limit_key) if fn is vel else self._acc_limit(limit_key)
-            k = _first_violation(fn, n_ms, limit, cand)
-            if k:
-                events.append((k, bit))
-        events.sort()
-        return events
+    def _limit_event(self, bit: int, t: float) -> None:
+        """A limit crossing of `_segment_limit_events` came due."""
 
     def _demand_velocity(self) -> float:
         """The interpolator's current velocity demand, counts/ms."""
@@ -1341,40 +1201,6 @@ class DriveModel:
     # ============================================================================================
     # FIFO
 
-    def _append_record(self, rec: PvtRecord) -> None:
-        self.counters.records_received += 1
-        if not self._buffer_enabled:
-            self.counters.records_rejected += 1
-            return
-        if len(self._fifo) >= self.profile.fifo_depth:
-            self.counters.records_rejected += 1
-            self._fault(codec.EMCY_IP_BUFFER, BS_OVERFLOW_ERROR, self._t_now)
-            return
-        self._fifo.append(rec)
-
-    def _activate(self) -> None:
-        """Controlword bit 4 rising edge in operation enabled, mode 7 (seed 000 table 4-26 III)."""
-        if len(self._fifo) < 2:
-            self._fault(codec.EMCY_IP_BUFFER, BS_UNDERFLOW_ERROR, self._t_now)
-            return
-        self.counters.activations += 1
-        self._latched &= ~(BS_VELOCITY_WARNING | BS_ACCELERATION_WARNING)
-        self._ip_active = True
-        if self._clock is not None:
-            self._clock.anchor(self._t_now)  # the own clock's tick grid starts at the enabling SYNC
-        if self._first_is_origin:
-            # time_zero: the first record is the path's point at time zero; the demand starts there
-            origin = self._fifo.popleft()
-            self._demand = origin.position
-            self._next_segment(origin, self._t_now)
-            return
-        head = self._fifo[0]
-        if head.time_ms == 0:
-            self._fifo.popleft()
-            self._ip_active = False
-            return
-        self._begin_segment(self._demand, 0.0, head)
-
     # ============================================================================================
     # CiA 402 device control
 
@@ -1397,18 +1223,9 @@ class DriveModel:
             new = state
         if new != state:
             self._enter(new)
-        if self._state != ST.OPERATION_ENABLED or self._mode != IP_MODE:
+        if self._state != ST.OPERATION_ENABLED or self._mode != self.interpolation_mode:
             return
-        rising = cw & ~prev
-        falling = prev & ~cw
-        if cw & CW_HALT:
-            if self._ip_active or (self._src is not None and self._src_kind == Source.SEGMENT):
-                self._start_ramp(Source.HALT, (0x6084, 0))
-            return
-        if rising & CW_ENABLE_IP:
-            self._activate()
-        elif falling & CW_ENABLE_IP and self._ip_active:
-            self._stop_interpolation()
+        self._mode_control(cw, prev)
 
     def _transition(self, trigger: Internal) -> None:
         self._enter(codec.next_state(self._state, trigger))
@@ -1446,8 +1263,8 @@ class DriveModel:
         self._demand = hermite.round_counts(self._pos)
 
     def _fault(self, code: int, bit: int, t: float) -> None:
-        """An error: latch its buffer status bit, send EMCY, start the fault reaction."""
-        self._latched |= bit
+        """An error: latch its status bit (a family's buffer status), send EMCY, start the fault reaction."""
+        self._latch(bit)
         if self._state in (ST.FAULT_REACTION_ACTIVE, ST.FAULT):
             return
         self.counters.faults += 1
@@ -1455,8 +1272,8 @@ class DriveModel:
         self._error_register |= _EMCY_REGISTER.get(code, codec.ER_GENERIC)
         before = self._state
         self._state = codec.next_state(self._state, Internal.FAULT_DETECTED)
-        self._ip_active = False  # the EMCY reports the buffer status of the aborted trajectory
-        bs = self._get_buffer_status()
+        self._ip_active = False  # the EMCY reports the status of the aborted trajectory
+        bs = self._emcy_status()
         self.fault_log.append(FaultRecord(t, code, codec.EMCY_NAMES.get(code, hex(code)), bs, before))
         self._emit_emcy(code, bs)
         was_powered = self._powered
@@ -1467,24 +1284,24 @@ class DriveModel:
 
     def _fault_reset(self) -> None:
         self._enter(codec.next_state(self._state, Command.FAULT_RESET))
-        self._latched = 0
+        self._clear_latched()
         self._error_code = 0
         self._error_register = 0
-        self._emit_emcy(codec.EMCY_ERROR_RESET, self.buffer_status)
+        self._emit_emcy(codec.EMCY_ERROR_RESET, self._emcy_status())
 
-    def _emit_emcy(self, code: int, buffer_status: int) -> None:
+    def _emit_emcy(self, code: int, status: int) -> None:
         if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
             return
         if self._emcy_cob & odm.PDO_DISABLED:
             return
         self.counters.emcy_sent += 1
         self._out.append(Frame(self._emcy_cob & 0x7FF, codec.encode_emcy(
-            code, self._error_register, codec.emcy_manufacturer_bytes(buffer_status))))
+            code, self._error_register, codec.emcy_manufacturer_bytes(status))))
 
     def _target_reached(self) -> bool:
         state = self._state
         if state == ST.OPERATION_ENABLED:
-            if self._cw & CW_HALT:
+            if self._cw & codec.CW_HALT:
                 return self._src is None
             if self._ip_active or self._src is not None:
                 return False
@@ -1492,3 +1309,56 @@ class DriveModel:
         if state == ST.QUICK_STOP_ACTIVE:
             return self._src is None
         return False
+
+    # ============================================================================================
+    # what a family adds (the defaults: a CiA 402 drive with no interpolation of its own)
+
+    def _object_table(self) -> odm.ObjectTable:
+        return odm.EPOS_TABLE
+
+    def _struct_code(self, key: Key) -> str:
+        return self.objects.objects[key].dtype.struct_code
+
+    def _family_dynamic(self) -> dict[Key, Callable[[], int]]:
+        return {}
+
+    def _family_handlers(self) -> dict[Key, Callable[[int], None]]:
+        return {}
+
+    def _reset_family(self) -> None:
+        """Power-on / reset node: the family's own state back to its power-on values."""
+
+    def _refresh_family(self, od: dict[Key, int]) -> None:
+        """An object changed: the family's caches of object values."""
+
+    def _check_write(self, key: Key, via_sdo: bool) -> None:
+        """Refuse a write the family's state does not allow (raise SdoAbort)."""
+
+    def _mode_changed(self, old: int, new: int) -> None:
+        """Modes of operation changed."""
+
+    def _is_record_pdo(self, keys: tuple[Key, ...]) -> bool:
+        """An RPDO whose payload goes to `_on_record` as it is (a FIFO record)."""
+        return False
+
+    def _on_record(self, data: bytes) -> None:
+        raise NotImplementedError(f"{self.family} drives take no records")  # pragma: no cover
+
+    def _after_sync_rpdos(self, t: float) -> None:
+        """At a SYNC, after its synchronous RPDOs were applied and before its TPDOs are sent."""
+
+    def _segment_done(self, t: float) -> None:
+        """An interpolation segment (`_start_segment`) ran to its end."""
+
+    def _mode_control(self, cw: int, prev: int) -> None:
+        """A controlword in operation enabled, in the interpolation mode: the mode-specific bits."""
+
+    def _latch(self, bit: int) -> None:
+        """An error's status bit (the EPOS buffer status' error bits)."""
+
+    def _clear_latched(self) -> None:
+        """Fault reset: the latched status bits are cleared."""
+
+    def _emcy_status(self) -> int:
+        """The 16 bits an EMCY carries in its manufacturer bytes 0-1 (EPOS: the buffer status)."""
+        return 0
