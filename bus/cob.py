@@ -12,6 +12,10 @@ CiA 301 predefined connection set, per node id n (1..127):
     TPDO2         0x280 + n           position actual 0x6064 i32 | position demand 0x6062 i32   (type 1)
     RPDO2         0x300 + n           PVT record 0x20C1 (8 bytes)
                                       (transmission type 255: on reception)
+    RPDO3         0x400 + n           cyclic families (bus/families.py): the set point of the next SYNC,
+                                      0x60C1:01 i32 [| 0x60C1:02 i32 in PV] or 0x607A i32 (type 1); a
+                                      multiplexed group shares the RPDO3 COB-ID of its lowest node:
+                                      16-bit positions [| 16-bit velocities] of up to 4 axes
     SDO tx / rx   0x580 + n / 0x600 + n
     Heartbeat     0x700 + n           DLC 1: NMT state
                                       (0x00 boot-up, 0x04 stopped, 0x05 operational, 0x7F pre-op)
@@ -21,7 +25,8 @@ the statusword (ip mode active bit 12, fault bit 3, target reached bit 10). It l
 status 0x20C4:01: its warnings follow from the fill, its errors come by EMCY and the fault bit, ip mode
 active is the statusword's bit 12; six bytes instead of eight are what fit 24 drives on one 1 Mbit/s bus
 at 10 ms (bus/budget.py). TPDO2 goes every n-th SYNC when the cell needs it (a SYNC counter staggers it).
-All values little-endian.
+Cyclic families send TPDO1 with the statusword alone (2 bytes: they have no FIFO). All values
+little-endian.
 """
 
 from __future__ import annotations
@@ -36,6 +41,10 @@ TPDO1_BASE = 0x180
 RPDO1_BASE = 0x200
 TPDO2_BASE = 0x280
 RPDO2_BASE = 0x300
+TPDO3_BASE = 0x380
+RPDO3_BASE = 0x400  # one set point per SYNC (cyclic families: 0x60C1 / 0x607A), or a multiplexed group's
+TPDO4_BASE = 0x480
+RPDO4_BASE = 0x500
 SDO_TX_BASE = 0x580
 SDO_RX_BASE = 0x600
 HEARTBEAT_BASE = 0x700
@@ -62,6 +71,10 @@ def rpdo2_id(node: int) -> int:
     return RPDO2_BASE + node
 
 
+def rpdo3_id(node: int) -> int:
+    return RPDO3_BASE + node
+
+
 def heartbeat_id(node: int) -> int:
     return HEARTBEAT_BASE + node
 
@@ -69,7 +82,8 @@ def heartbeat_id(node: int) -> int:
 class CobClass(NamedTuple):
     """What a COB-ID is, and for which node (0 for broadcast objects)."""
 
-    # "NMT", "SYNC", "TIME", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"
+    # "NMT", "SYNC", "TIME", "EMCY", "TPDO1".."TPDO4", "RPDO1".."RPDO4", "SDO_TX", "SDO_RX", "HEARTBEAT",
+    # "OTHER"
     kind: str
     node: int
 
@@ -80,6 +94,10 @@ _RANGES = (
     (RPDO1_BASE, "RPDO1"),
     (TPDO2_BASE, "TPDO2"),
     (RPDO2_BASE, "RPDO2"),
+    (TPDO3_BASE, "TPDO3"),
+    (RPDO3_BASE, "RPDO3"),
+    (TPDO4_BASE, "TPDO4"),
+    (RPDO4_BASE, "RPDO4"),
     (SDO_TX_BASE, "SDO_TX"),
     (SDO_RX_BASE, "SDO_RX"),
     (HEARTBEAT_BASE, "HEARTBEAT"),

@@ -503,6 +503,13 @@ def decode_tpdo1(data: bytes | bytearray | memoryview) -> Tpdo1:
         raise ProtocolError(str(e)) from None
 
 
+def decode_statusword(data: bytes | bytearray | memoryview) -> int:
+    """TPDO1 of a cyclic family: the statusword alone (2 bytes)."""
+    if len(data) != 2:
+        raise ProtocolError(f"TPDO1 (statusword) needs 2 bytes, got {len(data)}")
+    return int.from_bytes(bytes(data), "little")
+
+
 def decode_tpdo2(data: bytes | bytearray | memoryview) -> Tpdo2:
     try:
         return Tpdo2(*cob.unpack_tpdo2(bytes(data)))

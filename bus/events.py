@@ -40,6 +40,16 @@ class BufferStatus:
 
 
 @dataclass(frozen=True)
+class StatusWord:
+    """TPDO1 of a drive of a cyclic family (bus/families.py): the statusword 0x6041 alone (no FIFO)."""
+
+    node: int
+    statusword: int
+    t: float
+    sync_count: int | None = None  # the SYNC this TPDO answers (see BufferStatus)
+
+
+@dataclass(frozen=True)
 class PositionFeedback:
     """TPDO2 of one drive: position actual 0x6064 and position demand 0x6062, counts."""
 
@@ -104,7 +114,7 @@ class BusLoad:
 
 
 Event = (
-    Sync | BufferStatus | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed
+    Sync | BufferStatus | StatusWord | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed
     | AdapterError | BusLoad
 )
 

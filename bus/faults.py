@@ -45,7 +45,8 @@ TO_MASTER: Direction = "to_master"
 ACTIONS = frozenset({"drop", "duplicate", "delay", "reorder", "corrupt"})
 CORRUPTIONS = frozenset({"short", "long", "flip", "dlc"})
 KINDS = frozenset(
-    {"NMT", "SYNC", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"}
+    {"NMT", "SYNC", "TIME", "EMCY", "TPDO1", "RPDO1", "TPDO2", "RPDO2", "TPDO3", "RPDO3", "TPDO4", "RPDO4",
+     "SDO_TX", "SDO_RX", "HEARTBEAT", "OTHER"}
 )
 
 

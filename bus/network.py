@@ -65,8 +65,9 @@ from bus.errors import (
     ProtocolError,
 )
 from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, SendFailed, Sync
+from bus.families import PROFILES
 from bus.probe import AbsentObject, WriteOnly
-from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule
+from bus.profile import DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule, frame_to_event, setpoint_slots
 from planner.config import AxisConfig, BusConfig, CellConfig
 from planner.readings import OPTIONAL_OBJECTS
 
@@ -111,7 +112,7 @@ class MasterAdapter:
         bus_config: BusConfig | None,
         cell: CellConfig,
         *,
-        profile: DriveProfile = EPOS_IPM,
+        profile: DriveProfile | None = None,
         bus: can.BusABC | None = None,
         sdo_timeout_s: float = 0.3,
         sdo_attempts: int = 1,
@@ -120,7 +121,10 @@ class MasterAdapter:
     ):
         self.cell = cell
         self.bus_config = bus_config or cell.bus
-        self.profile = profile
+        # each axis' family (bus/families.py), or `profile` for all of them
+        self.profiles: dict[int, DriveProfile] = {
+            a.node_id: profile if profile is not None else PROFILES[a.profile] for a in cell.axes}
+        self.slots = setpoint_slots(cell.axes)
         self.clock = clock
         self.nodes = frozenset(a.node_id for a in cell.axes)
         self.failures: list[BusError] = []
@@ -136,9 +140,9 @@ class MasterAdapter:
         self._network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         listeners: list[Any] = self._network.listeners
         listeners.append(_MasterListener(self))
-        path = eds_path or profile.eds_path
         self.remote: dict[int, canopen.RemoteNode] = {}
         for axis in cell.axes:
+            path = eds_path or self.profiles[axis.node_id].eds_path
             node = canopen.RemoteNode(axis.node_id, canopen.objectdictionary.import_od(path, axis.node_id))
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             node.sdo.MAX_RETRIES = max(1, sdo_attempts)  # canopen: attempts; 0 would retry forever
@@ -209,9 +213,10 @@ class MasterAdapter:
             raise
 
     def survey(self, node_id: int) -> tuple[int, ...]:
-        """The optional objects a drive lacks; checks its interpolation period (0x60C2) is 1 ms, the tick
-        the product's interpolation model (planner.hermite) assumes. Raises BusError for anything else."""
-        self.read(node_id, self.profile.obj("device_type").index)
+        """The optional objects a drive lacks; checks an EPOS' interpolation period (0x60C2) is 1 ms, the
+        tick the product's interpolation model (planner.hermite) assumes. Raises BusError for anything else."""
+        profile = self.profiles[node_id]
+        self.read(node_id, profile.obj("device_type").index)
         absent: list[int] = []
         for index in OPTIONAL_OBJECTS:
             sub = 1 if index in (0x1010, 0x1011, 0x60C2) else 0
@@ -220,7 +225,7 @@ class MasterAdapter:
             except (AbsentObject, WriteOnly) as e:
                 if isinstance(e, AbsentObject):
                     absent.append(index)
-        if 0x60C2 not in absent:
+        if 0x60C2 not in absent and profile.kind == "fifo":
             value = self.read(node_id, 0x60C2, 1)
             exp = self.read(node_id, 0x60C2, 2)
             exp = exp - 256 if exp > 127 else exp
@@ -236,8 +241,10 @@ class MasterAdapter:
         absent = self.absent.get(n)
         if absent is None:
             absent = self.absent[n] = self.survey(n)
-        writes = [w for w in self.profile.configuration(axis, self.cell.drive, self.cell.sync_period_ms,
-                                                        feedback=self.feedback, time_stamp=self.cell.time_stamp)
+        profile = self.profiles[n]
+        writes = [w for w in profile.configuration(axis, self.cell.drive, self.cell.sync_period_ms,
+                                                   feedback=self.feedback, time_stamp=self.cell.time_stamp,
+                                                   slot=self.slots.get(n))
                   if w.index not in absent]
         for w in writes:
             try:
@@ -267,16 +274,17 @@ class MasterAdapter:
             self._hb_lost.discard(axis.node_id)
 
     def enable_drives(self, *, timeout_s: float = 1.0) -> None:
-        """Bring every drive to operation enabled with the ip buffer cleared and enabled (over SDO):
-        fault reset if faulted, shutdown 0x0006, switch on + enable operation 0x000F (bit 4 low, so the
-        streamer's start is a rising edge), buffer clear 0x60C4:06 = 0 then enable = 1. Verified by
-        reading the statusword and 0x20C4:01 back; raises BusError naming the node otherwise."""
-        cw = self.profile.obj("controlword")
-        sw = self.profile.obj("statusword")
-        clear = self.profile.obj("buffer_clear")
+        """Bring every drive to operation enabled, ready for a job (over SDO): the set point objects = the
+        drive's position (cyclic families, so that enabling moves nothing), fault reset if faulted,
+        shutdown 0x0006, switch on + enable operation 0x000F (bit 4 low, so the streamer's start is a
+        rising edge), then the family's writes (EPOS: buffer clear 0x60C4:06 = 0 then enable = 1, verified
+        by reading 0x20C4:01 back). Raises BusError naming the node otherwise."""
         S = codec.Cia402State
         for axis in self.cell.axes:
             n = axis.node_id
+            profile = self.profiles[n]
+            cw = profile.obj("controlword")
+            sw = profile.obj("statusword")
             state = codec.state_from_statusword(self.read(n, sw.index, sw.sub))
             reaction_ends = self.now() + timeout_s
             while state == S.FAULT_REACTION_ACTIVE and self.now() < reaction_ends:
@@ -290,6 +298,10 @@ class MasterAdapter:
             if state != S.OPERATION_ENABLED:
                 commands.append(codec.Command.SHUTDOWN)
             commands.append(codec.Command.ENABLE_OPERATION)  # in OE: bit 4 low (ends an old ip run)
+            if profile.hold_objects:
+                here = self.read(n, *profile.obj("position_actual"))
+                for w in profile.hold_writes(here):
+                    self._write(self._remote(n), w)
             for command in commands:
                 self.write(n, cw.index, cw.sub, command.value)
             deadline = self.now() + timeout_s
@@ -301,13 +313,16 @@ class MasterAdapter:
                     raise BusError(VERIFY, f"node {n} is {state.value!r}, not operation enabled, after "
                                    f"0x0006/0x000F on 0x6040", node=n, obj=(sw.index, sw.sub))
                 time.sleep(0.005)
-            self.write(n, clear.index, clear.sub, 0)
-            self.write(n, clear.index, clear.sub, 1)
-            bs = self.profile.obj("buffer_status")
-            status = codec.decode_buffer_status(self.read(n, bs.index, bs.sub))
-            if not status.buffer_enabled or status.any_error:
-                raise BusError(VERIFY, f"node {n}: ip buffer not enabled and clean after 0x60C4:06 = 0, 1 "
-                               f"({status})", node=n, obj=(clear.index, clear.sub))
+            for name, value in profile.after_enable:
+                ref = profile.obj(name)
+                self.write(n, ref.index, ref.sub, value)
+            if profile.has("buffer_status"):
+                bs = profile.obj("buffer_status")
+                status = codec.decode_buffer_status(self.read(n, bs.index, bs.sub))
+                if not status.buffer_enabled or status.any_error:
+                    clear = profile.obj("buffer_clear")
+                    raise BusError(VERIFY, f"node {n}: ip buffer not enabled and clean after 0x60C4:06 = 0, 1 "
+                                   f"({status})", node=n, obj=(clear.index, clear.sub))
 
     def read(self, node_id: int, index: int, sub: int = 0) -> int:
         """SDO upload of an integer object. Raises BusError naming node and object."""
@@ -513,7 +528,7 @@ class MasterAdapter:
                     self._hb_last[node] = t
                     self._hb_lost.discard(node)
             sync_count = self._sync_count - 1 if self._sync_count else None
-            event = self.profile.frame_to_event(cob_id, data, t, self.nodes, sync_count)
+            event = frame_to_event(self.profiles, cob_id, data, t, self.nodes, sync_count)
             if event is not None:
                 self._emit(event)
         except ProtocolError as e:

@@ -1,35 +1,35 @@
 """Drive profiles: what one drive family needs from the master, as data (no I/O).
 
-A `DriveProfile` names a family's object indices, its PDO layout, its EMCY codes, its buffer (a FIFO
-of PVT records with watermarks, or one point per SYNC), and produces the ordered list of SDO writes
-that configures one axis (`configuration`). The master adapter (`bus.network`) writes that list over
-SDO and reads it back; the simulated drive (`bus.sim.device.DriveDevice.configure`) applies the
-same list directly in virtual time. The streamer only asks the profile (`fifo_depth`,
-`points_per_sync`, `encode_point`, the COB-IDs, `frame_to_event`), so a second family can be added by
-writing a second profile.
+A `DriveProfile` names a family's object indices, its PDO layout, its EMCY codes, how it takes motion
+(a FIFO of PVT records, or one set point per SYNC) and produces the ordered list of SDO writes that
+configures one axis (`configuration`). The master adapter (`bus.network`) writes that list over SDO and
+reads it back; the simulated drive (`bus.sim.device.DriveDevice.configure`) applies the same list
+directly in virtual time. The streamer asks the profile only for data (`kind`, the COB-IDs, the set
+point slots, `frame_to_event`), so a family is a profile plus, in the simulation, a drive model.
 
-EPOS_IPM is maxon's interpolated position mode (seed 000 chapter 4, seed 001): PVT records 0x20C1 into
-a 64-entry FIFO, buffer status 0x20C4:01, watermarks 0x20C4:02/03, free size 0x60C4:02, cubic Hermite
-interpolation every 1 ms. The PDO layout is bus/cob.py's (the wire contract).
+The families themselves are in bus/families.py: `epos-ipm` (maxon's PVT FIFO), `xtrapuls-ip` (Infranor
+XtrapulsPac interpolated position, one set point per SYNC in 0x60C1) and `cia402-csp` (cyclic
+synchronous position, 0x607A every SYNC); each axis of a cell names its own (`AxisConfig.profile`).
 
-How an XtrapulsPac profile (seed 003) would differ: mode 7 with sub-mode -1 (PV) on 0x60C0, one
-point per SYNC (`fifo_depth=0`, `points_per_sync=1`) in 0x60C1:01 (position) and 0x60C1:02
-(velocity) mapped in a synchronous RPDO (type 1) instead of an asynchronous 0x20C1 record, no buffer
-status (the streamer then feeds exactly one point per SYNC and watches EMCY 0x8782 for a late point),
-its EMCY codes (0x8611, 0x8780, 0x8782, 0x8130 are already shared) and its SYNC window object 0x2006.
+Set points of the cyclic families travel in RPDO3 (transmission type 1: applied at the next SYNC). An
+axis has an RPDO3 of its own (COB-ID 0x400 + node: position 32 bits, plus the velocity 32 bits in PV),
+or shares one frame with the other axes of its multiplexed group (XtrapulsPac 0x3350 = 1, seed 003
+"Multiplexed data"): every member maps 16-bit entries at its own offset of one frame with the COB-ID of
+the group's lowest node (its own RPDO3 COB-ID, so no new identifier is taken), dummy objects 0x0006 /
+0x0007 over the other members' bytes. `setpoint_slots` lays the slots out; the master and the simulated
+drive both configure from it, the streamer packs the frames with it.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Literal
 
 from bus import cob, codec
-from bus.events import Bootup, BufferStatus, Emcy, Event, PositionFeedback
-from planner import record
+from bus.events import Bootup, BufferStatus, Emcy, Event, PositionFeedback, StatusWord
 from planner.config import AxisConfig, DriveSettings
 
 Direction = Literal["rx", "tx"]
@@ -80,6 +80,7 @@ class PdoLayout:
     cob_base: int
     transmission_type: int
     entries: tuple[PdoEntry, ...]
+    shared_cob_id: int | None = None  # a multiplexed RPDO: every member uses this COB-ID
 
     def __post_init__(self) -> None:
         if not 1 <= self.number <= 4:
@@ -90,7 +91,7 @@ class PdoLayout:
             raise ValueError(f"transmission type {self.transmission_type} not supported")
 
     def cob_id(self, node: int) -> int:
-        return self.cob_base + node
+        return self.shared_cob_id if self.shared_cob_id is not None else self.cob_base + node
 
     @property
     def comm_index(self) -> int:
@@ -195,10 +196,6 @@ def feedback_schedule(nodes: Sequence[int], every: int, counter_everywhere: bool
     return FeedbackSchedule.staggered(nodes, every)
 
 
-def _pack_pvt(position: int, velocity_rpm: int, time_ms: int) -> bytes:
-    return record.pack((position, velocity_rpm, time_ms))
-
-
 def rpm_per_s(axis: AxisConfig, user_per_s2: float) -> float:
     """User units/s^2 -> the drive's acceleration unit, rpm/s of the motor shaft (seed 000 1.7)."""
     return user_per_s2 * axis.counts_per_unit * 60.0 / axis.counts_per_rev
@@ -208,25 +205,140 @@ def _u32(x: float) -> int:
     return max(0, min(0xFFFFFFFF, math.ceil(x)))
 
 
+# ---- set point slots (cyclic families) -----------------------------------------------------------------
+Kind = Literal["fifo", "cyclic"]
+MAX_GROUP_BITS = 64  # one CAN frame
+MAX_GROUP_AXES = 4  # seed 003: "4 axis demand values (16 bit absolute) with one RPDO"
+
+
+@dataclass(frozen=True)
+class SetpointSlot:
+    """Where one cyclic axis' set point travels: the frame's COB-ID and length, the byte offset of the
+    axis' position (`position_bits` 32, or 16 in a multiplexed group), then its velocity (`velocity_bits`:
+    0 unless PV; 32, or 16 in a group). `members`: the group's node ids in frame order (just this node
+    when the axis has an RPDO3 of its own)."""
+
+    node: int
+    cob_id: int
+    offset: int
+    position_bits: int
+    velocity_bits: int
+    frame_bytes: int
+    members: tuple[int, ...]
+
+    @property
+    def multiplexed(self) -> bool:
+        return len(self.members) > 1 or self.position_bits == 16
+
+    @property
+    def size_bytes(self) -> int:
+        return (self.position_bits + self.velocity_bits) // 8
+
+    def entries(self, position: PdoEntry, velocity: PdoEntry | None) -> tuple[PdoEntry, ...]:
+        """This axis' RPDO3 mapping: dummies over the bytes before its slot, its own objects, dummies
+        over the bytes after it (so that every member's mapping is as long as the frame: seed 003's prose;
+        its example leaves the trailing dummies out, which a drive that accepts a longer frame also takes)."""
+        before = _dummies(self.offset * 8)
+        own = (position,) + ((velocity,) if velocity is not None and self.velocity_bits else ())
+        after = _dummies((self.frame_bytes - self.offset - self.size_bytes) * 8)
+        return before + own + after
+
+
+def _dummies(bits: int) -> tuple[PdoEntry, ...]:
+    """Dummy entries covering `bits` (CiA 301 0x0007 UNSIGNED32 / 0x0006 UNSIGNED16)."""
+    out: list[PdoEntry] = []
+    while bits >= 32:
+        out.append(PdoEntry(0x0007, 0, 32))
+        bits -= 32
+    while bits >= 16:
+        out.append(PdoEntry(0x0006, 0, 16))
+        bits -= 16
+    if bits:
+        raise ValueError(f"slot boundaries must be whole 16-bit words, {bits} bits left")
+    return tuple(out)
+
+
+def setpoint_slots(axes: Sequence[AxisConfig]) -> dict[int, SetpointSlot]:
+    """The set point slot of every cyclic axis of a cell (node id -> slot); FIFO axes have none.
+
+    An axis with `mux_group` 0 has RPDO3 0x400 + node to itself: 32-bit position (+ 32-bit velocity in
+    PV). The axes of one group share one frame, in node id order, 16 bits each (+ 16-bit velocity in PV),
+    with the RPDO3 COB-ID of the group's lowest node. Raises ValueError for a group that does not fit one
+    frame (more than 4 axes or 64 bits), or mixes families."""
+    from bus.families import PROFILES
+
+    slots: dict[int, SetpointSlot] = {}
+    groups: dict[int, list[AxisConfig]] = {}
+    for a in axes:
+        profile = PROFILES[a.profile]
+        if profile.kind != "cyclic":
+            continue
+        pv = profile.velocity_in_setpoint(a)
+        if a.mux_group:
+            groups.setdefault(a.mux_group, []).append(a)
+            continue
+        size = 8 if pv else 4
+        slots[a.node_id] = SetpointSlot(a.node_id, cob.rpdo3_id(a.node_id), 0, 32, 32 if pv else 0, size,
+                                        (a.node_id,))
+    for g, members in sorted(groups.items()):
+        members.sort(key=lambda a: a.node_id)
+        names = ", ".join(repr(a.name) for a in members)
+        if len({a.profile for a in members}) > 1:
+            raise ValueError(f"mux_group {g} ({names}) mixes drive families")
+        widths = [32 if PROFILES[a.profile].velocity_in_setpoint(a) else 16 for a in members]
+        if len(members) > MAX_GROUP_AXES or sum(widths) > MAX_GROUP_BITS:
+            raise ValueError(
+                f"mux_group {g} ({names}) needs {sum(widths)} bits in one frame; a frame carries 64 (four "
+                "16-bit positions, or two positions with their 16-bit velocities in sub-mode pv)")
+        cob_id = cob.rpdo3_id(members[0].node_id)
+        nodes = tuple(a.node_id for a in members)
+        offset = 0
+        for a, w in zip(members, widths, strict=True):
+            slots[a.node_id] = SetpointSlot(a.node_id, cob_id, offset // 8, 16, w - 16, sum(widths) // 8, nodes)
+            offset += w
+    return slots
+
+
+def pack_setpoints(slot: SetpointSlot, frame: bytearray, position: int, velocity: int = 0) -> None:
+    """Write one axis' set point into its group's frame (little-endian; 16-bit slots carry the low word
+    of the position, the drive rebuilds the upper one; a 16-bit velocity must fit, the planner checks)."""
+    o = slot.offset
+    if slot.position_bits == 32:
+        frame[o:o + 4] = (position & 0xFFFFFFFF).to_bytes(4, "little")
+        o += 4
+    else:
+        frame[o:o + 2] = (position & 0xFFFF).to_bytes(2, "little")
+        o += 2
+    if slot.velocity_bits == 32:
+        frame[o:o + 4] = (velocity & 0xFFFFFFFF).to_bytes(4, "little")
+    elif slot.velocity_bits == 16:
+        frame[o:o + 2] = (velocity & 0xFFFF).to_bytes(2, "little")
+
+
+# ---- the profile ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class DriveProfile:
-    """Everything the master needs to know about one drive family (see the module docstring)."""
+    """Everything the master needs to know about one drive family (see the module docstring). The
+    family's own part is in the hooks `_mode_writes` (mode, sub-mode and the family's own objects) and
+    `pdo_layouts`; bus/families.py subclasses it once per family."""
 
     name: str
     eds_name: str
-    ip_mode: int
-    ip_submode: int
-    fifo_depth: int  # 64 for EPOS; 0 = no FIFO (one point per SYNC)
-    points_per_sync: int | None  # None = asynchronous records into the FIFO
-    tick_ms: int  # the drive's interpolation tick
-    pdos: tuple[PdoLayout, ...]
+    kind: Kind
+    ip_mode: int  # 7 interpolated position, 8 cyclic synchronous position
     objects: Mapping[str, ObjectRef]
+    fifo_depth: int = 0  # 64 for EPOS; 0 = no FIFO (one set point per SYNC)
+    tick_ms: int = 1  # the interpolation tick (the simulated drives' internal cycle)
     emcy: EmcyCodes = field(default_factory=EmcyCodes)
-    default_underflow_warning: int = 4
-    default_overflow_warning: int = 60
-    # writes after the drive is operation enabled, before a job (EPOS: buffer clear, then enable)
+    # what the drive needs before a job, after operation enabled (EPOS: buffer clear, then enable)
     after_enable: tuple[tuple[str, int], ...] = ()
-    encode_point: Callable[[int, int, int], bytes] = field(default=lambda p, v, t: _pack_pvt(p, v, t))
+    # the set point object(s) written with the drive's position before operation is enabled, so that the
+    # drive does not move to a stale set point (cyclic families)
+    hold_objects: tuple[str, ...] = ()
+    # controlword bit 4 starts the interpolation (IP); False: the drive follows set points once enabled (CSP)
+    starts_with_bit4: bool = True
+    # halt (controlword bit 8) is available in this mode
+    halt_in_mode: bool = True
 
     def obj(self, name: str) -> ObjectRef:
         try:
@@ -235,11 +347,8 @@ class DriveProfile:
             raise KeyError(f"profile {self.name!r} has no object {name!r} "
                            f"(has {sorted(self.objects)})") from None
 
-    def pdo(self, direction: Direction, number: int) -> PdoLayout:
-        for p in self.pdos:
-            if p.direction == direction and p.number == number:
-                return p
-        raise KeyError(f"profile {self.name!r} has no {direction}PDO{number}")
+    def has(self, name: str) -> bool:
+        return name in self.objects
 
     @property
     def eds_path(self) -> str:
@@ -248,14 +357,39 @@ class DriveProfile:
 
         return str(Path(__file__).resolve().parent.parent / "configs" / "drives" / self.eds_name)
 
+    # ---- family hooks
+    def velocity_in_setpoint(self, axis: AxisConfig) -> bool:
+        """Does the axis' set point carry a velocity (XtrapulsPac sub-mode PV)?"""
+        return False
+
+    def submode(self, axis: AxisConfig) -> str:
+        """The interpolation the drive applies to the stream (planner/cyclic.py): "pvt" for the EPOS
+        FIFO, "linear", "pv" or "p3" for one set point per SYNC."""
+        return "pvt"
+
+    def pdo_layouts(self, axis: AxisConfig, slot: SetpointSlot | None) -> tuple[PdoLayout, ...]:
+        raise NotImplementedError
+
+    def _mode_writes(self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int,
+                     slot: SetpointSlot | None) -> list[SdoWrite]:
+        raise NotImplementedError
+
+    def _limit_writes(self, axis: AxisConfig, settings: DriveSettings) -> list[SdoWrite]:
+        """The drive's own limits and ramps, in its units."""
+        raise NotImplementedError
+
     # ---- COB-IDs the streamer uses
     def record_cob_id(self, node: int) -> int:
-        return self.pdo("rx", 2).cob_id(node)
+        return cob.rpdo2_id(node)
 
     def controlword_cob_id(self, node: int) -> int:
-        return self.pdo("rx", 1).cob_id(node)
+        return cob.rpdo1_id(node)
 
     # ---- configuration
+    def _w(self, name: str, value: int, what: str, why: str = "", essential: bool = True) -> SdoWrite:
+        ref = self.obj(name)
+        return SdoWrite(ref.index, ref.sub, value, what, essential=essential, why=why)
+
     def configuration(
         self,
         axis: AxisConfig,
@@ -264,55 +398,41 @@ class DriveProfile:
         *,
         feedback: FeedbackSchedule | None = None,
         time_stamp: bool = False,
+        slot: SetpointSlot | None = None,
     ) -> tuple[SdoWrite, ...]:
-        """Ordered SDO writes that put one axis into ip mode with the product's PDO layout.
+        """Ordered SDO writes that put one axis into the family's mode with the product's PDO layout.
 
-        Limits in drive units (rpm, rpm/s) are rounded up so that a plan inside the axis limits never
-        trips the drive's own checks on rounding alone. `feedback`: TPDO2 every n-th SYNC from a SYNC
-        counter value (None: every SYNC). `time_stamp`: consume the master's 0x1013 time stamps.
+        Limits in the family's units (EPOS: rpm, rpm/s; cyclic families: counts/s, counts/s^2) are
+        rounded up, so a plan inside the axis limits never trips the drive's own checks on rounding
+        alone. `feedback`: TPDO2 every n-th SYNC from a SYNC counter value (None: every SYNC).
+        `time_stamp`: consume the master's 0x1013 time stamps. `slot`: where a cyclic axis' set point
+        travels (`setpoint_slots`; required for a cyclic family).
         """
-        o = self.objects
-        decel = settings.profile_deceleration if settings.profile_deceleration > 0 else axis.acceleration
-
-        def w(name: str, value: int, what: str, why: str = "", essential: bool = True) -> SdoWrite:
-            ref = o[name]
-            return SdoWrite(ref.index, ref.sub, value, what, essential=essential, why=why)
-
+        if self.kind == "cyclic" and slot is None:
+            raise ValueError(f"axis {axis.name!r} ({self.name}) needs its set point slot (setpoint_slots)")
+        w = self._w
         writes: list[SdoWrite] = [
-            w("sync_period", sync_period_ms * 1000, "communication cycle period (us)", essential=False),
+            w("sync_period", sync_period_ms * 1000, "communication cycle period (us)",
+              essential=self.kind == "cyclic",
+              why="the drive's interpolation period is the SYNC period (seed 003: 0x1006 is also the IP period)"),
             w("heartbeat_producer", heartbeat_producer_ms(settings.heartbeat_ms, axis.node_id),
               "producer heartbeat time (ms)", "the master detects a lost drive by its heartbeat"),
-            w("mode", self.ip_mode, "modes of operation = interpolated position", "selects the PVT mode"),
-            w("ip_submode", self.ip_submode, "interpolation sub mode", "cubic PVT interpolation"),
-            w("underflow_warning", settings.underflow_warning, "buffer underflow warning level",
-              "the FIFO's low watermark"),
-            w("overflow_warning", settings.overflow_warning, "buffer overflow warning level",
-              "the FIFO's high watermark"),
-            w("following_error_window", settings.following_error_counts, "following error window",
-              "the drive stops itself on a following error"),
-            w("max_profile_velocity", _u32(axis.max_profile_velocity_rpm),
-              "max profile velocity (rpm)", "the drive's own velocity limit"),
-            w("profile_velocity", _u32(axis.velocity_rpm(axis.velocity)),
-              "profile velocity (rpm)", essential=False),
-            w("profile_acceleration", _u32(rpm_per_s(axis, axis.acceleration)),
-              "profile acceleration (rpm/s)", essential=False),
-            w("max_acceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
-              "max acceleration (rpm/s)", "the drive's own acceleration limit"),
-            w("profile_deceleration", _u32(rpm_per_s(axis, decel)),
-              "profile deceleration (rpm/s)", "halt decelerates with it"),
-            w("quick_stop_deceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
-              "quick stop deceleration (rpm/s)", essential=False),
         ]
-        if time_stamp:
+        writes += self._mode_writes(axis, settings, sync_period_ms, slot)
+        writes.append(w("following_error_window", settings.following_error_counts, "following error window",
+                        "the drive stops itself on a following error"))
+        writes += self._limit_writes(axis, settings)
+        if time_stamp and self.has("time_stamp_cob_id"):
             writes.append(w("time_stamp_cob_id", TIME_STAMP_CONSUME | cob.TIME_STAMP_COB_ID,
                             "consume the high-resolution time stamp 0x1013", essential=False))
-        if feedback is not None and feedback.every > 1:
+        if feedback is not None and feedback.every > 1 and self.has("sync_counter_overflow"):
             writes.append(w("sync_counter_overflow", feedback.counter_overflow,
                             "SYNC counter overflow value", essential=False))
-        writes += self.pdo_configuration(axis.node_id, feedback)
+        writes += self.pdo_configuration(axis.node_id, self.pdo_layouts(axis, slot), feedback)
         return tuple(writes)
 
-    def pdo_configuration(self, node: int, feedback: FeedbackSchedule | None = None) -> list[SdoWrite]:
+    def pdo_configuration(self, node: int, layouts: Sequence[PdoLayout],
+                          feedback: FeedbackSchedule | None = None) -> list[SdoWrite]:
         """CiA 301 remapping sequence for every PDO 1..4 of both directions (unused ones disabled).
         With `feedback`, TPDO2 goes every `feedback.every` SYNCs from the counter value `start_value`."""
         writes: list[SdoWrite] = []
@@ -321,9 +441,8 @@ class DriveProfile:
             base_comm = 0x1400 if direction == "rx" else 0x1800
             for number in range(1, 5):
                 comm = base_comm + number - 1
-                try:
-                    layout = self.pdo(direction, number)
-                except KeyError:
+                layout = next((p for p in layouts if p.direction == direction and p.number == number), None)
+                if layout is None:
                     default_base = (0x200 if direction == "rx" else 0x180) + 0x100 * (number - 1)
                     writes.append(SdoWrite(comm, 1, 0x80000000 | (default_base + node),
                                            f"{direction}PDO{number} disabled"))
@@ -350,6 +469,14 @@ class DriveProfile:
                 writes.append(SdoWrite(comm, 1, cob_id, f"{tag} COB-ID (valid)"))
         return writes
 
+    def hold_writes(self, position: int) -> tuple[SdoWrite, ...]:
+        """Before operation is enabled: the set point objects = the drive's position (cyclic families)."""
+        out = []
+        for name in self.hold_objects:
+            value = 0 if name.endswith("velocity") else position
+            out.append(self._w(name, value, f"{name} = {value} (hold where the drive is)"))
+        return tuple(out)
+
     # ---- frames -> streamer events (pure)
     def frame_to_event(self, cob_id: int, data: bytes, t: float, nodes: frozenset[int] | set[int],
                        sync_count: int | None = None) -> Event | None:
@@ -361,6 +488,8 @@ class DriveProfile:
         if node not in nodes:
             return None
         if kind == "TPDO1":
+            if self.kind == "cyclic":
+                return StatusWord(node, codec.decode_statusword(data), t, sync_count)
             t1 = codec.decode_tpdo1(data)
             return BufferStatus(node, t1.statusword, t1.buffer_status, t1.free_size, t, sync_count)
         if kind == "TPDO2":
@@ -376,75 +505,11 @@ class DriveProfile:
         return None
 
 
-_EPOS_OBJECTS: dict[str, ObjectRef] = {
-    "device_type": ObjectRef(0x1000),
-    "error_register": ObjectRef(0x1001),
-    "sync_cob_id": ObjectRef(0x1005),
-    "sync_period": ObjectRef(0x1006),
-    "store_parameters": ObjectRef(0x1010, 1),
-    "restore_defaults": ObjectRef(0x1011, 1),
-    "time_stamp_cob_id": ObjectRef(0x1012),
-    "high_resolution_time_stamp": ObjectRef(0x1013),
-    "identity_vendor": ObjectRef(0x1018, 1),
-    "identity_product": ObjectRef(0x1018, 2),
-    "identity_revision": ObjectRef(0x1018, 3),
-    "identity_serial": ObjectRef(0x1018, 4),
-    "sync_counter_overflow": ObjectRef(0x1019),
-    "heartbeat_consumer": ObjectRef(0x1016, 1),
-    "heartbeat_producer": ObjectRef(0x1017),
-    "record": ObjectRef(0x20C1),
-    "buffer_status": ObjectRef(0x20C4, 1),
-    "underflow_warning": ObjectRef(0x20C4, 2),
-    "overflow_warning": ObjectRef(0x20C4, 3),
-    "error_code": ObjectRef(0x603F),
-    "controlword": ObjectRef(0x6040),
-    "statusword": ObjectRef(0x6041),
-    "quick_stop_option": ObjectRef(0x605A),
-    "mode": ObjectRef(0x6060),
-    "mode_display": ObjectRef(0x6061),
-    "position_demand": ObjectRef(0x6062),
-    "position_actual": ObjectRef(0x6064),
-    "following_error_window": ObjectRef(0x6065),
-    "position_window": ObjectRef(0x6067),
-    "velocity_actual": ObjectRef(0x606C),
-    "current_actual": ObjectRef(0x6078),
-    "position_limit_min": ObjectRef(0x607D, 1),
-    "position_limit_max": ObjectRef(0x607D, 2),
-    "max_profile_velocity": ObjectRef(0x607F),
-    "profile_velocity": ObjectRef(0x6081),
-    "profile_acceleration": ObjectRef(0x6083),
-    "profile_deceleration": ObjectRef(0x6084),
-    "quick_stop_deceleration": ObjectRef(0x6085),
-    "ip_submode": ObjectRef(0x60C0),
-    "ip_time_value": ObjectRef(0x60C2, 1),
-    "ip_time_index": ObjectRef(0x60C2, 2),
-    "max_buffer_size": ObjectRef(0x60C4, 1),
-    "free_size": ObjectRef(0x60C4, 2),
-    "buffer_organization": ObjectRef(0x60C4, 3),
-    "buffer_position": ObjectRef(0x60C4, 4),
-    "record_size": ObjectRef(0x60C4, 5),
-    "buffer_clear": ObjectRef(0x60C4, 6),
-    "max_acceleration": ObjectRef(0x60C5),
-    "following_error_actual": ObjectRef(0x60F4),
-    "supported_modes": ObjectRef(0x6502),
-}
-
-EPOS_IPM = DriveProfile(
-    name="epos-ipm",
-    eds_name="epos-ipm.eds",
-    ip_mode=7,
-    ip_submode=-1,
-    fifo_depth=64,
-    points_per_sync=None,
-    tick_ms=1,
-    pdos=(
-        PdoLayout("rx", 1, cob.RPDO1_BASE, 1, (PdoEntry(0x6040, 0, 16),)),
-        PdoLayout("rx", 2, cob.RPDO2_BASE, 255, (PdoEntry(0x20C1, 0, 64),)),
-        PdoLayout("tx", 1, cob.TPDO1_BASE, 1, (PdoEntry(0x6041, 0, 16), PdoEntry(0x60C4, 2, 32))),
-        PdoLayout("tx", 2, cob.TPDO2_BASE, 1, (PdoEntry(0x6064, 0, 32), PdoEntry(0x6062, 0, 32))),
-    ),
-    objects=MappingProxyType(_EPOS_OBJECTS),
-    after_enable=(("buffer_clear", 0), ("buffer_clear", 1)),
-)
-
-PROFILES: Mapping[str, DriveProfile] = MappingProxyType({EPOS_IPM.name: EPOS_IPM})
+def frame_to_event(profiles: Mapping[int, DriveProfile], cob_id: int, data: bytes, t: float,
+                   nodes: frozenset[int] | set[int], sync_count: int | None = None) -> Event | None:
+    """`DriveProfile.frame_to_event` with the profile of the node that sent the frame (a mixed cell)."""
+    node = cob.classify(cob_id).node
+    profile = profiles.get(node)
+    if profile is None:
+        return None
+    return profile.frame_to_event(cob_id, data, t, nodes, sync_count)

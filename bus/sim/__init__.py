@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from bus.profile import PROFILES, DriveProfile
+from bus.families import PROFILES
+from bus.profile import DriveProfile
 from bus.sim.device import DriveDevice
 from planner.config import AxisConfig, DriveSettings
 

@@ -54,7 +54,8 @@ from bus.codec import (
     NmtState,
 )
 from bus.errors import ProtocolError
-from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule
+from bus.families import EPOS_IPM
+from bus.profile import DriveProfile, FeedbackSchedule, SetpointSlot
 from bus.sim import od as odm
 from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
@@ -186,6 +187,7 @@ class DriveDevice:
     supported_modes: frozenset[int] = frozenset({0})
     interpolation_mode = 7  # the mode whose interpolation the family implements
     not_stored: frozenset[tuple[int, int]] = frozenset()
+    default_profile: DriveProfile = EPOS_IPM  # the family's profile (bus/families.py)
 
     def __init__(
         self,
@@ -197,7 +199,7 @@ class DriveDevice:
         motor: MotorParams = DEFAULT_MOTOR,
         initial_position: float = 0.0,
         sync_gap_factor: float = 1.5,
-        profile: DriveProfile = EPOS_IPM,
+        profile: DriveProfile | None = None,
         options: SimDriveOptions | None = None,
     ):
         if not 1 <= node_id <= 127:
@@ -209,7 +211,7 @@ class DriveDevice:
         self.node_id = node_id
         self.axis = axis
         self.settings = settings or DriveSettings()
-        self.profile = profile
+        self.profile = profile if profile is not None else self.default_profile
         self.objects: odm.ObjectTable = self._object_table()
         self.motor = motor
         self.counts_per_rev = int(counts_per_rev or (axis.counts_per_rev if axis else 8192))
@@ -412,8 +414,10 @@ class DriveDevice:
         t: float | None = None,
         feedback: FeedbackSchedule | None = None,
         time_stamp: bool = False,
+        slot: SetpointSlot | None = None,
     ) -> list[Frame]:
         """Apply the very writes the master sends over SDO (`profile.configuration`), then NMT start.
+        `slot`: a cyclic axis' set point slot (bus.profile.setpoint_slots of the cell).
 
         For virtual-time runtimes that bypass SDO. Boots the drive first if it was not powered on. Like
         the master, it skips the optional objects the drive lacks and refuses a missing essential one.
@@ -428,7 +432,7 @@ class DriveDevice:
         if self._nmt == NmtState.BOOTUP:
             out += self.power_on(self._t_now)
         for w in self.profile.configuration(axis, settings, sync_period_ms, feedback=feedback,
-                                            time_stamp=time_stamp):
+                                            time_stamp=time_stamp, slot=slot):
             if not self.has_object(w.index):
                 if w.essential:
                     raise SdoAbort(odm.ABORT_NO_OBJECT, f"0x{w.index:04X} ({w.what}) is missing")

@@ -39,7 +39,7 @@ from bus import cob
 from bus.codec import Frame, NmtState
 from bus.errors import CALLBACK, BusError
 from bus.network import NOTIFIER_CYCLE_S, open_bus
-from bus.profile import EPOS_IPM, DriveProfile
+from bus.profile import DriveProfile
 from bus.sim import make_drive
 from bus.sim import od as odm
 from bus.sim.device import DriveDevice
@@ -82,14 +82,13 @@ class SimulatedCell:
         motor: MotorParams = DEFAULT_MOTOR,
         initial_positions: Mapping[int, float] | None = None,
         sync_gap_factor: float = 1.5,
-        profile: DriveProfile = EPOS_IPM,
+        profile: DriveProfile | None = None,
         eds_path: str | None = None,
         clock: Callable[[], float] = time.time,
     ):
         self.cell = cell
         self.bus_config = bus_config or cell.bus
-        self.profile = profile
-        self.eds_path = eds_path or profile.eds_path
+        self.eds_path = eds_path  # None: each drive's family EDS
         self.clock = clock
         self.errors: list[BusError] = []
         positions = dict(initial_positions or {})
@@ -124,7 +123,8 @@ class SimulatedCell:
         listeners.append(_RawListener(self))
         self._network = network
         for node_id, model in self.models.items():
-            node: Any = canopen.LocalNode(node_id, canopen.objectdictionary.import_od(self.eds_path, node_id))
+            eds = self.eds_path or model.profile.eds_path
+            node: Any = canopen.LocalNode(node_id, canopen.objectdictionary.import_od(eds, node_id))
             network.add_node(node)
             # the model owns NMT and the heartbeat: detach canopen's NmtSlave
             network.unsubscribe(0, node.nmt.on_command)

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from bus import codec
 from bus.budget import cell_feedback_every
 from bus.codec import Frame
-from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule, feedback_schedule
+from bus.profile import DriveProfile, FeedbackSchedule, feedback_schedule, setpoint_slots
 from bus.sim import make_drive
 from bus.sim.device import DriveDevice
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams
@@ -35,7 +35,7 @@ class VirtualCell:
         t0: float = 0.0,
         initial_positions: Mapping[int, float] | None = None,
         sync_gap_factor: float = 1.5,
-        profile: DriveProfile = EPOS_IPM,
+        profile: DriveProfile | None = None,
         feedback_every: int | None = None,
     ):
         self.cell = cell
@@ -47,6 +47,7 @@ class VirtualCell:
         # drive k + 1, the last one at t0
         n = len(cell.axes)
         self._config_t = {a.node_id: t0 - (n - 1 - k) * CONFIG_SPACING_S for k, a in enumerate(cell.axes)}
+        self.slots = setpoint_slots(cell.axes)
         for axis in cell.axes:
             m = make_drive(axis, cell.drive, motor=motor,
                            initial_position=positions.get(axis.node_id, 0.0),
@@ -60,8 +61,8 @@ class VirtualCell:
             [a.node_id for a in cell.axes], every, all(m.has_object(0x1019) for m in self.models.values()))
         if configure:
             for node, m in self.models.items():
-                self.boot_frames += m.configure(cell.sync_period_ms, t=self._config_t[node],
-                                                        feedback=self.feedback, time_stamp=cell.time_stamp)
+                self.boot_frames += m.configure(cell.sync_period_ms, t=self._config_t[node], feedback=self.feedback,
+                                                time_stamp=cell.time_stamp, slot=self.slots.get(node))
         self._models = tuple(self.models.values())
         self._routes: dict[int, tuple[DriveDevice, ...]] = {}
         self._versions: dict[int, int] = {}
@@ -107,27 +108,27 @@ class VirtualCell:
         times = [d for d in (m.next_deadline() for m in self._models) if d is not None]
         return min(times) if times else None
 
-    def enable_drives(self, t: float | None = None) -> list[Frame]:
-        """What `MasterAdapter.enable_drives` does over SDO: fault reset if faulted, 0x0006, 0x000F
-        (bit 4 low), then the family's writes (EPOS: buffer clear then enable). Raises RuntimeError if a
-        drive does not get there."""
+    def enable_drives(self, t: float | None = None, *, check: bool = True) -> list[Frame]:
+        """What `MasterAdapter.enable_drives` does over SDO: the set point objects = the drive's position
+        (cyclic families), fault reset if faulted, 0x0006, 0x000F (bit 4 low), then the family's writes
+        (EPOS: buffer clear then enable). With `check`, raises RuntimeError if a drive does not get there."""
         S = codec.Cia402State
         out: list[Frame] = []
         for node, m in self.models.items():
             commands: list[codec.Command] = []
             if m.state == S.FAULT:
                 commands += [codec.Command.DISABLE_VOLTAGE, codec.Command.FAULT_RESET]
-            elif m.state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE):
+            elif m.state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
                 commands.append(codec.Command.DISABLE_VOLTAGE)
             if m.state != S.OPERATION_ENABLED:
                 commands.append(codec.Command.SHUTDOWN)
             commands.append(codec.Command.ENABLE_OPERATION)
-            for command in commands:
-                out += m.sdo_write(0x6040, 0, command.value, t)
-            for name, value in m.profile.after_enable:
-                ref = m.profile.obj(name)
-                out += m.sdo_write(ref.index, ref.sub, value, t)
-            if not m.ready_for_job:
+            writes = [(w.index, w.sub, w.value) for w in m.profile.hold_writes(m.sdo_read(0x6064, 0))]
+            writes += [(0x6040, 0, c.value) for c in commands]
+            writes += [(*m.profile.obj(name), value) for name, value in m.profile.after_enable]
+            for index, sub, value in writes:
+                out += self.sdo_write(node, index, sub, value, t)
+            if check and not m.ready_for_job:
                 raise RuntimeError(f"drive {node} is {m.state.value!r} after the enable sequence")
         return out
 

@@ -47,10 +47,11 @@ def add_parser(sub: Any) -> None:
 def _objects_table(rt: Any, nodes: Sequence[int]) -> tuple[dict[int, dict[str, Any]], dict[int, tuple[int, ...]]]:
     from bus.probe import AbsentObject, absent_optional, survey_objects
 
-    profile = rt.profile if hasattr(rt, "profile") else rt.adapter.profile
+    profiles = rt.profiles if hasattr(rt, "profiles") else rt.adapter.profiles
     out: dict[int, dict[str, Any]] = {}
     absent: dict[int, tuple[int, ...]] = {}
     for n in nodes:
+        profile = profiles[n]
         identity: dict[str, Any] = {}
         for key in ("vendor", "product", "revision", "serial"):
             ref = profile.obj(f"identity_{key}")

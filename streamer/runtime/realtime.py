@@ -31,6 +31,7 @@ import can
 
 from bus.errors import PROBE, BusError
 from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync
+from bus.families import EPOS_IPM
 from bus.network import MasterAdapter
 from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
 from planner.config import CellConfig
@@ -154,14 +155,15 @@ class RealtimeRuntime:
         adapter = self.adapter
         was_running = adapter.sync_running
         adapter.stop_sync()
-        nodes = sorted(a.node_id for a in self.cell.axes)
-        demand = adapter.profile.obj("position_demand")
+        # the probe's experiments are about the EPOS FIFO: the cyclic drives of a mixed cell sit them out
+        nodes = sorted(a.node_id for a in self.cell.axes if adapter.profiles[a.node_id].kind == "fifo")
+        demand = EPOS_IPM.obj("position_demand")
 
         def demands() -> dict[int, int]:
             return {n: adapter.read(n, demand.index, demand.sub) for n in nodes}
 
         adapter.enable_drives()
-        probe = StandstillProbe(nodes, self.cell.sync_period_ms, adapter.profile, demands(),
+        probe = StandstillProbe(nodes, self.cell.sync_period_ms, EPOS_IPM, demands(),
                                 experiments=experiments, t0=adapter.now(), feedback=adapter.feedback)
         fb = adapter.feedback
         counter = 0

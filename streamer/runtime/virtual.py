@@ -43,7 +43,6 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from typing import NamedTuple, Protocol
 
-from bus import codec
 from bus.cob import SYNC_COB_ID, TIME_STAMP_COB_ID, classify
 from bus.codec import Frame, frame_bits
 from bus.errors import ProtocolError
@@ -60,8 +59,9 @@ from bus.events import (
     SendFailed,
     Sync,
 )
+from bus.families import EPOS_IPM
 from bus.probe import AUTO_EXPERIMENTS, AbsentObject, Phase, ProbeError, ProbeResult, StandstillProbe, WriteOnly
-from bus.profile import EPOS_IPM, DriveProfile
+from bus.profile import DriveProfile, frame_to_event
 from bus.sim.od import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, ABORT_UNSUPPORTED_ACCESS, ABORT_WRITE_ONLY, SdoAbort
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
@@ -202,14 +202,15 @@ class VirtualRuntime:
         link: Link | None = None,
         sync_time: Callable[[int], float] | None = None,
         foreign: ForeignTraffic | None = None,
-        profile: DriveProfile = EPOS_IPM,
+        profile: DriveProfile | None = None,
         settings: StreamerSettings | None = None,
         bus_load_events: bool = True,
     ):
         self.cell = cell
         self.period_s = cell.sync_period_s
-        self.vcell = vcell if vcell is not None else VirtualCell(cell)
-        self.profile = profile
+        self.vcell = vcell if vcell is not None else VirtualCell(cell, profile=profile)
+        # each node's family (bus/families.py), as the drives were built
+        self.profiles: dict[int, DriveProfile] = {n: m.profile for n, m in self.vcell.models.items()}
         # settings given by the caller are taken as they are; else the cell's, with what the master knows
         # of each drive ([axis.probed]) completed by the standstill probe before the first job
         self._settings_given = settings is not None
@@ -352,8 +353,8 @@ class VirtualRuntime:
             self._last_heartbeat[node] = t
             self._hb_lost.discard(node)
         try:
-            ev = self.profile.frame_to_event(frame.cob_id, bytes(frame.data), t, self.nodes,
-                                             self._sync if self._sync >= 0 else None)
+            ev = frame_to_event(self.profiles, frame.cob_id, bytes(frame.data), t, self.nodes,
+                                self._sync if self._sync >= 0 else None)
         except ProtocolError as e:
             self.counters["malformed"] += 1
             ev = AdapterError(f"decode 0x{frame.cob_id:03X}", str(e), t)
@@ -495,31 +496,15 @@ class VirtualRuntime:
 
     # ---- running a job
     def enable_drives(self, t: float) -> None:
-        """What `MasterAdapter.enable_drives` does over SDO, written straight into the models: fault
-        reset when faulted, disable voltage from quick stop / fault reaction, shutdown 0x0006 unless
-        already operation enabled (leaving operation enabled would drop the position demand to the
-        actual position, and the next plan starts at the demand), enable operation 0x000F (bit 4 low, so
-        the start is a rising edge), ip buffer clear 0x60C4:06 = 0 then enable = 1. What the drives
-        answer (EMCY "error reset") goes on the bus."""
-
-        S = codec.Cia402State
-        cw = self.profile.obj("controlword")
-        clear = self.profile.obj("buffer_clear")
-        for node in sorted(self.nodes):
-            m = self.vcell.model(node)
-            writes: list[tuple[int, int, int]] = []
-            if m.state == S.FAULT:
-                writes += [(cw.index, cw.sub, codec.Command.DISABLE_VOLTAGE.value),
-                           (cw.index, cw.sub, codec.Command.FAULT_RESET.value)]
-            elif m.state in (S.QUICK_STOP_ACTIVE, S.FAULT_REACTION_ACTIVE, S.NOT_READY_TO_SWITCH_ON):
-                writes.append((cw.index, cw.sub, codec.Command.DISABLE_VOLTAGE.value))
-            if m.state != S.OPERATION_ENABLED:
-                writes.append((cw.index, cw.sub, codec.Command.SHUTDOWN.value))
-            writes += [(cw.index, cw.sub, codec.Command.ENABLE_OPERATION.value),
-                       (clear.index, clear.sub, 0), (clear.index, clear.sub, 1)]
-            for index, sub, value in writes:
-                for f in self.vcell.sdo_write(node, index, sub, value, t):
-                    self._bus.submit(f, t, _DRIVES)
+        """What `MasterAdapter.enable_drives` does over SDO, written straight into the models
+        (`VirtualCell.enable_drives`: the set point objects of cyclic drives = their position, fault reset
+        when faulted, disable voltage from quick stop / fault reaction, shutdown 0x0006 unless already
+        operation enabled (leaving operation enabled would drop the position demand to the actual position,
+        and the next plan starts at the demand), enable operation 0x000F (bit 4 low, so the start is a
+        rising edge), the family's writes (EPOS: buffer clear then enable)). A drive that does not get there
+        is left as it is: the core finds it (DRIVE_NOT_READY). What the drives answer goes on the bus."""
+        for f in self.vcell.enable_drives(t, check=False):
+            self._bus.submit(f, t, _DRIVES)
 
     # ---- the standstill probe
     def probe(self, experiments: Sequence[Phase] = AUTO_EXPERIMENTS) -> ProbeResult:
@@ -528,10 +513,10 @@ class VirtualRuntime:
         fault reset) written straight into the models as `enable_drives` does."""
         self._core = None
         self.trace = None
-        nodes = sorted(self.nodes)
+        nodes = sorted(n for n in self.nodes if self.profiles[n].kind == "fifo")
         t0 = self._last_sync_t if self._last_sync_t is not None else self.now
-        demand = self.profile.obj("position_demand")
-        probe = StandstillProbe(nodes, self.cell.sync_period_ms, self.profile,
+        demand = EPOS_IPM.obj("position_demand")
+        probe = StandstillProbe(nodes, self.cell.sync_period_ms, EPOS_IPM,
                                 {n: self.vcell.sdo_read(n, demand.index, demand.sub) for n in nodes},
                                 experiments=experiments, t0=t0, feedback=self.vcell.feedback)
         self._probe = probe

@@ -13,7 +13,7 @@ from bus.codec import Cia402State as S
 from bus.codec import Command, Internal
 from bus.errors import BusError, ProtocolError
 from bus.events import Bootup, BufferStatus, Emcy, PositionFeedback
-from bus.profile import EPOS_IPM
+from bus.families import EPOS_IPM
 
 u16 = st.integers(0, 0xFFFF)
 payload = st.binary(min_size=0, max_size=8)

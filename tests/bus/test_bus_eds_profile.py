@@ -9,7 +9,8 @@ import pytest
 from bus_testkit import VDrive, make_axis
 
 from bus import cob
-from bus.profile import EPOS_IPM, PdoEntry, PdoLayout
+from bus.families import EPOS_IPM
+from bus.profile import PdoEntry, PdoLayout
 from bus.sim import od as odm
 from bus.sim.eds import EDS_PATH, render_eds
 from planner.config import DriveSettings
@@ -70,16 +71,17 @@ def test_issue_objects_and_seed_4_3_6_values() -> None:
 
 
 def test_profile_pdo_layout_is_the_cob_contract() -> None:
-    rx1, rx2 = EPOS_IPM.pdo("rx", 1), EPOS_IPM.pdo("rx", 2)
-    tx1, tx2 = EPOS_IPM.pdo("tx", 1), EPOS_IPM.pdo("tx", 2)
+    layouts = {(p.direction, p.number): p for p in EPOS_IPM.pdo_layouts(make_axis(3), None)}
+    assert sorted(layouts) == [("rx", 1), ("rx", 2), ("tx", 1), ("tx", 2)]
+    rx1, rx2 = layouts[("rx", 1)], layouts[("rx", 2)]
+    tx1, tx2 = layouts[("tx", 1)], layouts[("tx", 2)]
     assert (rx1.cob_id(3), rx1.transmission_type, rx1.size_bytes) == (cob.rpdo1_id(3), 1, 2)
     assert (rx2.cob_id(3), rx2.transmission_type, rx2.size_bytes) == (cob.rpdo2_id(3), 255, 8)
     assert [e.word for e in tx1.entries] == [0x60410010, 0x60C40220]
     assert [e.word for e in tx2.entries] == [0x60640020, 0x60620020]
     assert tx1.cob_id(3) == cob.tpdo1_id(3) and tx2.cob_id(3) == cob.tpdo2_id(3)
     assert EPOS_IPM.record_cob_id(3) == cob.rpdo2_id(3) and EPOS_IPM.controlword_cob_id(3) == cob.rpdo1_id(3)
-    assert EPOS_IPM.fifo_depth == 64 and EPOS_IPM.points_per_sync is None
-    assert EPOS_IPM.encode_point(1, 2, 3) == bytes.fromhex("01000000020000 03".replace(" ", ""))
+    assert EPOS_IPM.fifo_depth == 64 and EPOS_IPM.kind == "fifo"
     assert PdoEntry.from_word(0x20C10040) == PdoEntry(0x20C1, 0, 64)
     with pytest.raises(ValueError):
         PdoLayout("tx", 1, 0x180, 1, (PdoEntry(0x6064, 0, 32),) * 3)

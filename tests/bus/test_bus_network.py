@@ -24,8 +24,9 @@ from bus.events import (
     PositionFeedback,
     Sync,
 )
+from bus.families import EPOS_IPM, EposProfile
 from bus.network import MasterAdapter, open_bus
-from bus.profile import EPOS_IPM, DriveProfile, SdoWrite
+from bus.profile import SdoWrite
 from bus.sim.node import SimulatedCell
 from planner import record
 from planner.config import AxisConfig, BusConfig, CellConfig, DriveSettings
@@ -197,7 +198,7 @@ def test_a_refused_write_is_named(cell: CellConfig, sim: SimulatedCell) -> None:
     assert "0x6060:00" in str(e.value) and "node 1" in str(e.value)
 
 
-class _WrongReadBack(DriveProfile):
+class _WrongReadBack(EposProfile):
     def configuration(
         self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int, **kw: Any
     ) -> tuple[SdoWrite, ...]:
