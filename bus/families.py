@@ -176,9 +176,6 @@ class XtrapulsProfile(DriveProfile):
     def velocity_in_setpoint(self, axis: AxisConfig) -> bool:
         return axis.ip_submode == "pv"
 
-    def submode(self, axis: AxisConfig) -> str:
-        return axis.ip_submode
-
     def pdo_layouts(self, axis: AxisConfig, slot: SetpointSlot | None) -> tuple[PdoLayout, ...]:
         assert slot is not None
         return (_CONTROLWORD_RPDO1, _setpoint_rpdo(slot, 0x60C101, 0x60C102), _STATUS_TPDO1, _FEEDBACK_TPDO2)
@@ -243,9 +240,6 @@ XTRAPULS_IP = XtrapulsProfile(
 
 @dataclass(frozen=True)
 class CspProfile(DriveProfile):
-    def submode(self, axis: AxisConfig) -> str:
-        return "linear"
-
     def pdo_layouts(self, axis: AxisConfig, slot: SetpointSlot | None) -> tuple[PdoLayout, ...]:
         assert slot is not None
         return (_CONTROLWORD_RPDO1, _setpoint_rpdo(slot, 0x607A00, None), _STATUS_TPDO1, _FEEDBACK_TPDO2)

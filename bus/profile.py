@@ -365,7 +365,9 @@ class DriveProfile:
     def submode(self, axis: AxisConfig) -> str:
         """The interpolation the drive applies to the stream (planner/cyclic.py): "pvt" for the EPOS
         FIFO, "linear", "pv" or "p3" for one set point per SYNC."""
-        return "pvt"
+        from planner.cyclic import interpolation_of
+
+        return interpolation_of(axis) or "pvt"
 
     def pdo_layouts(self, axis: AxisConfig, slot: SetpointSlot | None) -> tuple[PdoLayout, ...]:
         raise NotImplementedError

@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from planner.config import AxisConfig, CellConfig
+from planner.cyclic import with_cyclic_stats
 from planner.encoder import (
     ACC_EXCESS_LIMIT,
     AxisScales,
@@ -216,7 +217,9 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
             build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
         )
         _check_reference_positions(ref, cfg, job.axes)
-    return build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
+    traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
+    # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
+    return with_cyclic_stats(traj, cfg, cell.sync_period_ms)
 
 
 def encode_with_retries(

@@ -185,6 +185,15 @@ class DriveReadings:
             out[f.name] = [f"0x{i:04X}" for i in v] if f.name == "absent" else v
         return out
 
+    def for_cyclic(self) -> DriveReadings:
+        """These readings for a drive of a cyclic family (one set point per SYNC, no FIFO): the FIFO's open
+        points do not apply (taken as the reference drive's, never used), and its clock is locked to SYNC
+        (the XtrapulsPac's PLL 0x2006; a CSP drive follows SYNC by definition)."""
+        ref = SimDriveOptions()
+        return self.merged(DriveReadings(fifo_count=ref.fifo_count, first_record=ref.first_record,
+                                         rounding=ref.rounding, underflow_check=ref.underflow_check,
+                                         clock="sync"))
+
     @classmethod
     def of_sim(cls, sim: SimDriveOptions) -> DriveReadings:
         """What a perfect probe of a drive simulated with `sim` finds."""

@@ -49,9 +49,18 @@ class AxisStats:
     drive_acceleration_limit: float  # 0x60C5, user units/s^2
     acceleration_excess: float  # max over segments of reconstruction peak - planned peak, user units/s^2
     acceleration_excess_share: float  # acceleration_excess / axis_acceleration_limit
+    # how the axis' drive interpolates what it is sent (planner/cyclic.py): "pvt" (EPOS FIFO, the
+    # deviations above are the encoder's), or "linear" / "pv" / "p3" (one set point per SYNC period
+    # `setpoint_period_ms`; the deviations above are then the drive's interpolation against the plan, and
+    # `interpolation_alternatives` the deviation the other sub-modes would make)
+    interpolation: str = "pvt"
+    setpoint_period_ms: int = 0
+    interpolation_alternatives: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        out = dict(self.__dict__)
+        out["interpolation_alternatives"] = dict(self.interpolation_alternatives)
+        return out
 
 
 def _ro(a: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:

@@ -131,11 +131,14 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
 def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any, first: int, last: int,
             out: Path, readings: Any = None, *, epoch_s: float | None = None) -> tuple[dict[str, Any], Any]:
     core_report = core.report()
+    report_setpoints = {n: core.setpoints(n) for n in traj.node_ids}
     report = build_report(traj, core_report, trace, sync_period_ms=cell.sync_period_ms,
-                          first_sync=first, last_sync=last, readings=readings, time_stamp=cell.time_stamp)
+                          first_sync=first, last_sync=last, readings=readings, time_stamp=cell.time_stamp,
+                          setpoints=report_setpoints)
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
-                underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning)
+                underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
+                setpoints=report_setpoints)
     recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
                                 sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
                                 underflow_watermark=cell.drive.underflow_warning,

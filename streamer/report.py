@@ -8,6 +8,9 @@ two ways and the larger is reported:
   (`PvtTrajectory.deviation()`; `decode_candump` proves the records on the wire are exactly these);
 - at every SYNC, from the position demand the drive itself reported in TPDO2 (0x6062), against the
   plan rounded as the drive rounds.
+An axis whose drive takes one set point per SYNC (planner/cyclic.py) is measured the same two ways: at every
+ms from the set points the core sent (`setpoints`, which `decode_setpoints` reads back from the candump),
+through the drive's own interpolation, and at every SYNC from its reported demand.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ from typing import Any
 import numpy as np
 
 from bus.cob import RPDO2_BASE
+from bus.profile import SetpointSlot
+from planner import cyclic
 from planner.readings import DriveReadings
 from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
@@ -46,10 +51,12 @@ def build_report(
     faults: Sequence[Mapping[str, Any]] = (),
     readings: Mapping[int, DriveReadings] | None = None,
     time_stamp: bool = False,
+    setpoints: Mapping[int, cyclic.Setpoints | None] | None = None,
 ) -> dict[str, Any]:
     """`readings`: what the master knew of each drive (rounding: the plan is rounded as the drive rounds;
     an own clock: the demand is compared with the plan at the drive's own time, and against SYNC time
-    within what the clock's stated error explains)."""
+    within what the clock's stated error explains). `setpoints`: what the core sent each cyclic axis
+    (`Coordinator.setpoints`)."""
     outcome = core.outcome
     result = outcome.result.value if outcome is not None else core.state
     by_rounding = {tz: (traj.planned_demand(tz), np.abs(traj.deviation(tz)).max(axis=1)) for tz in (False, True)}
@@ -80,6 +87,14 @@ def build_report(
                 bound = int(np.abs(window - planned[i, k]).max())
                 explained = max(explained, bound)
                 unexplained = max(unexplained, dev - bound - traj.tolerance_counts)
+        interp = traj.stats[i].interpolation
+        sent = (setpoints or {}).get(node)
+        if interp != "pvt":
+            # a cyclic axis: its drive interpolates the set points it was sent (up to a cancel's stop)
+            cut = core.cancel.get("time_ms") if core.cancel.get("stop") == "trajectory" else None
+            encoder_dev = np.zeros(traj.n_axes, dtype=np.int64)
+            if sent is not None:
+                encoder_dev[i] = cyclic.deviation(traj.plan.positions[i], sent, interp, until_ms=cut)[0]
         if own_clock:
             # the deviation proper is the one at the drive's own time (the core checks every TPDO2 there)
             drive_time_dev = max(int(encoder_dev[i]), tel.max_demand_error_counts if tel else 0)
@@ -88,12 +103,16 @@ def build_report(
         final_actual = trace.final_actual(node)
         target = int(traj.positions[i, -1])
         ends = [s for s in ax.ip_active_syncs]
+        end_sync = (ends[-1] + 1) if ends else None
+        if interp != "pvt" and tel is not None:
+            end_sync = tel.end_sync
         axes_out.append(
             {
                 "name": name,
                 "node_id": node,
                 "start_sync": core.start_sync,
-                "end_sync": (ends[-1] + 1) if ends else None,
+                "end_sync": end_sync,
+                "interpolation": interp,
                 "points_sent": tel.points_sent if tel else 0,
                 "min_fifo": tel.min_fifo if tel else None,
                 "max_fifo": tel.max_fifo if tel else None,
@@ -150,6 +169,37 @@ def decode_candump(path: Path, node_ids: Iterable[int], since_s: float | None = 
     return out
 
 
+def decode_setpoints(path: Path, slots: Mapping[int, SetpointSlot], start: Mapping[int, int],
+                     since_s: float | None = None) -> dict[int, list[tuple[float, int, int]]]:
+    """(time, position counts, velocity counts/s) of every set point frame sent to each cyclic node, in bus
+    order, read back from a candump (-L) log from `since_s` on. 16-bit positions are rebuilt as the drive
+    does, nearest the previous set point (the first nearest the node's `start`)."""
+    import can
+
+    by_cob: dict[int, list[SetpointSlot]] = {}
+    for slot in slots.values():
+        by_cob.setdefault(slot.cob_id, []).append(slot)
+    prev = dict(start)
+    out: dict[int, list[tuple[float, int, int]]] = {n: [] for n in slots}
+    with can.LogReader(str(path)) as reader:
+        for msg in reader:
+            members = by_cob.get(msg.arbitration_id)
+            if members is None or (since_s is not None and msg.timestamp < since_s - 1e-6):
+                continue
+            data = bytes(msg.data)
+            for slot in members:
+                o = slot.offset
+                pb, vb = slot.position_bits // 8, slot.velocity_bits // 8
+                raw = int.from_bytes(data[o:o + pb], "little", signed=pb == 4)
+                if pb == 2:
+                    base = prev.get(slot.node, 0)
+                    raw = base + ((raw - base + 0x8000) & 0xFFFF) - 0x8000
+                vel = int.from_bytes(data[o + pb:o + pb + vb], "little", signed=True) if vb else 0
+                prev[slot.node] = raw
+                out[slot.node].append((msg.timestamp, raw, vel))
+    return out
+
+
 def plot_motion(
     traj: PvtTrajectory,
     trace: JobTrace,
@@ -159,8 +209,10 @@ def plot_motion(
     sync_period_ms: int,
     underflow_watermark: int,
     overflow_watermark: int,
+    setpoints: Mapping[int, cyclic.Setpoints | None] | None = None,
 ) -> None:
-    """Per axis: commanded vs actual position and their difference; FIFO fill with both watermarks."""
+    """Per axis: commanded vs actual position and their difference; FIFO fill with both watermarks, or for
+    an axis fed one set point per SYNC, its drive's interpolation minus the plan at every ms."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -194,6 +246,23 @@ def plot_motion(
             h1, l1 = left.get_legend_handles_labels()
             h2, l2 = twin.get_legend_handles_labels()
             left.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=7, ncol=2)
+        interp = traj.stats[i].interpolation
+        sent = (setpoints or {}).get(node)
+        if interp != "pvt":
+            t0 = (start - sync0) * period_s if start is not None else 0.0
+            if sent is not None:
+                curve = cyclic.drive_curve(sent, interp)
+                plan = traj.plan.positions[i]
+                m = min(curve.size, plan.size)
+                tm = t0 + np.arange(m) / 1000.0
+                right.plot(tm, curve[:m] - plan[:m], color="#2ca02c", lw=0.8,
+                           label=f"drive's {interp} interpolation - plan")
+            tol = traj.tolerance_counts
+            right.axhline(tol, color="#d62728", lw=0.8, ls="--", label=f"tolerance +-{tol}")
+            right.axhline(-tol, color="#d62728", lw=0.8, ls="--")
+            right.set_ylabel("counts")
+            right.legend(loc="upper right", fontsize=7)
+            continue
         tf = np.array([(s - sync0) * period_s for s in ax.fill_sync])
         right.step(tf, ax.fill, where="post", color="#2ca02c", lw=1.0, label="FIFO fill")
         right.axhline(underflow_watermark, color="#d62728", lw=0.8, ls="--",

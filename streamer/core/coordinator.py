@@ -91,6 +91,8 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from bus.budget import (
     CONTROLWORD_FRAME_BITS,
     RECORD_FRAME_BITS,
@@ -99,6 +101,7 @@ from bus.budget import (
     TPDO_FRAME_BITS,
     CycleBudget,
     cycle_budget,
+    setpoint_frame_bits,
 )
 from bus.cob import pack_controlword, rpdo1_id, rpdo2_id
 from bus.events import (
@@ -112,10 +115,14 @@ from bus.events import (
     PositionFeedback,
     Send,
     SendFailed,
+    StatusWord,
     Sync,
 )
+from planner import hermite
+from planner.cyclic import Setpoints
 from planner.record import pack
 from streamer.core import outcome as oc
+from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder, pack_frame
 from streamer.core.drive_time import DriveTime
 from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder, stream_framing
 from streamer.core.outcome import JobOutcome, JobResult
@@ -141,7 +148,7 @@ CW_QUICK_STOP = 0x000B  # bit 2 low: quick stop
 SW_FAULT = 0x0008
 SW_TARGET_REACHED = 0x0400
 SW_IP_ACTIVE = 0x1000
-SW_STATE_MASK, SW_OPERATION_ENABLED = 0x006F, 0x0027
+SW_STATE_MASK, SW_OPERATION_ENABLED, SW_QUICK_STOP_ACTIVE = 0x006F, 0x0027, 0x0007
 BS_UNDERFLOW_ERROR, BS_OVERFLOW_ERROR = 0x0100, 0x0200
 BS_VELOCITY_ERROR, BS_ACCELERATION_ERROR = 0x0400, 0x0800
 BS_ERRORS = 0x0F00
@@ -172,6 +179,7 @@ _SENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING, _J.CANCELLING})
 _FEEDING = frozenset({FeederState.PRIMING, FeederState.STARTING, FeederState.STREAMING})
 _IN_MOTION = frozenset({_J.STARTING, _J.RUNNING, _J.FINISHING, _J.CANCELLING})
 _F = FeederState
+_CYCLIC_SENDING = frozenset({_F.PRIMING, _F.PRIMED, _F.STARTING, _F.STREAMING, _F.DRAINING})
 _ALL_PRIMED = frozenset({_F.PRIMED})
 _ALL_ACTIVE = frozenset({_F.STREAMING, _F.DRAINING, _F.FINISHED})
 _ALL_QUEUED = frozenset({_F.DRAINING, _F.FINISHED})
@@ -194,6 +202,7 @@ _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
 _EVENT_HANDLERS: dict[str, str] = {
     "Sync": "_on_sync",
     "BufferStatus": "_on_buffer_status",
+    "StatusWord": "_on_status",
     "PositionFeedback": "_on_position",
     "Emcy": "_on_emcy",
     "HeartbeatLost": "_on_heartbeat_lost",
@@ -214,6 +223,7 @@ _CANCEL_HANDLERS: dict[JobState, str] = {
 _EVENT_TYPES: dict[str, type] = {
     "Sync": Sync,
     "BufferStatus": BufferStatus,
+    "StatusWord": StatusWord,
     "PositionFeedback": PositionFeedback,
     "Emcy": Emcy,
     "HeartbeatLost": HeartbeatLost,
@@ -301,9 +311,11 @@ class Coordinator:
         self._u = s.underflow_watermark
         self._o = s.overflow_watermark
         readings = {node: s.reading(node) for node in self._plan.node_ids}
+        cyclic_nodes = [node for node in self._plan.node_ids if node in s.cyclic]
+        fifo_nodes = [node for node in self._plan.node_ids if node not in s.cyclic]
         # a drive that counts the record it interpolates towards out of its FIFO reports one record less
         # while it moves: keep one more queued, so that its own count stays above the watermark too
-        hide = any(r.fifo_count == "until_segment_start" for r in readings.values())
+        hide = any(readings[n].fifo_count == "until_segment_start" for n in fifo_nodes)
         self._policy = FillPolicy(
             s.sync_period_ms, s.underflow_watermark + (1 if hide else 0), s.overflow_watermark, s.lead_ms,
             s.repair_syncs
@@ -314,13 +326,22 @@ class Coordinator:
         n = self._plan.n_axes
         self._feedback = s.feedback
         self._feedback_every = s.feedback.every if s.feedback is not None else 1
+        # the cyclic axes' frames: one per axis or multiplexed group, every SYNC (members in frame order)
+        self._groups: dict[int, tuple[int, ...]] = {}
+        for node in cyclic_nodes:
+            slot = s.cyclic[node].slot
+            self._groups[slot.cob_id] = slot.members
         self._budget: CycleBudget = cycle_budget(
             n, s.sync_period_ms, s.bitrate, s.bus_load_limit, s.heartbeat_ms,
-            feedback_every=self._feedback_every, time_stamp=s.time_stamp,
+            feedback_every=self._feedback_every, time_stamp=s.time_stamp, cyclic_nodes=len(cyclic_nodes),
+            setpoint_bits=setpoint_frame_bits(s.cyclic[m[0]].slot.frame_bytes for m in self._groups.values()
+                                              if m[0] in s.cyclic),
         )
-        self._step = self._budget.record_frames_per_axis(n)
-        self._feeders: list[FifoFeeder] = []
-        self._by_node: dict[int, FifoFeeder] = {}
+        self._step = self._budget.record_frames_per_axis(len(fifo_nodes)) if fifo_nodes else 0
+        self._feeders: list[FifoFeeder] = []  # the FIFO axes
+        self._cyclic: list[CyclicFeeder] = []  # the axes fed one set point per SYNC
+        self._axes: list[FifoFeeder | CyclicFeeder] = []  # every axis, in the plan's order
+        self._by_node: dict[int, FifoFeeder | CyclicFeeder] = {}
         self._cw: dict[int, dict[int, Send]] = {}
         self._clocks: dict[int, DriveTime] = {}
         self._sampling: dict[int, str | None] = {}
@@ -334,36 +355,44 @@ class Coordinator:
             for node, r in readings.items()
         }
         for axis, node in enumerate(self._plan.node_ids):
-            rid = rpdo2_id(node)
             r = readings[node]
             start = self._plan.start_positions[axis]
-            lead, tail = stream_framing(start, self._plan.records[axis][-1], r.first_record, r.fifo_count)
-            feeder = FifoFeeder(
-                axis,
-                node,
-                start,
-                list(self._plan.records[axis]),
-                [Send(rid, frame) for frame in self._plan.frames[axis]],
-                sync_period_ms=s.sync_period_ms,
-                loss_confirm_syncs=s.loss_confirm_syncs,
-                repair_margin_ms=s.margin_ms,
-                counts_per_rev=s.counts_per_rev.get(node),
-                lead=Send(rid, pack(lead)) if lead is not None else None,
-                tail=Send(rid, pack(tail)) if tail is not None else None,
-                hides_target=r.fifo_count == "until_segment_start",
-                rounding=r.rounding,
-            )
-            self._clocks[node] = DriveTime(s.sync_period_ms, own_clock=r.clock == "own",
+            feeder: FifoFeeder | CyclicFeeder
+            if node in s.cyclic:
+                pos, vel, _ = self._reference(self._plan, axis)
+                feeder = CyclicFeeder(axis, node, start, s.cyclic[node], s.sync_period_ms, pos, vel)
+                self._cyclic.append(feeder)
+            else:
+                rid = rpdo2_id(node)
+                lead, tail = stream_framing(start, self._plan.records[axis][-1], r.first_record, r.fifo_count)
+                feeder = FifoFeeder(
+                    axis,
+                    node,
+                    start,
+                    list(self._plan.records[axis]),
+                    [Send(rid, frame) for frame in self._plan.frames[axis]],
+                    sync_period_ms=s.sync_period_ms,
+                    loss_confirm_syncs=s.loss_confirm_syncs,
+                    repair_margin_ms=s.margin_ms,
+                    counts_per_rev=s.counts_per_rev.get(node),
+                    lead=Send(rid, pack(lead)) if lead is not None else None,
+                    tail=Send(rid, pack(tail)) if tail is not None else None,
+                    hides_target=r.fifo_count == "until_segment_start",
+                    rounding=r.rounding,
+                )
+                self._feeders.append(feeder)
+            self._clocks[node] = DriveTime(s.sync_period_ms, own_clock=r.clock == "own" and node not in s.cyclic,
                                            ppm_max=r.clock_ppm_max, time_stamped=s.time_stamp)
             self._sampling[node] = r.tpdo_sampling
-            self._feeders.append(feeder)
+            self._axes.append(feeder)
             self._by_node[node] = feeder
             cid = rpdo1_id(node)
             self._cw[node] = {
                 cw: Send(cid, pack_controlword(cw))
                 for cw in (CW_ENABLE_OPERATION, CW_START_IP, CW_HALT, CW_QUICK_STOP)
             }
-        self._points = sum(len(f.sends) for f in self._feeders)
+        self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
+        self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._dispatch: dict[tuple[JobState, type], Callable[[Any], None]] = {
             key: getattr(self, name) for key, name in _DISPATCH.items()
         }
@@ -442,17 +471,22 @@ class Coordinator:
             return 1.0
         if self._start_sync is None or self._sync is None:
             return 0.0
-        return min(1.0, max(0.0, self._elapsed(self._sync) / self._t_end))
+        return min(1.0, max(0.0, self._elapsed(self._sync) / self._job_end_ms))
 
     def fifo_fills(self) -> dict[int, int | None]:
-        """Last reported fill per node (for live displays)."""
-        return {f.node_id: f.last_fill for f in self._feeders}
+        """Last reported fill per node (for live displays; None for a cyclic axis: it has no FIFO)."""
+        return {f.node_id: f.last_fill if isinstance(f, FifoFeeder) else None for f in self._axes}
 
     def telemetry(self) -> tuple[AxisTelemetry, ...]:
-        return tuple(f.telemetry() for f in self._feeders)
+        return tuple(f.telemetry() for f in self._axes)
+
+    def setpoints(self, node: int) -> Setpoints | None:
+        """The set points a cyclic axis is sent (its stop spliced in after a cancel); None for a FIFO axis."""
+        f = self._by_node[node]
+        return f.setpoints if isinstance(f, CyclicFeeder) else None
 
     def report(self) -> JobReport:
-        ends = [f.end_sync for f in self._feeders if f.end_sync is not None]
+        ends = [f.end_sync for f in self._axes if f.end_sync is not None]
         syncs = 0 if self._sync is None or self._first_sync is None else self._sync - self._first_sync + 1
         return JobReport(
             state=self._state.value,
@@ -461,7 +495,7 @@ class Coordinator:
             sync_period_ms=self._period,
             priming_level=self._prime_level,
             start_sync=self._start_sync,
-            end_sync=max(ends) if len(ends) == len(self._feeders) else None,
+            end_sync=max(ends) if len(ends) == len(self._axes) else None,
             syncs=syncs,
             frames_sent=self._frames_sent,
             record_frames=self._record_frames,
@@ -470,13 +504,29 @@ class Coordinator:
             frames_per_point=self._frames_sent / self._points if self._points else 0.0,
             bus_load_peak=self._bus_load_peak,
             measured_bus_load_peak=self._measured_peak,
-            duration_ms=self._t_end,
+            duration_ms=self._job_end_ms,
             cancel=dict(self._cancel_info),
             axes=self.telemetry(),
         )
 
     # ---- construction-time feasibility --------------------------------------------------------------
     def _check_feasible(self) -> None:
+        for f in self._cyclic:
+            problem = self._cyclic_problem(f)
+            if problem is not None:
+                self._fail(oc.SETPOINT_RANGE, problem[0], f.node_id, problem[1])
+                return
+        if self._budget.streamer_bits < 0:
+            self._fail(
+                oc.BUS_OVERLOAD,
+                f"{len(self._axes)} axes at {self._settings.bitrate} bit/s and {self._period} ms SYNC: the SYNC, the "
+                f"feedback and the set point frames alone exceed {self._settings.bus_load_limit:.0%} bus load",
+                None,
+                {"budget_bits": self._budget.streamer_bits},
+            )
+            return
+        if not self._feeders:
+            return
         n = len(self._feeders)
         if self._step < 1:
             self._fail(
@@ -504,6 +554,44 @@ class Coordinator:
             None,
             {"predicted": True, "elapsed_ms": short.elapsed_ms, "fill": short.fill},
         )
+
+    def _cyclic_problem(self, f: CyclicFeeder) -> tuple[str, dict[str, Any]] | None:
+        """Why a cyclic axis' set points cannot go on the wire: a multiplexed frame whose other members are
+        not in the job (their part of the frame would be garbage), or a 16-bit step / velocity too large."""
+        slot = f.spec.slot
+        missing = [m for m in slot.members if m not in self._by_node]
+        if missing:
+            return (f"node {f.node_id} shares its multiplexed frame 0x{slot.cob_id:03X} with node(s) {missing}, "
+                    f"which are not in the job: a job must include every axis of the group",
+                    {"cob_id": slot.cob_id, "missing": missing})
+        sp = f.setpoints
+        if slot.position_bits == 16:
+            steps = np.abs(np.diff(sp.positions))
+            if steps.size and int(steps.max()) > 32767:
+                j = int(steps.argmax())
+                return (f"node {f.node_id}: set point {j + 1} moves {int(steps[j])} counts in one SYNC period; a "
+                        "multiplexed 16-bit set point carries at most 32767", {"step_counts": int(steps[j])})
+        if slot.velocity_bits == 16 and sp.velocities.size and int(np.abs(sp.velocities).max()) > 32767:
+            return (f"node {f.node_id}: a velocity of {int(np.abs(sp.velocities).max())} counts/s does not fit "
+                    "the 16-bit velocity of its multiplexed frame", {})
+        return None
+
+    def _reference(self, plan: StreamPlan, axis: int) -> tuple[Any, Any, Any]:
+        """(positions, velocities per ms, accelerations per ms^2) of one axis at every ms: the plan's, or the
+        records' own Hermite curve when the trajectory does not carry the plan."""
+        if plan.reference is not None:
+            pos, vel, acc = plan.reference
+            return np.asarray(pos[axis], dtype=np.float64), np.asarray(vel[axis], dtype=np.float64), \
+                np.asarray(acc[axis], dtype=np.float64)
+        node = plan.node_ids[axis]
+        cpr = self._settings.counts_per_rev.get(node)
+        if cpr is None:
+            raise ValueError(f"node {node} is a cyclic axis: the core needs its counts_per_rev (settings) to "
+                             "sample set points from records")
+        recs = plan.records[axis][:-1]
+        knots = np.array([plan.start_positions[axis]] + [r.position for r in recs], dtype=np.float64)
+        vels = np.array([0.0] + [hermite.rpm_to_counts_per_ms(r.velocity, cpr) for r in recs])
+        return hermite.reconstruct(knots, vels, np.array(plan.segment_ms, dtype=np.int64))
 
     # ---- helpers -----------------------------------------------------------------------------------
     def _elapsed(self, sync: int) -> int:
@@ -543,7 +631,7 @@ class Coordinator:
         _, now_hi = self._clocks[f.node_id].ticks(self._sync, self._sync_time(self._sync))
         return float(due - now_hi)
 
-    def _attribute(self, f: FifoFeeder, pdo: int, sync_count: int | None, t: float) -> int | None:
+    def _attribute(self, f: FifoFeeder | CyclicFeeder, pdo: int, sync_count: int | None, t: float) -> int | None:
         """The SYNC a TPDO of `f`'s node answers. `sync_count` is the runtime's tag: the newest SYNC on the
         wire before the TPDO arrived, so the TPDO answers it or an older one. A drive answers every SYNC
         once, in order (CiA 301), within a latency that may exceed the rest of the period (it then arrives
@@ -586,7 +674,7 @@ class Coordinator:
             self._outcome = outcome
         self._changes.append(StateChange(new, self._sync, self._t, outcome))
 
-    def _emit_cw(self, feeder: FifoFeeder, controlword: int) -> None:
+    def _emit_cw(self, feeder: FifoFeeder | CyclicFeeder, controlword: int) -> None:
         self._out.append(self._cw[feeder.node_id][controlword])
         feeder.frames_sent += 1
         self._cycle_used_bits += CONTROLWORD_FRAME_BITS
@@ -596,7 +684,7 @@ class Coordinator:
         self._emitted_any = True
 
     def _all_feeders(self, states: frozenset[FeederState]) -> bool:
-        return all(f.state in states for f in self._feeders)
+        return all(f.state in states for f in self._axes)
 
     def _finish(self, result: JobResult, message: str, detail: dict[str, Any] | None = None) -> None:
         state = JobState.DONE if result is JobResult.DONE else JobState.CANCELLED
@@ -606,9 +694,9 @@ class Coordinator:
         if self._state in TERMINAL:
             return
         if self._emitted_any:
-            for f in self._feeders:
+            for f in self._axes:
                 self._emit_cw(f, CW_QUICK_STOP)
-        for f in self._feeders:
+        for f in self._axes:
             if f.state is not FeederState.FAULTED:
                 f.fire(FeederInput.FAULT)
         if node is not None and node in self._by_node:
@@ -632,7 +720,7 @@ class Coordinator:
         self._sync_counters.pop(m - 64, None)
         if prev is None:
             self._first_sync = m
-            for f in self._feeders:
+            for f in self._axes:
                 f.last_tpdo1 = f.last_tpdo2 = m - 1
         else:
             if m <= prev:
@@ -669,7 +757,7 @@ class Coordinator:
         timeout = self._settings.tpdo_timeout_syncs
         limit = m - timeout - 1
         limit2 = m - timeout * self._feedback_every - 1
-        for f in self._feeders:
+        for f in self._axes:
             if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit2:
                 which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
                 self._fail(
@@ -685,25 +773,31 @@ class Coordinator:
                 clock.start(m, ev.t)
         st = self._state
         if st is JobState.PRIMING:
+            for cf in self._cyclic:
+                self._prime_cyclic(cf, m)
+                if self._state in TERMINAL:
+                    return
             if self._all_feeders(_ALL_PRIMED):
                 self._start(m)
-            else:
+            elif self._feeders:
                 self._advance_lockstep(
                     self._prime_level, min(self._step, self._settings.prime_records_per_sync)
                 )
-        elif st in _SENDING:
+        elif st in _SENDING and self._feeders:
             now_lo, _ = self._elapsed_bounds(m, ev.t)
             _, next_hi = self._elapsed_bounds(m + 1, ev.t + self._period / 1000.0)
             self._advance_lockstep(
                 target_prefix(self._ends, now_lo, next_hi, self._policy), self._step
             )
             self._update_safe_prefix(m)
-        if st in _IN_MOTION and self._elapsed(m) > self._t_end + self._settings.finish_timeout_ms:
-            late = next(f for f in self._feeders if f.state is not FeederState.FINISHED)
+        if self._cyclic and self._state not in TERMINAL:
+            self._send_setpoints(m)
+        if st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms:
+            late = next(f for f in self._axes if f.state is not FeederState.FINISHED)
             self._fail(
                 oc.FINISH_TIMEOUT,
-                f"node {late.node_id}: no ip mode inactive + target reached "
-                f"{self._settings.finish_timeout_ms} ms after the plan's end",
+                f"node {late.node_id}: no ip mode inactive + target reached (or, for a cyclic axis, its "
+                f"last set point) {self._settings.finish_timeout_ms} ms after the plan's end",
                 late.node_id,
             )
         elif (
@@ -711,7 +805,7 @@ class Coordinator:
             and self._halt_sync is not None
             and (m - self._halt_sync) * self._period > self._settings.finish_timeout_ms
         ):
-            late = next(f for f in self._feeders if f.state is not FeederState.FINISHED)
+            late = next(f for f in self._axes if f.state is not FeederState.FINISHED)
             self._fail(
                 oc.FINISH_TIMEOUT,
                 f"node {late.node_id}: no standstill {self._settings.finish_timeout_ms} ms after the halt",
@@ -736,10 +830,13 @@ class Coordinator:
         for f in self._feeders:
             f.fire(FeederInput.START)
             self._emit_cw(f, CW_START_IP)
+        for cf in self._cyclic:  # already interpolating the hold: the first set point that moves starts it
+            cf.fire(FeederInput.START)
         self._start_sync = m + 1
         self._set_state(JobState.STARTING)
-        self._advance_lockstep(target_prefix(self._ends, 0, 0, self._policy), self._step)
-        self._update_safe_prefix(m)
+        if self._feeders:
+            self._advance_lockstep(target_prefix(self._ends, 0, 0, self._policy), self._step)
+            self._update_safe_prefix(m)
 
     def _update_safe_prefix(self, m: int) -> None:
         if self._start_sync is not None:
@@ -778,9 +875,111 @@ class Coordinator:
         self._record_frames += n
         self._emitted_any = True
 
+    # ---- cyclic axes --------------------------------------------------------------------------------
+    def _prime_cyclic(self, f: CyclicFeeder, m: int) -> None:
+        """PRIMING: PRIMED once ip mode was seen active at SYNC a and m >= a + HOLD_AFTER_ACTIVE (the holds
+        after a are latched); START_FAILED when it never comes."""
+        if f.state is not FeederState.PRIMING:
+            return
+        if f.active_sync is not None:
+            if m >= f.active_sync + HOLD_AFTER_ACTIVE:
+                f.fire(FeederInput.PRIMED)
+            return
+        if f.ready_sync is not None and (m - f.ready_sync) * self._period > self._settings.activate_timeout_ms:
+            what = "ip mode active (statusword bit 12)" if f.spec.starts_with_bit4 else \
+                "following the set point (statusword bit 12)"
+            self._fail(
+                oc.START_FAILED,
+                f"node {f.node_id}: not {what} {self._settings.activate_timeout_ms} ms after "
+                f"{'controlword bit 4' if f.spec.starts_with_bit4 else 'operation enabled'} (statusword "
+                f"0x{f.last_statusword or 0:04X}; an XtrapulsPac needs 180 ms of SYNC first)",
+                f.node_id,
+                {"statusword": f.last_statusword},
+            )
+
+    def _send_setpoints(self, m: int) -> None:
+        """After SYNC m: every cyclic frame whose axes are being fed, each axis' set point for SYNC m + 1;
+        an XtrapulsPac that has reached its last set point gets bit 4 cleared (ip mode off)."""
+        s = self._start_sync
+        values: dict[int, tuple[int, int]] = {}
+        sending: set[int] = set()
+        for f in self._cyclic:
+            j = f.index_after(m, s) if f.state is not FeederState.FINISHED else f.n
+            values[f.node_id] = f.value(j)
+            if f.state in _CYCLIC_SENDING:
+                sending.add(f.node_id)
+                f.sent(j)
+                if f.state is FeederState.STREAMING and j >= f.n:
+                    f.fire(FeederInput.END_QUEUED)
+            if (f.state is FeederState.DRAINING and f.spec.starts_with_bit4 and f.bit4_off_sync is None
+                    and s is not None and m >= s + f.n):
+                self._emit_cw(f, CW_ENABLE_OPERATION)  # the drive is at its last set point: ip mode off
+                f.bit4_off_sync = m + 1
+        if self._state is JobState.HALTING:
+            return  # the cyclic axes were quick-stopped: they take no set points
+        for members in self._groups.values():
+            if not any(node in sending for node in members):
+                continue
+            frame = pack_frame({n: self._settings.cyclic[n].slot for n in members}, members, values)
+            self._out.append(frame)
+            self._cycle_used_bits += float(setpoint_frame_bits((len(frame.data),)))
+            self._frames_sent += 1
+            self._record_frames += 1
+            self._emitted_any = True
+
+    def _on_status(self, ev: StatusWord) -> None:
+        f = self._by_node.get(ev.node)
+        if not isinstance(f, CyclicFeeder):
+            return
+        m = self._attribute(f, 1, ev.sync_count, ev.t)
+        if m is None or m <= f.last_tpdo1:
+            return
+        f.last_tpdo1 = m
+        self._t = ev.t
+        sw, node = ev.statusword, f.node_id
+        f.last_statusword = sw
+        if sw & SW_FAULT:
+            self._fail(oc.DRIVE_FAULT, f"node {node}: statusword 0x{sw:04X} reports a fault at SYNC {m}", node,
+                       {"statusword": sw})
+            return
+        if self._state is JobState.CONFIGURING:
+            f.first_status = sw
+            self._try_configure()
+            return
+        fs = f.state
+        if fs in (FeederState.FINISHED, FeederState.FAULTED, FeederState.WAITING):
+            return
+        active = bool(sw & SW_IP_ACTIVE)
+        if fs is FeederState.HALTING:
+            state = sw & SW_STATE_MASK
+            if state not in (SW_OPERATION_ENABLED, SW_QUICK_STOP_ACTIVE) or (
+                    state == SW_QUICK_STOP_ACTIVE and sw & SW_TARGET_REACHED):
+                f.fire(FeederInput.STOPPED)
+                f.end_sync = m
+                self._progress_job()
+            return
+        if fs is FeederState.PRIMING:
+            if active and f.active_sync is None and (f.ready_sync is None or m > f.ready_sync):
+                f.active_sync = m
+            return
+        s = self._start_sync
+        if not active:
+            if fs is FeederState.DRAINING and f.bit4_off_sync is not None and m >= f.bit4_off_sync:
+                f.fire(FeederInput.STOPPED)
+                f.end_sync = m
+                self._progress_job()
+                return
+            self._fail(oc.PROTOCOL, f"node {node}: ip mode inactive (statusword 0x{sw:04X}) at SYNC {m} while "
+                       "it is being fed set points", node, {"statusword": sw})
+            return
+        if fs is FeederState.STARTING and s is not None and m >= s:
+            f.fire(FeederInput.ACTIVE)
+            f.start_sync = s
+            self._progress_job()
+
     def _on_buffer_status(self, ev: BufferStatus) -> None:
         f = self._by_node.get(ev.node)
-        if f is None:
+        if not isinstance(f, FifoFeeder):
             return
         m = self._attribute(f, 1, ev.sync_count, ev.t)
         if m is None or m <= f.last_tpdo1:
@@ -918,25 +1117,32 @@ class Coordinator:
         self._progress_job()
 
     def _try_configure(self) -> None:
-        for f in self._feeders:
+        for f in self._axes:
             if f.first_status is None or f.first_demand is None:
                 return
         tol = self._settings.start_tolerance_counts
-        for f in self._feeders:
+        for f in self._axes:
             assert f.first_status is not None and f.first_demand is not None
-            sw, bs, fill = f.first_status
             node = f.node_id
             why = ""
-            if sw & SW_STATE_MASK != SW_OPERATION_ENABLED:
-                why = f"not operation enabled (statusword 0x{sw:04X})"
-            elif bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
-                why = "ip mode already active"
-            elif fill != 0:
-                why = f"FIFO holds {fill} records (clear the buffer before a job)"
+            if isinstance(f, FifoFeeder):
+                sw, bs, fill = f.first_status
+                if sw & SW_STATE_MASK != SW_OPERATION_ENABLED:
+                    why = f"not operation enabled (statusword 0x{sw:04X})"
+                elif bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
+                    why = "ip mode already active"
+                elif fill != 0:
+                    why = f"FIFO holds {fill} records (clear the buffer before a job)"
+                detail: dict[str, Any] = {"statusword": sw, "buffer_status": bs}
+            else:
+                sw = f.first_status
+                if sw & SW_STATE_MASK != SW_OPERATION_ENABLED:
+                    why = f"not operation enabled (statusword 0x{sw:04X})"
+                elif f.spec.starts_with_bit4 and sw & SW_IP_ACTIVE:
+                    why = "ip mode already active"
+                detail = {"statusword": sw}
             if why:
-                self._fail(
-                    oc.DRIVE_NOT_READY, f"node {node}: {why}", node, {"statusword": sw, "buffer_status": bs}
-                )
+                self._fail(oc.DRIVE_NOT_READY, f"node {node}: {why}", node, detail)
                 return
             if abs(f.first_demand - f.start_position) > tol:
                 self._fail(
@@ -947,10 +1153,20 @@ class Coordinator:
                     {"position_demand": f.first_demand, "plan_start": f.start_position},
                 )
                 return
-        for f in self._feeders:
+        for f in self._axes:
             f.fire(FeederInput.READY)
-            self._emit_cw(f, CW_ENABLE_OPERATION)
+            if isinstance(f, FifoFeeder):
+                self._emit_cw(f, CW_ENABLE_OPERATION)
+            else:
+                # the hold set point from now on (sent with the next SYNC's reaction, and this one now, so the
+                # SYNC that applies bit 4 finds one); an XtrapulsPac gets bit 4 (a rising edge: enable left it
+                # low), a CSP drive already follows its target
+                f.ready_sync = self._sync
+                if f.spec.starts_with_bit4:
+                    self._emit_cw(f, CW_START_IP)
         self._set_state(JobState.PRIMING)
+        if self._cyclic and self._sync is not None:
+            self._send_setpoints(self._sync)
         # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
         self._lock_prev = self._lockstep = 0
 
@@ -966,7 +1182,7 @@ class Coordinator:
             _ALL_FINISHED
         ):
             if st is JobState.FINISHING:
-                self._finish(JobResult.DONE, f"all {len(self._feeders)} axes finished the plan")
+                self._finish(JobResult.DONE, f"all {len(self._axes)} axes finished the plan")
             elif st is JobState.CANCELLING:
                 self._finish(
                     JobResult.CANCELLED,
@@ -974,7 +1190,7 @@ class Coordinator:
                     dict(self._cancel_info),
                 )
             else:
-                for f in self._feeders:
+                for f in self._feeders:  # halt released (the cyclic axes were quick-stopped instead)
                     self._emit_cw(f, CW_ENABLE_OPERATION)
                 self._finish(
                     JobResult.CANCELLED,
@@ -985,6 +1201,9 @@ class Coordinator:
     def _on_position(self, ev: PositionFeedback) -> None:
         f = self._by_node.get(ev.node)
         if f is None:
+            return
+        if isinstance(f, CyclicFeeder):
+            self._on_cyclic_position(f, ev)
             return
         m = self._attribute(f, 2, ev.sync_count, ev.t)
         if m is None or m <= f.last_tpdo2:
@@ -1035,11 +1254,45 @@ class Coordinator:
                     {"position_demand": demand, "expected": expected, "sync": m},
                 )
 
+    def _on_cyclic_position(self, f: CyclicFeeder, ev: PositionFeedback) -> None:
+        m = self._attribute(f, 2, ev.sync_count, ev.t)
+        if m is None or m <= f.last_tpdo2:
+            return
+        f.last_tpdo2 = m
+        self._t = ev.t
+        if self._state is JobState.CONFIGURING:
+            f.first_demand = ev.position_demand
+            self._try_configure()
+            return
+        if f.state in (FeederState.HALTING, FeederState.FAULTED, FeederState.FINISHED):
+            return
+        s = self._start_sync
+        demand = ev.position_demand
+        lo, hi = f.expected_demand(m, s)
+        err = max(0, lo - demand, demand - hi)
+        f.max_demand_error = max(f.max_demand_error, err)
+        if err > self._settings.demand_tolerance_counts:
+            before = s is None or m <= s
+            self._fail(
+                oc.START_MISMATCH if before else oc.PROTOCOL,
+                f"node {f.node_id}: position demand {demand} at SYNC {m} is {err} counts from the set point "
+                f"{'it holds before the start' if before else 'it reached at that SYNC'} ({lo}..{hi})",
+                f.node_id,
+                {"position_demand": demand, "expected": [lo, hi], "sync": m},
+            )
+            return
+        # a CSP drive has no ip mode to switch off: it is done when it reports its last set point
+        if (f.state is FeederState.DRAINING and not f.spec.starts_with_bit4 and s is not None
+                and m >= s + f.n and demand == f.value(f.n)[0]):
+            f.fire(FeederInput.STOPPED)
+            f.end_sync = m
+            self._progress_job()
+
     def _on_emcy(self, ev: Emcy) -> None:
         if ev.node not in self._by_node or ev.code == oc.EMCY_NO_ERROR:
             return
         self._t = ev.t
-        code, what = oc.classify_emcy(ev.code, ev.data)
+        code, what = oc.classify_emcy(ev.code, ev.data, cyclic=isinstance(self._by_node[ev.node], CyclicFeeder))
         self._fail(
             code,
             f"node {ev.node}: EMCY 0x{ev.code:04X} ({what})",
@@ -1078,7 +1331,13 @@ class Coordinator:
     # ---- cancel ------------------------------------------------------------------------------------
     def _cancel_before_start(self, ev: Cancel) -> None:
         self._t = ev.t
-        for f in self._feeders:
+        for cf in self._cyclic:  # an XtrapulsPac may already interpolate the hold: ip mode off, one last hold
+            if cf.state is not FeederState.WAITING and cf.spec.starts_with_bit4:
+                self._emit_cw(cf, CW_ENABLE_OPERATION)
+        if self._cyclic and self._sync is not None and any(
+                f.state is not FeederState.WAITING for f in self._cyclic):
+            self._send_setpoints(self._sync)
+        for f in self._axes:
             f.fire(FeederInput.ABANDON)
         self._cancel_info = {"stop": "before_start", "summary": "before the start; nothing moved"}
         self._finish(
@@ -1095,9 +1354,17 @@ class Coordinator:
 
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
-        k = max(min(len(self._ends), f.max_sent - f.lead) for f in self._feeders)  # plan records queued
         n_segments = len(self._ends) - 1
-        if k >= n_segments:
+        if self._feeders:
+            k = max(min(len(self._ends), f.max_sent - f.lead) for f in self._feeders)  # plan records queued
+            done = k >= n_segments
+            t0 = self._ends[k - 1] if k > 0 else 0
+        else:  # one set point per SYNC: the stop starts after the last set point sent
+            k = 0
+            sent = max(f.sent_index for f in self._cyclic)
+            done = all(f.sent_index >= f.n for f in self._cyclic)
+            t0 = max(0, sent) * self._period
+        if done:
             self._cancel_info = {
                 "stop": "plan_end",
                 "knot": k,
@@ -1108,13 +1375,27 @@ class Coordinator:
         if self._stop_planner is None:
             self._halt("no stop planner was given")
             return
-        accs = [f.end_acceleration(k - 1) for f in self._feeders]
+        positions: list[int] = []
+        velocities: list[int] = []
+        accs: list[float | None] = []
+        for f in self._axes:
+            if isinstance(f, FifoFeeder):
+                positions.append(f.records[k - 1].position)
+                velocities.append(f.records[k - 1].velocity)
+                accs.append(f.end_acceleration(k - 1))
+            else:  # the plan's state at t0 (the cyclic axis follows the plan, not the records)
+                pos, vel, acc = self._reference(self._plan, f.axis)
+                i = min(t0, pos.size - 1)
+                cpr = self._settings.counts_per_rev.get(f.node_id)
+                positions.append(hermite.round_counts(float(pos[i])))
+                velocities.append(round(hermite.counts_per_ms_to_rpm(float(vel[i]), cpr)) if cpr else 0)
+                accs.append(float(acc[i]) if cpr else None)
         request = StopRequest(
             knot_index=k,
-            time_ms=self._ends[k - 1],
+            time_ms=t0,
             node_ids=self._plan.node_ids,
-            positions_counts=tuple(f.records[k - 1].position for f in self._feeders),
-            velocities_rpm=tuple(f.records[k - 1].velocity for f in self._feeders),
+            positions_counts=tuple(positions),
+            velocities_rpm=tuple(velocities),
             accelerations_counts_per_ms2=None
             if any(a is None for a in accs)
             else tuple(float(a or 0.0) for a in accs),
@@ -1130,39 +1411,55 @@ class Coordinator:
                 f"(starts {list(stop.start_positions)}, queued {list(request.positions_counts)})"
             )
             return
-        t0 = self._ends[k - 1]
-        new_ends = self._ends[:k] + [t0 + e for e in segment_ends(stop.segment_ms)]
-        assert self._sync is not None
-        _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
-        short = dry_run(new_ends, self._policy, self._step, k, now_hi)
-        if short is not None:
-            self._halt(
-                f"the stop trajectory cannot be streamed in time ({short.fill} records left at "
-                f"{short.elapsed_ms} ms)"
-            )
-            return
-        for axis, f in enumerate(self._feeders):
-            rid = rpdo2_id(f.node_id)
-            f.splice(k, list(stop.records[axis]), [Send(rid, frame) for frame in stop.frames[axis]])
+        new_ends = [e for e in self._ends if e <= t0] + [t0 + e for e in segment_ends(stop.segment_ms)]
+        if self._feeders:
+            assert self._sync is not None
+            _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
+            short = dry_run(new_ends, self._policy, self._step, k, now_hi)
+            if short is not None:
+                self._halt(
+                    f"the stop trajectory cannot be streamed in time ({short.fill} records left at "
+                    f"{short.elapsed_ms} ms)"
+                )
+                return
+        for f in self._axes:
+            if isinstance(f, FifoFeeder):
+                rid = rpdo2_id(f.node_id)
+                f.splice(k, list(stop.records[f.axis]), [Send(rid, frame) for frame in stop.frames[f.axis]])
+            else:
+                pos, vel, _ = self._reference(stop, f.axis)
+                f.splice(t0, pos, vel)
+                if f.state is FeederState.DRAINING:  # it had sent its last set point: the stop has more
+                    f.state = FeederState.STREAMING
         self._ends = new_ends
         self._t_end = new_ends[-1]
+        self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
         self._lockstep = min(self._lockstep, k)
         self._lock_prev = min(self._lock_prev, k)
-        self._points = sum(len(f.sends) for f in self._feeders)
+        self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._cancel_info = {
             "stop": "trajectory",
             "knot": k,
             "time_ms": t0,
             "stop_duration_ms": stop.duration_ms,
-            "summary": f"stop trajectory from knot {k} ({t0} ms), {stop.duration_ms} ms long",
+            "summary": f"stop trajectory from {'knot ' + str(k) + ' ' if self._feeders else ''}{t0} ms, "
+                       f"{stop.duration_ms} ms long",
         }
         self._set_state(JobState.CANCELLING)
 
     def _halt(self, reason: str) -> None:
+        """Halt (bit 8) on the FIFO axes; a cyclic axis has no halt in its mode (XtrapulsPac: "only in PV,
+        PT, AS, AT"), so it is quick-stopped (its quick stop option 0x605A, written at configuration)."""
         for f in self._feeders:
             if f.state in (FeederState.STARTING, FeederState.STREAMING):
                 f.fire(FeederInput.HALT)
             self._emit_cw(f, CW_HALT)
+        for cf in self._cyclic:
+            if cf.state in (FeederState.STARTING, FeederState.STREAMING, FeederState.DRAINING):
+                if cf.state is FeederState.DRAINING:
+                    cf.state = FeederState.STREAMING
+                cf.fire(FeederInput.HALT)
+                self._emit_cw(cf, CW_QUICK_STOP)
         self._halt_sync = (self._sync if self._sync is not None else 0) + 1
         self._cancel_info = {"stop": "halt", "reason": reason, "summary": f"halt (bit 8): {reason}"}
         self._set_state(JobState.HALTING)

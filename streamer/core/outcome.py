@@ -35,6 +35,8 @@ PROTOCOL = "PROTOCOL"  # duplicate or reordered record, fill below anything loss
 DRIVE_NOT_READY = "DRIVE_NOT_READY"  # at configure: not operation enabled, buffer disabled, FIFO not empty
 START_FAILED = "START_FAILED"  # a drive did not report ip mode active at the start SYNC
 FINISH_TIMEOUT = "FINISH_TIMEOUT"  # ip mode inactive + target reached (or halt standstill) never reported
+SETPOINT_LATE = "SETPOINT_LATE"  # a cyclic drive missed a set point (EMCY 0x8782: missing, or < 100 us before SYNC)
+SETPOINT_RANGE = "SETPOINT_RANGE"  # a cyclic axis' set points do not fit their frame (16-bit step, group)
 
 FAILURE_CODES = frozenset(
     {
@@ -54,6 +56,8 @@ FAILURE_CODES = frozenset(
         DRIVE_NOT_READY,
         START_FAILED,
         FINISH_TIMEOUT,
+        SETPOINT_LATE,
+        SETPOINT_RANGE,
     }
 )
 
@@ -72,8 +76,11 @@ BUFFER_UNDERFLOW_ERROR_BIT = 1 << 8
 BUFFER_OVERFLOW_ERROR_BIT = 1 << 9
 
 
-def classify_emcy(code: int, data: bytes) -> tuple[str, str]:
-    """(failure code, description) of an EMCY. Generic codes map to DRIVE_FAULT."""
+def classify_emcy(code: int, data: bytes, *, cyclic: bool = False) -> tuple[str, str]:
+    """(failure code, description) of an EMCY. Generic codes map to DRIVE_FAULT. `cyclic`: the drive takes
+    one set point per SYNC, so 0x8782 means a set point came late or not at all (seed 003 error 50)."""
+    if code == EMCY_IP_BUFFER and cyclic:
+        return SETPOINT_LATE, "IP set point missing or late (less than 100 us before its SYNC)"
     if code == EMCY_FOLLOWING_ERROR:
         return FOLLOWING_ERROR, "following error"
     if code == EMCY_SYNC_LOST:

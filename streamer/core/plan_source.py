@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 from planner.record import PvtRecord, pack
@@ -85,6 +85,10 @@ class StreamPlan:
     segment_ms: tuple[int, ...]  # shared grid, N >= 1 entries in 1..255
     records: tuple[tuple[PvtRecord, ...], ...]  # per axis N + 1 records, the last one the end record
     frames: tuple[tuple[bytes, ...], ...]  # the packed records (same shape as `records`)
+    # the planned motion at every ms, when the trajectory carries it (planner.Reference: positions counts,
+    # velocities counts/ms, accelerations counts/ms^2, each (n_axes, M+1)): what the set points of a cyclic
+    # drive are sampled from (streamer/core/cyclic.py); None: sampled from the records' own Hermite curve
+    reference: tuple[Any, Any, Any] | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         n = len(self.node_ids)
@@ -202,4 +206,10 @@ class StreamPlan:
         plan = cls.from_records(node_ids, starts, records)
         if list(plan.segment_ms) != grid:
             raise ValueError("the records' times do not match the trajectory's dt_ms grid")
+        ref = getattr(traj, "plan", None)
+        if ref is not None and hasattr(ref, "positions") and hasattr(ref, "velocities"):
+            pos, vel = ref.positions, ref.velocities
+            acc = getattr(ref, "acc_left", None)
+            if len(pos) == n_axes and len(pos[0]) == plan.duration_ms + 1:
+                plan = replace(plan, reference=(pos, vel, acc if acc is not None else vel * 0.0))
         return plan

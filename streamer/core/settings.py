@@ -22,6 +22,10 @@ reading. `fifo_count`, `first_record` and `clock` change what the drive does wit
 known: the runtime measures them at configuration (bus/probe.py) when the cell does not say.
 `feedback`: TPDO2 every n-th SYNC (bus.profile.FeedbackSchedule; None = every SYNC). `time_stamp`: the
 runtime sends 0x1013 after every SYNC, so drives with their own clock follow the master's.
+
+`cyclic`: the nodes whose drives take one set point per SYNC (streamer/core/cyclic.py; bus/families.py),
+with their set point slot and interpolation; every other node is an EPOS FIFO. The FIFO settings
+(watermarks, lead, repair) apply to the FIFO nodes only.
 """
 
 from __future__ import annotations
@@ -34,10 +38,12 @@ from typing import Any
 
 from bus.profile import FeedbackSchedule
 from planner.readings import MUST_KNOW, DriveReadings, SimDriveOptions
+from streamer.core.cyclic import CyclicAxis
 
 FIFO_SIZE = 64
 _EMPTY_CPR: Mapping[int, int] = MappingProxyType({})
 _EMPTY_READINGS: Mapping[int, DriveReadings] = MappingProxyType({})
+_EMPTY_CYCLIC: Mapping[int, CyclicAxis] = MappingProxyType({})
 REFERENCE_READINGS = DriveReadings.of_sim(SimDriveOptions())
 
 
@@ -66,6 +72,8 @@ class StreamerSettings:
     readings: Mapping[int, DriveReadings] = field(default_factory=lambda: _EMPTY_READINGS)
     feedback: FeedbackSchedule | None = None
     time_stamp: bool = False
+    cyclic: Mapping[int, CyclicAxis] = field(default_factory=lambda: _EMPTY_CYCLIC)
+    activate_timeout_ms: int = 1000  # a cyclic drive must report ip mode active this soon after bit 4
 
     def __post_init__(self) -> None:
         def bad(name: str, value: object, why: str) -> ValueError:
@@ -80,6 +88,7 @@ class StreamerSettings:
             "tpdo_timeout_syncs",
             "finish_timeout_ms",
             "fifo_size",
+            "activate_timeout_ms",
         ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
@@ -128,6 +137,11 @@ class StreamerSettings:
                 raise bad(f"readings[{node}]", r, f"{', '.join(unknown)} of node {node} not known: the "
                           "runtime measures them at configuration (pvt probe), or set them in [axis.probed]")
         object.__setattr__(self, "readings", MappingProxyType(readings))
+        cyclic = dict(self.cyclic)
+        for node, c in cyclic.items():
+            if not isinstance(c, CyclicAxis) or c.slot.node != node:
+                raise bad(f"cyclic[{node}]", c, "must be the CyclicAxis of that node")
+        object.__setattr__(self, "cyclic", MappingProxyType(cyclic))
 
     def reading(self, node: int) -> DriveReadings:
         """What the core assumes of `node`: its entry in `readings`, else the reference drive's readings."""
@@ -141,6 +155,13 @@ class StreamerSettings:
     def from_cell(cls, cell: Any, **overrides: Any) -> StreamerSettings:
         """Settings for a `planner.config.CellConfig` (typed Any so this module does not pull the TOML
         loader into the core's type check); keyword overrides win."""
+        from bus.families import PROFILES
+        from bus.profile import setpoint_slots
+
+        slots = setpoint_slots(cell.axes)
+        cyclic = {a.node_id: CyclicAxis(slots[a.node_id], PROFILES[a.profile].submode(a),
+                                        PROFILES[a.profile].starts_with_bit4)
+                  for a in cell.axes if a.node_id in slots}
         base = cls(
             sync_period_ms=cell.sync_period_ms,
             bitrate=cell.bus.bitrate,
@@ -149,5 +170,6 @@ class StreamerSettings:
             heartbeat_ms=cell.drive.heartbeat_ms,
             counts_per_rev={a.node_id: int(a.counts_per_rev) for a in cell.axes},
             time_stamp=bool(getattr(cell, "time_stamp", False)),
+            cyclic=cyclic,
         )
         return replace(base, **overrides) if overrides else base

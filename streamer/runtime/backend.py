@@ -119,7 +119,8 @@ class RuntimeBackend:
         core = result.coordinator
         report = build_report(traj, core.report(), result.trace, sync_period_ms=self.cell.sync_period_ms,
                               first_sync=result.first_sync, last_sync=result.last_sync,
-                              readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp)
+                              readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp,
+                              setpoints={n: core.setpoints(n) for n in traj.node_ids})
         outcome = core.outcome
         if outcome is not None and report["result"] == "failed":
             report["error"] = {"code": outcome.code, "node": outcome.node, "message": outcome.message,

@@ -31,7 +31,7 @@ import can
 
 from bus.errors import PROBE, BusError
 from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync
-from bus.families import EPOS_IPM
+from bus.families import EPOS_IPM, PROFILES
 from bus.network import MasterAdapter
 from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
 from planner.config import CellConfig
@@ -119,7 +119,9 @@ class RealtimeRuntime:
         self._settings_given = settings is not None
         self.settings = settings if settings is not None else replace(
             StreamerSettings.from_cell(cell), feedback=adapter.feedback)
-        self.known: dict[int, DriveReadings] = {a.node_id: a.probed for a in cell.axes}
+        # what the master knows of each drive; a cyclic drive has no FIFO whose open points a probe measures
+        self.known: dict[int, DriveReadings] = {
+            a.node_id: a.probed.for_cyclic() if PROFILES[a.profile].kind == "cyclic" else a.probed for a in cell.axes}
         self.probe_result: ProbeResult | None = None
         self._probing = False
         self._events: queue.Queue[Event] = queue.Queue()
@@ -221,7 +223,7 @@ class RealtimeRuntime:
         """Measure what the master does not know yet of the drives, once (see the virtual runtime)."""
         if self._settings_given:
             return
-        if any(r.needs_probe for r in self.known.values()):
+        if any(r.needs_probe for n, r in self.known.items() if self.adapter.profiles[n].kind == "fifo"):
             try:
                 self.known = self.probe().complete(self.known)
             except ProbeError as e:

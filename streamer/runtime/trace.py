@@ -25,7 +25,17 @@ from typing import Any
 
 from bus.cob import SYNC_COB_ID
 from bus.codec import frame_bits
-from bus.events import AdapterError, Bootup, BufferStatus, Cancel, Emcy, HeartbeatLost, PositionFeedback, SendFailed
+from bus.events import (
+    AdapterError,
+    Bootup,
+    BufferStatus,
+    Cancel,
+    Emcy,
+    HeartbeatLost,
+    PositionFeedback,
+    SendFailed,
+    StatusWord,
+)
 
 IP_ACTIVE_BIT = 1 << 15  # 0x20C4:01 bit 15
 FIFO_SIZE = 64
@@ -116,6 +126,9 @@ class AxisTrace:
     # recorded only with JobTrace(record=True): TPDO1's other two objects, aligned with fill_sync
     statusword: list[int] = field(default_factory=list)
     buffer_status: list[int] = field(default_factory=list)
+    # a cyclic drive's statusword (TPDO1 carries nothing else), with the SYNC it answers
+    statusword_sync: list[int] = field(default_factory=list)
+    statusword_only: list[int] = field(default_factory=list)
     # the set point sent per SYNC by a cyclic (one set point per SYNC) drive family, counts
     setpoint_sync: list[int] = field(default_factory=list)
     setpoint: list[int] = field(default_factory=list)
@@ -184,6 +197,16 @@ class JobTrace:
             if self.record:
                 ax.statusword.append(ev.statusword)
                 ax.buffer_status.append(ev.buffer_status)
+        elif isinstance(ev, StatusWord):  # a cyclic drive: no FIFO, the statusword alone
+            ax = self.axes.get(ev.node)
+            if ax is None:
+                return
+            s = self._sync if ev.sync_count is None else ev.sync_count
+            if ev.statusword & 0x1000:
+                ax.ip_active_syncs.append(s)
+            if self.record:
+                ax.statusword_sync.append(s)
+                ax.statusword_only.append(ev.statusword)
         elif isinstance(ev, PositionFeedback):
             ax = self.axes.get(ev.node)
             if ax is None:

@@ -59,7 +59,7 @@ from bus.events import (
     SendFailed,
     Sync,
 )
-from bus.families import EPOS_IPM
+from bus.families import EPOS_IPM, PROFILES
 from bus.probe import AUTO_EXPERIMENTS, AbsentObject, Phase, ProbeError, ProbeResult, StandstillProbe, WriteOnly
 from bus.profile import DriveProfile, frame_to_event
 from bus.sim.od import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, ABORT_UNSUPPORTED_ACCESS, ABORT_WRITE_ONLY, SdoAbort
@@ -216,7 +216,9 @@ class VirtualRuntime:
         self._settings_given = settings is not None
         self.settings = settings if settings is not None else replace(
             StreamerSettings.from_cell(cell), feedback=self.vcell.feedback)
-        self.known: dict[int, DriveReadings] = {a.node_id: a.probed for a in cell.axes}
+        # what the master knows of each drive; a cyclic drive has no FIFO whose open points a probe measures
+        self.known: dict[int, DriveReadings] = {
+            a.node_id: a.probed.for_cyclic() if PROFILES[a.profile].kind == "cyclic" else a.probed for a in cell.axes}
         self.probe_result: ProbeResult | None = None
         self._probe: StandstillProbe | None = None
         self._time_offset = 0.0  # SYNC times after a probe continue from where the probe left off
@@ -568,7 +570,7 @@ class VirtualRuntime:
         with the standstill probe; the job settings then carry every drive's readings."""
         if self._settings_given:
             return
-        if any(r.needs_probe for r in self.known.values()):
+        if any(r.needs_probe for n, r in self.known.items() if self.profiles[n].kind == "fifo"):
             self.known = self.probe().complete(self.known)
         self.settings = replace(self.settings, readings=dict(self.known))
 

@@ -1,0 +1,188 @@
+"""Cyclic feeder: the per-axis state machine that sends a drive of a cyclic family one set point per SYNC.
+
+A drive of a cyclic family (bus/families.py: XtrapulsPac interpolated position, CiA 402 cyclic
+synchronous position) has no FIFO: it latches the set point that arrived since the last SYNC at each
+SYNC and interpolates towards it over the next period (planner/cyclic.py has the model and the deviation
+bound). So this feeder holds no stream position to account for; it owns, for one axis, which set point
+goes out after each SYNC, the start and end of its interpolation, and its telemetry. The coordinator
+(coordinator.py) drives it next to the FIFO feeders, through the same states and inputs
+(`feeder.FeederState`), and packs its set point into the axis' frame (its own RPDO3, or the frame of its
+multiplexed group).
+
+Timing (S = the job's start SYNC, the same for every axis of the job; P = the SYNC period):
+- from the moment the axis is READY the drive gets its start position x_0 after every SYNC (a "hold"
+  set point), so that enabling interpolation moves nothing and no SYNC ever finds it without a set point;
+  an XtrapulsPac gets controlword bit 4 (enable ip mode) with the first hold, in PRIMING; a CSP drive
+  follows its target as soon as it is operation enabled;
+- it is PRIMED once its statusword shows bit 12 (ip mode active / following the set point) at some SYNC
+  a and two more holds have been sent after a (the P3 sub-mode interpolates through the last three set
+  points: they are then all x_0, whatever the drive kept from before);
+- the set point sent after SYNC m is x_j, j = m + 2 - S: the drive latches it at SYNC m + 1 and reaches it
+  at SYNC m + 2 = S + j, so its demand at SYNC S + j is the plan at j*P, in step with the EPOS drives'
+  (which start interpolating at S). The start decision is taken at SYNC S - 1, so x_1 is the first set
+  point that moves;
+- after the last set point x_N (the plan's end, at rest) the hold goes on; once the drive has reached it
+  (SYNC S + N) an XtrapulsPac gets bit 4 cleared (ip mode off; it holds its position) and the axis is
+  FINISHED when the statusword shows bit 12 clear; a CSP drive is FINISHED when its position demand at a
+  SYNC >= S + N is x_N;
+- a stop (cancel) replaces the set points from time t0 on with those of a stop trajectory starting at the
+  plan's state at t0: t0 is the end of what the EPOS FIFOs hold in a mixed cell, else the time of the
+  last set point sent, so the stop starts with the next set point (within one period).
+
+The position demand at SYNC S + j is checked against x_j (the drive reaches each set point at its SYNC),
+allowing for a drive that samples its demand one internal cycle (1 ms) off the SYNC.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bus.events import Send
+from bus.profile import SetpointSlot, pack_setpoints
+from planner.cyclic import Setpoints, sample
+from planner.reference import FloatArray
+from streamer.core.feeder import _TRANSITIONS, AxisTelemetry, FeederInput, FeederState, InvalidTransition
+
+HOLD_AFTER_ACTIVE = 2  # holds sent after the SYNC ip mode was seen active, before the axis counts as primed
+
+
+@dataclass(frozen=True)
+class CyclicAxis:
+    """What the core knows of one cyclic axis: where its set point travels, how its drive interpolates,
+    and whether controlword bit 4 starts the interpolation (XtrapulsPac IP) or not (CSP)."""
+
+    slot: SetpointSlot
+    interpolation: str  # "linear" | "pv" | "p3"
+    starts_with_bit4: bool = True
+
+
+class CyclicFeeder:
+    """One cyclic axis. The coordinator owns the timing and calls `setpoint`, `fire` and the checks."""
+
+    kind = "cyclic"
+
+    def __init__(self, axis: int, node_id: int, start_position: int, spec: CyclicAxis, period_ms: int,
+                 positions: FloatArray, velocities_per_ms: FloatArray) -> None:
+        self.axis = axis
+        self.node_id = node_id
+        self.start_position = start_position
+        self.spec = spec
+        self.period_ms = period_ms
+        self.pv = spec.interpolation == "pv"
+        self.setpoints: Setpoints = sample(positions, velocities_per_ms, period_ms, pv=self.pv)
+        # the first set point is the start position to the count (the plan's knot 0 is)
+        self.setpoints.positions[0] = start_position
+        self.state = FeederState.WAITING
+        self.last_tpdo1 = -1
+        self.last_tpdo2 = -1
+        self.first_status: int | None = None  # statusword of the first TPDO1 of the job
+        self.first_demand: int | None = None
+        self.ready_sync: int | None = None  # the SYNC after which it got its first hold (and bit 4)
+        self.active_sync: int | None = None  # the SYNC bit 12 was first seen set (ip mode active)
+        self.holds_after_active = 0
+        self.sent_index = -1  # the last set point index sent (-1: only holds so far)
+        self.bit4_off_sync: int | None = None  # the SYNC bit 4 was cleared for (end of job)
+        # telemetry
+        self.points_sent = 0
+        self.frames_sent = 0
+        self.start_sync: int | None = None
+        self.end_sync: int | None = None
+        self.max_demand_error = 0
+        self.errors: list[str] = []
+        self.last_statusword: int | None = None
+
+    # ---- state machine ------------------------------------------------------------------------------
+    def fire(self, inp: FeederInput) -> FeederState:
+        nxt = _TRANSITIONS.get((self.state, inp))
+        if nxt is None:
+            raise InvalidTransition(
+                f"feeder of node {self.node_id}: no transition from {self.state.name} on {inp.name}")
+        self.state = nxt
+        return nxt
+
+    # ---- set points ---------------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        return self.setpoints.n
+
+    @property
+    def end_ms(self) -> int:
+        return self.setpoints.end_ms
+
+    def index_after(self, m: int, start_sync: int | None) -> int:
+        """The set point index to send after SYNC m (0 = hold x_0 before the start)."""
+        if start_sync is None:
+            return 0
+        return max(0, min(self.n, m + 2 - start_sync))
+
+    def value(self, j: int) -> tuple[int, int]:
+        """(position counts, velocity counts/s) of set point j (clamped to the last)."""
+        j = max(0, min(self.n, j))
+        return int(self.setpoints.positions[j]), int(self.setpoints.velocities[j])
+
+    def sent(self, j: int) -> None:
+        if j > self.sent_index:
+            self.points_sent += j - max(self.sent_index, 0)
+            self.sent_index = j
+        self.frames_sent += 1
+
+    def expected_demand(self, m: int, start_sync: int | None) -> tuple[int, int]:
+        """[low, high] of the position demand the drive may report at SYNC m: the set point it reached at
+        m, widened by one internal cycle (1 ms) of motion either way for a drive that samples off the SYNC."""
+        if start_sync is None or m <= start_sync:
+            x = self.value(0)[0]
+            return x, x
+        j = m - start_sync
+        x = self.value(j)[0]
+        step = max(abs(x - self.value(j - 1)[0]), abs(self.value(j + 1)[0] - x))
+        tick = -(-step // self.period_ms)  # ceil: one 1 ms tick of the fastest neighbouring period
+        return x - tick, x + tick
+
+    def splice(self, t0_ms: int, positions: FloatArray, velocities_per_ms: FloatArray) -> int:
+        """From time t0 on, the set points of a stop trajectory that starts at t0 (its own time 0); set
+        points already sent are kept. Returns the first index that changed."""
+        p = self.period_ms
+        j0 = max(self.sent_index + 1, -(-t0_ms // p))  # first j with j*P >= t0, not sent yet
+        if j0 > self.n + 1:
+            j0 = self.n + 1
+        stop = sample(positions, velocities_per_ms, p, pv=self.pv, start_ms=j0 * p - t0_ms)
+        old = self.setpoints
+        pos = np.concatenate([old.positions[:j0], stop.positions])
+        vel = np.concatenate([old.velocities[:j0], stop.velocities])
+        self.setpoints = Setpoints(p, pos, vel)
+        return j0
+
+    # ---- telemetry ----------------------------------------------------------------------------------
+    def telemetry(self) -> AxisTelemetry:
+        return AxisTelemetry(
+            node_id=self.node_id,
+            state=self.state.value,
+            points_sent=self.points_sent,
+            frames_sent=self.frames_sent,
+            resends=0,
+            losses_detected=0,
+            losses_repaired=0,
+            late_batches=0,
+            min_fifo=None,
+            max_fifo=None,
+            underflow_warnings=0,
+            overflow_warnings=0,
+            start_sync=self.start_sync,
+            end_sync=self.end_sync,
+            last_fill=None,
+            max_demand_error_counts=self.max_demand_error,
+            errors=tuple(self.errors),
+        )
+
+
+def pack_frame(slots: dict[int, SetpointSlot], members: tuple[int, ...], values: dict[int, tuple[int, int]]) -> Send:
+    """The frame of one group (or one axis): each member's (position counts, velocity counts/s) at its
+    offset (bus.profile.pack_setpoints)."""
+    first = slots[members[0]]
+    frame = bytearray(first.frame_bytes)
+    for node in members:
+        pos, vel = values[node]
+        pack_setpoints(slots[node], frame, pos, vel)
+    return Send(first.cob_id, bytes(frame))
