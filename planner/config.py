@@ -287,6 +287,30 @@ class CellConfig:
             if dup:
                 raise PlanningError(CONFIG, f"duplicate axis {label} {sorted(dup, key=str)!r}",
                                     path=f"axis.{label}")
+        self._check_families()
+
+    def _check_families(self) -> None:
+        """What the drive families ask of the cell (bus/families.py): the XtrapulsPac's node ids 1..63 and
+        SYNC period of at most 150 ms (seed 003 1), and multiplexed groups that fit one frame."""
+        groups: dict[int, list[AxisConfig]] = {}
+        for a in self.axes:
+            if a.profile == "xtrapuls-ip":
+                if a.node_id > 63:
+                    raise PlanningError(CONFIG, f"axis '{a.name}': an XtrapulsPac takes node ids 1..63 (64..127 "
+                                        f"redirect its SDOs), got {a.node_id}", path="axis.node_id")
+                if self.sync_period_ms > 150:
+                    raise PlanningError(CONFIG, f"axis '{a.name}': an XtrapulsPac's SYNC period is at most 150 ms, "
+                                        f"cell.sync_period_ms is {self.sync_period_ms}", path="cell.sync_period_ms")
+            if a.mux_group:
+                groups.setdefault(a.mux_group, []).append(a)
+        for g, members in sorted(groups.items()):
+            names = ", ".join(repr(a.name) for a in members)
+            bits = sum(32 if a.ip_submode == "pv" else 16 for a in members)
+            if len(members) > 4 or bits > 64:
+                raise PlanningError(
+                    CONFIG, f"mux_group {g} ({names}) needs {bits} bits in one frame: a multiplexed frame carries "
+                    "64 (four 16-bit positions, or two positions with their 16-bit velocities in sub-mode pv)",
+                    path="axis.mux_group")
 
     @property
     def sync_period_s(self) -> float:
@@ -314,7 +338,8 @@ class CellConfig:
             else:
                 used = {a.node_id for a in out} | {a.node_id for a in self.axes}
                 nid = next(k for k in range(1, 128) if k not in used)
-                out.append(_replace(base, name=f"{base.name}_{i // len(self.axes)}", node_id=nid))
+                # a copy gets an RPDO of its own (its group's frame is full with the originals)
+                out.append(_replace(base, name=f"{base.name}_{i // len(self.axes)}", node_id=nid, mux_group=0))
         cell: CellConfig = _replace(self, axes=tuple(out))
         return cell
 

@@ -40,7 +40,7 @@ import numpy as np
 
 from planner import hermite
 from planner.config import AxisConfig
-from planner.errors import ENCODING_RANGE, INFEASIBLE, PlanningError
+from planner.errors import AXIS_ID, ENCODING_RANGE, INFEASIBLE, PlanningError
 from planner.reference import FloatArray, IntArray
 
 if TYPE_CHECKING:
@@ -236,11 +236,23 @@ def _longest_period(pos: FloatArray, vel: FloatArray, interp: str, period_ms: in
     return None
 
 
-def with_cyclic_stats(traj: PvtTrajectory, cfg: Sequence[AxisConfig], period_ms: int) -> PvtTrajectory:
+def with_cyclic_stats(traj: PvtTrajectory, cfg: Sequence[AxisConfig], period_ms: int,
+                      cell_axes: Sequence[AxisConfig] = ()) -> PvtTrajectory:
     """The trajectory with every cyclic axis' stats measured on its drive's own interpolation (`assess`:
-    raises PlanningError when an axis cannot follow within the tolerance or its set points do not fit)."""
+    raises PlanningError when an axis cannot follow within the tolerance or its set points do not fit).
+    `cell_axes`: every axis of the cell, to refuse a job with only part of a multiplexed group (the frame
+    would carry nothing sensible for the others)."""
     if all(interpolation_of(c) is None for c in cfg):
         return traj
+    in_job = {c.name for c in cfg}
+    for c in cfg:
+        if c.mux_group:
+            left_out = [a.name for a in cell_axes if a.mux_group == c.mux_group and a.name not in in_job]
+            if left_out:
+                raise PlanningError(
+                    AXIS_ID, f"axis {c.name!r} shares multiplexed frame (mux_group {c.mux_group}) with {left_out}: "
+                    "a job must include every axis of the group", path="axes",
+                    detail={"axis": c.name, "mux_group": c.mux_group, "missing": left_out})
     ref = traj.plan
     stats = list(traj.stats)
     for i, c in enumerate(cfg):

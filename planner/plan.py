@@ -219,7 +219,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
         _check_reference_positions(ref, cfg, job.axes)
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
     # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
-    return with_cyclic_stats(traj, cfg, cell.sync_period_ms)
+    return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
 
 
 def encode_with_retries(
