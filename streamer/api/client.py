@@ -221,7 +221,8 @@ class Job:
             keys.job_events(self.cell, job_id), lambda s: self._inbox.put(s.payload.to_bytes())
         )
         # the service's liveliness token: its DELETE (the process died, or left the network) ends a wait
-        # for events at once with SERVICE_GONE instead of a long TIMEOUT
+        # for events at once with SERVICE_GONE instead of a long TIMEOUT (peer sessions; a client session
+        # finds out with the history query it makes after poll_s of silence)
         self._alive: Any = None
         try:
             self._alive = client.session.liveliness().declare_subscriber(keys.alive(self.cell), self._on_alive)
@@ -371,6 +372,8 @@ class Job:
                 self._fill_from_history()  # quiet for a while: the journal may have what we missed
                 if want in self._buffer:
                     break
+                if self._gone.is_set():
+                    continue  # reported at the top of the loop
                 if deadline is not None and time.monotonic() >= deadline:
                     raise MotionError(
                         E.TIMEOUT, f"no event of job {self.job_id!r} within {timeout} s"
@@ -409,7 +412,11 @@ class Job:
                 if ev.seq > len(self._seen):
                     self._buffer.setdefault(ev.seq, ev)
         except MotionError as err:
-            if err.code not in (E.NOT_FOUND, E.NO_SERVICE, E.TIMEOUT):
+            if err.code == E.NO_SERVICE:
+                # nothing answered and the liveliness token is gone: a Zenoh *client* session is not told
+                # when the peer it is linked to dies (no DELETE of its token), but this query finds out
+                self._gone.set()
+            elif err.code not in (E.NOT_FOUND, E.TIMEOUT):
                 raise
 
     def _unsubscribe(self) -> None:

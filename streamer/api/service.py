@@ -560,8 +560,8 @@ class JobService:
         if not ready:
             raise MotionError(
                 E.NOT_READY,
-                f"cell {self.cell!r} is not ready: {reason or 'faulted'}; reset it "
-                f"(get {keys.reset(self.cell)}) and resubmit",
+                f"cell {self.cell!r} is not ready: {reason or 'faulted'}; `pvt resume --reset` (get "
+                f"{keys.resume(self.cell)}?reset=true) clears it, then resubmit",
             )
         if self.queue_length >= self.options.queue_limit:
             raise MotionError(

@@ -41,18 +41,18 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt cancel: {exc}", highlight=False)
+        err.print(f"pvt cancel: {exc}", highlight=False, markup=False)
         return exc.status
     with client:
         try:
             job = client.job(args.job_id)
             status = job.cancel()
         except MotionError as exc:
-            err.print(f"pvt cancel: {exc}", highlight=False)
+            err.print(f"pvt cancel: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
         raw = status.raw
         requested = bool(raw.get("cancel_requested"))
-        out.print(f"job {args.job_id}: {status.state.value}; {raw.get('message') or ''}", highlight=False)
+        out.print(f"job {args.job_id}: {status.state.value}; {raw.get('message') or ''}", highlight=False, markup=False)
         if not requested and status.final:
             return connect.EXIT_FAILED
         if not args.wait:
@@ -60,13 +60,13 @@ def run(args: argparse.Namespace) -> int:
         try:
             final = job.wait()
         except JobFailedError as exc:
-            out.print(f"job {args.job_id}: failed {exc}", highlight=False)
+            out.print(f"job {args.job_id}: failed {exc}", highlight=False, markup=False)
             return connect.EXIT_FAILED
         except MotionError as exc:
-            err.print(f"pvt cancel: {exc}", highlight=False)
+            err.print(f"pvt cancel: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
         out.print(f"job {args.job_id}: {final.state.value} at {100.0 * final.progress:.1f}% of its plan",
-                  highlight=False)
+                  highlight=False, markup=False)
         if final.state == JobState.DONE:
             return connect.EXIT_OK
         return connect.EXIT_CANCELLED if final.state == JobState.CANCELLED else connect.EXIT_FAILED

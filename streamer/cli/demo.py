@@ -15,6 +15,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from rich.markup import escape
+
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("demo", help="run the default job end to end on simulated drives",
@@ -72,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,
                                        bus=args.bus, bitrate=args.bitrate)
     except PlanningError as e:
-        console.print(f"[red]error {e.code}[/red]" + (f" at {e.path}" if e.path else "") + f": {e.message}",
+        console.print(f"[red]error {e.code}[/red]" + escape((f" at {e.path}" if e.path else "") + f": {e.message}"),
                       highlight=False)
         return 2
     mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"
@@ -97,13 +99,13 @@ def run(args: argparse.Namespace) -> int:
         from bus.errors import BusError
 
         if isinstance(e, BusError | TimeoutError):
-            console.print(f"[red]demo failed:[/red] {e}")
+            console.print(f"[red]demo failed:[/red] {escape(str(e))}")
             return 1
         raise
     _summary(console, report, args.out)
     problems = guarantees(report, job.tolerance_counts)
     for p in problems:
-        console.print(f"[red]guarantee missed:[/red] {p}")
+        console.print(f"[red]guarantee missed:[/red] {escape(p)}")
     return 0 if not problems else 1
 
 
@@ -185,9 +187,9 @@ def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
     console.print(Text(title))
     console.print(fit_table(columns, rows, console.width, more=f"{out / 'report.json'}"), highlight=False)
     for f in report["faults"]:
-        console.print(f"[red]fault[/red] {f}", highlight=False)
+        console.print(f"[red]fault[/red] {escape(str(f))}", highlight=False)
     console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}, {out / 'job.mcap'}",
-                  highlight=False)
+                  highlight=False, markup=False)
 
 
 def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli.demo`

@@ -34,16 +34,16 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt hold: {exc}", highlight=False)
+        err.print(f"pvt hold: {exc}", highlight=False, markup=False)
         return exc.status
     with client:
         try:
             reply = client.hold()
         except MotionError as exc:
-            err.print(f"pvt hold: {exc}", highlight=False)
+            err.print(f"pvt hold: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
     running = reply.get("running_job")
     Console().print(f"queue of cell {args.cell} held ({len(reply.get('queued_jobs') or [])} queued)"
                     + (f"; job {running} runs on to its end" if running else "")
-                    + ": `pvt resume` starts the next job", highlight=False)
+                    + ": `pvt resume` starts the next job", highlight=False, markup=False)
     return connect.EXIT_OK

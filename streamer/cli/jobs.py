@@ -27,6 +27,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from rich.markup import escape
+
 from streamer.cli import tls_options
 from streamer.cli.tables import Col, fit_table, number
 
@@ -163,10 +165,10 @@ def run_show(args: argparse.Namespace) -> int:
         path, record = _find(args)
         rec = read_mcap(path)
     except _Lookup as exc:
-        err.print(f"pvt jobs show: {exc}")
+        err.print(f"pvt jobs show: {exc}", highlight=False, markup=False)
         return exc.status
     except RecordingError as exc:
-        err.print(f"pvt jobs show: {exc.code}: {exc.message}")
+        err.print(f"pvt jobs show: {exc.code}: {exc.message}", highlight=False, markup=False)
         return 2
     info = summary(rec)
     info["file"] = str(path)
@@ -186,7 +188,7 @@ def run_show(args: argparse.Namespace) -> int:
                   f"{_time(journal.get('started_t'))}, finished {_time(journal.get('finished_t'))}")
         if journal.get("error"):
             e = journal["error"]
-            out.print(f"[red]error {e.get('code')}[/red]: {e.get('message', '')}")
+            out.print(f"[red]error {e.get('code')}[/red]: " + escape(str(e.get("message", ""))))
     out.print(f"SYNC {rec.sync_period_ms} ms, first SYNC {rec.first_sync}, start SYNC {rec.start_sync}, "
               f"{info['duration_s']:.3f} s recorded, {info['frames']} CAN frames"
               + (f" ({rec.frames_dropped} more not kept)" if rec.frames_dropped else ""))
@@ -202,7 +204,7 @@ def run_show(args: argparse.Namespace) -> int:
     rows = [[f"{e['t']:.3f}", _opt(e["sync"]), e["label"]] for e in info["events"]]
     out.print(fit_table([Col("t [s]", justify="right"), Col("SYNC", justify="right"), Col("event", text=True)],
                         rows, out.width, title="events"), highlight=False)
-    out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()))
+    out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()), markup=False)
     return 0
 
 
@@ -221,10 +223,10 @@ def run_export(args: argparse.Namespace) -> int:
         path, _record = _find(args)
         rec = read_mcap(path)
     except _Lookup as exc:
-        err.print(f"pvt jobs export: {exc}")
+        err.print(f"pvt jobs export: {exc}", highlight=False, markup=False)
         return exc.status
     except RecordingError as exc:
-        err.print(f"pvt jobs export: {exc.code}: {exc.message}")
+        err.print(f"pvt jobs export: {exc.code}: {exc.message}", highlight=False, markup=False)
         return 2
     out = Console()
     try:
@@ -242,7 +244,7 @@ def run_export(args: argparse.Namespace) -> int:
             out.print(f"wrote {args.html} (interactive report, {fig.series_traces} curves, "
                       f"{args.html.stat().st_size} bytes)")
     except OSError as exc:
-        err.print(f"pvt jobs export: cannot write: {exc}")
+        err.print(f"pvt jobs export: cannot write: {exc}", highlight=False, markup=False)
         return 2
     return 0
 
@@ -274,14 +276,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         path = _journal_path(args)
     except PlanningError as exc:
-        err.print(f"pvt jobs: {exc.code}: {exc.message}", highlight=False)
+        err.print(f"pvt jobs: {exc.code}: {exc.message}", highlight=False, markup=False)
         return 2
     states = None
     if args.state:
         try:
             states = [JobState(s.strip()) for s in args.state.split(",") if s.strip()]
         except ValueError:
-            err.print(f"pvt jobs: --state takes {', '.join(s.value for s in JobState)}")
+            err.print(f"pvt jobs: --state takes {', '.join(s.value for s in JobState)}", highlight=False, markup=False)
             return 2
     try:
         store = JobStore(path, readonly=True)
@@ -292,13 +294,13 @@ def run(args: argparse.Namespace) -> int:
             else:
                 err.print(f"no jobs: journal {path} does not exist yet")
             return 0
-        err.print(f"pvt jobs: {exc}")
+        err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
         return 2
     with store:
         if args.events:
             events = store.events(args.events)
             if not events and store.get(args.events) is None:
-                err.print(f"pvt jobs: no job {args.events!r} in {path}")
+                err.print(f"pvt jobs: no job {args.events!r} in {path}", highlight=False, markup=False)
                 return 1
             if args.json:
                 print(
@@ -370,7 +372,7 @@ def _run_remote(args: argparse.Namespace) -> int:
             connect=args.connect, cell=args.cell, timeout=args.timeout, security=tls_options.client_security(args)
         )
     except Exception as exc:
-        err.print(f"pvt jobs: cannot open the Zenoh session: {exc}")
+        err.print(f"pvt jobs: cannot open the Zenoh session: {exc}", highlight=False, markup=False)
         return 2
     with client:
         try:
@@ -378,7 +380,7 @@ def _run_remote(args: argparse.Namespace) -> int:
 
             find_service(client, args.timeout)
         except Unreachable as exc:
-            err.print(f"pvt jobs: {exc}", highlight=False)
+            err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
             return exc.status
         try:
             if args.events:
@@ -388,7 +390,7 @@ def _run_remote(args: argparse.Namespace) -> int:
             else:
                 statuses = [dict(st.raw) for st in client.jobs(state=states, limit=args.limit or 10_000)]
         except MotionError as exc:
-            err.print(f"pvt jobs: {exc}")
+            err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
             return 1 if exc.code == "NOT_FOUND" else 2
     if args.events:
         if args.json:

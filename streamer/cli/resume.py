@@ -39,17 +39,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt resume: {exc}", highlight=False)
+        err.print(f"pvt resume: {exc}", highlight=False, markup=False)
         return exc.status
     with client:
         try:
             reply = client.resume(reset=args.reset)
         except MotionError as exc:
-            err.print(f"pvt resume: {exc}", highlight=False)
+            err.print(f"pvt resume: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
     queued = reply.get("queued_jobs") or []
     Console().print(
         f"cell {args.cell} resumed{' after a reset' if reply.get('reset') else ''}"
         f"{'' if reply.get('was_held') else ' (it was not held)'}: {len(queued)} job(s) queued"
-        + (f", next {queued[0]}" if queued else ""), highlight=False)
+        + (f", next {queued[0]}" if queued else ""), highlight=False, markup=False)
     return connect.EXIT_OK

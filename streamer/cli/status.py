@@ -41,20 +41,20 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt status: {exc}", highlight=False)
+        err.print(f"pvt status: {exc}", highlight=False, markup=False)
         return exc.status
     with client:
         try:
             status = client.service_status()
         except MotionError as exc:
-            err.print(f"pvt status: {exc}", highlight=False)
+            err.print(f"pvt status: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
     if args.json:
         print(json.dumps(status, indent=2))
         return connect.EXIT_OK
     out = Console()
     for renderable in render(status, out.width):
-        out.print(renderable, highlight=False)
+        out.print(renderable, highlight=False, markup=False)
     return connect.EXIT_OK
 
 

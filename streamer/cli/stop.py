@@ -43,21 +43,21 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt stop: {exc}", highlight=False)
+        err.print(f"pvt stop: {exc}", highlight=False, markup=False)
         return exc.status
     with client:
         try:
             reply = client.stop(emergency=args.emergency)
         except MotionError as exc:
-            err.print(f"pvt stop: {exc}", highlight=False)
+            err.print(f"pvt stop: {exc}", highlight=False, markup=False)
             return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
         kind = "EMERGENCY STOP" if args.emergency else "stop"
         job_id = reply.get("job_id")
         out.print(f"{kind} of cell {args.cell}: {reply.get('message', '')}"
-                  + (f" (job {job_id})" if job_id else ""), highlight=False)
+                  + (f" (job {job_id})" if job_id else ""), highlight=False, markup=False)
         queued = reply.get("queued_jobs") or []
         out.print(f"queue held ({len(queued)} queued): `pvt resume` starts the next job"
-                  + (" (it re-enables the drives first)" if args.emergency else ""), highlight=False)
+                  + (" (it re-enables the drives first)" if args.emergency else ""), highlight=False, markup=False)
         if job_id and not args.no_wait:
             try:
                 job = client.job(str(job_id))
@@ -65,9 +65,9 @@ def run(args: argparse.Namespace) -> int:
                     pass
                 final = job.status()
             except MotionError as exc:
-                err.print(f"pvt stop: {exc}", highlight=False)
+                err.print(f"pvt stop: {exc}", highlight=False, markup=False)
                 return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
             error = final.error or {}
             out.print(f"job {job_id}: {final.state.value} at {100.0 * final.progress:.1f}% of its plan"
-                      + (f" ({error.get('code')})" if error else ""), highlight=False)
+                      + (f" ({error.get('code')})" if error else ""), highlight=False, markup=False)
     return connect.EXIT_OK

@@ -23,6 +23,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from rich.markup import escape
+
 from streamer.cli import connect
 from streamer.cli.connect import (
     EXIT_CANCELLED,
@@ -73,12 +75,12 @@ def run(args: argparse.Namespace) -> int:
         name = body.pop("job_id", None)
         job_id = args.job_id or run_job_id(name)
     except MotionError as err:
-        console.print(f"[red]rejected:[/red] {err}", highlight=False)
+        console.print(f"[red]rejected:[/red] {escape(str(err))}", highlight=False)
         return EXIT_REJECTED
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        console.print(f"[red]pvt submit:[/red] {exc}", highlight=False)
+        console.print(f"[red]pvt submit:[/red] {escape(str(exc))}", highlight=False)
         return exc.status
     with client:
         try:
@@ -89,11 +91,11 @@ def run(args: argparse.Namespace) -> int:
             )
         except MotionError as err:
             if err.code in UNREACHED:
-                console.print(f"[red]no answer:[/red] {err}; the job may have been accepted: "
+                console.print(f"[red]no answer:[/red] {escape(str(err))}; the job may have been accepted: "
                               f"`pvt jobs --connect ... --cell {args.cell}` shows it, or submit again with "
                               f"--job-id {job_id} (idempotent) to find out", highlight=False)
                 return EXIT_NO_SERVICE
-            console.print(f"[red]rejected:[/red] {err}", highlight=False)
+            console.print(f"[red]rejected:[/red] {escape(str(err))}", highlight=False)
             if args.json:
                 out.print_json(json.dumps({"error": err.to_dict()}))
             return EXIT_REJECTED
@@ -103,14 +105,14 @@ def run(args: argparse.Namespace) -> int:
                 out.print_json(json.dumps(acc))
             else:
                 console.print(
-                    f"job [bold]{job.job_id}[/bold] {acc.get('state')}"
+                    f"job [bold]{escape(job.job_id)}[/bold] {acc.get('state')}"
                     f"{' (existing)' if acc.get('existing') else ''}: planned "
                     f"{acc.get('planned_duration_s', 0.0):.3f} s, {acc.get('points')} points"
                     + (", the queue is held: it starts after `pvt resume`" if acc.get("held") else ""),
                     highlight=False,
                 )
         else:
-            console.print(f"job [bold]{job.job_id}[/bold] submitted by put", highlight=False)
+            console.print(f"job [bold]{escape(job.job_id)}[/bold] submitted by put", highlight=False)
         if not args.wait:
             return EXIT_OK
         return _follow(job, args, console, out)
@@ -148,24 +150,24 @@ def _follow(job: Any, args: argparse.Namespace, console: Any, out: Any) -> int:
                     bar.update(task, state=ev.type, completed=ev.progress)
         status = job.wait(timeout=args.connect_timeout)
     except JobFailedError as err:
-        console.print(f"[red]failed:[/red] {err}", highlight=False)
+        console.print(f"[red]failed:[/red] {escape(str(err))}", highlight=False)
         if args.json:
             out.print_json(json.dumps(dict(err.status.raw) if err.status is not None else err.to_dict()))
         return EXIT_FAILED
     except MotionError as err:
         if err.code == "TIMEOUT" and args.timeout is not None:
-            console.print(f"[yellow]still waiting:[/yellow] {err.message}; not cancelled: follow it with "
+            console.print(f"[yellow]still waiting:[/yellow] {escape(err.message)}; not cancelled: follow it with "
                           f"`pvt status --cell {args.cell}`, stop it with `pvt cancel {job.job_id}`", highlight=False)
             return EXIT_TIMEOUT
         if err.code in UNREACHED:
-            console.print(f"[red]service gone:[/red] {err}", highlight=False)
+            console.print(f"[red]service gone:[/red] {escape(str(err))}", highlight=False)
             return EXIT_NO_SERVICE
-        console.print(f"[red]rejected:[/red] {err}", highlight=False)  # e.g. a put the service refused
+        console.print(f"[red]rejected:[/red] {escape(str(err))}", highlight=False)  # e.g. a put the service refused
         return EXIT_REJECTED
     if args.json:
         out.print_json(json.dumps(dict(status.raw)))
     else:
-        console.print(f"job {job.job_id}: {status.state.value}", highlight=False)
+        console.print(escape(f"job {job.job_id}: {status.state.value}"), highlight=False)
     if status.state == JobState.DONE:
         return EXIT_OK
     return EXIT_CANCELLED if status.state == JobState.CANCELLED else EXIT_FAILED

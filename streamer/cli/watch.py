@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         client = connect.open_client(args)
     except connect.Unreachable as exc:
-        err.print(f"pvt watch: {exc}", highlight=False)
+        err.print(f"pvt watch: {exc}", highlight=False, markup=False)
         return exc.status
     out = Console()
     samples: queue.Queue[bytes] = queue.Queue()
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
                     if deadline is not None and time.monotonic() >= deadline:
                         break
                     err.print(f"pvt watch: no telemetry from cell {client.cell!r} within "
-                              f"{args.connect_timeout:g} s", highlight=False)
+                              f"{args.connect_timeout:g} s", highlight=False, markup=False)
                     return connect.EXIT_NO_SERVICE
                 while not samples.empty():  # draw the newest: never fall behind a fast publisher
                     raw = samples.get_nowait()
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
                 if live is not None:
                     live.update(view(msg, out.width))
                 else:
-                    out.print(view(msg, out.width), highlight=False)
+                    out.print(view(msg, out.width), highlight=False, markup=False)
         except KeyboardInterrupt:
             pass
         finally:
