@@ -202,20 +202,19 @@ class _Emitter:
     def _type(self) -> EventType:
         return EventType.CANCELLING if self._cancelling else EventType.RUNNING
 
-    def mark_cancelling(self, reason: str) -> bool:
-        """Publish the `cancelling` event now (state CANCELLING); False if the job already ended."""
+    def mark_cancelling(self, reason: str) -> _Post | None:
+        """Publish the `cancelling` event now (state CANCELLING); None if the job already ended."""
         with self._lock:
             if self._closed:
-                return False
+                return None
             held, self._held = self._held, None
             if held is not None:  # what the backend said before the cancel goes out first, in order
                 self._service._post_progress(self._job_id, EventType.RUNNING, held)
             self._cancelling = True
             self._last_sent = time.monotonic()
-            self._service._post_progress(
+            return self._service._post_progress(
                 self._job_id, EventType.CANCELLING, {"progress": self.progress, "reason": reason}
             )
-            return True
 
     def close(self) -> None:
         """Stop accepting; send the last held-back progress update so the final progress is seen."""
@@ -856,8 +855,10 @@ class JobService:
         self._events_q.put(post)
         return post
 
-    def _post_progress(self, job_id: str, etype: EventType, data: dict[str, Any]) -> None:
-        self._events_q.put(_Post(job_id, [(etype, data, {"progress": data["progress"]})]))
+    def _post_progress(self, job_id: str, etype: EventType, data: dict[str, Any]) -> _Post:
+        post = _Post(job_id, [(etype, data, {"progress": data["progress"]})])
+        self._events_q.put(post)
+        return post
 
     def _post_failed_queued(self, job_id: str, err: MotionError) -> _Post:
         """A queued job that fails before it starts, with the whole error (code, path, detail)."""
@@ -1095,9 +1096,13 @@ class JobService:
                 return False
             item.cancel_requested = True
             emitter = item.emitter if item.started else None
-        if emitter is not None and not emitter.mark_cancelling(reason):
+        posted = emitter.mark_cancelling(reason) if emitter is not None else None
+        if emitter is not None and posted is None:
             return False  # it ended meanwhile
         item.token.cancel()
+        if posted is not None:
+            with contextlib.suppress(Exception):
+                posted.wait(timeout=10.0)  # journalled: the answer's status says `cancelling`
         return True
 
     def _hold(self, reason: str) -> None:
