@@ -13,6 +13,7 @@ import pytest
 from rich.console import Console
 
 from planner.config import CellConfig, load_cell
+from planner.plan import plan_job
 from streamer.api.errors import JobFailedError
 from streamer.api.model import JobState
 from streamer.cli.tables import Col, fit_table, number
@@ -139,3 +140,35 @@ def test_the_motion_plot_labels_the_axis_unit(tmp_path: Path, monkeypatch: pytes
     demo.run_fast(cell, traj, tmp_path)
     assert "j1\nposition [rad]" in labels and "j2\nposition [deg]" in labels
     assert not [label for label in labels if "[unit]" in label]
+
+
+def test_pvt_plan_fits_80_columns_with_units_and_no_exponents(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    job = tmp_path / "move.toml"
+    job.write_text('kind = "move"\naxes = ["x", "y"]\ntarget = [1000.0, 600.0]\n', encoding="utf-8")
+    cell = gantry(tmp_path)
+    out = pvt("plan", str(job), "--config", str(cell))
+    assert out.returncode == 0, out.stderr
+    assert_fits(out.stdout)
+    assert "[mm/s]" in out.stdout and "[mm/s²]" in out.stdout and "[counts]" in out.stdout
+    assert "e+0" not in out.stdout and "500.0/500.0" in out.stdout and "/2000 " in out.stdout
+    # the plot's labels are the axis unit
+    import matplotlib.figure
+
+    from planner.job import load_job
+    from streamer.cli import plan as cli_plan
+
+    labels: list[str] = []
+    save = matplotlib.figure.Figure.savefig
+
+    def capture(fig: Any, *args: Any, **kw: Any) -> Any:
+        labels.extend(ax.get_ylabel() for ax in fig.axes)
+        return save(fig, *args, **kw)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", capture)
+    loaded = load_cell(cell)
+    traj = plan_job(load_job(job, loaded), loaded)
+    cli_plan.plot(traj, tmp_path / "plot.png", units=["mm", "mm"])
+    assert {"position [mm]", "velocity [mm/s]", "acceleration [mm/s²]", "deviation [counts]"} <= set(labels)
+    assert not [label for label in labels if "[unit" in label]
