@@ -89,12 +89,12 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
         f"{s['job']} ({s['kind']}) on cell {s['cell']}: {s['duration_s']:.3f} s, "
         f"{s['points']} points per axis ({s['points_per_second']:.1f} per s), "
         f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), "
-        f"tolerance {s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"))
+        f"tolerance {s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"), soft_wrap=True)
     same = units[0] if len(set(units)) == 1 else None
     u = f" [{same}/s]" if same else ""
     u2 = f" [{same}/s²]" if same else ""
     columns = [
-        Col("axis"), Col("node", justify="right", drop=3), Col("max deviation [counts]", justify="right"),
+        Col("axis"), Col("node", justify="right", drop=3), Col("max dev [counts]", justify="right"),
         Col(f"velocity{u} peak/limit", justify="right"), Col("rpm peak/0x607F", justify="right", drop=2),
         Col(f"acceleration{u2} plan/drive/limit", justify="right"),
         Col(f"0x60C5{u2}", justify="right", drop=1), Col("acc. excess [% of limit]", justify="right"),
