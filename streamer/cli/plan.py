@@ -85,11 +85,11 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
 
     console = Console()
     seg = s["segment_ms"]
-    console.print(Text(
-        f"{s['job']} ({s['kind']}) on cell {s['cell']}: {s['duration_s']:.3f} s, "
-        f"{s['points']} points per axis ({s['points_per_second']:.1f} per s), "
-        f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), "
-        f"tolerance {s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"), soft_wrap=True)
+    console.print(Text(f"{s['kind']} job on cell {s['cell']}: {s['duration_s']:.3f} s, {s['points']} points per "
+                       f"axis ({s['points_per_second']:.1f} per s)"))
+    console.print(Text(f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), tolerance "
+                       f"{s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"))
+    console.print(Text(f"job file {s['job']}"))
     same = units[0] if len(set(units)) == 1 else None
     u = f" [{same}/s]" if same else ""
     u2 = f" [{same}/s²]" if same else ""
