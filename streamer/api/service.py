@@ -154,10 +154,6 @@ class _Post:
 _STOP = object()
 
 
-class _NoKind:
-    kind = "?"
-
-
 class _Emitter:
     """The `emit` handed to `backend.execute`: thread-safe, non-blocking, throttled, inert after use.
 
@@ -267,6 +263,7 @@ class JobService:
         self._hold_reason = ""
         self._hold_t: float | None = None
         self._emergency_pending = False  # an emergency stop disabled the drives; resume re-enables them
+        self._accepted_kind: dict[str, str] = {}  # events thread only: the kind, for the acceptance log line
         self._stopping = False
         self._stop_telemetry = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -899,9 +896,11 @@ class JobService:
     def _log_event(self, ev: Event) -> None:
         """One log line per job milestone: accepted, started, cancelling, done, failed, cancelled."""
         d = ev.data
-        if ev.type == EventType.PLANNED:
+        if ev.type == EventType.ACCEPTED:
+            self._accepted_kind[ev.job_id] = str(d.get("kind", "?"))  # logged with the plan, next event
+        elif ev.type == EventType.PLANNED:
             log.info("job %s accepted: %s job, planned %.3f s, %s points", ev.job_id,
-                     (self.store.get(ev.job_id) or _NoKind).kind, float(d.get("planned_duration_s") or 0.0),
+                     self._accepted_kind.pop(ev.job_id, "?"), float(d.get("planned_duration_s") or 0.0),
                      d.get("points"))
         elif ev.type == EventType.PRIMING:
             log.info("job %s started", ev.job_id)
@@ -1068,12 +1067,16 @@ class JobService:
         if post is not None:
             post.wait(timeout=60.0)
         if running is not None:
+            started = running.started
             requested = self._cancel_running(running, "cancel requested")
             if requested:
                 self._hold(f"job {job_id} was cancelled")
                 message = (
                     "the job stops on its jerk-limited stop trajectory (state cancelling); the queue is held "
                     "until resume"
+                    if started
+                    else "the job was about to start: it ends cancelled without moving; the queue is held until "
+                    "resume"
                 )
             else:
                 message = "a cancel of this job was already requested; it is stopping"
