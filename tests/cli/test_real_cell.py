@@ -1,7 +1,11 @@
 """The same operations on the real motion runtime and the simulated drives (streamer.runtime.backend with
 sim=True), in real time: a cancel's `cancelling` events carry the true progress of the job's plan, the
 queue holds, a queued path planned from the cancelled job's end fails INFEASIBLE naming the axis and both
-positions (never INTERNAL), and `pvt stop --emergency` quick-stops every drive until `pvt resume`."""
+positions (never INTERNAL), and the emergency stop quick-stops every drive until resume.
+
+The requests go through the Python client here (the same API requests `pvt cancel/stop/resume` make,
+tested as subprocesses in test_operate.py): starting a Python process takes a CPU core for a second,
+and the simulated drives share this process' SYNC timing with the master."""
 
 from __future__ import annotations
 
@@ -16,7 +20,7 @@ from streamer.api.errors import JobFailedError
 from streamer.api.model import JobState
 from tests.api.conftest import Served
 from tests.api.helpers import wait_for
-from tests.cli.conftest import ROOT, flat, pvt
+from tests.cli.conftest import ROOT
 
 Serve = Callable[..., Served]
 HOME = {"kind": "move", "axes": ["j1", "j2", "j3", "j4", "j5", "j6"], "target": [0.0] * 6}
@@ -30,10 +34,11 @@ def _runtime(cell: CellConfig) -> Any:
 
 
 def _progress_over(job: Any, share: float) -> None:
-    for ev in job.events(timeout=30):
-        if ev.type == "running" and (ev.progress or 0.0) > share:
+    last = None
+    for last in job.events(timeout=30):
+        if last.type == "running" and (last.progress or 0.0) > share:
             return
-    raise AssertionError(f"job {job.job_id} ended before {share:.0%}")
+    raise AssertionError(f"job {job.job_id} ended before {share:.0%}: {last.data if last else None}")
 
 
 @pytest.mark.slow
@@ -47,8 +52,8 @@ def test_cancel_hold_infeasible_and_emergency_stop_on_simulated_drives(serve: Se
             after = client.submit({"kind": "path", "axes": ["j1", "j6"], "waypoints": [[0.0, 0.0], [0.2, 0.3]]},
                                   job_id="from-home")
             _progress_over(first, 0.3)
-            out = pvt("cancel", "cycle", "--connect", served.endpoint)
-            assert out.returncode == 0 and "cancelling" in flat(out.stdout), out.stdout + out.stderr
+            reply = first.cancel()
+            assert reply.raw["cancel_requested"] is True and reply.state == JobState.CANCELLING
             status = first.wait(timeout=30)
             assert status.state == JobState.CANCELLED
             events = list(first.events())
@@ -63,7 +68,7 @@ def test_cancel_hold_infeasible_and_emergency_stop_on_simulated_drives(serve: Se
             assert events[-2].data.get("stop_progress") == pytest.approx(1.0)
             assert client.service_status()["held"] is True
             here = {a["name"]: a["position_demand"] for a in client.service_status()["drives"]}
-            assert pvt("resume", "--connect", served.endpoint).returncode == 0
+            assert client.resume()["was_held"] is True
             with pytest.raises(JobFailedError) as info:
                 after.wait(timeout=30)
             err = info.value
@@ -78,17 +83,18 @@ def test_cancel_hold_infeasible_and_emergency_stop_on_simulated_drives(serve: Se
             # emergency stop: quick stop on every drive, the job fails EMERGENCY_STOP, resume re-enables
             hit = client.submit(ROOT / "configs" / "jobs" / "demo-path.toml", job_id="hit")
             _progress_over(hit, 0.2)
-            out = pvt("stop", "--emergency", "--connect", served.endpoint)
-            assert out.returncode == 0 and "EMERGENCY STOP" in out.stdout and "quick stop" in flat(out.stdout)
+            reply = client.stop(emergency=True)
+            assert reply["method"] == "quick_stop" and reply["job_id"] == "hit" and "0x000B" in reply["message"]
             with pytest.raises(JobFailedError) as stopped:
                 hit.wait(timeout=30)
             assert stopped.value.code == "EMERGENCY_STOP"
             wait_for(lambda: all(d["state"] == "switch on disabled" for d in client.service_status()["drives"]),
                      timeout=10, what="every drive quick-stopped (switch on disabled)")
             assert client.service_status()["ready"] is False
-            assert pvt("resume", "--connect", served.endpoint).returncode == 0
-            drives = client.service_status()["drives"]
-            assert all(d["state"] == "operation enabled" for d in drives) and client.service_status()["ready"]
+            assert client.resume()["reset"] is True
+            assert client.service_status()["ready"] is True
+            wait_for(lambda: all(d["state"] == "operation enabled" for d in client.service_status()["drives"]),
+                     timeout=10, what="every drive enabled again (its next TPDO1)")
             assert client.submit(HOME).wait(timeout=30).state == JobState.DONE
     finally:
         backend.close()
