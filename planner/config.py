@@ -10,6 +10,7 @@ own units (counts, rpm) only where the drive has them (`max_profile_velocity_rpm
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 import tomllib
@@ -20,6 +21,48 @@ from typing import Any
 
 from planner.errors import CONFIG, LIMITS, PlanningError
 from planner.readings import DriveReadings, SimDriveOptions, drive_readings, sim_options
+
+# One rule for every name that becomes a Zenoh key chunk (cell names, job ids): 1-64 characters of
+# letters, digits, '_', '-' and '.', not starting with '.'. docs/formats.md "Names" states it once; the
+# planner (job files), the config loader, the job API's decoder, the client and the CLI all call
+# `check_name`, so a name is accepted or refused the same way everywhere.
+NAME_MAX = 64
+NAME_RULE = "1-64 characters of letters, digits, '_', '-' and '.', not starting with '.'"
+_NAME = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}$")
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1  # the drive's position range in counts (0x607A, 0x6064)
+DEFAULT_UNIT = "rad"  # an axis' user unit when [[axis]] has no `unit`
+
+
+def valid_name(value: object) -> bool:
+    """True when `value` follows NAME_RULE (safe as one Zenoh key chunk)."""
+    return isinstance(value, str) and bool(_NAME.match(value))
+
+
+def check_name(value: object, what: str, *, path: str, code: str = "SCHEMA") -> str:
+    """`value` if it follows NAME_RULE, else PlanningError(code) saying what is wrong with it."""
+    if not isinstance(value, str):
+        raise PlanningError("TYPE" if code == "SCHEMA" else code, f"{what} must be a string, got {value!r}",
+                            path=path)
+    if not _NAME.match(value):
+        bad = sorted({c for c in value if not (c.isascii() and (c.isalnum() or c in "_-."))})
+        why = (
+            "is empty" if not value
+            else f"is {len(value)} characters long" if len(value) > NAME_MAX
+            else "starts with '.'" if value.startswith(".")
+            else f"contains {', '.join(repr(c) for c in bad)}, which is not allowed"
+        )
+        raise PlanningError(code, f"{what} {value!r} {why}; names are {NAME_RULE}", path=path)
+    return value
+
+
+def _unknown_keys(where: str, unknown: list[str], known: list[str]) -> str:
+    """'unknown key 'count_per_unit' in [[axis]] 'x' (did you mean 'counts_per_unit'?)'."""
+    parts = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.75)
+        parts.append(f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key))
+    noun = "key" if len(unknown) == 1 else "keys"
+    return f"unknown {noun} {', '.join(parts)} in {where}"
 
 
 def _number(section: str, key: str, value: Any, *, positive: bool = False, integer: bool = False) -> float:
@@ -62,12 +105,17 @@ class AxisConfig:
     profile: str = "epos-ipm"
     ip_submode: str = "pv"
     mux_group: int = 0
+    unit: str = DEFAULT_UNIT  # the user unit's name ("rad", "mm", ...): labels of tables and plots
 
     def __post_init__(self) -> None:
         where = f"axis '{self.name}'"
         if not self.name or not isinstance(self.name, str):
             raise PlanningError(CONFIG, f"axis name must be a non-empty string, got {self.name!r}",
                                 path="axis.name")
+        if not (isinstance(self.unit, str) and 1 <= len(self.unit) <= 16 and self.unit.isprintable()
+                and self.unit.strip() == self.unit):
+            raise PlanningError(CONFIG, f"unit of {where} must be 1-16 printable characters (e.g. \"rad\", "
+                                f"\"mm\"), got {self.unit!r}", path="axis.unit")
         if not (1 <= self.node_id <= 127):
             raise PlanningError(CONFIG, f"node_id of {where} must be 1..127, got {self.node_id}",
                                 path="axis.node_id")
@@ -97,6 +145,16 @@ class AxisConfig:
                 f"position_min {self.position_min} of {where} is not below position_max {self.position_max}",
                 path="axis.position_min",
             )
+        for key in ("position_min", "position_max"):
+            counts = getattr(self, key) * self.counts_per_unit
+            if not INT32_MIN <= round(counts) <= INT32_MAX:
+                raise PlanningError(
+                    LIMITS,
+                    f"{key} {getattr(self, key):g} {self.unit} of {where} is {counts:.0f} counts at "
+                    f"counts_per_unit {self.counts_per_unit:g}: beyond the drive's int32 position range "
+                    f"[{INT32_MIN}, {INT32_MAX}]",
+                    path=f"axis.{key}",
+                )
         if self.acceleration > self.max_acceleration:
             raise PlanningError(
                 LIMITS,
@@ -130,7 +188,7 @@ class AxisConfig:
         return self.rpm_to_user(self.max_profile_velocity_rpm)
 
 
-_AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim", "profile", "ip_submode", "mux_group")
+_AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim", "unit", "profile", "ip_submode", "mux_group")
 PROFILE_NAMES = ("epos-ipm", "xtrapuls-ip", "cia402-csp")
 IP_SUBMODES = ("linear", "pv", "p3")
 
@@ -283,10 +341,12 @@ class CellConfig:
         names: list[str | int] = [a.name for a in self.axes]
         ids: list[str | int] = [a.node_id for a in self.axes]
         for label, values in (("name", names), ("node_id", ids)):
-            dup = {v for v in values if values.count(v) > 1}
-            if dup:
-                raise PlanningError(CONFIG, f"duplicate axis {label} {sorted(dup, key=str)!r}",
-                                    path=f"axis.{label}")
+            dup = next((v for v in values if values.count(v) > 1), None)
+            if dup is not None:
+                at = [i for i, v in enumerate(values) if v == dup]
+                which = " and ".join(f"axis[{i}] {self.axes[i].name!r}" for i in at)
+                raise PlanningError(CONFIG, f"duplicate axis {label} {dup!r}: {which} both have it; each axis "
+                                    f"needs its own {label}", path=f"axis[{at[1]}].{label}")
         self._check_families()
 
     def _check_families(self) -> None:
@@ -357,8 +417,8 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(raw) - known)
     if unknown:
-        raise PlanningError(CONFIG, f"unknown key(s) {unknown} in [{path}] (known: {sorted(known)})",
-                            path=f"{path}.{unknown[0]}")
+        raise PlanningError(CONFIG, f"{_unknown_keys(f'[{path}]', unknown, sorted(known))} (known: "
+                            f"{', '.join(sorted(known))})", path=f"{path}.{unknown[0]}")
     kwargs: dict[str, Any] = {}
     for f in fields(cls):
         if f.name not in raw:
@@ -384,7 +444,7 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
     return cls(**kwargs)
 
 
-_AXIS_OPTIONAL = ("probed", "sim", "profile", "ip_submode", "mux_group")
+_AXIS_OPTIONAL = ("probed", "sim", "unit", "profile", "ip_submode", "mux_group")
 _AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in _AXIS_OPTIONAL]
 
 
@@ -393,18 +453,16 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     allowed = {"cell", "axis", "bus", "drive", "zenoh", "sim", "probed", "security"}
     unknown = sorted(set(data) - allowed)
     if unknown:
-        raise PlanningError(CONFIG, f"unknown section(s) {unknown} (known: {sorted(allowed)})",
-                            path=unknown[0])
+        raise PlanningError(CONFIG, f"{_unknown_keys('the cell config', unknown, sorted(allowed))} (sections: "
+                            f"{', '.join(sorted(allowed))})", path=unknown[0])
     cell = data.get("cell")
     if not isinstance(cell, Mapping):
         raise PlanningError(CONFIG, "missing [cell] table", path="cell")
-    extra = sorted(set(cell) - {"name", "sync_period_ms", "time_stamp", "feedback_every_syncs"})
+    cell_keys = ["name", "sync_period_ms", "time_stamp", "feedback_every_syncs"]
+    extra = sorted(set(cell) - set(cell_keys))
     if extra:
-        raise PlanningError(CONFIG, f"unknown key(s) {extra} in [cell]", path=f"cell.{extra[0]}")
-    name = cell.get("name")
-    if not isinstance(name, str) or not name or "/" in name or "*" in name:
-        raise PlanningError(CONFIG, f"cell.name must be a non-empty string without '/' or '*', got {name!r}",
-                            path="cell.name")
+        raise PlanningError(CONFIG, _unknown_keys("[cell]", extra, cell_keys), path=f"cell.{extra[0]}")
+    name = check_name(cell.get("name"), "cell.name", path="cell.name", code=CONFIG)
     period = int(_number("cell", "sync_period_ms", cell.get("sync_period_ms", 10), integer=True))
     time_stamp = cell.get("time_stamp", False)
     if not isinstance(time_stamp, bool):
@@ -422,14 +480,21 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
             raise PlanningError(CONFIG, f"{p} must be a table", path=p)
         missing = [k for k in _AXIS_REQUIRED if k not in ax]
         unknown_k = sorted(set(ax) - set(_AXIS_REQUIRED) - set(_AXIS_OPTIONAL))
-        if missing:
-            raise PlanningError(CONFIG, f"{p} ({ax.get('name', '?')!r}) is missing {missing}",
-                                path=f"{p}.{missing[0]}")
+        label = f"{p} ({ax.get('name', '?')!r})"
+        # unknown keys first: a misspelt key is also a missing one, and the misspelling is the news
         if unknown_k:
-            raise PlanningError(CONFIG, f"{p} has unknown key(s) {unknown_k}", path=f"{p}.{unknown_k[0]}")
+            raise PlanningError(CONFIG, _unknown_keys(label, unknown_k, [*_AXIS_REQUIRED, *_AXIS_OPTIONAL]),
+                                path=f"{p}.{unknown_k[0]}")
+        if missing:
+            raise PlanningError(CONFIG, f"{label} is missing {missing}", path=f"{p}.{missing[0]}")
         if not isinstance(ax["name"], str):
             raise PlanningError(CONFIG, f"{p}.name must be a string", path=f"{p}.name")
         kw: dict[str, Any] = {"name": ax["name"]}
+        if "unit" in ax:
+            if not isinstance(ax["unit"], str):
+                raise PlanningError(CONFIG, f"{p}.unit must be a string such as \"mm\", got {ax['unit']!r}",
+                                    path=f"{p}.unit")
+            kw["unit"] = ax["unit"]
         for k in _AXIS_REQUIRED[1:]:
             integer = k in ("node_id", "counts_per_rev")
             val = _number(p, k, ax[k], integer=integer)

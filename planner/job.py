@@ -33,7 +33,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from planner.config import AxisConfig, CellConfig
+from planner.config import AxisConfig, CellConfig, check_name
 from planner.errors import (
     AXIS_COUNT,
     AXIS_ID,
@@ -77,6 +77,10 @@ _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) b
     "pvt": ({"times", "positions", "velocities"}, set()),
 }
 _LIMIT_KEYS = ("velocity", "acceleration", "jerk")
+# `start = "current"` (path and move jobs): plan from where the axes stand. The planner itself plans a path
+# from its first waypoint (and a move from the caller's start); the job service, which knows where the axes
+# stand, prepends that position to a path whose first waypoint is elsewhere (docs/api.md section 3).
+START_CURRENT = "current"
 
 
 def _ro(a: FloatArray) -> FloatArray:
@@ -315,18 +319,13 @@ def _per_axis_scale(value: Any, path: str, axes: Sequence[str]) -> tuple[tuple[f
 def _text(value: Any, path: str, *, job_id: bool = False) -> str:
     if not isinstance(value, str):
         raise PlanningError(TYPE, f"{path} must be a string, got {_show(value)}", path=path)
-    limit = 128 if job_id else MAX_TEXT
-    if (job_id and not value) or len(value) > limit:
-        raise PlanningError(SCHEMA, f"{path} must be 1..{limit} characters long", path=path)
-    forbidden = set("/*$#?\\ ") if job_id else set()
-    if any(c in forbidden or (ord(c) < 32 and c not in "\n\t") for c in value):
-        note = (
-            "no '/', '*', '$', '#', '?', backslash, space or control characters"
-            if job_id
-            else "no control characters"
-        )
+    if job_id:  # the one rule of names (planner/config.py), the same in the job API and the CLI
+        return check_name(value, path, path=path)
+    if len(value) > MAX_TEXT:
+        raise PlanningError(SCHEMA, f"{path} must be 0..{MAX_TEXT} characters long", path=path)
+    if any(ord(c) < 32 and c not in "\n\t" for c in value):
         raise PlanningError(
-            SCHEMA, f"{path} {value!r} contains a character that is not allowed ({note})", path=path
+            SCHEMA, f"{path} {value!r} contains a character that is not allowed (no control characters)", path=path
         )
     return value
 
@@ -350,7 +349,7 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
     if kind not in KINDS:
         raise PlanningError(SCHEMA, f"kind must be one of {list(KINDS)}, got {kind!r}", path="kind")
     required, optional = _KIND_FIELDS[kind]
-    allowed = _COMMON | required | optional
+    allowed = _COMMON | required | optional | ({"start"} if kind == "path" else set())
     unknown = sorted(k for k in data if k not in allowed)
     if unknown:
         raise PlanningError(
@@ -392,6 +391,13 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
 
     job_data: JobData
     if kind == "path":
+        if data.get("start") is not None and data["start"] != START_CURRENT:
+            raise PlanningError(
+                SCHEMA,
+                f"start of a path job can only be {START_CURRENT!r} (re-plan from where the axes stand), "
+                f"got {_show(data['start'])}; the first waypoint is where the path starts",
+                path="start",
+            )
         wp = _matrix(data["waypoints"], "waypoints", axes, max_rows)
         _check_positions(wp, "waypoints", axes, axis_cfg)
         distinct = 1 + int(np.count_nonzero(np.any(np.diff(wp, axis=0) != 0.0, axis=1))) if wp.shape[0] else 0
@@ -409,7 +415,8 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
         if mode not in ("absolute", "relative"):
             raise PlanningError(SCHEMA, f"mode must be 'absolute' or 'relative', got {mode!r}", path="mode")
         target = _vector(data["target"], "target", axes)
-        start = _vector(data["start"], "start", axes) if data.get("start") is not None else None
+        given = data.get("start")
+        start = _vector(given, "start", axes) if given is not None and given != START_CURRENT else None
         if start is not None:
             _check_positions(start[None, :], "start", axes, axis_cfg, vector=True)
         if mode == "absolute":
@@ -425,6 +432,7 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
                         path=f"target[{j}]",
                     )
             if start is not None:
+                check_relative_target(start, target, axes, axis_cfg)
                 _check_positions((start + target)[None, :], "target", axes, axis_cfg, vector=True)
         job_data = MoveData(
             _ro(target), cast(Literal["absolute", "relative"], mode), None if start is None else _ro(start)
@@ -539,6 +547,24 @@ def _limits(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> dict[
                 )
         out[key] = tuple(float(v) for v in vals)
     return out
+
+
+def check_relative_target(
+    origin: Sequence[float] | FloatArray, offset: Sequence[float] | FloatArray, axes: Sequence[str],
+    cfg: Sequence[AxisConfig], origin_name: str = "start",
+) -> None:
+    """A relative move's end within the software limits; the message says what the user wrote (the offset)
+    and where it comes from, not only the sum."""
+    for j, c in enumerate(cfg):
+        end = float(origin[j]) + float(offset[j])
+        if not c.position_min <= end <= c.position_max:
+            raise PlanningError(
+                POSITION_LIMIT,
+                f"target[{j}] of axis {axes[j]!r} is a relative move of {float(offset[j]):+g} from the "
+                f"{origin_name} {float(origin[j]):g}: it would end at {end:g}, outside the software "
+                f"position limits [{c.position_min:g}, {c.position_max:g}]",
+                path=f"target[{j}]",
+            )
 
 
 def _check_positions(

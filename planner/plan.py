@@ -33,7 +33,16 @@ from planner.encoder import (
     segment_bounds,
 )
 from planner.errors import ENCODING_RANGE, INFEASIBLE, POSITION_LIMIT, TOO_LARGE, PlanningError
-from planner.job import MAX_DURATION_S, Job, MoveData, PathData, PvtData, TimedData, effective_limits
+from planner.job import (
+    MAX_DURATION_S,
+    Job,
+    MoveData,
+    PathData,
+    PvtData,
+    TimedData,
+    check_relative_target,
+    effective_limits,
+)
 from planner.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, PvtTrajectory
 
@@ -133,6 +142,8 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     elif isinstance(d, MoveData):
         origin = here if here is not None else (np.array(d.start) if d.start is not None else np.zeros(n))
         _check_within(origin, cfg, job.axes, "start")
+        if d.mode == "relative":
+            check_relative_target(origin, d.target, job.axes, cfg, "current position" if here is not None else "start")
         target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
         _check_within(target, cfg, job.axes, "target")
         a, b = snap(origin, cpu), snap(target, cpu)

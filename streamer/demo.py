@@ -23,6 +23,7 @@ from typing import Any
 import can
 
 from planner.config import CellConfig, load_cell
+from planner.errors import PlanningError
 from planner.job import Job, job_from_dict, job_to_dict, load_job
 from planner.plan import plan_job
 from planner.trajectory import PvtTrajectory
@@ -89,7 +90,20 @@ def prepare(
     bitrate: int | None = None,
 ) -> tuple[CellConfig, Job, PvtTrajectory]:
     cell = load_cell(config or ROOT / "configs" / "demo.toml")
-    loaded = load_job(job_path or DEFAULT_JOB, cell)  # validated against the cell as configured
+    try:
+        loaded = load_job(job_path or DEFAULT_JOB, cell)  # validated against the cell as configured
+    except PlanningError as e:
+        if job_path is not None:
+            raise
+        # the user gave no job: say that the default one was used, and why it does not fit their cell
+        names = ", ".join(f"{a.name} [{a.unit}]" for a in cell.axes)
+        raise PlanningError(
+            e.code,
+            f"no --job given, so the default demo job {_shown(DEFAULT_JOB)} was used; it is written for the "
+            f"demo cell (6 axes j1..j6, rad) and does not fit cell {cell.name!r} ({len(cell.axes)} axes: {names}): "
+            f"{e.message}. Give a job for this cell with --job FILE",
+            path=e.path,
+        ) from None
     if axes is not None:
         cell = cell.with_axes(axes)
     if sync_ms is not None:
@@ -99,6 +113,14 @@ def prepare(
     job = fit_job_to_cell(loaded, cell)
     traj = plan_job(job, cell)
     return cell, job, traj
+
+
+def _shown(path: Path) -> str:
+    """`path` relative to the working directory when it is below it (as the user would type it)."""
+    try:
+        return str(path.resolve().relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(path)
 
 
 def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:
@@ -138,7 +160,7 @@ def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
                 underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
-                setpoints=report_setpoints)
+                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints)
     recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
                                 sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
                                 underflow_watermark=cell.drive.underflow_warning,

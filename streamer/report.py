@@ -26,6 +26,7 @@ import numpy as np
 from bus.cob import RPDO2_BASE
 from bus.profile import SetpointSlot
 from planner import cyclic
+from planner.config import DEFAULT_UNIT
 from planner.readings import DriveReadings
 from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
@@ -209,10 +210,12 @@ def plot_motion(
     sync_period_ms: int,
     underflow_watermark: int,
     overflow_watermark: int,
+    units: Sequence[str] | None = None,
     setpoints: Mapping[int, cyclic.Setpoints | None] | None = None,
 ) -> None:
     """Per axis: commanded vs actual position and their difference; FIFO fill with both watermarks, or for
-    an axis fed one set point per SYNC, its drive's interpolation minus the plan at every ms."""
+    an axis fed one set point per SYNC, its drive's interpolation minus the plan at every ms. `units`: each
+    axis' user unit (the cell's `unit`, default rad) for the position labels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -235,7 +238,8 @@ def plot_motion(
         commanded = planned[i, idx].astype(float) if len(idx) else np.array([])
         left.plot(ts, commanded / cpu, color="#1f77b4", lw=1.6, label="commanded (plan)")
         left.plot(ts, actual / cpu, color="#ff7f0e", lw=1.0, ls="--", label="actual 0x6064")
-        left.set_ylabel(f"{name}\nposition [unit]")
+        unit = units[i] if units is not None and i < len(units) else DEFAULT_UNIT
+        left.set_ylabel(f"{name}\nposition [{unit}]")
         twin = left.twinx()
         twin.plot(ts, actual - commanded, color="#d62728", lw=0.8, alpha=0.7, label="actual - commanded")
         twin.set_ylabel("diff [counts]", color="#d62728")

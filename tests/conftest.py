@@ -21,3 +21,12 @@ settings.load_profile("ci")
 @pytest.fixture(scope="session")
 def demo_cell() -> CellConfig:
     return load_cell(CONFIGS / "demo.toml")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _private_state_dir(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Journals and recordings default to the user's state directory ($XDG_STATE_HOME/pvt): the tests (and
+    every `pvt` they start as a subprocess, which inherits the environment) use a private one."""
+    import os
+
+    os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("xdg-state"))

@@ -41,9 +41,13 @@ Contract, method by method (which service thread calls it, what it may raise):
   `result`, `sync_period_ms`, `duration_s`, `syncs`, `frames`, `bus_load_peak`, `faults`, `axes`),
   where `result` is "done", "cancelled" or "failed", and for "failed" an `error` mapping
   `{"code": str, "node": int | None, "message": str}` (extra keys such as `detail`, `sync` are kept).
-  It should not raise; if it does, the job fails with code INTERNAL and the exception text. If the
-  drives do not stand at the plan's knot 0 when execute is called (a job before it was cancelled or
-  failed), re-plan from the current positions (`self.plan(planned.job, None)`) or fail START_MISMATCH.
+  It should not raise; if it does, the job fails with the exception's `code` when it has one (a
+  `PlanningError`), else INTERNAL, with the exception text. If the drives do not stand at the plan's knot
+  0 when execute is called (a job before it was cancelled or failed), re-plan from the current positions
+  (`self.plan(planned.job, None)`) or fail START_MISMATCH; with `current_positions()` the service checks
+  this itself before `execute` (below). After a cancel, `progress` stays the share of the *job's* plan
+  that was executed (it does not run on to 1.0 through the stop trajectory): the service publishes those
+  updates as `cancelling` events with the true progress.
 - `telemetry()`: a snapshot, one mapping per axis, at least `name`, `position` (user units),
   `velocity` (user units/s), `fifo_fill` (records), `state` (drive state, a short string). Called on
   the telemetry thread at `telemetry_hz`, concurrently with `execute`: must be cheap and thread-safe.
@@ -53,6 +57,16 @@ Contract, method by method (which service thread calls it, what it may raise):
 - `reset()`: clear a fault (fault reset on the drives); returns `ready()` afterwards. Called by the
   control thread only while no job runs.
 - `close()`: release the bus. Called once, after the executor has stopped.
+- optional `current_positions() -> Mapping[str, float]`: where each axis' position demand stands now,
+  user units (any thread, cheap). With it, the service checks before `execute` that a queued job still
+  starts where the axes stand (the job before it may have been cancelled or stopped): a move is re-planned
+  from there, a path/timed/pvt job fails INFEASIBLE naming the axis and both positions, unless it said
+  `start = "current"` (a path is then planned from where the axes stand through all its waypoints).
+- optional `emergency_stop() -> str`: the fastest stop the motion runtime has, now, on every axis (the
+  real backend: quick stop, controlword 0x000B, each drive ramps down on its quick stop deceleration
+  0x6085); a running `execute` then returns "failed" with code EMERGENCY_STOP, and `ready()` stays
+  False until `reset()`. Any thread; returns what it did (for the reply). Without it the service's
+  emergency stop falls back to the jerk-limited stop of a cancel.
 - optional `take_recording()`: the recording of the job the last `execute` ran (a
   `streamer.recording.JobRecording`, or `streamer.recording.writer.RecordingInputs` to build it from),
   or None; each once. Called on the executor thread right after `execute`; the service writes it
@@ -91,6 +105,7 @@ class Planned:
     points: int  # PVT points per axis (knots, including the start point)
     planning_s: float = 0.0  # wall time spent planning (for the benchmark's planner share)
     end_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at the end
+    start_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at knot 0
 
     def __post_init__(self) -> None:
         if not self.duration_s >= 0.0:
@@ -100,15 +115,17 @@ class Planned:
 
 
 def planned_from_trajectory(job: Any, trajectory: Any, planning_s: float = 0.0) -> Planned:
-    """Wrap a planner `PvtTrajectory` (`.duration_s`, `.dt_ms`: points = len(dt_ms) + 1; the end
-    positions from the last knot of `.positions` (counts) / `.counts_per_unit`)."""
+    """Wrap a planner `PvtTrajectory` (`.duration_s`, `.dt_ms`: points = len(dt_ms) + 1; the start and end
+    positions from the first and last knot of `.positions` (counts) / `.counts_per_unit`)."""
     end: dict[str, float] = {}
+    begin: dict[str, float] = {}
     names = getattr(trajectory, "axis_names", None)
     positions = getattr(trajectory, "positions", None)
     cpu = getattr(trajectory, "counts_per_unit", None)
     if names is not None and positions is not None and cpu is not None:
         for i, name in enumerate(names):
             end[str(name)] = float(positions[i][-1]) / float(cpu[i])
+            begin[str(name)] = float(positions[i][0]) / float(cpu[i])
     return Planned(
         job=job,
         trajectory=trajectory,
@@ -116,6 +133,7 @@ def planned_from_trajectory(job: Any, trajectory: Any, planning_s: float = 0.0) 
         points=len(trajectory.dt_ms) + 1,
         planning_s=planning_s,
         end_positions=end,
+        start_positions=begin,
     )
 
 

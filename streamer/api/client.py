@@ -10,8 +10,13 @@
         status = job.wait(timeout=60)        # JobFailedError if the job failed
 
 Every error is a `MotionError` with the service's stable `code` (BUSY, CONFLICT, INFEASIBLE, ...);
-`JobFailedError` for a job that ended FAILED; code TIMEOUT when no answer came in time and
-NO_SERVICE when no service answered for the cell at all.
+`JobFailedError` for a job that ended FAILED; code TIMEOUT when no answer came in time,
+NO_SERVICE when no service answered for the cell at all, and SERVICE_GONE when the service's
+liveliness token vanished while a job handle was waiting for events (the process died or left).
+
+Job ids: a job's own `job_id` (in a job file or dict) is a *name*: every `submit` runs the job again as
+`<name>-<8 hex digits>`, like `pvt submit`. `submit(job, job_id="exact")` gives the exact id instead:
+resubmitting that id is idempotent (the way to learn whether a timed-out submission was accepted).
 
 How events are never missed: `submit` picks the job id (a uuid unless given) and subscribes to the
 job's events key *before* sending the job, and events carry a per-job sequence number. `events()`
@@ -36,6 +41,8 @@ from typing import Any
 
 import zenoh
 
+from planner.config import NAME_MAX, check_name
+from planner.errors import PlanningError
 from streamer.api import errors as E
 from streamer.api import keys
 from streamer.api.errors import JobFailedError, MotionError
@@ -45,6 +52,33 @@ from streamer.api.security import ClientSecurity
 from streamer.api.zenoh_config import DEFAULT_CONNECT, client_config
 
 FINAL_EVENTS = frozenset({"done", "failed", "cancelled"})
+RUN_SUFFIX_LEN = 9  # "-" and 8 hex digits
+
+
+def checked_job_id(job_id: str, what: str = "job_id") -> str:
+    """`job_id` if it follows the rule of names (docs/formats.md "Names"), else MotionError SCHEMA."""
+    try:
+        return check_name(job_id, what, path="job_id")
+    except PlanningError as exc:
+        raise MotionError(exc.code, exc.message, path=exc.path) from None
+
+
+def run_job_id(name: object) -> str:
+    """The id of one run of a job whose own `job_id` is `name`: `<name>-<8 hex digits>` (a uuid without a
+    name). So submitting the same file or dict twice runs it twice; `submit(..., job_id=)` is exact."""
+    if name is None or name == "":
+        return uuid.uuid4().hex
+    if not isinstance(name, str):
+        raise MotionError(E.TYPE, f"job_id must be a string, got {name!r}"[:200], path="job_id")
+    checked_job_id(name)
+    if len(name) > NAME_MAX - RUN_SUFFIX_LEN:
+        raise MotionError(
+            E.SCHEMA,
+            f"job_id {name!r} is {len(name)} characters: as a name for runs (<job_id>-<8 hex digits>) it may "
+            f"have {NAME_MAX - RUN_SUFFIX_LEN}; shorten it, or give the exact id (--job-id, job_id=)",
+            path="job_id",
+        )
+    return f"{name}-{uuid.uuid4().hex[:8]}"
 
 
 @dataclass(frozen=True)
@@ -177,14 +211,28 @@ class Job:
         self.job_id = job_id
         self.cell = client.cell
         self.accepted: dict[str, Any] = dict(accepted or {})
-        self._inbox: queue.Queue[bytes] = queue.Queue()
+        self._inbox: queue.Queue[bytes | None] = queue.Queue()  # None: the service's token vanished
         self._lock = threading.RLock()
         self._seen: list[JobEvent] = []
         self._buffer: dict[int, JobEvent] = {}
         self._history_checked = False
+        self._gone = threading.Event()
         self._sub: Any = client.session.declare_subscriber(
             keys.job_events(self.cell, job_id), lambda s: self._inbox.put(s.payload.to_bytes())
         )
+        # the service's liveliness token: its DELETE (the process died, or left the network) ends a wait
+        # for events at once with SERVICE_GONE instead of a long TIMEOUT (peer sessions; a client session
+        # finds out with the history query it makes after poll_s of silence)
+        self._alive: Any = None
+        try:
+            self._alive = client.session.liveliness().declare_subscriber(keys.alive(self.cell), self._on_alive)
+        except zenoh.ZError:
+            self._alive = None
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._gone.set()
+            self._inbox.put(None)
 
     # -- accepted reply ------------------------------------------------------------------------------
     @property
@@ -218,13 +266,18 @@ class Job:
         return [JobEvent.from_wire(e) for e in msg.get("events", [])] if isinstance(msg, Mapping) else []
 
     # -- events --------------------------------------------------------------------------------------
-    def events(self, timeout: float | None = None, *, poll_s: float = 0.5) -> Iterator[JobEvent]:
+    def events(
+        self, timeout: float | None = None, *, poll_s: float = 0.5, total_timeout: float | None = None
+    ) -> Iterator[JobEvent]:
         """Every event of the job in sequence order, from the first; ends after done/failed/cancelled.
 
-        `timeout` bounds the wait for each next event (MotionError TIMEOUT); None waits for ever.
+        `timeout` bounds the wait for each next event, `total_timeout` the whole iteration (MotionError
+        TIMEOUT; the job itself goes on); None waits for ever, however long the job waits in the queue.
+        MotionError SERVICE_GONE when the service's liveliness token vanishes before the job ended.
         Iterating again replays from the first event.
         """
         index = 0
+        deadline = None if total_timeout is None else time.monotonic() + total_timeout
         while True:
             with self._lock:
                 if index < len(self._seen):
@@ -232,7 +285,23 @@ class Job:
                 else:
                     if self._seen and self._seen[-1].final:
                         return
-                    ev = self._next(timeout, poll_s)
+                    wait = timeout
+                    if deadline is not None:
+                        left = deadline - time.monotonic()
+                        wait = left if wait is None else min(wait, left)
+                        if left <= 0:
+                            state = self._seen[-1].state if self._seen else "unknown"
+                            raise MotionError(
+                                E.TIMEOUT,
+                                f"job {self.job_id!r} is still {state} after {total_timeout:g} s (it goes on)",
+                                detail={"state": state},
+                            )
+                    try:
+                        ev = self._next(wait, poll_s)
+                    except MotionError as err:
+                        if err.code == E.TIMEOUT and deadline is not None and time.monotonic() >= deadline:
+                            continue  # the whole-iteration timeout says it (above)
+                        raise
             index += 1
             yield ev
             if ev.final:
@@ -284,6 +353,18 @@ class Job:
             self._history_checked = True  # a handle on an existing job: catch up from the journal first
             self._fill_from_history()
         while want not in self._buffer:
+            if self._gone.is_set():
+                self._drain_inbox()
+                if want in self._buffer:
+                    break
+                state = self._seen[-1].state if self._seen else "unknown"
+                raise MotionError(
+                    E.SERVICE_GONE,
+                    f"the job service of cell {self.cell!r} went away while job {self.job_id!r} was {state} "
+                    "(its liveliness token vanished); the job did not report its end. When the service is "
+                    "back, its journal shows the job (failed SERVICE_RESTART if it was queued or running)",
+                    detail={"state": state},
+                )
             wait = poll_s if deadline is None else max(0.0, min(poll_s, deadline - time.monotonic()))
             try:
                 raw = self._inbox.get(timeout=wait)
@@ -291,22 +372,39 @@ class Job:
                 self._fill_from_history()  # quiet for a while: the journal may have what we missed
                 if want in self._buffer:
                     break
+                if self._gone.is_set():
+                    continue  # reported at the top of the loop
                 if deadline is not None and time.monotonic() >= deadline:
                     raise MotionError(
                         E.TIMEOUT, f"no event of job {self.job_id!r} within {timeout} s"
                     ) from None
                 continue
-            ev = JobEvent.from_wire(unpack(raw))
-            if ev.type == "rejected":
-                self._unsubscribe()
-                raise MotionError.from_dict(ev.error or {})
-            if ev.seq >= want:
-                self._buffer[ev.seq] = ev
-                if ev.seq > want:
-                    self._fill_from_history()  # a gap: the journal has everything before this event
+            if raw is None:
+                continue  # the service's token vanished: checked at the top
+            self._take(raw, want)
         ev = self._buffer.pop(want)
         self._seen.append(ev)
         return ev
+
+    def _take(self, raw: bytes, want: int) -> None:
+        ev = JobEvent.from_wire(unpack(raw))
+        if ev.type == "rejected":
+            self._unsubscribe()
+            raise MotionError.from_dict(ev.error or {})
+        if ev.seq >= want:
+            self._buffer[ev.seq] = ev
+            if ev.seq > want and not self._gone.is_set():
+                self._fill_from_history()  # a gap: the journal has everything before this event
+
+    def _drain_inbox(self) -> None:
+        want = len(self._seen) + 1
+        while True:
+            try:
+                raw = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            if raw is not None:
+                self._take(raw, want)
 
     def _fill_from_history(self) -> None:
         try:
@@ -314,15 +412,21 @@ class Job:
                 if ev.seq > len(self._seen):
                     self._buffer.setdefault(ev.seq, ev)
         except MotionError as err:
-            if err.code not in (E.NOT_FOUND, E.NO_SERVICE, E.TIMEOUT):
+            if err.code == E.NO_SERVICE:
+                # nothing answered and the liveliness token is gone: a Zenoh *client* session is not told
+                # when the peer it is linked to dies (no DELETE of its token), but this query finds out
+                self._gone.set()
+            elif err.code not in (E.NOT_FOUND, E.TIMEOUT):
                 raise
 
     def _unsubscribe(self) -> None:
         sub: Any = self._sub
-        self._sub = None
-        if sub is not None:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
+        alive: Any = self._alive
+        self._sub = self._alive = None
+        for declared in (sub, alive):
+            if declared is not None:
+                with contextlib.suppress(Exception):
+                    declared.undeclare()
 
     @property
     def subscribed(self) -> bool:
@@ -458,6 +562,26 @@ class MotionClient:
         msg = self._query(keys.reset(self.cell), timeout=timeout)
         return dict(msg) if isinstance(msg, Mapping) else {}
 
+    def stop(self, *, emergency: bool = False, timeout: float | None = None) -> dict[str, Any]:
+        """Stop all: cancel the running job (its jerk-limited stop) and hold the queue; `emergency`: the
+        fastest stop the runtime has (quick stop on every drive, then `resume` re-enables). The answer
+        says what was done: {held, emergency, method, job_id, message, queued_jobs}."""
+        msg = self._query(keys.stop(self.cell), parameters=f"emergency={'true' if emergency else 'false'}",
+                          timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
+    def hold(self, timeout: float | None = None) -> dict[str, Any]:
+        """Hold the queue: the running job goes on, no further job starts until `resume()`."""
+        msg = self._query(keys.hold(self.cell), timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
+    def resume(self, *, reset: bool = False, timeout: float | None = None) -> dict[str, Any]:
+        """Release the hold (after a stop, a cancel or a hold); `reset`: clear a drive fault first (after an
+        emergency stop the drives are re-enabled without it). MotionError NOT_READY if the cell is faulted."""
+        msg = self._query(keys.resume(self.cell), parameters=f"reset={'true' if reset else 'false'}",
+                          timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
     def telemetry(self, timeout: float = 2.0) -> dict[str, Any]:
         """The next telemetry sample of the cell ({cell, t, seq, ready, job_id, axes: [...]})."""
         box: queue.Queue[bytes] = queue.Queue()
@@ -484,18 +608,16 @@ class MotionClient:
         """Submit a job (a dict with a job file's fields, or a TOML/JSON job file) and return its handle.
 
         The answer comes after the service validated, planned and journalled the job: the handle's
-        `accepted` holds {job_id, state, planned_duration_s, points, existing}. Resubmitting the same
-        job_id with the same body returns the existing job (existing=True). Raises MotionError with
-        the rejection's code (SCHEMA, INFEASIBLE, BUSY, CONFLICT, NOT_READY, ...). On TIMEOUT or
-        NO_SERVICE the job may still have been accepted: resubmit with the same `job_id` (idempotent)
-        to find out.
+        `accepted` holds {job_id, state, planned_duration_s, points, existing}. The job's own `job_id`
+        is a name: each call is a new run `<job_id>-<8 hex>` (as `pvt submit`). `job_id=` is exact:
+        resubmitting the same id with the same body returns the existing job (existing=True). Raises
+        MotionError with the rejection's code (SCHEMA, INFEASIBLE, BUSY, CONFLICT, NOT_READY, ...). On
+        TIMEOUT or NO_SERVICE the job may still have been accepted: resubmit with the same exact
+        `job_id` (idempotent) to find out.
         """
         body = load_job_file(job) if isinstance(job, str | os.PathLike) else dict(job)
-        jid = (
-            job_id
-            or (body.get("job_id") if isinstance(body.get("job_id"), str) else None)
-            or uuid.uuid4().hex
-        )
+        name = body.pop("job_id", None)
+        jid = checked_job_id(job_id) if job_id is not None else run_job_id(name)
         handle = Job(self, jid, accepted={"job_id": jid})  # subscribed before the job exists
         try:
             reply = self._query(keys.submit(self.cell), payload=encode_submission(body, jid), timeout=timeout)
@@ -512,11 +634,8 @@ class MotionClient:
         """Fire-and-forget submission (a Zenoh put); the outcome arrives as the handle's events
         (a rejection raises MotionError from `events()`/`wait()`)."""
         body = load_job_file(job) if isinstance(job, str | os.PathLike) else dict(job)
-        jid = (
-            job_id
-            or (body.get("job_id") if isinstance(body.get("job_id"), str) else None)
-            or uuid.uuid4().hex
-        )
+        name = body.pop("job_id", None)
+        jid = checked_job_id(job_id) if job_id is not None else run_job_id(name)
         handle = Job(self, jid, accepted={"job_id": jid, "via": "put"})
         self.session.put(
             keys.submit(self.cell),
@@ -528,11 +647,7 @@ class MotionClient:
 
     def job(self, job_id: str) -> Job:
         """A handle on an existing job (its events replay from the journal)."""
-        if not keys.valid_job_id(job_id):
-            raise MotionError(
-                E.SCHEMA, f"job_id {job_id!r} must be 1-64 characters of [A-Za-z0-9_.-]", path="job_id"
-            )
-        handle = Job(self, job_id)
+        handle = Job(self, checked_job_id(job_id))
         self._track(handle)
         return handle
 

@@ -26,8 +26,11 @@ BAD_REQUEST = "BAD_REQUEST"  # a status/list/cancel query that cannot be served 
 INTERNAL = "INTERNAL"  # a bug: an unexpected exception in the service or the backend
 SERVICE_RESTART = "SERVICE_RESTART"  # the service died while the job was queued or running
 SERVICE_STOPPED = "SERVICE_STOPPED"  # the service was shut down while the job was queued
+EMERGENCY_STOP = "EMERGENCY_STOP"  # the job was ended by an emergency stop (quick stop on every drive)
+INFEASIBLE = "INFEASIBLE"  # (planner code) a queued job that no longer starts where the axes stand
 TIMEOUT = "TIMEOUT"  # client side: no answer in time
 NO_SERVICE = "NO_SERVICE"  # client side: no service answered for this cell
+SERVICE_GONE = "SERVICE_GONE"  # client side: the service's liveliness token vanished while waiting
 PERMISSION_DENIED = "PERMISSION_DENIED"  # client side: the service is up but its access rules refused
 
 API_CODES = frozenset(
@@ -45,8 +48,10 @@ API_CODES = frozenset(
         INTERNAL,
         SERVICE_RESTART,
         SERVICE_STOPPED,
+        EMERGENCY_STOP,
         TIMEOUT,
         NO_SERVICE,
+        SERVICE_GONE,
         PERMISSION_DENIED,
     }
 )

@@ -7,8 +7,12 @@
     pvt/<cell>/jobs/<job_id>           get -> status of one job
     pvt/<cell>/jobs/<job_id>/events    publications: the job's events; get -> the journalled history
     pvt/<cell>/jobs/<job_id>/cancel    get -> cancel the job
-    pvt/<cell>/service                 get -> service status (ready, queue, running job)
+    pvt/<cell>/service                 get -> service status (ready, held, queue, running job, drives)
     pvt/<cell>/reset                   get -> reset a faulted cell
+    pvt/<cell>/stop                    get -> stop all (cancel the running job, hold the queue);
+                                       parameter emergency=true: quick stop to every drive
+    pvt/<cell>/hold                    get -> hold the queue (the running job finishes, no next one starts)
+    pvt/<cell>/resume                  get -> release the hold (parameter reset=true: clear a fault first)
     pvt/<cell>/telemetry               publications: per-axis telemetry at telemetry_hz
     pvt/<cell>/alive                   liveliness token of the service
 
@@ -17,24 +21,22 @@ docs/api.md is the public description of the same table; a test checks that they
 
 from __future__ import annotations
 
-import re
+from planner.config import check_name, valid_name
 
 PREFIX = "pvt"
 
-# A cell name or job id is one key chunk: no '/', no wildcard or reserved characters.
-_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
-_CELL = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}$")
+# A cell name or job id is one key chunk: the one rule of names (planner.config.NAME_RULE, docs/formats.md
+# "Names"), so what a config or a job file accepts is what the key space accepts.
 
 
 def valid_job_id(job_id: str) -> bool:
-    """1-64 characters from [A-Za-z0-9_.-]: safe as one Zenoh key chunk."""
-    return bool(_CHUNK.match(job_id)) and job_id not in (".", "..")
+    """True when `job_id` follows the rule of names: safe as one Zenoh key chunk."""
+    return valid_name(job_id)
 
 
 def check_cell(cell: str) -> str:
-    if not isinstance(cell, str) or not _CELL.match(cell):
-        raise ValueError(f"cell name {cell!r} is not a valid key chunk (1-64 of [A-Za-z0-9_.-])")
-    return cell
+    """`cell` if it is a valid cell name; else PlanningError (a ValueError) CONFIG saying why."""
+    return check_name(cell, "cell name", path="cell", code="CONFIG")
 
 
 def base(cell: str) -> str:
@@ -71,6 +73,18 @@ def service(cell: str) -> str:
 
 def reset(cell: str) -> str:
     return f"{base(cell)}/reset"
+
+
+def stop(cell: str) -> str:
+    return f"{base(cell)}/stop"
+
+
+def hold(cell: str) -> str:
+    return f"{base(cell)}/hold"
+
+
+def resume(cell: str) -> str:
+    return f"{base(cell)}/resume"
 
 
 def telemetry(cell: str) -> str:

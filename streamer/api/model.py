@@ -1,15 +1,18 @@
 """Job states, event types and the transition table of the job service.
 
 A job is QUEUED when it is accepted (validated, planned and journalled), RUNNING from the moment the
-service hands it to the motion backend, and ends DONE, FAILED or CANCELLED. Every state change is an
-event; some events (`planned`, `running` progress updates) keep the state. `transition()` is the only
-way a state changes: an event that has no entry for the current state raises, so a late or duplicated
-event can never resurrect a finished job.
+service hands it to the motion backend, CANCELLING from the moment a cancel (or a stop) of the running
+job is accepted until its stop has ended, and ends DONE, FAILED or CANCELLED. Every state change is an
+event; some events (`planned`, `running` and `cancelling` progress updates) keep the state.
+`transition()` is the only way a state changes: an event that has no entry for the current state
+raises, so a late or duplicated event can never resurrect a finished job.
 
-    (new)    --accepted-->  QUEUED  --planned-->  QUEUED
-    QUEUED   --priming-->   RUNNING --running-->  RUNNING
-    RUNNING  --done/failed/cancelled--> DONE/FAILED/CANCELLED
-    QUEUED   --failed/cancelled-->      FAILED/CANCELLED   (restart, not ready, shutdown, cancel)
+    (new)      --accepted-->   QUEUED     --planned-->    QUEUED
+    QUEUED     --priming-->    RUNNING    --running-->    RUNNING
+    RUNNING    --cancelling--> CANCELLING --cancelling--> CANCELLING   (progress while stopping)
+    RUNNING    --done/failed/cancelled--> DONE/FAILED/CANCELLED
+    CANCELLING --done/failed/cancelled--> DONE/FAILED/CANCELLED        (done: the plan's end was queued)
+    QUEUED     --failed/cancelled-->      FAILED/CANCELLED   (restart, not ready, shutdown, cancel)
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from typing import Any
 class JobState(enum.Enum):
     QUEUED = "queued"
     RUNNING = "running"
+    CANCELLING = "cancelling"
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
@@ -40,6 +44,7 @@ class EventType(enum.Enum):
     PLANNED = "planned"
     PRIMING = "priming"
     RUNNING = "running"
+    CANCELLING = "cancelling"
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
@@ -64,6 +69,11 @@ TRANSITIONS: Mapping[tuple[JobState | None, EventType], JobState] = {
     (JobState.RUNNING, EventType.DONE): JobState.DONE,
     (JobState.RUNNING, EventType.FAILED): JobState.FAILED,
     (JobState.RUNNING, EventType.CANCELLED): JobState.CANCELLED,
+    (JobState.RUNNING, EventType.CANCELLING): JobState.CANCELLING,
+    (JobState.CANCELLING, EventType.CANCELLING): JobState.CANCELLING,
+    (JobState.CANCELLING, EventType.DONE): JobState.DONE,
+    (JobState.CANCELLING, EventType.FAILED): JobState.FAILED,
+    (JobState.CANCELLING, EventType.CANCELLED): JobState.CANCELLED,
 }
 
 

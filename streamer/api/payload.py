@@ -16,8 +16,10 @@ The checks run cheapest first and bound every cost before paying it:
    string length (TOO_LARGE), non-string or duplicate keys (SCHEMA), binary/ext values, bools and
    integers beyond +-2**53 where numbers live (TYPE), NaN and infinities (NONFINITE). Paths are the
    job file's paths ("waypoints[7][2]") and messages name the axis when the path has one;
-4. envelope: a map whose only API field is `job_id` (1-64 chars of [A-Za-z0-9_.-], a Zenoh key
-   chunk); everything else is the job body. Unknown job fields are rejected by the job validator
+4. envelope: a map whose only API field is `job_id` (the rule of names, planner.config.NAME_RULE: one
+   Zenoh key chunk); everything else is the job body, where `start = "current"` (path, move) is taken
+   out and flagged (`Submission.start_current`): the service, not the planner, knows where the axes
+   stand. Unknown job fields are rejected by the job validator
    (`planner.job.job_from_dict`, via the backend) with SCHEMA: it owns the job schema.
 
 No job field is a boolean, so a bool anywhere in the body is a TYPE error ("bool as number"). The body
@@ -35,10 +37,12 @@ from typing import Any
 
 import msgpack
 
+from planner.config import check_name
 from streamer.api import errors as E
 from streamer.api.errors import MotionError
 from streamer.api.keys import valid_job_id
 
+START_CURRENT = "current"  # the job field value `start = "current"` (planner.job.START_CURRENT)
 MAX_SAFE_INT = 2**53  # integers beyond this are not exact as float64: "huge ints" are TYPE errors
 
 # Fields whose second index is the axis (one row per waypoint/knot), and fields whose first index is.
@@ -72,6 +76,9 @@ class Submission:
     job_id: str | None
     body: dict[str, Any]
     body_hash: str
+    # `start = "current"` was given (path, move): plan from where the axes stand (prepended to a path whose
+    # first waypoint is elsewhere) instead of failing INFEASIBLE; removed from `body`, kept in the hash
+    start_current: bool = False
 
     @property
     def kind(self) -> str:
@@ -312,13 +319,24 @@ def _submission(obj: Any, limits: PayloadLimits) -> Submission:
     if job_id is not None:
         if not isinstance(job_id, str):
             raise MotionError(E.TYPE, f"job_id must be a string, got {_short(job_id)}", path="job_id")
-        if not valid_job_id(job_id):
-            raise MotionError(
-                E.SCHEMA, f"job_id {_short(job_id)} must be 1-64 characters of [A-Za-z0-9_.-]", path="job_id"
-            )
+        try:
+            check_name(job_id, "job_id", path="job_id")  # the one rule of names (docs/formats.md)
+        except ValueError as exc:
+            raise E.error_from_exception(exc) from None
     if "kind" not in obj:
         raise MotionError(E.SCHEMA, "missing field 'kind' (one of path, move, timed, pvt)", path="kind")
-    return Submission(job_id=job_id, body=obj, body_hash=body_hash(obj))
+    hashed = body_hash(obj)
+    start_current = obj.get("start") == START_CURRENT
+    if start_current:
+        if obj.get("kind") not in ("path", "move"):
+            raise MotionError(
+                E.SCHEMA,
+                f"start = {START_CURRENT!r} applies to path and move jobs (a {obj.get('kind')} job keeps its "
+                "own timing from its first row)",
+                path="start",
+            )
+        del obj["start"]  # the service plans from where the axes stand; the planner never sees it
+    return Submission(job_id=job_id, body=obj, body_hash=hashed, start_current=start_current)
 
 
 def decode_job(

@@ -21,7 +21,7 @@ Theory of operation. Zenoh does the enforcing; this module only builds its confi
       liveliness  client -> service: liveliness_query, declare_liveliness_subscriber;
                   service -> client: liveliness_token
 
-  A new write key (change, stop, record, ...) is operator-only without any edit: the last row grants
+  A new write key (change, record, ...) is operator-only without any edit: the last row grants
   operators every query under `pvt/<cell>/`, and observers only get the rows that name them. Nothing
   else grants access: a subject in no role, or a link without an identity, is denied everything.
 
@@ -105,7 +105,10 @@ KEY_ACCESS: tuple[KeyAccess, ...] = (
     KeyAccess("submit", Op.PUT, OPERATOR, "submit a job by put"),
     KeyAccess("jobs/*/cancel", Op.QUERY, OPERATOR, "cancel a job"),
     KeyAccess("reset", Op.QUERY, OPERATOR, "reset a faulted cell"),
-    KeyAccess("**", Op.QUERY, OPERATOR, "every other request (change, stop, halt, record, ...)"),
+    KeyAccess("stop", Op.QUERY, OPERATOR, "stop all (emergency=true: quick stop), hold the queue"),
+    KeyAccess("hold", Op.QUERY, OPERATOR, "hold the queue"),
+    KeyAccess("resume", Op.QUERY, OPERATOR, "release the hold (reset=true: clear a fault first)"),
+    KeyAccess("**", Op.QUERY, OPERATOR, "every other request (change, halt, record, ...)"),
 )
 
 

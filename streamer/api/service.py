@@ -11,8 +11,8 @@ into a queue (they run on Zenoh's threads and must return at once):
 - executor: takes queued jobs one at a time, emits `priming`, calls `backend.execute` (blocking) with
   an `emit` for progress and a `CancelToken`, writes the job's recording (below), then journals the
   result (`done`/`failed`/`cancelled`).
-- control: status, list, event history, cancel, service status and reset queries (cheap, separate
-  from intake so a long planning job does not stall them).
+- control: status, list, event history, cancel, service status, reset, stop, hold and resume queries
+  (cheap, separate from intake so a long planning job does not stall them).
 - events: the only writer of the journal. Every event gets the job's next sequence number, passes
   the transition table (model.py), is committed, and is then published on the job's events key, in
   order. Backends may emit from any thread; emitting never blocks (progress is throttled).
@@ -27,9 +27,23 @@ and before the final event, so a `done` job's recording is already on disk and t
 after the write, never during it. The report gets `recording: {file, bytes, messages}` (or `{error}`:
 a recording that cannot be written does not fail a job that moved).
 
-On start, jobs the journal shows queued or running (the previous process died) are failed with
-SERVICE_RESTART and those events published before the service answers anything. A liveliness token
-on `pvt/<cell>/alive` tells clients the service is up.
+Hold: a cancel of the running job, and every stop, holds the queue: the executor starts no further job
+until `resume` (a `hold` request holds it without stopping anything). Before a queued job starts, the
+executor checks that it still starts where the axes stand (`current_positions()` of the backend): the
+job before it may have been cancelled or stopped elsewhere. A move is re-planned from there; a path,
+timed or pvt job fails INFEASIBLE naming the axis, where it stands and where the job starts, unless the
+job said `start = "current"` (a path is then planned from where the axes stand through its waypoints).
+Stop with `emergency=true` calls the backend's `emergency_stop()` (quick stop on every drive) when it
+has one; `resume` then re-enables the drives.
+
+A cancel of the running job is journalled at once as a `cancelling` event (state CANCELLING); the
+backend's later progress updates are published as `cancelling` events too, with the progress of the
+job's own plan. A second cancel answers `cancel_requested: false`.
+
+On start, jobs the journal shows queued, running or cancelling (the previous process died) are failed
+with SERVICE_RESTART and those events published before the service answers anything. A liveliness
+token on `pvt/<cell>/alive` tells clients the service is up. Every job's acceptance, start and end is
+logged (logger `streamer.api.service`, INFO).
 """
 
 from __future__ import annotations
@@ -97,6 +111,17 @@ class _Queued:
     job_id: str
     planned: Planned
     token: CancelToken = field(default_factory=CancelToken)
+    body: dict[str, Any] = field(default_factory=dict)  # the job as submitted (for a re-plan)
+    start_current: bool = False  # `start = "current"`: plan from where the axes stand
+    started: bool = False  # its `priming` event is posted (under the service's lock)
+    cancel_requested: bool = False
+    emergency: bool = False  # an emergency stop hit it
+    emitter: _Emitter | None = None
+
+    @property
+    def kind(self) -> str:
+        kind = self.body.get("kind")
+        return kind if isinstance(kind, str) else ""
 
 
 @dataclass
@@ -130,7 +155,10 @@ _STOP = object()
 
 
 class _Emitter:
-    """The `emit` handed to `backend.execute`: thread-safe, non-blocking, throttled, inert after use."""
+    """The `emit` handed to `backend.execute`: thread-safe, non-blocking, throttled, inert after use.
+
+    After `mark_cancelling()` every update is published as a `cancelling` event (the job's state is then
+    CANCELLING), in order with the ones before: both go through this object's lock."""
 
     def __init__(self, service: JobService, job_id: str, min_interval_s: float):
         self._service = service
@@ -140,6 +168,8 @@ class _Emitter:
         self._last_sent = -math.inf
         self._held: dict[str, Any] | None = None
         self._closed = False
+        self._cancelling = False
+        self.progress = 0.0  # the latest progress the backend reported (status, telemetry)
 
     def __call__(self, event_type: str, fields: Mapping[str, Any] | None = None) -> None:
         if event_type == EventType.PRIMING.value:
@@ -157,12 +187,30 @@ class _Emitter:
         with self._lock:
             if self._closed:
                 return
+            self.progress = data["progress"]
             if now - self._last_sent < self._min_interval_s and data["progress"] < 1.0:
                 self._held = data  # the latest update is sent at the end if nothing newer goes out
                 return
             self._last_sent = now
             self._held = None
-            self._service._post_running(self._job_id, data)
+            self._service._post_progress(self._job_id, self._type(), data)
+
+    def _type(self) -> EventType:
+        return EventType.CANCELLING if self._cancelling else EventType.RUNNING
+
+    def mark_cancelling(self, reason: str) -> _Post | None:
+        """Publish the `cancelling` event now (state CANCELLING); None if the job already ended."""
+        with self._lock:
+            if self._closed:
+                return None
+            held, self._held = self._held, None
+            if held is not None:  # what the backend said before the cancel goes out first, in order
+                self._service._post_progress(self._job_id, EventType.RUNNING, held)
+            self._cancelling = True
+            self._last_sent = time.monotonic()
+            return self._service._post_progress(
+                self._job_id, EventType.CANCELLING, {"progress": self.progress, "reason": reason}
+            )
 
     def close(self) -> None:
         """Stop accepting; send the last held-back progress update so the final progress is seen."""
@@ -170,7 +218,7 @@ class _Emitter:
             self._closed = True
             held, self._held = self._held, None
             if held is not None:
-                self._service._post_running(self._job_id, held)
+                self._service._post_progress(self._job_id, self._type(), held)
 
 
 class JobService:
@@ -210,6 +258,12 @@ class JobService:
         self._current: _Queued | None = None
         # where the axes moved by queued/running jobs stand when the queue has run (the next plan's start)
         self._queue_end: dict[str, float] = {}
+        # the hold: no further job starts until resume (after a cancel of the running job, a stop, a hold)
+        self._held = False
+        self._hold_reason = ""
+        self._hold_t: float | None = None
+        self._emergency_pending = False  # an emergency stop disabled the drives; resume re-enables them
+        self._accepted_kind: dict[str, str] = {}  # events thread only: the kind, for the acceptance log line
         self._stopping = False
         self._stop_telemetry = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -251,6 +305,9 @@ class JobService:
             s.declare_queryable(keys.job_cancel_any(c), lambda q: self._control_q.put(("cancel", q))),
             s.declare_queryable(keys.service(c), lambda q: self._control_q.put(("service", q))),
             s.declare_queryable(keys.reset(c), lambda q: self._control_q.put(("reset", q))),
+            s.declare_queryable(keys.stop(c), lambda q: self._control_q.put(("stop", q))),
+            s.declare_queryable(keys.hold(c), lambda q: self._control_q.put(("hold", q))),
+            s.declare_queryable(keys.resume(c), lambda q: self._control_q.put(("resume", q))),
         ]
         self._token = s.liveliness().declare_token(keys.alive(c))
         log.info("job service for cell %r started (store %s)", c, self.store.path)
@@ -294,7 +351,7 @@ class JobService:
             for q in stopped
         ]
         if current is not None:
-            current.token.cancel()
+            self._cancel_running(current, "the service is shutting down")
         threads["executor"].join(timeout=self.options.shutdown_timeout_s)
         if self._writer is not None:
             self._writer.close()
@@ -326,26 +383,65 @@ class JobService:
         with self._cv:
             return self._current.job_id if self._current is not None else None
 
+    @property
+    def held(self) -> bool:
+        with self._cv:
+            return self._held
+
     def service_status(self) -> dict[str, Any]:
         ready, reason = self._ready()
         with self._cv:
-            running = self._current.job_id if self._current is not None else None
-            queued = list(self._pending)
+            current = self._current
+            pending = list(self._pending.values())
+            held, hold_reason, hold_t = self._held, self._hold_reason, self._hold_t
+        running = None
+        if current is not None:
+            emitter = current.emitter
+            running = {
+                "job_id": current.job_id,
+                "kind": current.kind,
+                "state": "cancelling" if current.cancel_requested else ("running" if current.started else "starting"),
+                "progress": emitter.progress if emitter is not None else 0.0,
+                "planned_duration_s": current.planned.duration_s,
+            }
         return {
             "cell": self.cell,
             "api_version": API_VERSION,
             "ready": ready,
             "reason": reason,
-            "running_job": running,
-            "queued_jobs": queued,
-            "queue_length": len(queued),
+            "held": held,
+            "hold_reason": hold_reason,
+            "hold_t": hold_t,
+            "running_job": current.job_id if current is not None else None,
+            "running": running,
+            "queued_jobs": [q.job_id for q in pending],
+            "queue": [
+                {"job_id": q.job_id, "kind": q.kind, "planned_duration_s": q.planned.duration_s}
+                for q in pending
+            ],
+            "queue_length": len(pending),
             "queue_limit": self.options.queue_limit,
             "axes": [a.name for a in self.backend.cell.axes],
+            "units": {a.name: a.unit for a in self.backend.cell.axes},
+            "drives": self._drives(),
             "telemetry_hz": self.telemetry_hz,
             "started_t": self._started_t,
             "store": str(self.store.path),
             "recordings": str(self.recordings.directory) if self.recordings is not None else None,
         }
+
+    def _drives(self) -> list[dict[str, Any]]:
+        """The backend's telemetry snapshot, each axis with its unit (the status and telemetry's `axes`)."""
+        units = {a.name: a.unit for a in self.backend.cell.axes}
+        try:
+            axes = plain(list(self.backend.telemetry()))
+        except Exception as exc:
+            log.warning("backend.telemetry() raised %s: %s", type(exc).__name__, exc)
+            return []
+        for a in axes:
+            if isinstance(a, dict) and isinstance(a.get("name"), str):
+                a.setdefault("unit", units.get(a["name"], ""))
+        return [a for a in axes if isinstance(a, dict)]
 
     def _ready(self) -> tuple[bool, str]:
         try:
@@ -429,6 +525,8 @@ class JobService:
         if not existing:
             reply["queue_position"] = self._queue_position(record.job_id)
             reply["planning_s"] = planning_s
+        if self.held and record.state == JobState.QUEUED:
+            reply["held"] = True  # it waits for `resume`
         if sub.query is not None:
             self._reply(sub.query, keys.submit(self.cell), reply)
 
@@ -458,8 +556,8 @@ class JobService:
         if not ready:
             raise MotionError(
                 E.NOT_READY,
-                f"cell {self.cell!r} is not ready: {reason or 'faulted'}; reset it "
-                f"(get {keys.reset(self.cell)}) and resubmit",
+                f"cell {self.cell!r} is not ready: {reason or 'faulted'}; `pvt resume --reset` (get "
+                f"{keys.resume(self.cell)}?reset=true) clears it, then resubmit",
             )
         if self.queue_length >= self.options.queue_limit:
             raise MotionError(
@@ -468,6 +566,12 @@ class JobService:
             )
         with self._cv:
             start = dict(self._queue_end) if (self._pending or self._current is not None) else None
+        if sub.start_current and sub.kind == "path":
+            # where the axes will stand when this job starts: the end of the queue, else where they are now
+            here = self._positions() or {}
+            moved = self._with_start(sub.body, {**here, **(start or {})})
+            if moved is not None:
+                job = self.backend.validate(moved)
         planned = self.backend.plan(job, start)
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.plan returned {type(planned).__name__}, not Planned")
@@ -493,13 +597,13 @@ class JobService:
         )
         self._events_q.put(post)
         post.wait(timeout=60.0)  # journalled (and published) before the answer
+        record = self.store.get(job_id)  # read before the executor can take it: the reply says "queued"
         with self._cv:
             if not self._pending and self._current is None:
                 self._queue_end.clear()
             self._queue_end.update(planned.end_positions)
-            self._pending[job_id] = _Queued(job_id, planned)
+            self._pending[job_id] = _Queued(job_id, planned, body=sub.body, start_current=sub.start_current)
             self._cv.notify_all()
-        record = self.store.get(job_id)
         if record is None:
             raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
         self.counters["accepted"] += 1
@@ -532,7 +636,7 @@ class JobService:
         min_interval = 1.0 / self.options.progress_hz
         while True:
             with self._cv:
-                while not self._pending and not self._stopping:
+                while (not self._pending or self._held) and not self._stopping:
                     self._cv.wait()
                 if self._stopping:
                     return
@@ -562,25 +666,125 @@ class JobService:
                 f"cell {self.cell!r} became not ready before the job started: {reason or 'faulted'}",
             ).wait(60)
             return
-        self._post(item.job_id, [(EventType.PRIMING, {}, {"started_t": self._clock()})]).wait(60)
-        emitter = _Emitter(self, item.job_id, min_interval)
         try:
-            report: Any = self.backend.execute(item.planned, emitter, item.token)
+            planned = self._check_start(item)
         except Exception as exc:
-            log.exception("backend.execute raised for job %s", item.job_id)
+            err = error_from_exception(exc)
+            if err.code == E.INTERNAL:
+                log.exception("checking the start of job %s failed", item.job_id)
+            self._post_failed_queued(item.job_id, err).wait(60)
+            return
+        emitter = _Emitter(self, item.job_id, min_interval)
+        priming: _Post | None = None
+        with self._cv:  # `started`, the emitter and the priming event together: a cancel sees all or none
+            if not item.token.cancelled:
+                item.started = True
+                item.emitter = emitter
+                priming = self._post(item.job_id, [(EventType.PRIMING, {}, {"started_t": self._clock()})])
+        if priming is None:
+            self._post_final_queued(
+                item.job_id, EventType.CANCELLED, None, "cancelled before it started"
+            ).wait(60)
+            return
+        priming.wait(60)
+        try:
+            report: Any = self.backend.execute(planned, emitter, item.token)
+        except Exception as exc:
+            err = error_from_exception(exc)
+            if err.code == E.INTERNAL:
+                log.exception("backend.execute raised for job %s", item.job_id)
+                message = f"backend.execute raised {type(exc).__name__}: {exc}"
+            else:  # a coded error (e.g. the backend's own re-plan): an ordinary failure, not a crash
+                log.warning("job %s: backend.execute raised %s", item.job_id, err)
+                message = err.message
             report = {
                 "result": "failed",
-                "error": {
-                    "code": E.INTERNAL,
-                    "node": None,
-                    "message": f"backend.execute raised {type(exc).__name__}: {exc}",
-                },
+                "error": {"code": err.code, "path": err.path, "node": None, "message": message,
+                          **({"detail": err.detail} if err.detail else {})},
             }
         finally:
             emitter.close()
         report = self._record(item.job_id, report)
         etype, data, updates = self._final_from_report(report)
         self._post(item.job_id, [(etype, data, updates)]).wait(60)
+
+    # -- the start of a queued job -------------------------------------------------------------------
+    def _positions(self) -> dict[str, float] | None:
+        """Where every axis' position demand stands (backend.current_positions()), or None if unknown."""
+        get = getattr(self.backend, "current_positions", None)
+        if not callable(get):
+            return None
+        try:
+            return {str(k): float(v) for k, v in dict(get()).items()}
+        except Exception as exc:
+            log.warning("backend.current_positions() raised %s: %s", type(exc).__name__, exc)
+            return None
+
+    @staticmethod
+    def _rows_field(kind: str) -> str:
+        return "waypoints" if kind == "path" else "positions"
+
+    def _with_start(self, body: Mapping[str, Any], at: Mapping[str, float]) -> dict[str, Any] | None:
+        """A path body that begins where the axes stand (`at`): that position prepended to its waypoints, or
+        None when its first waypoint is already there (within half a count on every axis)."""
+        axes = body.get("axes")
+        rows = body.get("waypoints")
+        if not isinstance(axes, list) or not isinstance(rows, list) or not rows or not isinstance(rows[0], list):
+            return None
+        if any(a not in at for a in axes):
+            return None
+        here = [float(at[a]) for a in axes]
+        cpu = {a.name: a.counts_per_unit for a in self.backend.cell.axes}
+        try:
+            if all(abs(float(v) - h) * cpu.get(a, 1.0) <= 0.5 for a, v, h in zip(axes, rows[0], here, strict=True)):
+                return None
+        except (TypeError, ValueError):
+            return None
+        return {**body, "waypoints": [here, *rows]}
+
+    def _check_start(self, item: _Queued) -> Planned:
+        """The plan to run: `item.planned` when its start is where the axes stand; else a move re-planned from
+        there, a `start = "current"` path re-planned through a waypoint there, anything else INFEASIBLE."""
+        here = self._positions()
+        planned = item.planned
+        if here is None or not planned.start_positions:
+            return planned
+        cpu = {a.name: a.counts_per_unit for a in self.backend.cell.axes}
+        off = [
+            (name, here[name], start)
+            for name, start in planned.start_positions.items()
+            if name in here and abs(here[name] - start) * cpu.get(name, 1.0) > 0.5
+        ]
+        if not off:
+            return planned
+        kind = item.kind
+        if kind == "move" or (item.start_current and kind == "path"):
+            job = planned.job
+            if kind == "path":
+                moved = self._with_start(item.body, here)
+                if moved is not None:
+                    job = self.backend.validate(moved)
+            replanned = self.backend.plan(job, None)  # from where the axes stand
+            if not isinstance(replanned, Planned):
+                raise MotionError(E.INTERNAL, f"backend.plan returned {type(replanned).__name__}, not Planned")
+            log.info("job %s re-planned from where the axes stand (%s)", item.job_id,
+                     ", ".join(f"{n} at {h:.6g}, planned from {p:.6g}" for n, h, p in off))
+            return replanned
+        name, at, start = off[0]
+        axes = item.body.get("axes")
+        j = axes.index(name) if isinstance(axes, list) and name in axes else 0
+        unit = next((a.unit for a in self.backend.cell.axes if a.name == name), "")
+        field_path = f"{self._rows_field(kind)}[0][{j}]"
+        raise MotionError(
+            E.INFEASIBLE,
+            f"{field_path}: axis {name!r} stands at {at:.6g} {unit} but the job starts at {start:.6g} {unit} "
+            "(it was planned from where the jobs before it would end, and the axes stopped elsewhere: a "
+            "cancel or a stop); submit it again from here, or give it start = \"current\" to have a path "
+            "planned from where the axes stand",
+            path=field_path,
+            detail={"axis": name, "position": at, "job_start": start,
+                    "axes": [{"axis": n, "position": h, "job_start": p} for n, h, p in off]},
+        )
 
     def _record(self, job_id: str, report: Any) -> Any:
         """Write the job's recording (if the backend made one); the report says where, or why not."""
@@ -648,8 +852,17 @@ class JobService:
         self._events_q.put(post)
         return post
 
-    def _post_running(self, job_id: str, data: dict[str, Any]) -> None:
-        self._events_q.put(_Post(job_id, [(EventType.RUNNING, data, {"progress": data["progress"]})]))
+    def _post_progress(self, job_id: str, etype: EventType, data: dict[str, Any]) -> _Post:
+        post = _Post(job_id, [(etype, data, {"progress": data["progress"]})])
+        self._events_q.put(post)
+        return post
+
+    def _post_failed_queued(self, job_id: str, err: MotionError) -> _Post:
+        """A queued job that fails before it starts, with the whole error (code, path, detail)."""
+        error = {"code": err.code, "path": err.path, "node": None, "message": err.message,
+                 **({"detail": err.detail} if err.detail else {})}
+        updates = {"error": error, "finished_t": self._clock()}
+        return self._post(job_id, [(EventType.FAILED, {"error": error, "report": None}, updates)])
 
     def _post_final_queued(self, job_id: str, etype: EventType, code: str | None, message: str) -> _Post:
         if etype == EventType.FAILED:
@@ -678,6 +891,30 @@ class JobService:
                 post.done.set()
             for ev in post.result:
                 self._put(keys.job_events(self.cell, ev.job_id), ev.to_wire(self.cell), reliable=True)
+                self._log_event(ev)
+
+    def _log_event(self, ev: Event) -> None:
+        """One log line per job milestone: accepted, started, cancelling, done, failed, cancelled."""
+        d = ev.data
+        if ev.type == EventType.ACCEPTED:
+            self._accepted_kind[ev.job_id] = str(d.get("kind", "?"))  # logged with the plan, next event
+        elif ev.type == EventType.PLANNED:
+            log.info("job %s accepted: %s job, planned %.3f s, %s points", ev.job_id,
+                     self._accepted_kind.pop(ev.job_id, "?"), float(d.get("planned_duration_s") or 0.0),
+                     d.get("points"))
+        elif ev.type == EventType.PRIMING:
+            log.info("job %s started", ev.job_id)
+        elif ev.type == EventType.CANCELLING and "reason" in d:
+            log.info("job %s cancelling at %.0f%% (%s)", ev.job_id, 100.0 * float(d.get("progress") or 0.0),
+                     d.get("reason"))
+        elif ev.type == EventType.DONE:
+            rep: Mapping[str, Any] = d["report"] if isinstance(d.get("report"), Mapping) else {}
+            log.info("job %s done (%.3f s)", ev.job_id, float(rep.get("duration_s") or 0.0))
+        elif ev.type == EventType.FAILED:
+            err: Mapping[str, Any] = d["error"] if isinstance(d.get("error"), Mapping) else {}
+            log.warning("job %s failed %s: %s", ev.job_id, err.get("code"), err.get("message"))
+        elif ev.type == EventType.CANCELLED:
+            log.info("job %s cancelled%s", ev.job_id, f": {d['message']}" if d.get("message") else "")
 
     def _journal(self, post: _Post) -> list[Event]:
         if post.new_job is not None:
@@ -744,6 +981,9 @@ class JobService:
             "cancel": self._q_cancel,
             "service": self._q_service,
             "reset": self._q_reset,
+            "stop": self._q_stop,
+            "hold": self._q_hold,
+            "resume": self._q_resume,
         }
         while True:
             item = self._control_q.get()
@@ -815,23 +1055,159 @@ class JobService:
     def _q_cancel(self, query: zenoh.Query) -> None:
         job_id = self._query_job_id(query)
         post: _Post | None = None
-        requested = False
+        running: _Queued | None = None
         with self._cv:
             if job_id in self._pending:
                 del self._pending[job_id]
                 post = self._post_final_queued(job_id, EventType.CANCELLED, None, "cancelled while queued")
             elif self._current is not None and self._current.job_id == job_id:
-                self._current.token.cancel()
-                requested = True
+                running = self._current
+        requested = post is not None
+        message = "cancelled while queued" if post is not None else ""
         if post is not None:
             post.wait(timeout=60.0)
+        if running is not None:
+            started = running.started
+            requested = self._cancel_running(running, "cancel requested")
+            if requested:
+                self._hold(f"job {job_id} was cancelled")
+                message = (
+                    "the job stops on its jerk-limited stop trajectory; the queue is held until resume"
+                    if started
+                    else "the job was about to start: it ends cancelled without moving; the queue is held until "
+                    "resume"
+                )
+            else:
+                message = "a cancel of this job was already requested; it is stopping"
         rec = self.store.get(job_id)
         if rec is None:
             raise MotionError(E.NOT_FOUND, f"no job {job_id!r} in cell {self.cell!r}", path="job_id")
         status = rec.to_status()
-        status["cancel_requested"] = requested or post is not None
+        if not requested and not message:
+            message = f"the job is {rec.state.value}: nothing to cancel"
+        status["cancel_requested"] = requested
+        status["message"] = message
+        status["held"] = self.held
         self.counters["cancel"] += 1
         self._reply(query, keys.job_cancel(self.cell, job_id), status)
+
+    def _cancel_running(self, item: _Queued, reason: str) -> bool:
+        """Cancel the job the executor holds; True if this request had an effect (the first one does)."""
+        with self._cv:
+            if item.cancel_requested:
+                return False
+            item.cancel_requested = True
+            emitter = item.emitter if item.started else None
+        posted = emitter.mark_cancelling(reason) if emitter is not None else None
+        if emitter is not None and posted is None:
+            return False  # it ended meanwhile
+        item.token.cancel()
+        if posted is not None:
+            with contextlib.suppress(Exception):
+                posted.wait(timeout=10.0)  # journalled: the answer's status says `cancelling`
+        return True
+
+    def _hold(self, reason: str) -> None:
+        with self._cv:
+            if not self._held:
+                self._held, self._hold_reason, self._hold_t = True, reason, self._clock()
+                log.info("queue of cell %r held: %s", self.cell, reason)
+            self._cv.notify_all()
+
+    @staticmethod
+    def _flag(query: zenoh.Query, name: str) -> bool:
+        text = (query.parameters.get(name) or "false").strip().lower()
+        if text in ("true", "1", "yes", "on"):
+            return True
+        if text in ("false", "0", "no", "off", ""):
+            return False
+        raise MotionError(E.BAD_REQUEST, f"{name}={text!r} must be true or false")
+
+    def _q_stop(self, query: zenoh.Query) -> None:
+        emergency = self._flag(query, "emergency")
+        self._hold("emergency stop" if emergency else "stop requested")
+        with self._cv:
+            current = self._current
+        stop_all = getattr(self.backend, "emergency_stop", None)
+        method = "none"
+        what = ""
+        if emergency and callable(stop_all):
+            if current is not None:
+                current.emergency = True
+                if not current.started:
+                    current.token.cancel()  # it had not started: it never will
+            try:
+                what = str(stop_all())
+            except Exception as exc:
+                log.exception("backend.emergency_stop() raised")
+                raise MotionError(E.INTERNAL, f"backend.emergency_stop() raised {type(exc).__name__}: {exc}") from None
+            self._emergency_pending = True
+            method = "quick_stop"
+            log.warning("EMERGENCY STOP of cell %r%s: %s", self.cell,
+                        f" (job {current.job_id} running)" if current is not None else "", what)
+        elif current is not None:
+            if self._cancel_running(current, "emergency stop" if emergency else "stop requested"):
+                method = "stop_trajectory"
+                what = "the running job stops on its jerk-limited stop trajectory"
+            else:
+                method = "stop_trajectory"
+                what = "the running job was already stopping"
+            if emergency:
+                what += " (this backend has no emergency stop: the jerk-limited stop is the fastest it has)"
+        else:
+            what = "nothing was moving"
+        self.counters["stop"] += 1
+        self._reply(query, keys.stop(self.cell), {
+            "cell": self.cell,
+            "held": True,
+            "emergency": emergency,
+            "method": method,
+            "job_id": current.job_id if current is not None else None,
+            "message": what,
+            "queued_jobs": self.service_status()["queued_jobs"],
+        })
+
+    def _q_hold(self, query: zenoh.Query) -> None:
+        self._hold("hold requested")
+        with self._cv:
+            running = self._current.job_id if self._current is not None else None
+            queued = list(self._pending)
+        self._reply(query, keys.hold(self.cell), {
+            "cell": self.cell, "held": True, "hold_reason": self._hold_reason, "running_job": running,
+            "queued_jobs": queued,
+        })
+
+    def _q_resume(self, query: zenoh.Query) -> None:
+        reset = self._flag(query, "reset")
+        ready, reason = self._ready()
+        did_reset = False
+        if not ready:
+            if not (reset or self._emergency_pending):
+                raise MotionError(
+                    E.NOT_READY,
+                    f"cell {self.cell!r} is not ready: {reason or 'faulted'}; resume with reset "
+                    f"(`pvt resume --reset`, get {keys.resume(self.cell)}?reset=true) to clear it first",
+                )
+            if self.running_job is not None:
+                raise MotionError(E.BUSY, f"job {self.running_job!r} is still stopping; resume when it has ended")
+            try:
+                ready, reason = self.backend.reset()
+            except Exception as exc:
+                raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
+            did_reset = True
+            if not ready:
+                raise MotionError(E.NOT_READY, f"cell {self.cell!r} is still not ready after a reset: {reason}")
+            self._emergency_pending = False
+        with self._cv:
+            was_held, self._held, self._hold_reason, self._hold_t = self._held, False, "", None
+            queued = list(self._pending)
+            self._cv.notify_all()
+        log.info("queue of cell %r resumed%s (%d queued)", self.cell, " after a reset" if did_reset else "",
+                 len(queued))
+        self._reply(query, keys.resume(self.cell), {
+            "cell": self.cell, "held": False, "was_held": was_held, "reset": did_reset, "ready": bool(ready),
+            "reason": str(reason or ""), "queued_jobs": queued,
+        })
 
     def _q_service(self, query: zenoh.Query) -> None:
         self._reply(query, keys.service(self.cell), self.service_status())
@@ -843,6 +1219,8 @@ class JobService:
             ready, reason = self.backend.reset()
         except Exception as exc:
             raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
+        if ready:
+            self._emergency_pending = False
         self._reply(
             query,
             keys.reset(self.cell),
@@ -852,6 +1230,7 @@ class JobService:
     # -- telemetry ---------------------------------------------------------------------------------
     def _telemetry_loop(self) -> None:
         period = 1.0 / self.telemetry_hz
+        units = {a.name: a.unit for a in self.backend.cell.axes}
         next_t = time.monotonic()
         while True:
             next_t += period
@@ -866,9 +1245,14 @@ class JobService:
                 error = None
             except Exception as exc:
                 axes, error = [], f"backend.telemetry() raised {type(exc).__name__}: {exc}"
+            for a in axes:
+                if isinstance(a, dict) and isinstance(a.get("name"), str):
+                    a.setdefault("unit", units.get(a["name"], ""))
             ready, reason = self._ready()
             with self._cv:
-                current = self._current.job_id if self._current is not None else None
+                item = self._current
+                held = self._held
+            emitter = item.emitter if item is not None else None
             self._telemetry_seq += 1
             msg: dict[str, Any] = {
                 "cell": self.cell,
@@ -876,7 +1260,11 @@ class JobService:
                 "seq": self._telemetry_seq,
                 "ready": ready,
                 "reason": reason,
-                "job_id": current,
+                "held": held,
+                "job_id": item.job_id if item is not None else None,
+                "job_state": None if item is None else (
+                    "cancelling" if item.cancel_requested else "running" if item.started else "starting"),
+                "progress": emitter.progress if emitter is not None else None,
                 "axes": axes,
             }
             if error:

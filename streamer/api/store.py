@@ -81,13 +81,29 @@ class StoreError(RuntimeError):
     """The journal cannot be opened or written (disk full, wrong schema, locked by another service)."""
 
 
-def default_store_path(config_source: str | os.PathLike[str] | None, cell_name: str) -> Path:
-    """`<config dir>/<config stem>.jobs.sqlite` next to the cell config (`./<cell>.jobs.sqlite` without
-    one); the existing `*.sqlite*` ignore patterns keep it out of git."""
-    if config_source:
-        p = Path(config_source)
-        return p.with_name(f"{p.stem}.jobs.sqlite")
-    return Path.cwd() / f"{cell_name}.jobs.sqlite"
+STATE_DIR_ENV = "XDG_STATE_HOME"
+JOURNAL_SUFFIXES = (".sqlite", ".db")
+
+
+def state_dir() -> Path:
+    """The user's state directory for pvt: `$XDG_STATE_HOME/pvt`, else `~/.local/state/pvt` (the XDG base
+    directory default). Journals and recordings are machine state, not configuration: they never go
+    beside a cell config (which may be in git, read-only, or shared by several machines)."""
+    base = os.environ.get(STATE_DIR_ENV, "").strip()
+    root = Path(base) if base and Path(base).is_absolute() else Path.home() / ".local" / "state"
+    return root / "pvt"
+
+
+def journal_path(cell_name: str, store: str | os.PathLike[str] | None = None) -> Path:
+    """Where the journal of cell `cell_name` is: `<data dir>/<cell>.jobs.sqlite`, the data dir being `store`
+    (`pvt serve --store DIR`) or `state_dir()`. A `store` that ends in .sqlite/.db (or is an existing
+    file) names the journal file itself. Its recordings go beside it (`<cell>.jobs.recordings/`)."""
+    if store is None:
+        return state_dir() / f"{cell_name}.jobs.sqlite"
+    p = Path(store).expanduser()
+    if p.suffix.lower() in JOURNAL_SUFFIXES or p.is_file():
+        return p
+    return p / f"{cell_name}.jobs.sqlite"
 
 
 def _dumps(value: Any) -> str:
@@ -311,7 +327,9 @@ class JobStore:
 
     def unfinished(self) -> list[JobRecord]:
         """Jobs that were queued or running (oldest first): after a crash, these need SERVICE_RESTART."""
-        return self.list_jobs(states=(JobState.QUEUED, JobState.RUNNING), limit=None, oldest_first=True)
+        return self.list_jobs(
+            states=(JobState.QUEUED, JobState.RUNNING, JobState.CANCELLING), limit=None, oldest_first=True
+        )
 
     def events(self, job_id: str, after_seq: int = 0) -> list[Event]:
         rows = (

@@ -15,6 +15,8 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from rich.markup import escape
+
 
 def add_parser(sub: Any) -> None:
     p = sub.add_parser("demo", help="run the default job end to end on simulated drives",
@@ -63,11 +65,17 @@ def run(args: argparse.Namespace) -> int:
     from streamer import demo
 
     console = Console(stderr=False)
+    if args.fast and args.external_drives:
+        console.print("[red]error:[/red] --fast and --external-drives do not go together: --fast runs the "
+                      "simulated drives here, in virtual time; drives in another process (`pvt sim`) run in real "
+                      "time on a bus. Drop one of them.", highlight=False)
+        return 2
     try:
         cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,
                                        bus=args.bus, bitrate=args.bitrate)
     except PlanningError as e:
-        console.print(f"[red]error {e.code}[/red]" + (f" at {e.path}" if e.path else "") + f": {e.message}")
+        console.print(f"[red]error {e.code}[/red]" + escape((f" at {e.path}" if e.path else "") + f": {e.message}"),
+                      highlight=False)
         return 2
     mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"
     console.print(
@@ -91,13 +99,13 @@ def run(args: argparse.Namespace) -> int:
         from bus.errors import BusError
 
         if isinstance(e, BusError | TimeoutError):
-            console.print(f"[red]demo failed:[/red] {e}")
+            console.print(f"[red]demo failed:[/red] {escape(str(e))}")
             return 1
         raise
     _summary(console, report, args.out)
     problems = guarantees(report, job.tolerance_counts)
     for p in problems:
-        console.print(f"[red]guarantee missed:[/red] {p}")
+        console.print(f"[red]guarantee missed:[/red] {escape(p)}")
     return 0 if not problems else 1
 
 
@@ -156,22 +164,32 @@ class _Display:
 
 
 def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
-    from rich.table import Table
+    from rich.text import Text
 
-    table = Table(title=f"{report['result'].upper()}: {report['duration_s']:.2f} s, {report['syncs']} SYNCs, "
-                        f"{report['frames']} frames, peak bus load {100 * report['bus_load_peak']:.1f}%")
-    for col in ("axis", "node", "start", "end", "points", "FIFO min/max", "deviation", "following",
-                "final err", "underflow warn"):
-        table.add_column(col, justify="right")
-    for a in report["axes"]:
-        table.add_row(a["name"], str(a["node_id"]), str(a["start_sync"]), str(a["end_sync"]),
-                      str(a["points_sent"]), f"{a['min_fifo']}/{a['max_fifo']}",
-                      str(a["max_deviation_counts"]), str(a["max_following_error_counts"]),
-                      str(a["final_position_error_counts"]), str(a["underflow_warnings"]))
-    console.print(table)
+    from streamer.cli.tables import Col, fit_table
+
+    axes = report["axes"]
+    starts = {a["start_sync"] for a in axes}
+    common = f", start SYNC {next(iter(starts))} (all axes)" if len(starts) == 1 else ""
+    title = (f"{report['result'].upper()}: {report['duration_s']:.2f} s, {report['syncs']} SYNCs, "
+             f"{report['frames']} frames, peak bus load {100 * report['bus_load_peak']:.1f}%{common}")
+    columns = [
+        Col("axis"), Col("node", justify="right", drop=3),
+        Col("start SYNC", justify="right", drop=0 if not common else 5), Col("end SYNC", justify="right", drop=2),
+        Col("points", justify="right"), Col("FIFO min/max", justify="right"),
+        Col("deviation [counts]", justify="right"), Col("following error [counts]", justify="right"),
+        Col("final error [counts]", justify="right"), Col("underflow warnings", justify="right", drop=1),
+    ]
+    rows = [[a["name"], str(a["node_id"]), str(a["start_sync"]), str(a["end_sync"]), str(a["points_sent"]),
+             f"{a['min_fifo']}/{a['max_fifo']}", str(a["max_deviation_counts"]),
+             str(a["max_following_error_counts"]), str(a["final_position_error_counts"]),
+             str(a["underflow_warnings"])] for a in axes]
+    console.print(Text(title))
+    console.print(fit_table(columns, rows, console.width, more=f"{out / 'report.json'}"), highlight=False)
     for f in report["faults"]:
-        console.print(f"[red]fault[/red] {f}")
-    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}, {out / 'job.mcap'}")
+        console.print(f"[red]fault[/red] {escape(str(f))}", highlight=False)
+    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}, {out / 'job.mcap'}",
+                  highlight=False, markup=False)
 
 
 def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli.demo`

@@ -1,17 +1,20 @@
 """`pvt jobs`: list the jobs journalled by a cell's job service (read from its SQLite journal), and
 show or export one job's recording.
 
-    pvt jobs --config configs/demo.toml            # the journal next to the config
-    pvt jobs --store /var/lib/pvt/demo.jobs.sqlite --state failed --json
+    pvt jobs --config configs/demo.toml            # the journal of the config's cell, in the state dir
+    pvt jobs --store /var/lib/pvt --state failed --json   # the data directory `pvt serve --store` used
     pvt jobs --config configs/demo.toml --events JOB_ID
     pvt jobs show JOB_ID [--config CELL | --store PATH] [--json]
     pvt jobs export JOB_ID [--csv PATH] [--html PATH] [--mcap PATH]
     pvt jobs --connect tls/127.0.0.1:7447 --cell demo --ca ca.pem --cert observer.pem --key observer.key
 
 Reads the journal directly (no Zenoh, works while the service is down, and while it runs: WAL), or,
-with --connect, asks a running service over the job API (an observer's read; docs/security.md).
+with --connect, asks a running service over the job API (an observer's read; docs/security.md). The
+journal is `<data dir>/<cell>.jobs.sqlite`, the data dir being `--store DIR` or the user's state
+directory ($XDG_STATE_HOME/pvt, else ~/.local/state/pvt); `--store FILE.sqlite` names the file itself.
 `show` and `export` read the job's MCAP recording beside the journal (`<journal stem>.recordings/`,
 or `--recordings DIR`); JOB_ID may also be the path of an .mcap file (e.g. `demo-out/job.mcap`).
+Tables fit the terminal: columns that do not fit are left out (the caption names them; --json has all).
 """
 
 from __future__ import annotations
@@ -24,7 +27,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from rich.markup import escape
+
 from streamer.cli import tls_options
+from streamer.cli.tables import Col, fit_table, number
+
+STORE_HELP = ("data directory of the journal (default: the state dir, $XDG_STATE_HOME/pvt or ~/.local/state/pvt), "
+              "or the journal file itself (.sqlite/.db)")
+JOB_COLUMNS = [
+    Col("#", justify="right"), Col("job_id"), Col("kind", drop=2), Col("state"), Col("via", drop=4),
+    Col("planned [s]", justify="right"), Col("points", justify="right", drop=3), Col("submitted", drop=1),
+    Col("error", text=True),
+]
+EVENT_COLUMNS = [Col("seq", justify="right"), Col("time", drop=1), Col("type"), Col("state", drop=2),
+                 Col("details", text=True)]
 
 
 def add_parser(sub: Any) -> argparse.ArgumentParser:
@@ -34,7 +50,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         description="List the jobs journalled by `pvt serve` (every accepted job, its state and result).",
     )
     p.add_argument("--config", type=Path, default=None, help="cell config (default configs/demo.toml)")
-    p.add_argument("--store", type=Path, default=None, help="journal file (default: next to the config)")
+    p.add_argument("--store", type=Path, default=None, help=STORE_HELP)
     p.add_argument(
         "--state", default=None, help="only these states, comma separated (queued,running,done,...)"
     )
@@ -76,21 +92,22 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def _location(p: argparse.ArgumentParser) -> None:
     # SUPPRESS: given before the action (`pvt jobs --store X show ID`) the value is kept
     p.add_argument("--config", type=Path, default=argparse.SUPPRESS, help="cell config (default configs/demo.toml)")
-    p.add_argument("--store", type=Path, default=argparse.SUPPRESS, help="journal file (default: next to the config)")
+    p.add_argument("--store", type=Path, default=argparse.SUPPRESS, help=STORE_HELP)
     p.add_argument("--recordings", type=Path, default=argparse.SUPPRESS, metavar="DIR",
                    help="recordings folder (default: beside the journal, <journal stem>.recordings/)")
 
 
 def _journal_path(args: argparse.Namespace) -> Path:
-    """The journal `--store` names, or the one next to `--config` (raises PlanningError for a bad config)."""
+    """The journal of the cell of `--config` in `--store` (a data dir) or the state dir; `--store FILE`
+    names the file itself (raises PlanningError for a bad config)."""
     from planner.config import default_config_path, load_cell
-    from streamer.api.store import default_store_path
+    from streamer.api.store import journal_path
 
-    if args.store is not None:
-        return Path(args.store)
-    config_path = args.config or default_config_path()
-    cell = load_cell(config_path)
-    return default_store_path(cell.source or str(config_path), cell.name)
+    store = getattr(args, "store", None)
+    if store is not None and journal_path("x", store) == Path(store).expanduser():
+        return Path(store).expanduser()  # the journal file itself: no config needed
+    cell = load_cell(getattr(args, "config", None) or default_config_path())
+    return journal_path(cell.name, store)
 
 
 class _Lookup(Exception):
@@ -138,7 +155,6 @@ def _find(args: argparse.Namespace) -> tuple[Path, Any]:
 
 def run_show(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
 
     from streamer.recording.export import summary
     from streamer.recording.mcap_io import read_mcap
@@ -149,10 +165,10 @@ def run_show(args: argparse.Namespace) -> int:
         path, record = _find(args)
         rec = read_mcap(path)
     except _Lookup as exc:
-        err.print(f"pvt jobs show: {exc}")
+        err.print(f"pvt jobs show: {exc}", highlight=False, markup=False)
         return exc.status
     except RecordingError as exc:
-        err.print(f"pvt jobs show: {exc.code}: {exc.message}")
+        err.print(f"pvt jobs show: {exc.code}: {exc.message}", highlight=False, markup=False)
         return 2
     info = summary(rec)
     info["file"] = str(path)
@@ -172,26 +188,23 @@ def run_show(args: argparse.Namespace) -> int:
                   f"{_time(journal.get('started_t'))}, finished {_time(journal.get('finished_t'))}")
         if journal.get("error"):
             e = journal["error"]
-            out.print(f"[red]error {e.get('code')}[/red]: {e.get('message', '')}")
+            out.print(f"[red]error {e.get('code')}[/red]: " + escape(str(e.get("message", ""))))
     out.print(f"SYNC {rec.sync_period_ms} ms, first SYNC {rec.first_sync}, start SYNC {rec.start_sync}, "
               f"{info['duration_s']:.3f} s recorded, {info['frames']} CAN frames"
               + (f" ({rec.frames_dropped} more not kept)" if rec.frames_dropped else ""))
-    table = Table(title="axes (from the recorded samples, counts)")
-    for col in ("axis", "node", "samples", "max following error", "FIFO min/max", "max |demand - plan|",
-                "final actual", "final plan"):
-        table.add_column(col, justify="right")
-    for a in info["axes"]:
-        table.add_row(a["name"], str(a["node_id"]), str(a["samples"]), _opt(a["max_following_error_counts"]),
-                      f"{_opt(a['fifo_min'])}/{_opt(a['fifo_max'])}", _opt(a["max_demand_vs_plan_counts"]),
-                      _opt(a["final_actual_counts"]), _opt(a["final_planned_counts"]))
-    out.print(table)
-    events = Table(title="events")
-    for col in ("t [s]", "SYNC", "event"):
-        events.add_column(col)
-    for e in info["events"]:
-        events.add_row(f"{e['t']:.3f}", _opt(e["sync"]), e["label"])
-    out.print(events)
-    out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()))
+    columns = [Col("axis"), Col("node", justify="right", drop=3), Col("samples", justify="right", drop=4),
+               Col("max following error [counts]", justify="right"), Col("FIFO min/max", justify="right", drop=2),
+               Col("max |demand - plan| [counts]", justify="right"), Col("final actual [counts]", justify="right",
+                                                                          drop=1),
+               Col("final plan [counts]", justify="right", drop=1)]
+    rows = [[a["name"], str(a["node_id"]), str(a["samples"]), _opt(a["max_following_error_counts"]),
+             f"{_opt(a['fifo_min'])}/{_opt(a['fifo_max'])}", _opt(a["max_demand_vs_plan_counts"]),
+             _opt(a["final_actual_counts"]), _opt(a["final_planned_counts"])] for a in info["axes"]]
+    out.print(fit_table(columns, rows, out.width, title="axes (from the recorded samples)"), highlight=False)
+    rows = [[f"{e['t']:.3f}", _opt(e["sync"]), e["label"]] for e in info["events"]]
+    out.print(fit_table([Col("t [s]", justify="right"), Col("SYNC", justify="right"), Col("event", text=True)],
+                        rows, out.width, title="events"), highlight=False)
+    out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()), markup=False)
     return 0
 
 
@@ -210,10 +223,10 @@ def run_export(args: argparse.Namespace) -> int:
         path, _record = _find(args)
         rec = read_mcap(path)
     except _Lookup as exc:
-        err.print(f"pvt jobs export: {exc}")
+        err.print(f"pvt jobs export: {exc}", highlight=False, markup=False)
         return exc.status
     except RecordingError as exc:
-        err.print(f"pvt jobs export: {exc.code}: {exc.message}")
+        err.print(f"pvt jobs export: {exc.code}: {exc.message}", highlight=False, markup=False)
         return 2
     out = Console()
     try:
@@ -231,7 +244,7 @@ def run_export(args: argparse.Namespace) -> int:
             out.print(f"wrote {args.html} (interactive report, {fig.series_traces} curves, "
                       f"{args.html.stat().st_size} bytes)")
     except OSError as exc:
-        err.print(f"pvt jobs export: cannot write: {exc}")
+        err.print(f"pvt jobs export: cannot write: {exc}", highlight=False, markup=False)
         return 2
     return 0
 
@@ -241,40 +254,36 @@ def _opt(v: Any) -> str:
 
 
 def _time(t: float | None) -> str:
+    """HH:MM:SS today, else the date too."""
     if t is None:
         return "-"
-    return dt.datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
+    when = dt.datetime.fromtimestamp(t)
+    return when.strftime("%H:%M:%S" if when.date() == dt.date.today() else "%Y-%m-%d %H:%M:%S")
 
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
 
     if args.connect:
         return _run_remote(args)
 
-    from planner.config import default_config_path, load_cell
     from planner.errors import PlanningError
     from streamer.api.model import JobState
-    from streamer.api.store import JobStore, StoreError, default_store_path
+    from streamer.api.store import JobStore, StoreError
 
     err = Console(stderr=True)
     out = Console()
-    path = args.store
-    if path is None:
-        config_path = args.config or default_config_path()
-        try:
-            cell = load_cell(config_path)
-        except PlanningError as exc:
-            err.print(f"pvt jobs: {exc.code}: {exc.message}")
-            return 2
-        path = default_store_path(cell.source or str(config_path), cell.name)
+    try:
+        path = _journal_path(args)
+    except PlanningError as exc:
+        err.print(f"pvt jobs: {exc.code}: {exc.message}", highlight=False, markup=False)
+        return 2
     states = None
     if args.state:
         try:
             states = [JobState(s.strip()) for s in args.state.split(",") if s.strip()]
         except ValueError:
-            err.print(f"pvt jobs: --state takes {', '.join(s.value for s in JobState)}")
+            err.print(f"pvt jobs: --state takes {', '.join(s.value for s in JobState)}", highlight=False, markup=False)
             return 2
     try:
         store = JobStore(path, readonly=True)
@@ -285,13 +294,13 @@ def run(args: argparse.Namespace) -> int:
             else:
                 err.print(f"no jobs: journal {path} does not exist yet")
             return 0
-        err.print(f"pvt jobs: {exc}")
+        err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
         return 2
     with store:
         if args.events:
             events = store.events(args.events)
             if not events and store.get(args.events) is None:
-                err.print(f"pvt jobs: no job {args.events!r} in {path}")
+                err.print(f"pvt jobs: no job {args.events!r} in {path}", highlight=False, markup=False)
                 return 1
             if args.json:
                 print(
@@ -301,42 +310,56 @@ def run(args: argparse.Namespace) -> int:
                     )
                 )
                 return 0
-            table = Table(title=f"events of {args.events}")
-            for col in ("seq", "time", "type", "state", "details"):
-                table.add_column(col)
-            for e in events:
-                details = {k: v for k, v in e.data.items() if k != "report"}
-                table.add_row(str(e.seq), _time(e.t), e.type.value, e.state.value, json.dumps(details)[:80])
-            out.print(table)
+            rows = [[str(e.seq), _time(e.t), e.type.value, e.state.value,
+                     _details({k: v for k, v in e.data.items() if k != "report"})] for e in events]
+            out.print(fit_table(EVENT_COLUMNS, rows, out.width, title=f"events of {args.events}"), highlight=False)
             return 0
         records = store.list_jobs(states=states, limit=args.limit or None)
         if args.json:
             print(json.dumps([r.to_status() for r in records], indent=2))
             return 0
-        table = Table(title=f"jobs in {path} ({store.count()} total)")
-        for col in ("#", "job_id", "kind", "state", "via", "planned s", "points", "submitted", "error"):
-            table.add_column(col)
-        for r in records:
-            error = f"{r.error.get('code')}: {r.error.get('message', '')}"[:60] if r.error else ""
-            table.add_row(
-                str(r.number),
-                r.job_id,
-                r.kind,
-                r.state.value,
-                r.via,
-                f"{r.planned_duration_s:.3f}" if r.planned_duration_s is not None else "-",
-                str(r.points) if r.points is not None else "-",
-                _time(r.submitted_t),
-                error,
-            )
-        out.print(table)
+        rows = [_job_row(r.to_status()) for r in records]
+        out.print(fit_table(JOB_COLUMNS, rows, out.width, title=f"jobs in {path} ({store.count()} total)"),
+                  highlight=False)
     return 0
+
+
+def _job_row(st: dict[str, Any]) -> list[str]:
+    """One job's row of the jobs table (from its status map): whole values, the error's full message."""
+    error = st.get("error")
+    planned = st.get("planned_duration_s")
+    return [
+        str(st.get("number", "")),
+        str(st.get("job_id", "")),
+        str(st.get("kind", "")),
+        str(st.get("state", "")),
+        str(st.get("via", "")),
+        f"{planned:.3f}" if isinstance(planned, int | float) else "-",
+        number(st.get("points")),
+        _time(st.get("submitted_t")),
+        f"{error.get('code')}: {error.get('message', '')}" if isinstance(error, dict) else "",
+    ]
+
+
+def _details(data: dict[str, Any]) -> str:
+    """An event's own fields, as `key=value` words (the table wraps them; nothing is cut)."""
+    skip = ("job_id", "cell", "seq", "t", "type", "state", "report")
+    parts = []
+    for k, v in data.items():
+        if k in skip:
+            continue
+        if isinstance(v, float):
+            parts.append(f"{k}={number(v)}")
+        elif isinstance(v, dict | list):
+            parts.append(f"{k}={json.dumps(v, separators=(',', ':'))}")
+        else:
+            parts.append(f"{k}={v}")
+    return " ".join(parts)
 
 
 def _run_remote(args: argparse.Namespace) -> int:
     """The same listing from a running service's job API (`pvt/<cell>/jobs`, `.../events`)."""
     from rich.console import Console
-    from rich.table import Table
 
     from streamer.api.client import MotionClient
     from streamer.api.errors import MotionError
@@ -349,11 +372,17 @@ def _run_remote(args: argparse.Namespace) -> int:
             connect=args.connect, cell=args.cell, timeout=args.timeout, security=tls_options.client_security(args)
         )
     except Exception as exc:
-        err.print(f"pvt jobs: cannot open the Zenoh session: {exc}")
+        err.print(f"pvt jobs: cannot open the Zenoh session: {exc}", highlight=False, markup=False)
         return 2
     with client:
         try:
-            client.wait_for_service(timeout=args.timeout)
+            from streamer.cli.connect import Unreachable, find_service
+
+            find_service(client, args.timeout)
+        except Unreachable as exc:
+            err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
+            return exc.status
+        try:
             if args.events:
                 events = [dict(e.data) for e in client.job(args.events).history()]
                 if not events:
@@ -361,41 +390,21 @@ def _run_remote(args: argparse.Namespace) -> int:
             else:
                 statuses = [dict(st.raw) for st in client.jobs(state=states, limit=args.limit or 10_000)]
         except MotionError as exc:
-            err.print(f"pvt jobs: {exc}")
+            err.print(f"pvt jobs: {exc}", highlight=False, markup=False)
             return 1 if exc.code == "NOT_FOUND" else 2
     if args.events:
         if args.json:
             print(json.dumps(events, indent=2))
             return 0
-        table = Table(title=f"events of {args.events} (cell {args.cell})")
-        for col in ("seq", "time", "type", "state", "details"):
-            table.add_column(col)
-        for e in events:
-            details = {k: v for k, v in e.items() if k not in ("report", "job_id", "cell", "seq", "t", "type", "state")}
-            table.add_row(str(e["seq"]), _time(e["t"]), e["type"], e["state"], json.dumps(details)[:80])
-        out.print(table)
+        rows = [[str(e["seq"]), _time(e["t"]), str(e["type"]), str(e["state"]), _details(e)] for e in events]
+        out.print(fit_table(EVENT_COLUMNS, rows, out.width, title=f"events of {args.events} (cell {args.cell})"),
+                  highlight=False)
         return 0
     if args.json:
         print(json.dumps(statuses, indent=2))
         return 0
-    table = Table(title=f"jobs of cell {args.cell} at {', '.join(args.connect)}")
-    for col in ("#", "job_id", "kind", "state", "via", "planned s", "points", "submitted", "error"):
-        table.add_column(col)
-    for st in statuses:
-        error = st.get("error") or None
-        planned = st.get("planned_duration_s")
-        table.add_row(
-            str(st.get("number", "")),
-            str(st.get("job_id", "")),
-            str(st.get("kind", "")),
-            str(st.get("state", "")),
-            str(st.get("via", "")),
-            f"{planned:.3f}" if isinstance(planned, int | float) else "-",
-            str(st.get("points") if st.get("points") is not None else "-"),
-            _time(st.get("submitted_t")),
-            f"{error.get('code')}: {error.get('message', '')}"[:60] if isinstance(error, dict) else "",
-        )
-    out.print(table)
+    out.print(fit_table(JOB_COLUMNS, [_job_row(st) for st in statuses], out.width,
+                        title=f"jobs of cell {args.cell} at {', '.join(args.connect)}"), highlight=False)
     return 0
 
 

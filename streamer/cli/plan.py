@@ -64,60 +64,64 @@ def run(args: argparse.Namespace) -> int:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(traj.to_csv(), encoding="utf-8")
         summary["csv"] = str(args.out)
+    units = [cell.axis(name).unit for name in traj.axis_names]
     if args.plot is not None:
-        plot(traj, args.plot, title=f"{args.job.name} on {cell.name}")
+        plot(traj, args.plot, title=f"{args.job.name} on {cell.name}", units=units)
         summary["plot"] = str(args.plot)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        _print_table(summary)
+        _print_table(summary, units)
     return 0
 
 
-def _print_table(s: dict[str, Any]) -> None:
+def _print_table(s: dict[str, Any], units: list[str]) -> None:
+    """The summary at the terminal's width (80 columns too): units in the headers (the axes' `unit` when
+    they share one, else after each value), numbers without exponents, no value cut."""
     from rich.console import Console
-    from rich.table import Table
+    from rich.text import Text
+
+    from streamer.cli.tables import Col, fit_table, number
 
     console = Console()
     seg = s["segment_ms"]
-    console.print(
-        f"[bold]{s['job']}[/] ({s['kind']}) on cell [bold]{s['cell']}[/]: {s['duration_s']:.3f} s, "
-        f"{s['points']} points per axis ({s['points_per_second']:.1f} per s), "
-        f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), "
-        f"tolerance {s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms",
-        soft_wrap=True,
-    )
-    table = Table(show_lines=False)
-    for col in (
-        "axis",
-        "node",
-        "max dev\ncounts",
-        "velocity /s\npeak/limit",
-        "rpm\npeak/0x607F",
-        "accel /s²\nplan/drive/limit",
-        "0x60C5\n/s²",
-        "acc excess\n% limit",
-    ):
-        table.add_column(col, justify="right")
-    for a in s["axes"]:
-        table.add_row(
+    console.print(Text(f"{s['kind']} job on cell {s['cell']}: {s['duration_s']:.3f} s, {s['points']} points per "
+                       f"axis ({s['points_per_second']:.1f} per s)"))
+    console.print(Text(f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), tolerance "
+                       f"{s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"))
+    console.print(Text(f"job file {s['job']}"))
+    same = units[0] if len(set(units)) == 1 else None
+    u = f" [{same}/s]" if same else ""
+    u2 = f" [{same}/s²]" if same else ""
+    columns = [
+        Col("axis"), Col("node", justify="right", drop=3), Col("max dev [counts]", justify="right"),
+        Col(f"velocity{u} peak/limit", justify="right"), Col("rpm peak/0x607F", justify="right", drop=2),
+        Col(f"acceleration{u2} plan/drive/limit", justify="right"),
+        Col(f"0x60C5{u2}", justify="right", drop=1), Col("acc. excess [% of limit]", justify="right"),
+    ]
+    rows = []
+    for a, unit in zip(s["axes"], units, strict=True):
+        tail = "" if same else f" {unit}/s"
+        rows.append([
             a["name"],
             str(a["node_id"]),
             str(a["max_deviation_counts"]),
-            f"{a['peak_velocity']:.3g}/{a['velocity_limit']:.3g}",
+            f"{number(a['peak_velocity'])}/{number(a['velocity_limit'])}{tail}",
             f"{a['peak_velocity_rpm']:.0f}/{a['drive_velocity_limit_rpm']:.0f}",
-            f"{a['planned_peak_acceleration']:.3g}/{a['peak_acceleration']:.3g}/{a['acceleration_limit']:.3g}",
-            f"{a['drive_acceleration_limit']:.3g}",
+            f"{number(a['planned_peak_acceleration'])}/{number(a['peak_acceleration'])}/"
+            f"{number(a['acceleration_limit'])}{tail + '²' if tail else ''}",
+            f"{number(a['drive_acceleration_limit'])}",
             f"{100 * a['acceleration_excess_share']:.1f}",
-        )
-    console.print(table)
+        ])
+    console.print(fit_table(columns, rows, console.width), highlight=False)
     for key in ("csv", "plot"):
         if key in s:
-            console.print(f"wrote {s[key]}")
+            console.print(f"wrote {s[key]}", markup=False, highlight=False)
 
 
-def plot(traj: Any, path: Path, *, title: str = "") -> None:
-    """Position, velocity, acceleration and deviation (plan vs drive) per axis, one column per axis."""
+def plot(traj: Any, path: Path, *, title: str = "", units: list[str] | None = None) -> None:
+    """Position, velocity, acceleration and deviation (plan vs drive) per axis, one column per axis;
+    `units`: each axis' user unit (the cell's `unit`) for the labels."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -156,10 +160,11 @@ def plot(traj: Any, path: Path, *, title: str = "") -> None:
         a.axhline(traj.tolerance_counts, color="r", lw=0.6)
         a.axhline(-traj.tolerance_counts, color="r", lw=0.6)
         a.set_xlabel("time [s]")
-    for row, label in enumerate(
-        ("position [unit]", "velocity [unit/s]", "acceleration [unit/s²]", "deviation [counts]")
-    ):
-        axs[row, 0].set_ylabel(label)
+        unit = units[i] if units is not None and i < len(units) else "rad"
+        for row, label in enumerate((f"position [{unit}]", f"velocity [{unit}/s]", f"acceleration [{unit}/s²]",
+                                     "deviation [counts]")):
+            if i == 0 or (units is not None and unit != units[0]):
+                axs[row, i].set_ylabel(label)
     axs[0, 0].legend(fontsize=7)
     axs[1, 0].legend(fontsize=7)
     axs[2, 0].legend(fontsize=7)

@@ -6,10 +6,12 @@
 The Zenoh session defaults to the cell config's `[zenoh]` section (peer mode, listening on
 tcp/127.0.0.1:7447, multicast scouting always off); `--mode/--listen/--connect` override it. The
 config's `[security]` section turns on TLS, logins and the role-based access rules (docs/security.md);
-without it the service warns when it listens beyond loopback. The job
-journal defaults to `<config dir>/<config stem>.jobs.sqlite`. Stops cleanly on SIGINT/SIGTERM (queued jobs
-fail SERVICE_STOPPED, the running job is cancelled with its jerk-limited stop); after a crash the next
-start reports the interrupted jobs as SERVICE_RESTART.
+without it the service warns when it listens beyond loopback. The service's state (the job journal
+`<cell>.jobs.sqlite`, its lock, and the recordings `<cell>.jobs.recordings/`) goes into a data directory:
+`--store DIR`, default the user's state directory ($XDG_STATE_HOME/pvt, else ~/.local/state/pvt), never
+beside the cell config. It logs every job's acceptance, start and end. Stops cleanly on SIGINT/SIGTERM
+(queued jobs fail SERVICE_STOPPED, the running job is cancelled with its jerk-limited stop); after a crash
+the next start reports the interrupted jobs as SERVICE_RESTART.
 """
 
 from __future__ import annotations
@@ -66,7 +68,9 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="Zenoh endpoint to connect to (a router), repeatable",
     )
-    p.add_argument("--store", type=Path, default=None, help="job journal (default: next to the config)")
+    p.add_argument("--store", type=Path, default=None, metavar="DIR",
+                   help="data directory for the journal and recordings (default: $XDG_STATE_HOME/pvt or "
+                        "~/.local/state/pvt); a path ending in .sqlite/.db names the journal file itself")
     p.add_argument("--queue", type=int, default=16, help="queued jobs before BUSY (default 16)")
     p.add_argument("--recordings", type=Path, default=None, metavar="DIR",
                    help="where each job's MCAP recording goes (default: beside the journal, "
@@ -88,7 +92,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int:
     """Run until SIGINT/SIGTERM (or until `stop` is set, for embedding)."""
-    from streamer.api.store import default_store_path
+    from streamer.api.store import journal_path
 
     logging.basicConfig(
         level=getattr(logging, str(args.log_level).upper(), logging.INFO),
@@ -108,7 +112,7 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
         print(f"pvt serve: {exc.code}: {exc.message}", file=sys.stderr)
         return 2
     interface, channel = (bus.interface, bus.channel) if bus is not None else (None, None)
-    store_path = args.store or default_store_path(cell.source or str(config_path), cell.name)
+    store_path = journal_path(cell.name, args.store)
     stop = stop or threading.Event()
     previous: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():

@@ -14,6 +14,15 @@ process (streamer/recording/writer.py). The SYNC loop pays only the trace's appe
 
 A failed job leaves the cell NOT ready until `reset()` (fault reset + re-enable over SDO): after a
 fault nothing moves again without a deliberate act (STYLE.md rule 4).
+
+After a cancel the progress reported is the share of the job's own plan that was executed (up to the
+knot where the stop trajectory begins), not of the stop-spliced stream, which would run on to 1.0.
+
+`emergency_stop()` is the fastest stop the core has: a running job's core is failed at once (it sends
+controlword 0x000B, quick stop, to every axis in that reaction and nothing after), and the backend also
+sends 0x000B to every drive of the cell itself (idle ones included); each drive ramps down on its quick
+stop deceleration 0x6085 (synchronous RPDO1: at the next SYNC). The job ends failed EMERGENCY_STOP and
+the cell stays not ready until `reset()`. (A planned emergency deceleration comes with issue 15.)
 """
 
 from __future__ import annotations
@@ -25,6 +34,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from bus import codec
+from bus.cob import pack_controlword, rpdo1_id
+from bus.errors import BusError
+from bus.events import AdapterError
 from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
 from planner.job import Job, job_from_dict
@@ -37,6 +49,8 @@ from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import make_stop_planner
 
 FIFO_SIZE = 64
+CW_QUICK_STOP = 0x000B  # CiA 402 controlword: quick stop (bit 2 low)
+EMERGENCY_STOP = "EMERGENCY_STOP"
 
 
 class RuntimeBackend:
@@ -45,6 +59,7 @@ class RuntimeBackend:
         self._sim: Any = None
         self._lock = threading.Lock()
         self._fault: str = ""
+        self._emergency = False  # an emergency stop hit the job that runs (or the idle cell)
         self._recording: RecordingInputs | None = None
         if sim:
             from bus.sim.node import SimulatedCell
@@ -107,12 +122,31 @@ class RuntimeBackend:
         stop = threading.Event()
         cancel.add_callback(stop.set)
         last = [-1.0]
+        planned_ms = float(traj.duration_ms) or 1.0
+        stopping: dict[str, float] = {}  # after a cancel: the stream's end and where the plan was cut (ms)
 
         def on_change(core: Coordinator) -> None:
             p = core.progress
-            if p - last[0] >= 0.01 or (p >= 1.0 > last[0]):
-                last[0] = p
-                emit("running", {"progress": round(p, 4), "state": core.state.value})
+            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]):
+                return
+            last[0] = p
+            state = core.state.value
+            if state not in ("cancelling", "halting"):
+                emit("running", {"progress": round(p, 4), "state": state})
+                return
+            if not stopping:  # the first update after the cancel: how the stream ends now
+                rep = core.report()
+                info = rep.cancel
+                stopping["end"] = float(rep.duration_ms) or 1.0
+                cut = info.get("time_ms") if info.get("stop") == "trajectory" else (
+                    planned_ms if info.get("stop") == "plan_end" else None)
+                stopping["cut"] = float(cut) if cut is not None else min(planned_ms, p * stopping["end"])
+            elapsed = p * stopping["end"]
+            cut = stopping["cut"]
+            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state}
+            if stopping["end"] > cut:
+                fields["stop_progress"] = round(min(1.0, max(0.0, (elapsed - cut) / (stopping["end"] - cut))), 4)
+            emit("running", fields)
 
         result = self.runtime.run(traj, stop_planner=make_stop_planner(self.cell, traj), cancel=stop,
                                   on_change=on_change)
@@ -122,7 +156,15 @@ class RuntimeBackend:
                               readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp,
                               setpoints={n: core.setpoints(n) for n in traj.node_ids})
         outcome = core.outcome
-        if outcome is not None and report["result"] == "failed":
+        with self._lock:
+            emergency = self._emergency
+        if emergency and report["result"] != "done":
+            report["result"] = "failed"
+            report["error"] = {"code": EMERGENCY_STOP, "node": None,
+                               "message": "emergency stop: quick stop (controlword 0x000B) to every drive; "
+                                          "each ramped down on its quick stop deceleration (0x6085)",
+                               "sync": outcome.sync if outcome is not None else None, "detail": {}}
+        elif outcome is not None and report["result"] == "failed":
             report["error"] = {"code": outcome.code, "node": outcome.node, "message": outcome.message,
                                "sync": outcome.sync, "detail": dict(outcome.detail)}
             with self._lock:
@@ -134,6 +176,25 @@ class RuntimeBackend:
         with self._lock:
             self._recording = recording
         return report
+
+    def emergency_stop(self) -> str:
+        """Quick stop on every axis, now (see the module docstring); the cell is not ready until reset()."""
+        with self._lock:
+            self._emergency = True
+            self._fault = (f"{EMERGENCY_STOP}: quick stop (0x000B) to every drive by the operator; "
+                           "resume (reset) re-enables them")
+        # a running job: its core fails and quick-stops its axes in that reaction, and sends nothing after
+        # (the runtime queues adapter events only while a job runs; otherwise this is a no-op)
+        self.runtime._on_event(AdapterError("emergency stop", "requested by the operator", self.adapter.now()))
+        sent = []
+        for a in self.cell.axes:  # every drive of the cell, idle ones too
+            try:
+                self.adapter.send(rpdo1_id(a.node_id), pack_controlword(CW_QUICK_STOP))
+                sent.append(a.node_id)
+            except BusError:
+                pass  # the bus refused: the core's own quick stop (running job) or the heartbeat loss acts
+        return (f"quick stop (controlword 0x000B) sent to node(s) {sent}: each drive ramps down on its quick "
+                "stop deceleration 0x6085 at the next SYNC")
 
     def take_recording(self) -> RecordingInputs | None:
         """The recording (to build) of the job the last `execute` streamed (None if it streamed nothing),
@@ -168,6 +229,7 @@ class RuntimeBackend:
         self.adapter.enable_drives()  # fault reset when faulted, shutdown, enable, buffer clear/enable
         with self._lock:
             self._fault = ""
+            self._emergency = False
         return self.ready()
 
     def close(self) -> None:

@@ -7,7 +7,11 @@ Fake job semantics (enough to exercise the service, not the planner):
 - planned duration: `times[-1] - times[0]` for timed jobs (so a test picks a job's length), else
   `default_duration_s`; points = number of rows + 1;
 - `fail_codes`: a map job-field-value -> planning error, e.g. {"INFEASIBLE": ...} is triggered by
-  `tolerance_counts` equal to a magic value (see `MAGIC_ERRORS`).
+  `tolerance_counts` equal to a magic value (see `MAGIC_ERRORS`);
+- positions: a job starts at its first row (a move: at `start`, else where the axes stand) and moves
+  its axes linearly to its last row (a move: its target) with the progress; a cancel stops them where
+  they are. `TrackingFake.current_positions()` reports them; `emergency_stop()` ends a running job at once (failed
+  EMERGENCY_STOP) and leaves the cell not ready until `reset()`.
 """
 
 from __future__ import annotations
@@ -90,6 +94,8 @@ class FakeBackend:
         self._position = {a.name: 0.0 for a in cell.axes}
         self._fifo = 0
         self._state = "operation_enabled"
+        self._emergency = threading.Event()
+        self.emergency_stops = 0
 
     # -- planning ----------------------------------------------------------------------------------
     def validate(self, body: Mapping[str, Any]) -> Any:
@@ -163,7 +169,9 @@ class FakeBackend:
             self._numbers(times, "times", None)
             duration = float(times[-1]) - float(times[0]) if len(times) >= 2 else 0.0
         last = rows[-1] if rows else None
+        first = rows[0] if rows and kind != "move" else None
         return {
+            "first": list(first) if isinstance(first, list) else None,
             "kind": kind,
             "axes": axes,
             "rows": len(rows),
@@ -197,8 +205,15 @@ class FakeBackend:
         if code in ("INFEASIBLE", "ENCODING_RANGE"):
             raise PlanningError(code, f"fake {code} on axis {job['axes'][0]!r}", path="waypoints")
         end = {a: float(v) for a, v in zip(job["axes"], job["end"], strict=True)} if job.get("end") else {}
+        with self._lock:
+            here = dict(self._position)
+        if job.get("first") is not None:
+            begin = {a: float(v) for a, v in zip(job["axes"], job["first"], strict=True)}
+        else:
+            begin = {a: float((start or {}).get(a, here[a])) for a in job["axes"]}
         return Planned(
-            job=job, trajectory=None, duration_s=job["duration"], points=job["rows"] + 1, end_positions=end
+            job=job, trajectory=None, duration_s=job["duration"], points=job["rows"] + 1, end_positions=end,
+            start_positions=begin,
         )
 
     # -- motion ------------------------------------------------------------------------------------
@@ -211,15 +226,27 @@ class FakeBackend:
         duration = planned.duration_s * self.time_scale
         t0 = time.monotonic()
         fail_code, self.fail_code = self.fail_code, None
+        begin = dict(planned.start_positions)
+        end = dict(planned.end_positions)
         emit("running", {"progress": 0.0})
         while True:
             elapsed = time.monotonic() - t0
             progress = 1.0 if duration <= 0 else min(1.0, elapsed / duration)
+            if self._emergency.is_set():
+                with self._lock:
+                    self._fifo = 0
+                return self._report(
+                    "failed", planned, elapsed,
+                    error={"code": "EMERGENCY_STOP", "node": None, "message": "emergency stop: quick stop"},
+                )
             with self._lock:
                 self._fifo = 32 if progress < 1.0 else 0
                 for a in job["axes"]:
-                    self._position[a] = progress
+                    a0 = begin.get(a, 0.0)
+                    self._position[a] = a0 + (end.get(a, a0) - a0) * progress
             if cancel.cancelled:
+                with self._lock:
+                    self._fifo = 0
                 return self._report("cancelled", planned, elapsed)
             if fail_code is not None and progress >= self.fail_at_progress:
                 self.faulted = f"fake fault {fail_code}"
@@ -268,15 +295,33 @@ class FakeBackend:
                 for n, p in self._position.items()
             ]
 
+    def emergency_stop(self) -> str:
+        self.emergency_stops += 1
+        self.faulted = "EMERGENCY_STOP: quick stop on every drive"
+        self._emergency.set()
+        self._state = "switch_on_disabled"
+        return "quick stop (0x000B) to every drive"
+
     def ready(self) -> tuple[bool, str]:
         return (not self.faulted, self.faulted)
 
     def reset(self) -> tuple[bool, str]:
         self.faulted = ""
+        self._emergency.clear()
+        self._state = "operation_enabled"
         return self.ready()
 
     def close(self) -> None:
         self.closed = True
+
+
+class TrackingFake(FakeBackend):
+    """A FakeBackend that reports where its axes stand (`current_positions()`), so the service checks that a
+    queued job still starts there. (The plain fake does not: most tests queue jobs that all start at 0.)"""
+
+    def current_positions(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self._position)
 
 
 def open_fake_backend(

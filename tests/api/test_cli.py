@@ -90,14 +90,14 @@ def test_submit_rejections_and_failures_exit_codes(serve: Callable[..., Served],
     assert run_cli(cli_submit, ["submit", str(bad), "--connect", served.endpoint]) == 2
     good = tmp_path / "good.json"
     good.write_text(json.dumps(timed_job(0.2)))
-    assert run_cli(cli_submit, ["submit", str(good), "--connect", served.endpoint, "--wait"]) == 1
+    assert run_cli(cli_submit, ["submit", str(good), "--connect", served.endpoint, "--wait"]) == 1  # failed
     assert run_cli(cli_submit, ["submit", str(tmp_path / "missing.json"), "--connect", served.endpoint]) == 2
-    assert (
+    assert (  # no service for that cell: 5 (not 2: nothing was rejected)
         run_cli(
             cli_submit,
-            ["submit", str(good), "--connect", served.endpoint, "--cell", "nocell", "--timeout", "0.3"],
+            ["submit", str(good), "--connect", served.endpoint, "--cell", "nocell", "--connect-timeout", "0.3"],
         )
-        == 2
+        == 5
     )
 
 

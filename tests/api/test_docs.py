@@ -57,6 +57,9 @@ def test_key_table_matches_keys_module() -> None:
         keys.job_cancel("CELL", "JOB"),
         keys.service("CELL"),
         keys.reset("CELL"),
+        keys.stop("CELL"),
+        keys.hold("CELL"),
+        keys.resume("CELL"),
         keys.telemetry("CELL"),
         keys.alive("CELL"),
     }
@@ -75,7 +78,7 @@ def test_every_error_code_is_documented() -> None:
         "NO_SERVICE",
     }
     assert table_codes <= documented, table_codes - documented
-    assert {"SERVICE_RESTART", "SERVICE_STOPPED", "TIMEOUT", "NO_SERVICE"} <= in_text
+    assert {"SERVICE_RESTART", "SERVICE_STOPPED", "TIMEOUT", "NO_SERVICE", "SERVICE_GONE"} <= in_text
 
 
 def job_examples() -> list[dict[str, object]]:

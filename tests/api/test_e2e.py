@@ -165,6 +165,8 @@ def test_end_to_end_on_simulated_drives(serve: Serve, demo_cell: CellConfig) -> 
             assert status.state == JobState.CANCELLED
             tele = client.telemetry(timeout=2)
             assert all(abs(a["velocity"]) < 1e-6 for a in tele["axes"])
+            assert client.service_status()["held"] is True  # a cancel of the running job holds the queue
+            assert client.resume()["was_held"] is True
             # a put-submitted job runs too
             put = client.submit_put({"kind": "move", "axes": ["j1"], "target": [0.0]})
             assert put.wait(timeout=30).state == JobState.DONE

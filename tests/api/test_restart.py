@@ -23,7 +23,7 @@ from tests.api.helpers import wait_for
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def start_service(config: Path, port: int, *extra: str) -> subprocess.Popen[str]:
+def start_service(config: Path, port: int, *extra: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
     cmd = [
         sys.executable,
         "-m",
@@ -38,7 +38,7 @@ def start_service(config: Path, port: int, *extra: str) -> subprocess.Popen[str]
         "WARNING",
         *extra,
     ]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, **(env or {}), "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     assert proc.stdout is not None
     line = proc.stdout.readline()  # "pvt serve: cell 'demo' ready on ..."
@@ -61,10 +61,13 @@ def cell_config(tmp_path: Path) -> Path:
     return config
 
 
-def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path) -> None:
+def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path, tmp_path: Path) -> None:
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    proc = start_service(cell_config, port)
+    # the journal's default place is the user's state directory: this test's own
+    state = {"XDG_STATE_HOME": str(tmp_path / "state")}
+    beside_config = set(cell_config.parent.iterdir())
+    proc = start_service(cell_config, port, env=state)
     try:
         with MotionClient(connect=endpoint, cell="demo", timeout=10) as client:
             client.wait_for_service(timeout=10)
@@ -79,7 +82,7 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
             proc.wait(timeout=10)
             wait_for(lambda: client.cells(timeout=0.3) == [], timeout=10, what="liveliness token gone")
 
-            proc = start_service(cell_config, port)
+            proc = start_service(cell_config, port, env=state)
             client.wait_for_service(timeout=15)
             for jid in ("running-at-kill", "queued-0", "queued-1"):
                 with pytest.raises(JobFailedError) as info:
@@ -94,8 +97,10 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
                 client.submit(timed_job(0.05), job_id="after-restart").wait(timeout=10).state == JobState.DONE
             )
 
-        # `pvt jobs` (reading the journal next to the config) lists every accepted job
-        assert (cell_config.parent / "demo.jobs.sqlite").exists()
+        # the journal and the recordings are in the state directory, nothing was written beside the config
+        assert (tmp_path / "state" / "pvt" / "demo.jobs.sqlite").exists()
+        assert set(cell_config.parent.iterdir()) == beside_config | {tmp_path / "state"}
+        # `pvt jobs` (reading the journal of the config's cell) lists every accepted job
         out = subprocess.run(
             [sys.executable, "-m", "streamer.cli.jobs", "--config", str(cell_config), "--json"],
             cwd=ROOT,
@@ -103,6 +108,7 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
             text=True,
             timeout=60,
             check=True,
+            env={**os.environ, **state},
         )
         listed = {j["job_id"]: j for j in json.loads(out.stdout)}
         assert set(listed) == {"finished-before", "running-at-kill", "queued-0", "queued-1", "after-restart"}
@@ -126,6 +132,7 @@ def test_sigkill_mid_job_then_restart_reports_service_restart(cell_config: Path)
             capture_output=True,
             text=True,
             timeout=60,
+            env={**os.environ, **state},
         )
         assert second.returncode == 2 and "in use" in second.stderr
 

@@ -107,6 +107,11 @@ def test_observer_writes_are_refused_while_it_reads_events_and_telemetry(
         _refused(lambda: ob.job(job.job_id).cancel())
         _refused(lambda: ob._query(f"{keys.job('demo', job.job_id)}/change", payload=pack({"target": [0.0]})))
         _refused(lambda: ob.reset())
+        _refused(lambda: ob.stop())  # stop, emergency stop, hold and resume: operators only
+        _refused(lambda: ob.stop(emergency=True))
+        _refused(lambda: ob.hold())
+        _refused(lambda: ob.resume())
+        assert ob.service_status()["held"] is False  # nothing of it reached the service
         ob.submit_put(timed_job(0.1), job_id="observer-put").close()  # a put has no answer: dropped
         assert changes == []
         # the operator's change reaches the handler (the rule, not a missing handler, refused the observer)

@@ -79,8 +79,8 @@ def test_certs_init_serve_submit_and_list_as_operator_and_observer(
         assert run_cli(cli_jobs, ["jobs", *common, *as_("observer")]) == 0
         assert "op-1" in capsys.readouterr().out
         assert run_cli(cli_jobs, ["jobs", *common, "--events", "nope", *as_("observer")]) == 1
-        # no client certificate: the link is refused, the command says it cannot reach the service
-        assert run_cli(cli_submit, ["submit", str(job), *common, "--ca", str(certs / "ca.pem")]) == 2
+        # no client certificate: the link is refused, the command says it cannot reach the service (exit 5)
+        assert run_cli(cli_submit, ["submit", str(job), *common, "--ca", str(certs / "ca.pem")]) == 5
         assert run_cli(cli_submit, ["submit", str(job), *common[:2], "--ca", str(certs / "missing.pem")]) == 2
         assert "SECURITY_FILE" in capsys.readouterr().err
     finally:

@@ -95,8 +95,9 @@ def _allows(patterns: list[str], key: str) -> bool:
 
 
 ACL = access_control({"operator": ["cn:op"], "observer": ["cn:ob"], "service": ["cn:svc"]})
-WRITES = ["pvt/demo/submit", "pvt/demo/jobs/j1/cancel", "pvt/demo/reset"]
-FUTURE_WRITES = ["pvt/demo/jobs/j1/change", "pvt/demo/stop", "pvt/demo/halt", "pvt/demo/record", "pvt/demo/x/y"]
+WRITES = ["pvt/demo/submit", "pvt/demo/jobs/j1/cancel", "pvt/demo/reset", "pvt/demo/stop", "pvt/demo/hold",
+          "pvt/demo/resume"]
+FUTURE_WRITES = ["pvt/demo/jobs/j1/change", "pvt/demo/halt", "pvt/demo/record", "pvt/demo/x/y"]
 READS = ["pvt/demo/jobs", "pvt/demo/jobs/j1", "pvt/demo/jobs/j1/events", "pvt/demo/service", "pvt/*/service"]
 
 

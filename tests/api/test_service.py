@@ -28,9 +28,12 @@ ORDER = ["accepted", "planned", "priming", "running"]
 
 
 def check_order(events: list[str]) -> None:
-    """accepted, planned, priming, running..., then exactly one final event."""
+    """accepted, planned, priming, running..., (cancelling... after a cancel), then exactly one final event."""
     assert events[:4] == ORDER, events
-    assert all(e == "running" for e in events[4:-1]), events
+    middle = events[4:-1]
+    first_cancelling = middle.index("cancelling") if "cancelling" in middle else len(middle)
+    assert all(e == "running" for e in middle[:first_cancelling]), events
+    assert all(e == "cancelling" for e in middle[first_cancelling:]), events
     assert events[-1] in ("done", "failed", "cancelled")
 
 
@@ -152,11 +155,13 @@ def test_cancel_running_and_queued_jobs(serve: Serve) -> None:
         assert [e.type for e in queued.events(timeout=5)] == ["accepted", "planned", "cancelled"]
         t0 = time.monotonic()
         st = running.cancel()
-        assert st.raw["cancel_requested"] is True
+        assert st.raw["cancel_requested"] is True and st.raw["held"] is True
         final = running.wait(timeout=5)
         assert final.state == JobState.CANCELLED and time.monotonic() - t0 < 2.0
         assert final.report is not None and final.report["result"] == "cancelled"
-        check_order([e.type for e in running.events()])
+        events = list(running.events())
+        check_order([e.type for e in events])
+        assert "cancelling" in [e.type for e in events]
         again = running.cancel()  # cancelling a finished job is harmless
         assert again.state == JobState.CANCELLED and again.raw["cancel_requested"] is False
         with pytest.raises(MotionError) as info:

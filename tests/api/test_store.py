@@ -10,7 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from streamer.api.model import TRANSITIONS, Event, EventType, InvalidTransition, JobState, transition
-from streamer.api.store import JobStore, ServiceLock, StoreError, default_store_path
+from streamer.api.store import JobStore, ServiceLock, StoreError, journal_path, state_dir
 
 
 def ev(job_id: str, seq: int, etype: EventType, state: JobState, t: float = 1.0, **data: object) -> Event:
@@ -102,12 +102,16 @@ def test_service_lock_is_exclusive(tmp_path: Path) -> None:
     assert not lock.path.exists()  # removed on release
 
 
-def test_default_store_path_is_next_to_the_config(tmp_path: Path) -> None:
-    assert (
-        default_store_path(tmp_path / "cells" / "line1.toml", "line1")
-        == tmp_path / "cells" / "line1.jobs.sqlite"
-    )
-    assert default_store_path(None, "x").name == "x.jobs.sqlite"
+def test_journals_live_in_a_data_directory_not_beside_the_config(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    assert state_dir() == tmp_path / "state" / "pvt"
+    assert journal_path("line1") == tmp_path / "state" / "pvt" / "line1.jobs.sqlite"
+    assert journal_path("line1", tmp_path / "data") == tmp_path / "data" / "line1.jobs.sqlite"  # --store DIR
+    assert journal_path("line1", tmp_path / "j.db") == tmp_path / "j.db"  # --store FILE.db/.sqlite
+    monkeypatch.delenv("XDG_STATE_HOME")
+    assert state_dir() == Path.home() / ".local" / "state" / "pvt"
 
 
 def test_transition_table_rejects_everything_else() -> None:

@@ -204,16 +204,15 @@ def test_too_large(cell: CellConfig) -> None:
     assert e.value.code == "TOO_LARGE"
 
 
-def test_encoding_range_of_positions(cell: CellConfig) -> None:
-    # a cell whose software limits are wider than int32 counts: the position itself does not fit
+def test_software_limits_beyond_int32_counts_are_refused_with_the_cell(cell: CellConfig) -> None:
+    # software limits wider than int32 counts would let a job ask for a position the drive cannot hold:
+    # the cell is refused when it is made (loaded), naming the axis, the limit and its counts
     import dataclasses
 
-    wide = dataclasses.replace(
-        cell, axes=(dataclasses.replace(cell.axes[0], position_min=-1e5, position_max=1e5),)
-    )
     with pytest.raises(PlanningError) as e:
-        job_from_dict({"kind": "path", "axes": ["j1"], "waypoints": [[0], [5e4]]}, wide)
-    assert e.value.code == "ENCODING_RANGE" and e.value.path == "waypoints[1][0]"
+        dataclasses.replace(cell.axes[0], position_min=-1e5, position_max=1e5)
+    assert e.value.code == "LIMITS" and e.value.path == "axis.position_min"
+    assert "'j1'" in e.value.message and "int32" in e.value.message and "-6518986000 counts" in e.value.message
 
 
 def test_not_a_mapping(cell: CellConfig) -> None:
