@@ -72,8 +72,21 @@ from bus.errors import ProtocolError
 from bus.profile import EPOS_IPM, DriveProfile, FeedbackSchedule
 from bus.sim import od as odm
 from bus.sim.clock import MotionClock
-from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
+from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams, plant_constants
 from bus.sim.od import Key, SdoAbort
+from bus.sim.recorder import (
+    CONTROL_FORCE_TRIGGER,
+    CONTROL_START,
+    TICK_UNITS,
+    TRIGGER_END,
+    TRIGGER_ERROR,
+    TRIGGER_INPUT,
+    TRIGGER_MOVEMENT,
+    UNIT_S,
+    DataRecorder,
+    RecorderConfig,
+    substep_units,
+)
 from planner import hermite, record
 from planner.config import AxisConfig, DriveSettings
 from planner.readings import SimDriveOptions
@@ -88,7 +101,7 @@ SAVE_SIGNATURE = 0x65766173  # "save" (seed 000 6.12; CiA 301 0x1010)
 LOAD_SIGNATURE = 0x64616F6C  # "load" (seed 000 6.12; CiA 301 0x1011)
 # what 0x1010 "save all parameters" keeps: every writable integer object but commands and the FIFO
 _NOT_STORED = frozenset({(0x6040, 0), (0x20C1, 0), (0x60C4, 6), (0x60C4, 4), (0x1010, 1), (0x1011, 1),
-                         (0x1013, 0)})
+                         (0x1013, 0), (0x2010, 0)})
 COAST_STOP_COUNTS_PER_MS = 1e-4  # below this a coasting motor is taken as standing still
 
 _EMCY_REGISTER = {
@@ -246,6 +259,11 @@ class DriveModel:
         self.counters = DriveCounters()
         self.fault_log: list[FaultRecord] = []
         self.disturbance_current_a = 0.0  # external load, as motor current (tests: a blocked axis)
+        # the data recorder (seed 004; bus/sim/recorder.py) and the plant's sub-step when it samples finer
+        # than the 1 ms tick: (plant constants, sub-steps per tick, recorder units per sub-step) or None
+        self.recorder = DataRecorder()
+        self._fine: tuple[tuple[float, float, float, float], int, int] | None = None
+        self._digital_inputs = 0
         # plant and controller state
         self._pos = float(initial_position)
         self._vel = 0.0
@@ -304,6 +322,9 @@ class DriveModel:
             (0x60C4, 2): lambda: self._fifo_depth - len(self._fifo),
             (0x60C4, 4): lambda: len(self._fifo),
             (0x6040, 0): lambda: self._cw,
+            (0x2017, 0): lambda: self.recorder.status,
+            (0x2018, 0): self._recorder_max_samples,
+            (0x2019, 0): lambda: self.recorder.offset,
         }
         self._handlers: dict[Key, Callable[[int], None]] = self._build_handlers()
         self._reset_application(first=True)
@@ -403,8 +424,18 @@ class DriveModel:
         if s.dtype == odm.DataType.VISIBLE_STRING:
             raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS,
                            f"0x{index:04X}:{sub:02X} is a string (served by the EDS)")
+        if s.dtype == odm.DataType.DOMAIN:
+            raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS,
+                           f"0x{index:04X}:{sub:02X} is a domain (read it with read_domain)")
         getter = self._dynamic.get((index, sub))
         return getter() if getter is not None else self._od[(index, sub)]
+
+    def read_domain(self, index: int, sub: int) -> bytes:
+        """SDO upload of a domain object (0x201B, the data recorder's memory): its bytes."""
+        s = self._spec(index, sub)
+        if s.dtype != odm.DataType.DOMAIN:
+            raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS, f"0x{index:04X}:{sub:02X} is not a domain")
+        return self.recorder.buffer()
 
     def sdo_write(self, index: int, sub: int, value: int, t: float | None = None) -> list[Frame]:
         """SDO download of an integer object: access, range and device-state checks, then its effect.
@@ -623,6 +654,7 @@ class DriveModel:
         switch on disabled."""
         self._od = odm.defaults(self.node_id)
         self._od.update(self._stored)
+        self.recorder = DataRecorder()
         self._fifo.clear()
         self._buffer_enabled = False
         self._ip_active = False
@@ -737,6 +769,7 @@ class DriveModel:
             (0x1010, 1): self._write_store,
             (0x1011, 1): self._write_restore,
             (0x1013, 0): self._write_time_stamp,
+            (0x2010, 0): self._write_recorder_control,
         }
         for n in range(4):
             for base, direction in ((0x1400, "rx"), (0x1800, "tx")):
@@ -1072,25 +1105,36 @@ class DriveModel:
         return clock.time_of_tick(max(1, self._next_event - self._src_i))
 
     def _run_ticks(self, n: int, t: float) -> None:
+        recording = self.recorder.active  # then: chunks that end at sample instants (`_recorder_chunk`)
+        fine = recording and self._fine is not None
+        integrate = self._integrate_fine if fine else self._integrate
         while n > 0:
+            k = self._recorder_chunk(n) if recording else n
             src = self._src
+            sampled = fine  # the fine integrators sample inside the tick
             if src is None:
                 if self._powered:
-                    done = self._integrate(itertools.repeat(self._demand, n))
+                    done = integrate(itertools.repeat(self._demand, k))
                 elif self._vel != 0.0:
-                    done = self._coast(n)
+                    done = self._coast_fine(k) if fine else self._coast(k)
                 else:
-                    self.counters.ticks += n
-                    return
+                    self.counters.ticks += k
+                    if not recording:
+                        return
+                    done = k
+                    self._recorder_idle(k)
+                    sampled = True
             else:
                 i = self._src_i
-                m = min(n, self._next_event - i)
+                m = min(k, self._next_event - i)
                 if m <= 0:
                     self._on_source_event(t)
                     continue
-                done = self._integrate(src[i:i + m])
+                done = integrate(src[i:i + m])
                 self._src_i = i + done
             n -= done
+            if recording and not sampled:
+                self.recorder.advance(done * TICK_UNITS, self._recorder_read)
             if self._fe_tripped:
                 self._fe_tripped = False
                 self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
@@ -1173,6 +1217,160 @@ class DriveModel:
         return done
 
     # ============================================================================================
+    # data recorder (seed 004): its objects, its triggers and its samples. The recorder itself is
+    # bus/sim/recorder.py; here: building its configuration from the object dictionary, reading the
+    # sampled variables, and running the ticks so that every sample instant is hit (`_run_ticks` cuts
+    # the ticks into chunks that end at sample instants; a period that is not whole ticks sub-steps the
+    # plant, the position controller staying at 1 ms: `_integrate_fine`, `_coast_fine`).
+
+    def set_digital_inputs(self, word: int, t: float) -> list[Frame]:
+        """The drive's digital inputs change (the simulation has no I/O: tests and tools set the word);
+        an edge of any input is the recorder's digital-input trigger (0x2011 bit 2)."""
+        self._t_now = t
+        self._out = []
+        if self._nmt != NmtState.BOOTUP:
+            self._release_held(t)
+            self._catch_up(t)
+        if word != self._digital_inputs:
+            self._digital_inputs = word
+            self.recorder.trigger(TRIGGER_INPUT, "digital input", t)
+        return self._out
+
+    @property
+    def digital_inputs(self) -> int:
+        return self._digital_inputs
+
+    def _recorder_describe(self, index: int, sub: int) -> tuple[int, bool] | None:
+        """(bits, signed) of a readable integer object the recorder can sample, else None."""
+        if index in self._absent:
+            return None
+        s = odm.OBJECTS.get((index, sub))
+        if s is None or not s.readable or s.dtype in (odm.DataType.VISIBLE_STRING, odm.DataType.DOMAIN):
+            return None
+        return s.dtype.bits, s.dtype.signed
+
+    def _recorder_config(self) -> RecorderConfig:
+        od = self._od
+        return RecorderConfig.build(
+            od[(0x2014, 0)], [od[(0x2015, k)] for k in range(1, 5)], [od[(0x2016, k)] for k in range(1, 5)],
+            od[(0x2012, 0)], od[(0x2013, 0)], od[(0x2011, 0)], self._recorder_describe)
+
+    def _recorder_max_samples(self) -> int:
+        """0x2018, from the configuration as it stands (0 while it names no valid variable)."""
+        try:
+            return self._recorder_config().max_samples
+        except SdoAbort:
+            return 0
+
+    def _recorder_read(self, index: int, sub: int) -> int:
+        getter = self._dynamic.get((index, sub))
+        return getter() if getter is not None else self._od[(index, sub)]
+
+    def _write_recorder_control(self, value: int) -> None:
+        """0x2010: bit 0 = 1 starts the recorder (if stopped), 0 stops it; bit 1 forces a trigger (so 3
+        forces one while running). Reads back bit 0 as written."""
+        rec = self.recorder
+        if value & CONTROL_START:
+            if not rec.active:
+                config = self._recorder_config()  # SdoAbort names what is wrong; nothing changes then
+                self._fine = self._fine_plant(config)
+                rec.start(config, self._recorder_read)
+        else:
+            rec.stop()
+        self._od[(0x2010, 0)] = value & CONTROL_START
+        if value & CONTROL_FORCE_TRIGGER:
+            rec.force_trigger(self._t_now)
+
+    def _fine_plant(self, config: RecorderConfig) -> tuple[tuple[float, float, float, float], int, int] | None:
+        """None when the sampling period is whole 1 ms ticks (the plant keeps its 1 ms step), else the
+        plant's constants for the sub-step, the sub-steps per tick and the recorder units per sub-step."""
+        units = substep_units(config.period_units)
+        if units == TICK_UNITS:
+            return None
+        return plant_constants(self.motor, self.counts_per_rev, units * UNIT_S), TICK_UNITS // units, units
+
+    def _recorder_chunk(self, n: int) -> int:
+        """Ticks to run before the next sample instant (at most n; 1 while sub-stepping)."""
+        rec = self.recorder
+        if not rec.active:
+            return n
+        if self._fine is not None:
+            return 1
+        return max(1, min(n, rec.units_to_sample() // TICK_UNITS))
+
+    def _recorder_idle(self, ticks: int) -> None:
+        """Ticks in which nothing moves (power off, standing): the samples due see the same state."""
+        rec = self.recorder
+        units = ticks * TICK_UNITS
+        while units > 0 and rec.active:
+            step = min(units, rec.units_to_sample())
+            rec.advance(step, self._recorder_read)
+            units -= step
+
+    def _integrate_fine(self, demands: Iterable[int]) -> int:
+        """`_integrate` with the plant sub-stepped at the recorder's period (the position controller
+        still runs once per 1 ms tick, its current held over the sub-steps); samples at every instant."""
+        assert self._fine is not None
+        (phi, gam, psi, eta), steps, units = self._fine
+        c = self._c
+        cou, imax = c.coulomb_a, c.i_max
+        rec, read = self.recorder, self._recorder_read
+        few = self._fe_window if self._state is not ST.FAULT_REACTION_ACTIVE else math.inf
+        done = 0
+        for d in demands:
+            e = d - self._pos
+            integ = min(imax, max(-imax, self._integ + c.ki * e))
+            dterm = c.kd_f * self._dterm + c.kd_g * (e - self._eprev)
+            i = min(imax, max(-imax, c.kp * e + integ + dterm))
+            self._integ, self._dterm, self._eprev, self._current, self._demand = integ, dterm, e, i, d
+            for _ in range(steps):
+                vel = self._vel
+                ie = i - self.disturbance_current_a
+                if vel > 0.0:
+                    ie -= cou
+                elif vel < 0.0:
+                    ie += cou
+                elif ie > cou:
+                    ie -= cou
+                elif ie < -cou:
+                    ie += cou
+                else:
+                    ie = 0.0
+                nv = phi * vel + gam * ie
+                self._pos += psi * vel + eta * ie
+                if cou and ((vel > 0.0 and nv < 0.0) or (vel < 0.0 and nv > 0.0)):
+                    nv = 0.0
+                self._vel = nv
+                rec.advance(units, read)
+            done += 1
+            if e > few or e < -few:
+                self._fe_tripped = True
+                break
+        self.counters.ticks += done
+        return done
+
+    def _coast_fine(self, n: int) -> int:
+        """`_coast` with the plant sub-stepped at the recorder's period; samples at every instant."""
+        assert self._fine is not None
+        (phi, gam, psi, eta), steps, units = self._fine
+        cou = self._c.coulomb_a
+        rec, read = self.recorder, self._recorder_read
+        self._current = 0.0
+        for _ in range(n):
+            for _ in range(steps):
+                vel = self._vel
+                if vel != 0.0:
+                    ie = -self.disturbance_current_a - (cou if vel > 0.0 else -cou)
+                    nv = phi * vel + gam * ie
+                    self._pos += psi * vel + eta * ie
+                    stopped = (vel > 0.0 and nv <= 0.0) or (vel < 0.0 and nv >= 0.0)
+                    self._vel = 0.0 if stopped or abs(nv) < COAST_STOP_COUNTS_PER_MS else nv
+                    self._demand = hermite.round_counts(self._pos)
+                rec.advance(units, read)
+        self.counters.ticks += n
+        return n
+
+    # ============================================================================================
     # demand sources: ip segments and stop ramps
 
     def _set_source(self, demands: list[int], kind: Source) -> None:
@@ -1224,6 +1422,8 @@ class DriveModel:
                 self._transition(Internal.QUICK_STOP_DONE)
         elif kind == Source.FAULT:
             self._transition(Internal.FAULT_REACTION_DONE)
+        elif kind == Source.HALT:
+            self.recorder.trigger(TRIGGER_END, "end of profile (halt)", self._t_now)
 
     def _next_segment(self, prev: PvtRecord, t: float) -> None:
         if not self._fifo:
@@ -1233,6 +1433,7 @@ class DriveModel:
         if head.time_ms == 0:
             self._fifo.popleft()
             self._ip_active = False  # seed 000 4.3.6.1: time 0 -> interpolation inactive, no error
+            self.recorder.trigger(TRIGGER_END, "end of profile", self._t_now)
             return
         self._begin_segment(prev.position, prev.velocity * self._rpm_to_cpms, head)
 
@@ -1360,6 +1561,7 @@ class DriveModel:
         self.counters.activations += 1
         self._latched &= ~(BS_VELOCITY_WARNING | BS_ACCELERATION_WARNING)
         self._ip_active = True
+        self.recorder.trigger(TRIGGER_MOVEMENT, "movement start", self._t_now)
         if self._clock is not None:
             self._clock.anchor(self._t_now)  # the own clock's tick grid starts at the enabling SYNC
         if self._first_is_origin:
@@ -1458,6 +1660,7 @@ class DriveModel:
         self._ip_active = False  # the EMCY reports the buffer status of the aborted trajectory
         bs = self._get_buffer_status()
         self.fault_log.append(FaultRecord(t, code, codec.EMCY_NAMES.get(code, hex(code)), bs, before))
+        self.recorder.trigger(TRIGGER_ERROR, f"error 0x{code:04X}", t)
         self._emit_emcy(code, bs)
         was_powered = self._powered
         if was_powered:
