@@ -20,6 +20,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.jobs",
     "streamer.cli.sim",
     "streamer.cli.probe",
+    "streamer.cli.record",
 )
 
 
