@@ -233,6 +233,7 @@ def _record(console: Any, cell: Any, nodes: list[int], names: dict[int, str], re
             args: argparse.Namespace) -> int:
     from bus.errors import BusError
     from streamer.recording.drive import DriveRecording, DriveRecordingError
+    from streamer.recording.recorder import RecorderGroup
 
     d = request.describe()
     mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"
@@ -241,22 +242,13 @@ def _record(console: Any, cell: Any, nodes: list[int], names: dict[int, str], re
                   f"trigger {request.trigger}; {mode}" + (f"; job {args.job}" if args.job else ""))
     display = _Display(console, nodes, enabled=not args.quiet)
     problems: list[str] = []
-    job_result = ""
     try:
         with _session(cell, traj, nodes, fast=args.fast, upload=args.upload) as s, display:
             display.phase("probing the drives" if not args.fast else "preparing")
             s.prepare()
-            for r in s.recorders.values():
-                r.configure(request)
-            for r in s.recorders.values():
-                r.arm()
-            armed_at = s.now()
-            display.phase("armed")
-            # the samples before the trigger must exist before anything can trigger
-            s.idle(request.preceding_samples * request.period_s + 2 * request.period_s)
-            if request.trigger == "force":
-                for r in s.recorders.values():
-                    r.force_trigger()
+            group = RecorderGroup(s.recorders, request, idle=s.idle, now=s.now, on_status=display.status)
+            display.phase("arming")
+            group.start()
             if traj is not None:
                 display.phase("running the job")
                 job_result, message = s.run_job(traj, display.on_job)
@@ -264,30 +256,10 @@ def _record(console: Any, cell: Any, nodes: list[int], names: dict[int, str], re
                     problems.append(f"the job ended {job_result}: {message}")
             timeout = args.timeout if args.timeout is not None else request.span_s + 10.0
             display.phase("waiting for the recorders")
-            if request.trigger == "continuous":
-                s.idle(request.span_s - (s.now() - armed_at) + request.period_s)
-                for r in s.recorders.values():
-                    r.stop()
-            waiting = set(nodes)
-            end = s.now() + timeout
-            while waiting:
-                for n in sorted(waiting):
-                    status = s.recorders[n].status()
-                    display.status(n, status)
-                    if not status & 1:
-                        waiting.discard(n)
-                if not waiting or s.now() >= end:
-                    break
-                s.idle(min(0.05, max(request.period_s, 0.01)))
-            for n in sorted(waiting):
+            recordings = group.finish(timeout)
+            for n in group.not_triggered:
                 problems.append(f"node {n}: no {request.trigger} trigger within {timeout:g} s; stopped and read "
                                 "as it was")
-                s.recorders[n].stop()
-            display.phase("uploading")
-            recordings = {}
-            for n, r in s.recorders.items():
-                recordings[n] = r.read()
-                display.status(n, r.status())
             uploads = {n: r.last_upload for n, r in s.recorders.items()}
             upload_s = {n: r.last_upload_s for n, r in s.recorders.items()}
     except (DriveRecordingError, BusError) as e:

@@ -269,3 +269,68 @@ class Recorder:
         data = self.upload()
         return decode_buffer(data, request.variables, samples=samples, offset=offset, status=status,
                              preceding=request.preceding_samples, period_s=request.period_s, node=self.node_id)
+
+
+class RecorderGroup:
+    """The recorders of several nodes run together around a job (what `pvt record` and a job's `record`
+    section do): `start` configures and arms every one, lets the preceding time pass (the samples before
+    the trigger must exist before anything can trigger) and forces the trigger for "force"; `finish`
+    waits until every recorder stopped by itself (continuous: until the buffer spans its time once, then
+    stops them), stops those that did not within `timeout_s`, and reads every one.
+
+    `idle(s)` lets time pass (a sleep in real time, SYNC cycles in virtual time), `now()` reads that clock;
+    `on_status(node, status)` sees every 0x2017 read (a progress display)."""
+
+    def __init__(self, recorders: dict[int, Recorder], request: RecordRequest, *,
+                 idle: Callable[[float], None] = time.sleep, now: Callable[[], float] = time.monotonic,
+                 on_status: Callable[[int, int], None] | None = None):
+        self.recorders = recorders
+        self.request = request
+        self._idle = idle
+        self._now = now
+        self._on_status = on_status
+        self.armed_at: float | None = None
+        self.forced_at: float | None = None
+        self.not_triggered: list[int] = []
+
+    def start(self) -> None:
+        req = self.request
+        for r in self.recorders.values():
+            r.configure(req)
+        for r in self.recorders.values():
+            r.arm()
+        self.armed_at = self._now()
+        self._idle(req.preceding_samples * req.period_s + 2 * req.period_s)
+        if req.trigger == "force":
+            self.forced_at = self._now()
+            for r in self.recorders.values():
+                r.force_trigger()
+
+    def finish(self, timeout_s: float) -> dict[int, NodeRecording]:
+        req = self.request
+        if req.trigger == "continuous":
+            armed = self.armed_at if self.armed_at is not None else self._now()
+            self._idle(req.span_s - (self._now() - armed) + req.period_s)
+            for r in self.recorders.values():
+                r.stop()
+        waiting = set(self.recorders)
+        end = self._now() + timeout_s
+        while waiting:
+            for n in sorted(waiting):
+                status = self.recorders[n].status()
+                if self._on_status is not None:
+                    self._on_status(n, status)
+                if not status & STATUS_RUNNING:
+                    waiting.discard(n)
+            if not waiting or self._now() >= end:
+                break
+            self._idle(min(0.05, max(req.period_s, 0.01)))
+        self.not_triggered = sorted(waiting)
+        for n in self.not_triggered:
+            self.recorders[n].stop()
+        out = {}
+        for n, r in self.recorders.items():
+            out[n] = r.read()
+            if self._on_status is not None:
+                self._on_status(n, r.status())
+        return out
