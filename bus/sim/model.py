@@ -1105,36 +1105,28 @@ class DriveModel:
         return clock.time_of_tick(max(1, self._next_event - self._src_i))
 
     def _run_ticks(self, n: int, t: float) -> None:
-        recording = self.recorder.active  # then: chunks that end at sample instants (`_recorder_chunk`)
-        fine = recording and self._fine is not None
-        integrate = self._integrate_fine if fine else self._integrate
+        if self.recorder.active:
+            self._run_ticks_recorded(n, t)  # the data recorder samples: bus/sim/recorder.py, section below
+            return
         while n > 0:
-            k = self._recorder_chunk(n) if recording else n
             src = self._src
-            sampled = fine  # the fine integrators sample inside the tick
             if src is None:
                 if self._powered:
-                    done = integrate(itertools.repeat(self._demand, k))
+                    done = self._integrate(itertools.repeat(self._demand, n))
                 elif self._vel != 0.0:
-                    done = self._coast_fine(k) if fine else self._coast(k)
+                    done = self._coast(n)
                 else:
-                    self.counters.ticks += k
-                    if not recording:
-                        return
-                    done = k
-                    self._recorder_idle(k)
-                    sampled = True
+                    self.counters.ticks += n
+                    return
             else:
                 i = self._src_i
-                m = min(k, self._next_event - i)
+                m = min(n, self._next_event - i)
                 if m <= 0:
                     self._on_source_event(t)
                     continue
-                done = integrate(src[i:i + m])
+                done = self._integrate(src[i:i + m])
                 self._src_i = i + done
             n -= done
-            if recording and not sampled:
-                self.recorder.advance(done * TICK_UNITS, self._recorder_read)
             if self._fe_tripped:
                 self._fe_tripped = False
                 self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
@@ -1288,6 +1280,44 @@ class DriveModel:
         if units == TICK_UNITS:
             return None
         return plant_constants(self.motor, self.counts_per_rev, units * UNIT_S), TICK_UNITS // units, units
+
+    def _run_ticks_recorded(self, n: int, t: float) -> None:
+        """`_run_ticks` while the recorder runs: the same loop, in chunks that end at sample instants
+        (`_recorder_chunk`), sampling after each chunk, or inside each tick while sub-stepping. Kept apart
+        so the loop without a recorder pays nothing for it (benchmarks/bench_sim.py)."""
+        fine = self._fine is not None
+        integrate = self._integrate_fine if fine else self._integrate
+        while n > 0:
+            k = self._recorder_chunk(n)
+            src = self._src
+            sampled = fine  # the fine integrators sample inside the tick
+            if src is None:
+                if self._powered:
+                    done = integrate(itertools.repeat(self._demand, k))
+                elif self._vel != 0.0:
+                    done = self._coast_fine(k) if fine else self._coast(k)
+                else:
+                    self.counters.ticks += k
+                    done = k
+                    self._recorder_idle(k)
+                    sampled = True
+            else:
+                i = self._src_i
+                m = min(k, self._next_event - i)
+                if m <= 0:
+                    self._on_source_event(t)
+                    continue
+                done = integrate(src[i:i + m])
+                self._src_i = i + done
+            n -= done
+            if not sampled:
+                self.recorder.advance(done * TICK_UNITS, self._recorder_read)
+            if self._fe_tripped:
+                self._fe_tripped = False
+                self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
+                continue
+            if self._src is not None and self._src_i == self._next_event:
+                self._on_source_event(t)
 
     def _recorder_chunk(self, n: int) -> int:
         """Ticks to run before the next sample instant (at most n; 1 while sub-stepping)."""

@@ -202,7 +202,8 @@ class DataRecorder:
     """One drive's data recorder (see the module docstring)."""
 
     def __init__(self) -> None:
-        self.state = RecorderState.STOPPED
+        self._state = RecorderState.STOPPED
+        self.active = False  # running (waiting, continuous or triggered): a plain attribute, read every tick batch
         self.config: RecorderConfig | None = None
         self._rings: list[list[int]] = []
         self._samples = 0  # rows per ring (0x2018 of the latched configuration)
@@ -231,8 +232,12 @@ class DataRecorder:
         return s
 
     @property
-    def active(self) -> bool:
-        return self.state != RecorderState.STOPPED
+    def state(self) -> RecorderState:
+        return self._state
+
+    def _go(self, event: RecorderEvent) -> None:
+        self._state = next_state(self._state, event)
+        self.active = self._state != RecorderState.STOPPED
 
     @property
     def offset(self) -> int:
@@ -265,7 +270,7 @@ class DataRecorder:
         if self.active:
             return  # already running: writing "start" again changes nothing
         samples = config.max_samples
-        self.state = next_state(self.state, E.START_CONTINUOUS if config.continuous else E.START_SINGLE)
+        self._go(E.START_CONTINUOUS if config.continuous else E.START_SINGLE)
         self.config = config
         self._samples = samples
         self._rings = [[0] * samples for _ in config.variables]
@@ -284,7 +289,7 @@ class DataRecorder:
         self._sample(read)
 
     def stop(self) -> None:
-        self.state = next_state(self.state, E.STOP)
+        self._go(E.STOP)
         self._trigger_pending = False
 
     def force_trigger(self, t: float | None = None) -> None:
@@ -300,7 +305,7 @@ class DataRecorder:
     def _trigger(self, kind: str, t: float | None) -> None:
         if self.state not in (RecorderState.WAITING, RecorderState.CONTINUOUS):
             return
-        self.state = next_state(self.state, E.TRIGGER)
+        self._go(E.TRIGGER)
         self._ever_triggered = True
         self.trigger_kind = kind
         self.trigger_t = t
@@ -354,4 +359,4 @@ class DataRecorder:
 
     def _check_full(self) -> None:
         if self._after >= self._samples - self._preceding:
-            self.state = next_state(self.state, E.FULL)
+            self._go(E.FULL)

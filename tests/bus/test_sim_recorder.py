@@ -144,7 +144,7 @@ def test_ring_buffers_of_two_16_bit_and_one_32_bit_variable(rig: Rig) -> None:
 def test_status_bits_through_one_single_trigger_cycle(rig: Rig) -> None:
     """Seed 004 table 3 and "Data Recorder Overview": stopped -> waiting (running) -> triggered
     (running, triggered) -> stopped by itself when full (triggered kept until the next start)."""
-    rig.configure([(0x6062, 0)], period=10, preceding=10, triggers=TRIGGER_MOVEMENT)
+    rig.configure([(0x6062, 0)], period=50, preceding=10, triggers=TRIGGER_MOVEMENT)
     assert rig.status() == 0
     rig.node.sdo[0x2010].raw = 1
     assert rig.status() == STATUS_RUNNING
@@ -152,8 +152,8 @@ def test_status_bits_through_one_single_trigger_cycle(rig: Rig) -> None:
     assert wait_until(lambda: rig.sim.model(1).recorder.samples_taken >= 15, 2.0)
     assert rig.status() == STATUS_RUNNING  # samples go round the ring: no trigger yet
     rig.start_movement()
-    assert rig.status() == STATUS_RUNNING | STATUS_TRIGGERED
-    assert wait_until(lambda: rig.status() == STATUS_TRIGGERED, 2.0)  # 256 - 10 samples at 1 ms later: full
+    assert rig.status() == STATUS_RUNNING | STATUS_TRIGGERED  # full only 246 samples (1.23 s) later
+    assert wait_until(lambda: rig.status() == STATUS_TRIGGERED, 5.0)  # stopped by itself, triggered kept
     assert rig.node.sdo[0x2010].raw == 1  # reads back as written
     rig.node.sdo[0x2010].raw = 1  # start again: waiting, not triggered
     assert rig.status() == STATUS_RUNNING
