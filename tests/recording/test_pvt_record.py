@@ -229,3 +229,21 @@ def test_decode_refuses_a_buffer_that_does_not_fit() -> None:
     got = decode_buffer(data, v, samples=256, offset=250, status=2, preceding=6, period_s=0.001)
     assert got.values["position_demand"][:8] == (122, 123, 124, 125, 126, 127, -128, -127)
     assert got.t[6] == 0.0 and got.t[0] == -0.006
+
+
+def test_recording_html_renders_every_curve_in_chromium(tmp_path: Path, move3: Path) -> None:
+    """recording.html (render_report) opens in headless Chromium with no network: one curve per node and
+    variable, drawn sample-and-hold (what the drive sampled)."""
+    from tests.recording.test_html_chromium import _dump_dom, _parse
+
+    out = tmp_path / "rec"
+    argv = ["record", "--config", str(CONFIG), "--node", "1", "--node", "2", "--var", "position_demand",
+            "--var", "velocity_actual", "--period-ms", "2", "--trigger", "movement", "--job", str(move3), "--fast",
+            "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    page = out / "recording.html"
+    assert 'src="http' not in page.read_text(encoding="utf-8")
+    parsed = _parse(_dump_dom(page, tmp_path))
+    assert len(parsed.paths) == 4 and all(d.startswith("M") for d in parsed.paths)
+    assert all(("H" in d or "V" in d) for d in parsed.paths)  # sample-and-hold steps
+    assert "Sample & hold" in " ".join(parsed.buttons)
