@@ -1211,9 +1211,10 @@ class DriveModel:
     # ============================================================================================
     # data recorder (seed 004): its objects, its triggers and its samples. The recorder itself is
     # bus/sim/recorder.py; here: building its configuration from the object dictionary, reading the
-    # sampled variables, and running the ticks so that every sample instant is hit (`_run_ticks` cuts
-    # the ticks into chunks that end at sample instants; a period that is not whole ticks sub-steps the
-    # plant, the position controller staying at 1 ms: `_integrate_fine`, `_coast_fine`).
+    # sampled variables, and running the ticks so that every sample instant is hit while it runs
+    # (`_run_ticks_recorded` cuts the ticks into chunks that end at sample instants; a period that is
+    # not whole ticks sub-steps the plant, the position controller staying at 1 ms: `_integrate_fine`,
+    # `_coast_fine`).
 
     def set_digital_inputs(self, word: int, t: float) -> list[Frame]:
         """The drive's digital inputs change (the simulation has no I/O: tests and tools set the word);
