@@ -3,8 +3,9 @@
 What it owns: one drive's object dictionary (bus/sim/od.py), NMT state and heartbeat producer, the
 CiA 402 power state machine (bus.codec.TRANSITIONS), interpolated position mode with maxon's PVT
 FIFO (seed 000 chapter 4, seed 001), the position controller and motor (bus/sim/motor.py), PDOs and
-EMCYs, and the data recorder it samples its own objects into (seed 004, bus/sim/recorder.py). No sleeps, no wall clock, no canopen, no threads: every entry point takes the time `t`
-(seconds, any monotonic origin) and returns the frames the drive sends in response.
+EMCYs, and the data recorder it samples its own objects into (seed 004, bus/sim/recorder.py). No
+sleeps, no wall clock, no canopen, no threads: every entry point takes the time `t` (seconds, any
+monotonic origin) and returns the frames the drive sends in response.
 
 What it is fed:
 - `power_on(t)`: boot (boot-up message, NMT pre-operational).
