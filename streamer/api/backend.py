@@ -44,6 +44,9 @@ Contract, method by method (which service thread calls it, what it may raise):
   It should not raise; if it does, the job fails with code INTERNAL and the exception text. If the
   drives do not stand at the plan's knot 0 when execute is called (a job before it was cancelled or
   failed), re-plan from the current positions (`self.plan(planned.job, None)`) or fail START_MISMATCH.
+  `planned.record` is the job's `record` section (a `RecordRequest`, checked by the service) or None:
+  a backend whose drives have a data recorder configures and arms it on the recorded axes before the
+  motion and reads it after (docs/api.md, "The record section"); one without ignores it.
 - `telemetry()`: a snapshot, one mapping per axis, at least `name`, `position` (user units),
   `velocity` (user units/s), `fifo_fill` (records), `state` (drive state, a short string). Called on
   the telemetry thread at `telemetry_hz`, concurrently with `execute`: must be cheap and thread-safe.
@@ -91,6 +94,7 @@ class Planned:
     points: int  # PVT points per axis (knots, including the start point)
     planning_s: float = 0.0  # wall time spent planning (for the benchmark's planner share)
     end_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at the end
+    record: Any = None  # the job's `record` section (a streamer.recording.drive.RecordRequest), or None
 
     def __post_init__(self) -> None:
         if not self.duration_s >= 0.0:

@@ -21,6 +21,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.sim",
     "streamer.cli.probe",
     "streamer.cli.certs",
+    "streamer.cli.record",
 )
 
 
