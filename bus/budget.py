@@ -18,8 +18,8 @@ an empty SYNC 55. The formula itself is `bus.codec.frame_bits` (one definition f
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 from bus.codec import frame_bits
