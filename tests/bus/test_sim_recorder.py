@@ -2,8 +2,10 @@
 
 The first tests drive it the way an external master would: a stock canopen `RemoteNode` (not the
 product's recorder code) on a python-can virtual bus against `bus.sim.node.SimulatedCell`, in real time,
-over SDO (expedited writes, segmented and block upload of 0x201B). The rest run the `DriveModel` in
-virtual time, where every timing branch is reachable: sub-stepping, the triggers, both drive clocks.
+over SDO (expedited writes, segmented and block upload of 0x201B). The rest run the `EposDrive` in
+virtual time, where every timing branch is reachable: sub-stepping, the triggers, both drive clocks. The
+recorder is maxon's: its objects are the EPOS family's only, and a drive without one (`recorder` None)
+runs, faults and halts as before.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 
 import canopen
 import pytest
-from bus_testkit import VDrive, make_cell, ramp_records, remote_network, unique_channel, wait_until
+from bus_testkit import VDrive, make_axis, make_cell, ramp_records, remote_network, unique_channel, wait_until
 
 from bus import codec
 from bus.sim import od as odm
@@ -425,3 +427,76 @@ def test_block_upload_server_resends_what_the_client_did_not_acknowledge() -> No
 
     assert end[0] & 0x03 == 1 and struct.unpack_from("<H", end, 1)[0] == binascii.crc_hqx(data, 0)
     assert server.on_request(bytes([0xA1]) + bytes(7)) == [] and not server.busy
+
+
+# ---- the recorder in the drive families ------------------------------------------------------------------------
+RECORDER_OBJECTS = (0x2010, 0x2011, 0x2012, 0x2013, 0x2014, 0x2015, 0x2016, 0x2017, 0x2018, 0x2019, 0x201B)
+
+
+def test_the_recorder_objects_are_the_epos_familys_only() -> None:
+    """Seed 004's objects are maxon's: in EPOS_TABLE (and its EDS) only; the XtrapulsPac's 0x2010 is its
+    boot-up message object (seed 003), which a recorder start must never be written to."""
+    assert all(index in odm.EPOS_TABLE.indices for index in RECORDER_OBJECTS)
+    assert odm.EPOS_TABLE.spec(0x201B, 0).dtype == odm.DataType.DOMAIN
+    assert odm.XTRAPULS_TABLE.spec(0x2010, 0).name == "Boot-up message"
+    for table in (odm.XTRAPULS_TABLE, odm.CSP_TABLE):
+        assert not any(index in table.indices for index in RECORDER_OBJECTS[1:]), table.name
+    assert 0x2010 not in odm.CSP_TABLE.indices
+    eds = EDS_PATH.read_text()
+    assert "[201B]\nParameterName=Data recorder data buffer\nObjectType=0x7\nDataType=0x000F" in eds
+
+
+def test_halt_to_standstill_is_the_end_of_profile_trigger() -> None:
+    """End of profile (0x2011 bit 3) also when a halt (controlword bit 8) ramp reaches standstill: the
+    shared drive's halt-end hook, not only the EPOS time-0 record."""
+    d = drive()
+    configure(d, [(0x6062, 0)], triggers=TRIGGER_END)
+    pending = d.start(ramp_records(40_000, cruise_rpm=900, seg_ms=10), prime=8)
+    feed(d, pending, 10)  # 100 ms: moving
+    assert d.model.recorder.status == STATUS_RUNNING and d.model.demand_velocity_rpm > 100
+    d.cw(0x011F)  # halt
+    for _ in range(100):
+        d.sync()
+        if d.model.recorder.status & STATUS_TRIGGERED:
+            break
+    assert d.model.recorder.trigger_kind == "end of profile (halt)"
+    assert d.model.counters.faults == 0 and d.model.demand_velocity_rpm == 0.0
+
+
+def test_read_domain_refuses_an_integer_object() -> None:
+    d = drive()
+    with pytest.raises(SdoAbort) as e:
+        d.model.read_domain(0x6041, 0)
+    assert e.value.code == odm.ABORT_UNSUPPORTED_ACCESS
+    with pytest.raises(SdoAbort) as e:
+        d.model.read_domain(0x7777, 0)
+    assert e.value.code == odm.ABORT_NO_OBJECT
+
+
+def test_a_drive_without_a_recorder_runs_and_faults_as_before() -> None:
+    """The shared drive with no recorder (`recorder` None: a family without one): the tick loop, the
+    error trigger's place in `_fault` and the halt-end hook do nothing, and it has no domain to upload."""
+    from bus.sim.device import DriveDevice
+
+    class NoRecorder(DriveDevice):  # the shared drive as a family of its own, accepting the master's mode 7
+        supported_modes = frozenset({0, 7})
+
+    m = NoRecorder(1, make_axis())
+    assert m.recorder is None
+    m.configure(10, t=0.0)
+    for cw in (0x0006, 0x000F):
+        m.sdo_write(0x6040, 0, cw, 0.0)
+    assert m.state == codec.Cia402State.OPERATION_ENABLED
+    m.disturbance_current_a = 100.0  # a load the controller cannot hold: the following error trips
+    t = 0.0
+    for _ in range(300):
+        t += 0.01
+        m.advance(t)
+        m.on_sync(t)
+        if m.counters.faults:
+            break
+    assert [f.code for f in m.fault_log] == [codec.EMCY_FOLLOWING_ERROR]
+    assert m.counters.ticks == round(t * 1000)
+    with pytest.raises(SdoAbort) as e:
+        m.read_domain(0x201B, 0)
+    assert e.value.code == odm.ABORT_UNSUPPORTED_ACCESS
