@@ -192,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
 
     from planner.config import default_config_path, load_cell
     from planner.errors import PlanningError
-    from streamer.recording.drive import DriveRecordingError, RecordRequest, parse_variable
+    from streamer.recording.drive import DriveRecordingError, RecordRequest, parse_variable, recorded_axes
 
     console = Console()
     try:
@@ -208,6 +208,8 @@ def run(args: argparse.Namespace) -> int:
         if unknown:
             raise PlanningError("CONFIG", f"--node {unknown[0]} is not a node of cell {cell.name!r} (nodes "
                                 f"{sorted(known)})", path="node")
+        axes = {a.node_id: a for a in cell.axes}
+        recorded_axes([axes[n] for n in nodes], [axes[n].name for n in nodes], path="--node")
         traj = None
         if args.job is not None:
             from planner.job import load_job

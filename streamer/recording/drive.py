@@ -30,7 +30,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 TOTAL_WORDS = 512
 MAX_VARIABLES = 4
@@ -122,6 +122,39 @@ def parse_variable(text: str, *, path: str = "var") -> DriveVariable:
         if (v.index, v.sub) == (index, sub):
             return v
     return DriveVariable(f"0x{index:04X}_{sub:02X}", index, sub, spec.dtype.bits, spec.dtype.signed, "raw")
+
+
+# the drive families (bus/families.py) that have seed 004's data recorder: it is maxon's, and other
+# families use its object indices for other things (the XtrapulsPac's 0x2010 is its boot-up message)
+RECORDER_PROFILES = frozenset({"epos-ipm"})
+
+
+class _Axis(Protocol):
+    name: str
+    node_id: int
+    profile: str
+
+
+def recorded_axes(axes: Sequence[_Axis], requested: Sequence[str] = (), *, path: str = "record.axes") -> list[str]:
+    """The names of `axes` (a job's, or the nodes asked for) whose recorders to use: the `requested` ones,
+    each of which must have a recorder (`RECORDER` naming the axis, its node and family otherwise: nothing
+    is written to a drive whose object 0x2010 means something else), or, with none requested, every axis
+    that has one (`RECORDER` when none has)."""
+    by_name = {a.name: a for a in axes}
+    if not requested:
+        names = [a.name for a in axes if a.profile in RECORDER_PROFILES]
+        if not names:
+            raise DriveRecordingError(RECORDER, "no axis of the job has a data recorder (drive families "
+                                      f"{sorted(RECORDER_PROFILES)}; the axes are "
+                                      f"{', '.join(f'{a.name} ({a.profile})' for a in axes)})", path)
+        return names
+    for i, name in enumerate(requested):
+        a = by_name.get(name)
+        if a is not None and a.profile not in RECORDER_PROFILES:
+            raise DriveRecordingError(RECORDER, f"{path}[{i}]: axis {name!r} (node {a.node_id}) is a {a.profile} "
+                                      f"drive: it has no data recorder (seed 004 is maxon EPOS's: "
+                                      f"{sorted(RECORDER_PROFILES)})", f"{path}[{i}]")
+    return list(requested)
 
 
 def max_samples(variables: Sequence[DriveVariable]) -> int:

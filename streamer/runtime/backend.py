@@ -158,9 +158,10 @@ class RuntimeBackend:
 
     # ---- the drives' own data recorders (a job's `record` section)
     def _arm_recorders(self, request: Any, traj: Any) -> Any:
+        from streamer.recording.drive import recorded_axes
         from streamer.recording.recorder import CanopenSdo, Recorder, RecorderGroup
 
-        names = list(request.axes) or [str(n) for n in traj.axis_names]
+        names = recorded_axes([self._axes[str(n)] for n in traj.axis_names], request.axes)
         nodes = [self._axes[name].node_id for name in names]
         group = RecorderGroup({n: Recorder(CanopenSdo(self.adapter.remote[n])) for n in nodes}, request,
                               now=self.adapter.now)

@@ -32,6 +32,7 @@ from streamer.recording.drive import (
     RecordRequest,
     decode_buffer,
     parse_variable,
+    recorded_axes,
 )
 from streamer.recording.recorder import ModelSdo, Recorder
 
@@ -134,6 +135,34 @@ def test_pvt_record_a_node_the_job_does_not_move(tmp_path: Path, move3: Path,
             "--period-ms", "1", "--trigger", "movement", "--job", str(move3), "--fast", "--out", str(tmp_path)]
     assert main(argv) == 2
     assert "--node 5 is not an axis of the job" in capsys.readouterr().err
+
+
+def test_pvt_record_refuses_a_node_without_a_recorder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An XtrapulsPac node: the recorder is maxon's (its 0x2010 is the boot-up message object): refused
+    before anything is written to the drive, naming the node and its family."""
+    argv = ["record", "--config", str(ROOT / "configs" / "xtrapuls.toml"), "--node", "3", "--var", "position_actual",
+            "--period-ms", "1", "--trigger", "force", "--fast", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "RECORDER" in err and "axis 'j3' (node 3) is a xtrapuls-ip drive: it has no data recorder" in err, err
+    assert not (tmp_path / "recording.csv").exists()
+
+
+def test_recorded_axes_keeps_to_the_drives_with_a_recorder() -> None:
+    """A job's `record` section: by default the job's EPOS axes; an axis of another family named
+    explicitly, or a job without an EPOS axis, is RECORDER with the field's path."""
+    epos = load_cell(CONFIG).axes[:2]
+    xtrapuls = load_cell(ROOT / "configs" / "xtrapuls.toml").axes[2:4]
+    mixed = [epos[0], xtrapuls[0], epos[1]]
+    assert recorded_axes(mixed) == [epos[0].name, epos[1].name]
+    assert recorded_axes(mixed, [epos[1].name]) == [epos[1].name]
+    with pytest.raises(DriveRecordingError) as e:
+        recorded_axes(mixed, [epos[0].name, xtrapuls[0].name])
+    assert e.value.code == "RECORDER" and e.value.path == "record.axes[1]"
+    assert f"axis {xtrapuls[0].name!r} (node {xtrapuls[0].node_id}) is a xtrapuls-ip drive" in e.value.message
+    with pytest.raises(DriveRecordingError) as e:
+        recorded_axes(xtrapuls)
+    assert e.value.code == "RECORDER" and "no axis of the job has a data recorder" in e.value.message
 
 
 def test_pvt_record_continuous_and_forced_without_a_job(tmp_path: Path) -> None:
