@@ -38,6 +38,9 @@ from planner import record
 from planner.readings import SimDriveOptions
 
 SEG_MS = 50
+# the stock client's 0.3 s SDO timeout against a drive thread on a loaded 2-core machine: a segmented upload
+# of 0x201B is ~150 request/response turns, any of which may wait that long when the machine is busy
+SDO_TIMEOUT_S = 2.0
 
 
 @dataclass
@@ -93,6 +96,7 @@ def rig() -> Iterator[Rig]:
     try:
         with remote_network(channel) as net:
             node = net.add_node(1, str(EDS_PATH))
+            node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
             net.sync.start(0.010)
             yield Rig(sim, net, node)
     finally:
@@ -195,6 +199,7 @@ def test_segmented_upload_where_the_drive_has_no_block_upload() -> None:
     with SimulatedCell(cell, block_upload=False, sync_gap_factor=5.0) as sim, remote_network(channel) as net:
         net.sync.start(0.010)
         rec = Recorder.over(net, 1)
+        net[1].sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         rec.configure(RecordRequest((parse_variable("position_actual"),), trigger="continuous", period_ms=1.0))
         rec.arm()
         assert wait_until(lambda: sim.model(1).recorder.samples_taken >= 10, 2.0)
