@@ -290,6 +290,12 @@ class DataRecorder:
         self._sample(read)
 
     def stop(self) -> None:
+        if self._trigger_pending:
+            # stopped between a trigger and its sample: the rings hold no trigger sample, so the recording is
+            # not a triggered one (status bit 1 clear, 0x2019 as for a continuous recording)
+            self._ever_triggered = False
+            self.trigger_kind = None
+            self.trigger_t = None
         self._go(E.STOP)
         self._trigger_pending = False
 

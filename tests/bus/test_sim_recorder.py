@@ -374,6 +374,28 @@ def test_error_end_input_and_forced_triggers() -> None:
     assert d.model.recorder.trigger_kind == "force" and d.model.recorder.status & STATUS_TRIGGERED
 
 
+def test_a_stop_before_the_triggers_sample_leaves_the_recording_untriggered() -> None:
+    """A forced trigger between two samples takes effect at the next sample; a stop before it leaves no
+    trigger sample in the rings, so the status says not triggered and 0x2019 is the continuous one (a
+    host decoding it puts no t = 0 on a sample that is not the trigger's)."""
+    d = drive()
+    configure(d, [(0x6062, 0)], period=7, triggers=0)
+    d.sync(6)  # 60 ms = 600 units: the last sample was at 595, the next is at 602
+    d.sdo(0x2010, 0, 3)  # force: pending until the next sample
+    rec = d.model.recorder
+    assert rec.status == STATUS_RUNNING | STATUS_TRIGGERED and rec.trigger_sample is None
+    d.sdo(0x2010, 0, 0)
+    assert rec.status == 0 and rec.trigger_kind is None and rec.trigger_sample is None
+    assert d.model.sdo_read(0x2019, 0) == 0  # 86 samples taken, the rings not yet wrapped: from row 0
+    # the same force, then one more sample before the stop: triggered, the trigger at that sample
+    configure(d, [(0x6062, 0)], period=7, triggers=0)
+    d.sync(6)
+    d.sdo(0x2010, 0, 3)
+    d.sync(1)
+    d.sdo(0x2010, 0, 0)
+    assert rec.status == STATUS_TRIGGERED and rec.trigger_kind == "force" and rec.trigger_sample is not None
+
+
 def test_bad_configurations_are_refused_at_start() -> None:
     d = drive()
     configure(d, [(0x6041, 0)], start=False)
