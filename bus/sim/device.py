@@ -30,6 +30,11 @@ What it is fed:
 The per-tick loop (`_integrate`) is the hot spot: it runs on locals, and work that does not need to be
 per tick is done per segment (the demand list of a segment is computed once; limit crossings are found
 once per segment and scheduled as events).
+
+A family with a data recorder (EPOS, seed 004: bus/sim/recorder.py, its objects in bus/sim/epos.py) sets
+`recorder`; while it runs, `_run_ticks_recorded` replaces the loop above so that every sample instant is
+hit (sub-stepping the plant when the period is not whole ticks), and the error and halt-end triggers
+fire here. Without a recorder (None, or stopped) the loop is the plain one.
 """
 
 from __future__ import annotations
@@ -58,8 +63,9 @@ from bus.families import EPOS_IPM
 from bus.profile import DriveProfile, FeedbackSchedule, SetpointSlot
 from bus.sim import od as odm
 from bus.sim.clock import MotionClock
-from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
+from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams, plant_constants
 from bus.sim.od import Key, SdoAbort
+from bus.sim.recorder import TICK_UNITS, TRIGGER_END, TRIGGER_ERROR, UNIT_S, DataRecorder, RecorderConfig, substep_units
 from planner import hermite
 from planner.config import AxisConfig, DriveSettings
 from planner.readings import SimDriveOptions
@@ -235,6 +241,10 @@ class DriveDevice:
         self.counters = DriveCounters()
         self.fault_log: list[FaultRecord] = []
         self.disturbance_current_a = 0.0  # external load, as motor current (tests: a blocked axis)
+        # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-step
+        # while it samples finer than the 1 ms tick: (plant constants, sub-steps per tick, units per sub-step)
+        self.recorder: DataRecorder | None = None
+        self._fine: tuple[tuple[float, float, float, float], int, int] | None = None
         # plant and controller state
         self._pos = float(initial_position)
         self._vel = 0.0
@@ -385,6 +395,9 @@ class DriveDevice:
         if s.dtype == odm.DataType.VISIBLE_STRING:
             raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS,
                            f"0x{index:04X}:{sub:02X} is a string (served by the EDS)")
+        if s.dtype == odm.DataType.DOMAIN:
+            raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS,
+                           f"0x{index:04X}:{sub:02X} is a domain (read it with read_domain)")
         getter = self._dynamic.get((index, sub))
         return getter() if getter is not None else self._od[(index, sub)]
 
@@ -1006,6 +1019,10 @@ class DriveDevice:
         return clock.time_of_tick(max(1, self._next_event - self._src_i))
 
     def _run_ticks(self, n: int, t: float) -> None:
+        rec = self.recorder
+        if rec is not None and rec.active:
+            self._run_ticks_recorded(n, t)  # the data recorder samples: see "data recorder ticks" below
+            return
         while n > 0:
             src = self._src
             if src is None:
@@ -1107,6 +1124,148 @@ class DriveDevice:
         return done
 
     # ============================================================================================
+    # data recorder ticks (seed 004; bus/sim/recorder.py, its objects in the family: bus/sim/epos.py): while
+    # the recorder runs, `_run_ticks_recorded` cuts the ticks into chunks that end at sample instants; a
+    # period that is not whole ticks sub-steps the plant, the position controller staying at 1 ms
+    # (`_integrate_fine`, `_coast_fine`).
+
+    def _recorder_read(self, index: int, sub: int) -> int:
+        """A sampled variable's value now (the recorder checked it is a readable integer object)."""
+        getter = self._dynamic.get((index, sub))
+        return getter() if getter is not None else self._od[(index, sub)]
+
+    def _prepare_recording(self, config: RecorderConfig) -> None:
+        """The recorder is about to start with `config`: the plant keeps its 1 ms step when the sampling
+        period is whole ticks, else it runs at the sub-step that hits every sample instant."""
+        units = substep_units(config.period_units)
+        if units == TICK_UNITS:
+            self._fine = None
+        else:
+            self._fine = plant_constants(self.motor, self.counts_per_rev, units * UNIT_S), TICK_UNITS // units, units
+
+    def _run_ticks_recorded(self, n: int, t: float) -> None:
+        """`_run_ticks` while the recorder runs: the same loop, in chunks that end at sample instants
+        (`_recorder_chunk`), sampling after each chunk, or inside each tick while sub-stepping. Kept apart
+        so the loop without a recorder pays nothing for it (benchmarks/bench_sim.py)."""
+        rec = self.recorder
+        assert rec is not None
+        fine = self._fine is not None
+        integrate = self._integrate_fine if fine else self._integrate
+        while n > 0:
+            k = self._recorder_chunk(n)
+            src = self._src
+            sampled = fine  # the fine integrators sample inside the tick
+            if src is None:
+                if self._powered:
+                    done = integrate(itertools.repeat(self._demand, k))
+                elif self._vel != 0.0:
+                    done = self._coast_fine(k) if fine else self._coast(k)
+                else:
+                    self.counters.ticks += k
+                    done = k
+                    self._recorder_idle(k)
+                    sampled = True
+            else:
+                i = self._src_i
+                m = min(k, self._next_event - i)
+                if m <= 0:
+                    self._on_source_event(t)
+                    continue
+                done = integrate(src[i:i + m])
+                self._src_i = i + done
+            n -= done
+            if not sampled:
+                rec.advance(done * TICK_UNITS, self._recorder_read)
+            if self._fe_tripped:
+                self._fe_tripped = False
+                self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
+                continue
+            if self._src is not None and self._src_i == self._next_event:
+                self._on_source_event(t)
+
+    def _recorder_chunk(self, n: int) -> int:
+        """Ticks to run before the next sample instant (at most n; 1 while sub-stepping)."""
+        rec = self.recorder
+        if rec is None or not rec.active:
+            return n
+        if self._fine is not None:
+            return 1
+        return max(1, min(n, rec.units_to_sample() // TICK_UNITS))
+
+    def _recorder_idle(self, ticks: int) -> None:
+        """Ticks in which nothing moves (power off, standing): the samples due see the same state."""
+        rec = self.recorder
+        assert rec is not None
+        units = ticks * TICK_UNITS
+        while units > 0 and rec.active:
+            step = min(units, rec.units_to_sample())
+            rec.advance(step, self._recorder_read)
+            units -= step
+
+    def _integrate_fine(self, demands: Iterable[int]) -> int:
+        """`_integrate` with the plant sub-stepped at the recorder's period (the position controller
+        still runs once per 1 ms tick, its current held over the sub-steps); samples at every instant."""
+        assert self._fine is not None and self.recorder is not None
+        (phi, gam, psi, eta), steps, units = self._fine
+        c = self._c
+        cou, imax = c.coulomb_a, c.i_max
+        rec, read = self.recorder, self._recorder_read
+        few = self._fe_window if self._state is not ST.FAULT_REACTION_ACTIVE else math.inf
+        done = 0
+        for d in demands:
+            e = d - self._pos
+            integ = min(imax, max(-imax, self._integ + c.ki * e))
+            dterm = c.kd_f * self._dterm + c.kd_g * (e - self._eprev)
+            i = min(imax, max(-imax, c.kp * e + integ + dterm))
+            self._integ, self._dterm, self._eprev, self._current, self._demand = integ, dterm, e, i, d
+            for _ in range(steps):
+                vel = self._vel
+                ie = i - self.disturbance_current_a
+                if vel > 0.0:
+                    ie -= cou
+                elif vel < 0.0:
+                    ie += cou
+                elif ie > cou:
+                    ie -= cou
+                elif ie < -cou:
+                    ie += cou
+                else:
+                    ie = 0.0
+                nv = phi * vel + gam * ie
+                self._pos += psi * vel + eta * ie
+                if cou and ((vel > 0.0 and nv < 0.0) or (vel < 0.0 and nv > 0.0)):
+                    nv = 0.0
+                self._vel = nv
+                rec.advance(units, read)
+            done += 1
+            if e > few or e < -few:
+                self._fe_tripped = True
+                break
+        self.counters.ticks += done
+        return done
+
+    def _coast_fine(self, n: int) -> int:
+        """`_coast` with the plant sub-stepped at the recorder's period; samples at every instant."""
+        assert self._fine is not None and self.recorder is not None
+        (phi, gam, psi, eta), steps, units = self._fine
+        cou = self._c.coulomb_a
+        rec, read = self.recorder, self._recorder_read
+        self._current = 0.0
+        for _ in range(n):
+            for _ in range(steps):
+                vel = self._vel
+                if vel != 0.0:
+                    ie = -self.disturbance_current_a - (cou if vel > 0.0 else -cou)
+                    nv = phi * vel + gam * ie
+                    self._pos += psi * vel + eta * ie
+                    stopped = (vel > 0.0 and nv <= 0.0) or (vel < 0.0 and nv >= 0.0)
+                    self._vel = 0.0 if stopped or abs(nv) < COAST_STOP_COUNTS_PER_MS else nv
+                    self._demand = hermite.round_counts(self._pos)
+                rec.advance(units, read)
+        self.counters.ticks += n
+        return n
+
+    # ============================================================================================
     # demand sources: ip segments and stop ramps
 
     def _set_source(self, demands: list[int], kind: Source) -> None:
@@ -1142,6 +1301,8 @@ class DriveDevice:
                 self._transition(Internal.QUICK_STOP_DONE)
         elif kind == Source.FAULT:
             self._transition(Internal.FAULT_REACTION_DONE)
+        elif kind == Source.HALT and self.recorder is not None:
+            self.recorder.trigger(TRIGGER_END, "end of profile (halt)", self._t_now)
 
     def _start_segment(self, coeffs: tuple[float, float, float, float], n_ms: int) -> None:
         """Interpolate the demand along the seed's cubic (planner.hermite) over the next n_ms ticks,
@@ -1279,6 +1440,8 @@ class DriveDevice:
         self._ip_active = False  # the EMCY reports the status of the aborted trajectory
         bs = self._emcy_status()
         self.fault_log.append(FaultRecord(t, code, codec.EMCY_NAMES.get(code, hex(code)), bs, before))
+        if self.recorder is not None:
+            self.recorder.trigger(TRIGGER_ERROR, f"error 0x{code:04X}", t)
         self._emit_emcy(code, bs)
         was_powered = self._powered
         if was_powered:
@@ -1366,3 +1529,9 @@ class DriveDevice:
     def _emcy_status(self) -> int:
         """The 16 bits an EMCY carries in its manufacturer bytes 0-1 (EPOS: the buffer status)."""
         return 0
+
+    def read_domain(self, index: int, sub: int) -> bytes:
+        """SDO upload of a domain object: its bytes (EPOS: 0x201B, the data recorder's memory). A family
+        without domain objects has none to serve."""
+        self._spec(index, sub)  # a missing object answers as such
+        raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS, f"0x{index:04X}:{sub:02X} is not a domain")

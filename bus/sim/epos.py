@@ -9,7 +9,13 @@ the very formula the encoder verifies with), the end record (time 0), underflow 
 the ip velocity/acceleration warnings and errors against 0x6081/0x607F and 0x6083/0x60C5, and halt
 (bit 8) with the profile deceleration. The readings of the manuals' open points (`fifo_count`,
 `first_record`, `underflow_check`; planner/readings.py) change how records are counted and consumed.
-docs/drive-model.md has the table of behaviours with their seed references.
+
+And maxon's data recorder (seed 004: 0x2010-0x2019, 0x201B; the state machine is bus/sim/recorder.py):
+its control 0x2010 (start builds the configuration from 0x2011-0x2016 and this table's types), status
+0x2017, max samples 0x2018, offset 0x2019, the memory 0x201B (`read_domain`), and the triggers this
+family raises (movement start at activation, end of profile at a time-0 record, a digital input edge:
+`set_digital_inputs`); the error and halt-end triggers and the sampling ticks are the shared drive's
+(bus/sim/device.py). docs/drive-model.md has the table of behaviours with their seed references.
 """
 
 from __future__ import annotations
@@ -33,10 +39,21 @@ from bus.codec import (
     BS_VELOCITY_WARNING,
     CW_ENABLE_IP,
     CW_HALT,
+    Frame,
+    NmtState,
 )
 from bus.sim import od as odm
 from bus.sim.device import DriveDevice, Source, _first_violation
 from bus.sim.od import Key, SdoAbort
+from bus.sim.recorder import (
+    CONTROL_FORCE_TRIGGER,
+    CONTROL_START,
+    TRIGGER_END,
+    TRIGGER_INPUT,
+    TRIGGER_MOVEMENT,
+    DataRecorder,
+    RecorderConfig,
+)
 from planner import hermite, record
 from planner.record import PvtRecord
 
@@ -49,7 +66,8 @@ class EposDrive(DriveDevice):
     family = "epos-ipm"
     supported_modes = frozenset({0, IP_MODE})
     interpolation_mode = IP_MODE
-    not_stored = frozenset({(0x20C1, 0), (0x60C4, 6), (0x60C4, 4)})
+    not_stored = frozenset({(0x20C1, 0), (0x60C4, 6), (0x60C4, 4), (0x2010, 0)})
+    recorder: DataRecorder  # a new one at every reset (`_reset_family`)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._fifo: deque[PvtRecord] = deque()
@@ -57,6 +75,7 @@ class EposDrive(DriveDevice):
         self._latched = 0
         self._prev_warn = 0
         self._seg_target: PvtRecord | None = None
+        self._digital_inputs = 0
         super().__init__(*args, **kwargs)
 
     @property
@@ -73,6 +92,9 @@ class EposDrive(DriveDevice):
             (0x20C4, 1): self._get_buffer_status,
             (0x60C4, 2): lambda: depth - len(self._fifo),
             (0x60C4, 4): lambda: len(self._fifo),
+            (0x2017, 0): lambda: self.recorder.status,
+            (0x2018, 0): self._recorder_max_samples,
+            (0x2019, 0): lambda: self.recorder.offset,
         }
 
     def _family_handlers(self) -> dict[Key, Callable[[int], None]]:
@@ -80,9 +102,11 @@ class EposDrive(DriveDevice):
             (0x20C1, 0): lambda v: self._append_record(record.unpack(v.to_bytes(8, "little"))),
             (0x60C4, 6): self._write_buffer_clear,
             (0x60C4, 4): lambda v: None,  # "writing to this object has no effect" (seed 000 4.3.6.5)
+            (0x2010, 0): self._write_recorder_control,
         }
 
     def _reset_family(self) -> None:
+        self.recorder = DataRecorder()
         self._fifo.clear()
         self._buffer_enabled = False
         self._latched = 0
@@ -205,6 +229,7 @@ class EposDrive(DriveDevice):
         if head.time_ms == 0:
             self._fifo.popleft()
             self._ip_active = False  # seed 000 4.3.6.1: time 0 -> interpolation inactive, no error
+            self.recorder.trigger(TRIGGER_END, "end of profile", self._t_now)
             return
         self._begin_segment(prev.position, prev.velocity * self._rpm_to_cpms, head)
 
@@ -282,6 +307,7 @@ class EposDrive(DriveDevice):
         self.counters.activations += 1
         self._latched &= ~(BS_VELOCITY_WARNING | BS_ACCELERATION_WARNING)
         self._ip_active = True
+        self.recorder.trigger(TRIGGER_MOVEMENT, "movement start", self._t_now)
         if self._clock is not None:
             self._clock.anchor(self._t_now)  # the own clock's tick grid starts at the enabling SYNC
         if self._first_is_origin:
@@ -296,3 +322,65 @@ class EposDrive(DriveDevice):
             self._ip_active = False
             return
         self._begin_segment(self._demand, 0.0, head)
+
+    # ---- the data recorder's objects and triggers (seed 004; the ticks that sample: bus/sim/device.py)
+    def set_digital_inputs(self, word: int, t: float) -> list[Frame]:
+        """The drive's digital inputs change (the simulation has no I/O: tests and tools set the word);
+        an edge of any input is the recorder's digital-input trigger (0x2011 bit 2)."""
+        self._t_now = t
+        self._out = []
+        if self._nmt != NmtState.BOOTUP:
+            self._release_held(t)
+            self._catch_up(t)
+        if word != self._digital_inputs:
+            self._digital_inputs = word
+            self.recorder.trigger(TRIGGER_INPUT, "digital input", t)
+        return self._out
+
+    @property
+    def digital_inputs(self) -> int:
+        return self._digital_inputs
+
+    def read_domain(self, index: int, sub: int) -> bytes:
+        """SDO upload of a domain object (0x201B, the data recorder's memory): its bytes."""
+        s = self._spec(index, sub)
+        if s.dtype != odm.DataType.DOMAIN:
+            raise SdoAbort(odm.ABORT_UNSUPPORTED_ACCESS, f"0x{index:04X}:{sub:02X} is not a domain")
+        return self.recorder.buffer()
+
+    def _recorder_describe(self, index: int, sub: int) -> tuple[int, bool] | None:
+        """(bits, signed) of a readable integer object the recorder can sample, else None."""
+        if index in self._absent:
+            return None
+        s = self.objects.objects.get((index, sub))
+        if s is None or not s.readable or s.dtype in (odm.DataType.VISIBLE_STRING, odm.DataType.DOMAIN):
+            return None
+        return s.dtype.bits, s.dtype.signed
+
+    def _recorder_config(self) -> RecorderConfig:
+        od = self._od
+        return RecorderConfig.build(
+            od[(0x2014, 0)], [od[(0x2015, k)] for k in range(1, 5)], [od[(0x2016, k)] for k in range(1, 5)],
+            od[(0x2012, 0)], od[(0x2013, 0)], od[(0x2011, 0)], self._recorder_describe)
+
+    def _recorder_max_samples(self) -> int:
+        """0x2018, from the configuration as it stands (0 while it names no valid variable)."""
+        try:
+            return self._recorder_config().max_samples
+        except SdoAbort:
+            return 0
+
+    def _write_recorder_control(self, value: int) -> None:
+        """0x2010: bit 0 = 1 starts the recorder (if stopped), 0 stops it; bit 1 forces a trigger (so 3
+        forces one while running). Reads back bit 0 as written."""
+        rec = self.recorder
+        if value & CONTROL_START:
+            if not rec.active:
+                config = self._recorder_config()  # SdoAbort names what is wrong; nothing changes then
+                self._prepare_recording(config)
+                rec.start(config, self._recorder_read)
+        else:
+            rec.stop()
+        self._od[(0x2010, 0)] = value & CONTROL_START
+        if value & CONTROL_FORCE_TRIGGER:
+            rec.force_trigger(self._t_now)

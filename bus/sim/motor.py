@@ -124,29 +124,8 @@ class LoopConstants:
         if counts_per_rev <= 0:
             raise ValueError(f"counts_per_rev must be > 0, got {counts_per_rev}")
         rad_per_count = 2.0 * math.pi / counts_per_rev
-        counts_per_rad = 1.0 / rad_per_count
         h = TS_S
-        j = motor.inertia_kgm2
-        km = motor.torque_constant_nm_per_a
-        r = motor.viscous_friction_nm_s
-        # plant, exact ZOH over h: w' = (km*i - r*w)/J
-        if r > 0.0:
-            a = r / j
-            phi = math.exp(-a * h)
-            one_minus = -math.expm1(-a * h)
-            w_per_a = km * one_minus / r  # rad/s per A after one tick
-            th_from_w = one_minus / a  # rad per rad/s
-            th_per_a = km * (h - one_minus / a) / r  # rad per A
-        else:
-            phi = 1.0
-            w_per_a = km * h / j
-            th_from_w = h
-            th_per_a = km * h * h / (2.0 * j)
-        # velocity state in counts/ms: w [rad/s] = vel * counts->rad * 1000
-        vel_scale = counts_per_rad / 1000.0  # (counts/ms) per (rad/s)
-        gam = w_per_a * vel_scale
-        psi = th_from_w * 1000.0  # counts per (counts/ms): th = w*th_from_w, w = vel*1000/counts_per_rad
-        eta = th_per_a * counts_per_rad
+        phi, gam, psi, eta = plant_constants(motor, counts_per_rev, h)
         # controller
         kp = motor.kp_a_per_rad * rad_per_count
         ki = motor.ki_a_per_rad_s * h * rad_per_count
@@ -158,5 +137,39 @@ class LoopConstants:
             kd_f = 0.0
             kd_g = 0.0
         return cls(kp=kp, ki=ki, kd_f=kd_f, kd_g=kd_g, i_max=motor.current_limit_a,
-                   coulomb_a=motor.coulomb_friction_nm / km, phi=phi, gam=gam, psi=psi, eta=eta,
-                   counts_per_rev=counts_per_rev)
+                   coulomb_a=motor.coulomb_friction_nm / motor.torque_constant_nm_per_a, phi=phi, gam=gam, psi=psi,
+                   eta=eta, counts_per_rev=counts_per_rev)
+
+
+def plant_constants(motor: MotorParams, counts_per_rev: int, h_s: float) -> tuple[float, float, float, float]:
+    """(phi, gam, psi, eta) of the plant over a step of `h_s` seconds with the current held (exact
+    zero-order hold of J*dw/dt = k_M*i - r*w), in the model's units (counts, counts/ms, A):
+    vel' = phi*vel + gam*i, pos' = pos + psi*vel + eta*i. `LoopConstants` uses the 1 ms tick; the data
+    recorder's sub-steps (bus/sim/recorder.py) use its sampling period when that is finer."""
+    if counts_per_rev <= 0:
+        raise ValueError(f"counts_per_rev must be > 0, got {counts_per_rev}")
+    if not (math.isfinite(h_s) and h_s > 0.0):
+        raise ValueError(f"plant step must be > 0 s, got {h_s}")
+    counts_per_rad = 1.0 / (2.0 * math.pi / counts_per_rev)  # as LoopConstants always computed it (bit-identical)
+    h = h_s
+    j = motor.inertia_kgm2
+    km = motor.torque_constant_nm_per_a
+    r = motor.viscous_friction_nm_s
+    if r > 0.0:
+        a = r / j
+        phi = math.exp(-a * h)
+        one_minus = -math.expm1(-a * h)
+        w_per_a = km * one_minus / r  # rad/s per A after one step
+        th_from_w = one_minus / a  # rad per rad/s
+        th_per_a = km * (h - one_minus / a) / r  # rad per A
+    else:
+        phi = 1.0
+        w_per_a = km * h / j
+        th_from_w = h
+        th_per_a = km * h * h / (2.0 * j)
+    # velocity state in counts/ms: w [rad/s] = vel * counts->rad * 1000
+    vel_scale = counts_per_rad / 1000.0  # (counts/ms) per (rad/s)
+    gam = w_per_a * vel_scale
+    psi = th_from_w * 1000.0  # counts per (counts/ms): th = w*th_from_w, w = vel*1000/counts_per_rad
+    eta = th_per_a * counts_per_rad
+    return phi, gam, psi, eta

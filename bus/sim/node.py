@@ -8,7 +8,10 @@ that serialises everything that touches the models. What it does:
 - SDO server: canopen's `SdoServer` of each LocalNode, whose reads and writes are redirected to the
   model (`add_read_callback`/`add_write_callback`), so the model is the only store of values; a
   model `SdoAbort` becomes canopen's `SdoAbortedError` with the same code. In NMT stopped the SDO
-  server does not answer (CiA 301).
+  server does not answer (CiA 301). Domains (0x201B, the data recorder's memory) are read from the
+  model as bytes. canopen's server has no block upload (it answers a block request as a normal upload,
+  which a block client refuses), so block upload requests go to `SdoBlockUploadServer` here (CiA 301
+  7.2.4.3.13-18, with CRC); `block_upload=False` leaves them to canopen, as a drive without it.
 - RPDOs: through `rpdo[n].add_callback` (canopen delivers received RPDOs only there). canopen only
   applies a PDO mapping after `rpdo.read()`/`tpdo.read()`, so the adapter re-reads the maps whenever
   the model's PDO configuration changed (master remapping over SDO, NMT resets).
@@ -25,6 +28,8 @@ callback is recorded in `errors` (and re-raised by `check()`/`stop()`), never sw
 
 from __future__ import annotations
 
+import binascii
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -48,6 +53,122 @@ from bus.sim.od import SdoAbort
 from planner.config import BusConfig, CellConfig
 
 TIMER_MAX_SLEEP_S = 0.05
+
+# CiA 301 SDO block upload (client command specifier 5, server 6)
+_CCS_BLOCK_UPLOAD = 5 << 5
+_SCS_BLOCK_UPLOAD = 6 << 5
+_CS_INITIATE, _CS_END, _CS_ACK, _CS_START = 0, 1, 2, 3
+_CRC_SUPPORTED = 0x04
+_SIZE_INDICATED = 0x02
+_LAST_SEGMENT = 0x80
+ABORT_INVALID_COMMAND = 0x05040001
+ABORT_INVALID_BLOCK_SIZE = 0x05040002
+ABORT_INVALID_SEQUENCE = 0x05040003
+ABORT_NO_DATA = 0x08000024
+
+
+class SdoBlockUploadServer:
+    """The server side of CiA 301 SDO block upload for one node, pure: request frames (8 bytes) in,
+    response frames out. `read(index, sub)` gives the object's bytes or raises SdoAbortedError.
+
+    initiate (client: index, sub, block size 1..127, CRC supported?) -> size and CRC support;
+    start -> one block of up to `blksize` segments of 7 bytes, sequence numbers 1..n, bit 7 on the last
+    segment of the object; block ack (the last sequence number received, the next block size) -> the
+    next block, or the segments from the first one not received again, or after the last block the end
+    (bytes unused in the last segment, CRC-16 XMODEM of the data); end confirmed -> idle."""
+
+    def __init__(self, read: Callable[[int, int], bytes]):
+        self._read = read
+        self._data = b""
+        self._index = 0
+        self._sub = 0
+        self._blksize = 0
+        self._crc = False
+        self._pos = 0  # bytes acknowledged
+        self._block_start = 0  # bytes at the start of the block in flight
+        self._state = "idle"
+        self.frames_sent = 0
+
+    @property
+    def busy(self) -> bool:
+        return self._state != "idle"
+
+    def _abort(self, code: int) -> list[bytes]:
+        self._state = "idle"
+        return [struct.pack("<BHBL", 0x80, self._index, self._sub, code)]
+
+    def on_request(self, data: bytes) -> list[bytes]:
+        if len(data) < 8:
+            return self._abort(ABORT_INVALID_COMMAND)
+        command = data[0]
+        if command == 0x80:  # the client aborted
+            self._state = "idle"
+            return []
+        if command & 0xE0 != _CCS_BLOCK_UPLOAD:
+            return self._abort(ABORT_INVALID_COMMAND)
+        cs = command & 0x03
+        out: list[bytes]
+        if cs == _CS_INITIATE:
+            out = self._initiate(data)
+        elif cs == _CS_START and self._state == "initiated":
+            self._state = "sending"
+            out = self._block()
+        elif cs == _CS_ACK and self._state == "sending":
+            out = self._ack(data[1], data[2])
+        elif cs == _CS_END and self._state == "ending":
+            self._state = "idle"
+            out = []
+        else:
+            out = self._abort(ABORT_INVALID_COMMAND)
+        self.frames_sent += len(out)
+        return out
+
+    def _initiate(self, data: bytes) -> list[bytes]:
+        _, self._index, self._sub, blksize = struct.unpack_from("<BHBB", data)
+        if not 1 <= blksize <= 127:
+            return self._abort(ABORT_INVALID_BLOCK_SIZE)
+        try:
+            payload = self._read(self._index, self._sub)
+        except SdoAbortedError as e:
+            return self._abort(e.code)
+        if not payload:
+            return self._abort(ABORT_NO_DATA)
+        self._data = bytes(payload)
+        self._blksize = blksize
+        self._crc = bool(data[0] & _CRC_SUPPORTED)
+        self._pos = 0
+        self._block_start = 0
+        self._state = "initiated"
+        flags = _SIZE_INDICATED | (_CRC_SUPPORTED if self._crc else 0)
+        return [struct.pack("<BHBL", _SCS_BLOCK_UPLOAD | flags, self._index, self._sub, len(self._data))]
+
+    def _block(self) -> list[bytes]:
+        out: list[bytes] = []
+        self._block_start = self._pos
+        pos = self._pos
+        for seq in range(1, self._blksize + 1):
+            chunk = self._data[pos:pos + 7]
+            pos += len(chunk)
+            last = pos >= len(self._data)
+            out.append(bytes([seq | (_LAST_SEGMENT if last else 0)]) + chunk.ljust(7, b"\x00"))
+            if last:
+                break
+        return out
+
+    def _ack(self, ackseq: int, blksize: int) -> list[bytes]:
+        if not 1 <= blksize <= 127:
+            return self._abort(ABORT_INVALID_BLOCK_SIZE)
+        sent = -(-(min(len(self._data), self._block_start + 7 * self._blksize) - self._block_start) // 7)
+        if ackseq > sent:
+            return self._abort(ABORT_INVALID_SEQUENCE)
+        self._pos = min(len(self._data), self._block_start + 7 * ackseq)
+        self._blksize = blksize
+        if ackseq == sent and self._pos >= len(self._data):
+            self._state = "ending"
+            unused = (7 - len(self._data) % 7) % 7
+            crc = binascii.crc_hqx(self._data, 0) if self._crc else 0
+            return [struct.pack("<BH5x", _SCS_BLOCK_UPLOAD | (unused << 2) | _CS_END, crc)]
+        return self._block()  # the next block, or the rest of this one from the first segment lost
 
 
 class _RawListener(can.Listener):
@@ -85,8 +206,10 @@ class SimulatedCell:
         profile: DriveProfile | None = None,
         eds_path: str | None = None,
         clock: Callable[[], float] = time.time,
+        block_upload: bool = True,
     ):
         self.cell = cell
+        self.block_upload = block_upload
         self.bus_config = bus_config or cell.bus
         self.eds_path = eds_path  # None: each drive's family EDS
         self.clock = clock
@@ -110,6 +233,7 @@ class SimulatedCell:
         self._pending: list[Frame] = []
         self._sync_ids: frozenset[int] = frozenset({cob.SYNC_COB_ID})
         self._started = False
+        self.block_servers: dict[int, SdoBlockUploadServer] = {}
 
     # ---- lifecycle --------------------------------------------------------------------------------
     def start(self) -> SimulatedCell:
@@ -260,13 +384,18 @@ class SimulatedCell:
 
     def _sdo_handler(self, node_id: int, node: Any) -> Callable[[int, bytearray, float], None]:
         model = self.models[node_id]
+        block = SdoBlockUploadServer(lambda index, sub: bytes(node.get_data(index, sub, check_readable=True)))
+        self.block_servers[node_id] = block
 
         def on_request(can_id: int, data: bytearray, timestamp: float) -> None:
             try:
                 with self._lock:
                     if model.nmt_state in (NmtState.STOPPED, NmtState.BOOTUP):
                         return
-                    node.sdo.on_request(can_id, data, timestamp)
+                    if self.block_upload and (data[0] & 0xE0 == _CCS_BLOCK_UPLOAD or (block.busy and data[0] == 0x80)):
+                        self._pending += [Frame(0x580 + node_id, f) for f in block.on_request(bytes(data))]
+                    else:
+                        node.sdo.on_request(can_id, data, timestamp)
                     self._refresh_pdos(node_id)
                     self._update_sync_ids()
                 self._kick.set()
@@ -276,13 +405,15 @@ class SimulatedCell:
 
         return on_request
 
-    def _read_callback(self, model: DriveDevice) -> Callable[..., int | None]:
-        def on_read(index: int, subindex: int, od: Any) -> int | None:
+    def _read_callback(self, model: DriveDevice) -> Callable[..., int | bytes | None]:
+        def on_read(index: int, subindex: int, od: Any) -> int | bytes | None:
             spec = model.objects.objects.get((index, subindex))
             if spec is None or spec.dtype == odm.DataType.VISIBLE_STRING:
                 return None
             with self._lock:
                 try:
+                    if spec.dtype == odm.DataType.DOMAIN:
+                        return model.read_domain(index, subindex)
                     return model.sdo_read(index, subindex)
                 except SdoAbort as e:
                     raise SdoAbortedError(e.code) from None

@@ -60,6 +60,7 @@ class DataType(IntEnum):
     UNSIGNED16 = 0x0006
     UNSIGNED32 = 0x0007
     VISIBLE_STRING = 0x0009
+    DOMAIN = 0x000F
     UNSIGNED64 = 0x001B
 
     @property
@@ -84,12 +85,12 @@ class DataType(IntEnum):
 _BITS = {
     DataType.BOOLEAN: 8, DataType.INTEGER8: 8, DataType.INTEGER16: 16, DataType.INTEGER32: 32,
     DataType.UNSIGNED8: 8, DataType.UNSIGNED16: 16, DataType.UNSIGNED32: 32, DataType.VISIBLE_STRING: 0,
-    DataType.UNSIGNED64: 64,
+    DataType.DOMAIN: 0, DataType.UNSIGNED64: 64,
 }
 _STRUCT = {
     DataType.BOOLEAN: "B", DataType.INTEGER8: "b", DataType.INTEGER16: "h", DataType.INTEGER32: "i",
     DataType.UNSIGNED8: "B", DataType.UNSIGNED16: "H", DataType.UNSIGNED32: "I", DataType.VISIBLE_STRING: "",
-    DataType.UNSIGNED64: "Q",
+    DataType.DOMAIN: "", DataType.UNSIGNED64: "Q",
 }
 
 Access = Literal["ro", "rw", "wo", "const"]
@@ -141,6 +142,7 @@ class GroupSpec:
 U8, U16, U32, U64 = DataType.UNSIGNED8, DataType.UNSIGNED16, DataType.UNSIGNED32, DataType.UNSIGNED64
 I8, I16, I32 = DataType.INTEGER8, DataType.INTEGER16, DataType.INTEGER32
 STR = DataType.VISIBLE_STRING
+DOMAIN = DataType.DOMAIN
 
 PDO_DISABLED = 1 << 31
 PDO_RTR_NOT_ALLOWED = 1 << 30
@@ -282,6 +284,23 @@ def _epos() -> _Builder:
     var, group = b.var, b.group
     # ---- manufacturer specific (seed 000 4.3.6)
     var(0x20C1, "Interpolation data record", U64, "wo", None, pdo=True)
+    # data recorder (seed 004 "Object description"; seed 000 8.5.2; bus/sim/recorder.py): EPOS only (the
+    # XtrapulsPac has its boot-up object at 0x2010)
+    var(0x2010, "Data recorder control", U16, "rw", 0, 0, 3)
+    var(0x2011, "Data recorder configuration", U16, "rw", 0, 0, 15)
+    var(0x2012, "Data recorder sampling period", U16, "rw", 10)
+    var(0x2013, "Data recorder number of preceding samples", U16, "rw", 0)
+    var(0x2014, "Data recorder number of sampling variables", U16, "rw", 0, 0, 4)
+    for index, what in ((0x2015, "index"), (0x2016, "sub index")):
+        group(index, f"Data recorder {what} of variables", 8, [
+            (0, "Number of entries", U8, "ro", 4, None, None, False, False),
+            *((k, f"Data recorder {what} of variable {k}", U16, "rw", 0, None, None, False, False)
+              for k in range(1, 5)),
+        ])
+    var(0x2017, "Data recorder status", U16, "ro", 0)
+    var(0x2018, "Data recorder max number of samples", U16, "ro", 0)
+    var(0x2019, "Data recorder offset of the recorded vector", U16, "ro", 0)
+    var(0x201B, "Data recorder data buffer", DOMAIN, "ro")
     group(0x20C4, "Interpolation status", 9, [
         (0, "Number of entries", U8, "ro", 3, None, None, False, False),
         (1, "Interpolation buffer status", U16, "ro", 0, None, None, True, False),

@@ -48,6 +48,9 @@ Contract, method by method (which service thread calls it, what it may raise):
   this itself before `execute` (below). After a cancel, `progress` stays the share of the *job's* plan
   that was executed (it does not run on to 1.0 through the stop trajectory): the service publishes those
   updates as `cancelling` events with the true progress.
+  `planned.record` is the job's `record` section (a `RecordRequest`, checked by the service) or None:
+  a backend whose drives have a data recorder configures and arms it on the recorded axes before the
+  motion and reads it after (docs/api.md, "The record section"); one without ignores it.
 - `telemetry()`: a snapshot, one mapping per axis, at least `name`, `position` (user units),
   `velocity` (user units/s), `fifo_fill` (records), `state` (drive state, a short string). Called on
   the telemetry thread at `telemetry_hz`, concurrently with `execute`: must be cheap and thread-safe.
@@ -106,6 +109,7 @@ class Planned:
     planning_s: float = 0.0  # wall time spent planning (for the benchmark's planner share)
     end_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at the end
     start_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at knot 0
+    record: Any = None  # the job's `record` section (a streamer.recording.drive.RecordRequest), or None
 
     def __post_init__(self) -> None:
         if not self.duration_s >= 0.0:

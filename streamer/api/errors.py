@@ -22,6 +22,7 @@ CONFLICT = "CONFLICT"  # same job_id, different body
 BUSY = "BUSY"  # the queue is full
 NOT_READY = "NOT_READY"  # the cell is faulted and not reset
 NOT_FOUND = "NOT_FOUND"  # no job with that job_id
+BAD_RECORD = "BAD_RECORD"  # a job's `record` section (the drives' recorders): streamer/recording/drive.py
 BAD_REQUEST = "BAD_REQUEST"  # a status/list/cancel query that cannot be served (glob key, bad parameter)
 INTERNAL = "INTERNAL"  # a bug: an unexpected exception in the service or the backend
 SERVICE_RESTART = "SERVICE_RESTART"  # the service died while the job was queued or running
@@ -44,6 +45,7 @@ API_CODES = frozenset(
         BUSY,
         NOT_READY,
         NOT_FOUND,
+        BAD_RECORD,
         BAD_REQUEST,
         INTERNAL,
         SERVICE_RESTART,

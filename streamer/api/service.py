@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import logging
 import math
 import queue
@@ -220,6 +221,24 @@ class _Emitter:
             if held is not None:
                 self._service._post_progress(self._job_id, self._type(), held)
 
+
+
+def _split_record(body: dict[str, Any]) -> tuple[dict[str, Any], Any]:
+    """The job body without its `record` section, and that section checked (a `RecordRequest`, or None).
+    The planner owns the job schema; the record section is the drive recorder's (docs/api.md)."""
+    if "record" not in body:
+        return body, None
+    from streamer.recording.drive import BAD_RECORD, RecordRequest
+
+    rest = {k: v for k, v in body.items() if k != "record"}
+    request = RecordRequest.from_mapping(body["record"])
+    axes = rest.get("axes")
+    if isinstance(axes, list):
+        for i, name in enumerate(request.axes):
+            if name not in axes:
+                raise MotionError(BAD_RECORD, f"record.axes[{i}]: {name!r} is not an axis of the job ({axes})",
+                                  path=f"record.axes[{i}]")
+    return rest, request
 
 class JobService:
     """Serves one cell on an open Zenoh session. Several services may share one session (one per cell).
@@ -551,7 +570,8 @@ class JobService:
                 f"{existing.state.value}); use a new job_id",
                 path="job_id",
             )
-        job = self.backend.validate(sub.body)
+        job_body, record = _split_record(sub.body)
+        job = self.backend.validate(job_body)
         ready, reason = self._ready()
         if not ready:
             raise MotionError(
@@ -575,6 +595,8 @@ class JobService:
         planned = self.backend.plan(job, start)
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.plan returned {type(planned).__name__}, not Planned")
+        if record is not None:
+            planned = dataclasses.replace(planned, record=record)
         planning_s = time.perf_counter() - t0
         post = _Post(
             job_id=job_id,

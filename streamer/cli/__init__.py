@@ -27,6 +27,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.sim",
     "streamer.cli.probe",
     "streamer.cli.certs",
+    "streamer.cli.record",
 )
 
 

@@ -141,7 +141,11 @@ def summary(rec: JobRecording) -> dict[str, Any]:
     topics: dict[str, int] = {f"/axis/{a.name}": len(rec.samples[a.name]) for a in rec.axes}
     topics["/job/events"] = len(rec.events)
     topics["/can/frames"] = len(rec.frames)
-    return {
+    drive = rec.drive
+    if drive is not None:
+        for n, r in sorted(drive.nodes.items()):
+            topics[f"/recorder/{n}"] = len(r.t)
+    out: dict[str, Any] = {
         "job_id": rec.job_id,
         "cell": rec.cell,
         "result": rec.result,
@@ -156,6 +160,9 @@ def summary(rec: JobRecording) -> dict[str, Any]:
         "axes": rec.axis_summary(),
         "events": [{"t": round(e.t, 6), "sync": e.sync, "kind": e.kind, "label": e.label()} for e in rec.events],
     }
+    if drive is not None:
+        out["drive_recording"] = drive.summary()
+    return out
 
 
 def report_axes(report: Mapping[str, Any]) -> dict[str, Mapping[str, Any]]:

@@ -10,7 +10,12 @@ Channels (docs/recording.md has the schemas and an example of each message):
   buffer_status (a field without a value is left out, never null);
 - `/job/events` (schema `pvt.JobEvent`): state changes, the start SYNC, faults, cancel, EMCY,
   heartbeat lost, boot-up, refused frames, adapter errors;
-- `/can/frames` (schema `pvt.CanFrame`): every frame on the bus during the job: t, id, dlc, data (hex).
+- `/can/frames` (schema `pvt.CanFrame`): every frame on the bus during the job: t, id, dlc, data (hex);
+- `/recorder/<node>` (schema `pvt.RecorderSample`, only for a job with a `record` section): one message
+  per sample of that drive's own data recorder: t (since the trigger), k, node, t_job (since the job's
+  first SYNC, when the trigger's time is known) and each recorded variable by name, in drive units; the
+  metadata record `pvt.recorder` says what was recorded and how (variables, trigger, period, per node
+  the samples, the offset read, the upload).
 
 A metadata record `pvt.job` holds the job's identity and settings (job id, cell, result, SYNC period,
 first and start SYNC, epoch, watermarks, tolerance, axes as JSON) and the attachment `report.json` the
@@ -30,6 +35,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
+from streamer.recording.drive import DriveRecording, DriveVariable, NodeRecording, RecordRequest
 from streamer.recording.model import (
     FORMAT_VERSION,
     SAMPLE_FIELDS,
@@ -48,6 +54,8 @@ REPORT_ATTACHMENT = "report.json"
 AXIS_TOPIC_PREFIX = "/axis/"
 EVENTS_TOPIC = "/job/events"
 FRAMES_TOPIC = "/can/frames"
+RECORDER_TOPIC_PREFIX = "/recorder/"
+RECORDER_METADATA = "pvt.recorder"
 
 _INT = {"type": "integer"}
 
@@ -104,7 +112,23 @@ CAN_FRAME_SCHEMA: dict[str, Any] = {
     "additionalProperties": False,
 }
 
-SCHEMAS = {s["title"]: s for s in (AXIS_SAMPLE_SCHEMA, JOB_EVENT_SCHEMA, CAN_FRAME_SCHEMA)}
+RECORDER_SAMPLE_SCHEMA: dict[str, Any] = {
+    "title": "pvt.RecorderSample",
+    "description": "One sample of a drive's own data recorder (0x201B); every other field is a recorded variable "
+                   "(by its name, drive units).",
+    "type": "object",
+    "properties": {
+        "t": {"type": "number", "description": "seconds since the trigger (the trigger's sample is at 0)"},
+        "k": {"type": "integer", "description": "sample index in the recorded vector"},
+        "node": {"type": "integer", "description": "CANopen node id"},
+        "t_job": {"type": "number", "description": "seconds since the job's first SYNC, when the trigger's time "
+                                                   "is known"},
+    },
+    "required": ["t", "k", "node"],
+    "additionalProperties": {"type": "integer"},
+}
+
+SCHEMAS = {s["title"]: s for s in (AXIS_SAMPLE_SCHEMA, JOB_EVENT_SCHEMA, CAN_FRAME_SCHEMA, RECORDER_SAMPLE_SCHEMA)}
 
 
 def _dumps(obj: Mapping[str, Any]) -> bytes:
@@ -187,6 +211,9 @@ def write_mcap_stream(rec: JobRecording, out: IO[bytes]) -> int:
     for k in range(len(f)):
         queue.append((f.t[k], 2, frames_channel,
                       _dumps({"t": f.t[k], "id": f.cob_id[k], "dlc": f.dlc[k], "data": f.data[k].hex()})))
+    if rec.drive is not None:
+        queue += _recorder_messages(writer, rec.drive, ids["pvt.RecorderSample"])
+        writer.add_metadata(RECORDER_METADATA, _recorder_metadata(rec.drive))
     queue.sort(key=lambda q: (q[0], q[1]))
     seq: dict[int, int] = {}
     for t, _, ch, data in queue:
@@ -200,6 +227,63 @@ def write_mcap_stream(rec: JobRecording, out: IO[bytes]) -> int:
                           data=json.dumps(rec.report, indent=2, default=str).encode())
     writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves it unannotated
     return len(queue)
+
+
+def _recorder_messages(writer: Any, drive: DriveRecording, schema_id: int) -> list[tuple[float, int, int, bytes]]:
+    """One channel per node; log time = the job's time of the sample where the trigger's time is known, else
+    the first sample at the job's first SYNC."""
+    out: list[tuple[float, int, int, bytes]] = []
+    for node, nr in sorted(drive.nodes.items()):
+        ch = writer.register_channel(topic=f"{RECORDER_TOPIC_PREFIX}{node}", message_encoding="json",
+                                     schema_id=schema_id, metadata={"node_id": str(node),
+                                                                    "axis": drive.names.get(node, "")})
+        trigger_t = drive.trigger_t.get(node)
+        for k, t in enumerate(nr.t):
+            msg: dict[str, Any] = {"t": t, "k": k, "node": node}
+            if trigger_t is not None:
+                msg["t_job"] = round(trigger_t + t, 9)
+            for v in nr.variables:
+                msg[v.name] = nr.values[v.name][k]
+            at = trigger_t + t if trigger_t is not None else t - nr.t[0]
+            out.append((at, 3, ch, _dumps(msg)))
+    return out
+
+
+def _recorder_metadata(drive: DriveRecording) -> dict[str, str]:
+    req = drive.request
+    request = {"variables": [{"name": v.name, "index": v.index, "sub": v.sub, "bits": v.bits, "signed": v.signed,
+                              "unit": v.unit} for v in req.variables],
+               "trigger": req.trigger, "period_units": req.period_units, "preceding_samples": req.preceding_samples,
+               "axes": list(req.axes)}
+    nodes = {str(n): {"name": drive.names.get(n, ""), "samples": r.samples, "offset": r.offset,
+                      "triggered": r.triggered, "trigger_index": r.trigger_index, "period_s": r.period_s,
+                      "upload": drive.upload.get(n, ""), "trigger_t": drive.trigger_t.get(n)}
+             for n, r in sorted(drive.nodes.items())}
+    return {"request": json.dumps(request), "nodes": json.dumps(nodes)}
+
+
+def _read_drive(meta: dict[str, str], messages: dict[int, list[dict[str, Any]]]) -> DriveRecording:
+    req = json.loads(meta["request"])
+    variables = tuple(DriveVariable(str(v["name"]), int(v["index"]), int(v["sub"]), int(v["bits"]), bool(v["signed"]),
+                                    str(v.get("unit", ""))) for v in req["variables"])
+    units = int(req["period_units"])
+    request = RecordRequest(variables, trigger=str(req["trigger"]), period_ms=units / 10,
+                            preceding_ms=int(req["preceding_samples"]) * units / 10, axes=tuple(req.get("axes", [])))
+    nodes: dict[int, NodeRecording] = {}
+    names: dict[int, str] = {}
+    upload: dict[int, str] = {}
+    trigger_t: dict[int, float | None] = {}
+    for key, info in json.loads(meta["nodes"]).items():
+        n = int(key)
+        msgs = sorted(messages.get(n, []), key=lambda m: int(m["k"]))
+        nodes[n] = NodeRecording(
+            n, variables, tuple(float(m["t"]) for m in msgs),
+            {v.name: tuple(int(m[v.name]) for m in msgs) for v in variables}, float(info["period_s"]),
+            bool(info["triggered"]), info["trigger_index"], int(info["offset"]), int(info["samples"]))
+        names[n] = str(info.get("name", ""))
+        upload[n] = str(info.get("upload", ""))
+        trigger_t[n] = info.get("trigger_t")
+    return DriveRecording(request, nodes, names=names, upload=upload, trigger_t=trigger_t)
 
 
 def write_mcap(rec: JobRecording, path: Path) -> int:
@@ -230,9 +314,12 @@ def read_mcap(path: Path) -> JobRecording:
         with open(path, "rb") as f:
             reader = make_reader(f)
             meta: dict[str, str] | None = None
+            recorder_meta: dict[str, str] | None = None
             for m in reader.iter_metadata():
                 if m.name == METADATA_NAME:
                     meta = dict(m.metadata)
+                elif m.name == RECORDER_METADATA:
+                    recorder_meta = dict(m.metadata)
             if meta is None:
                 raise RecordingError("NOT_A_RECORDING", f"{path} has no {METADATA_NAME!r} metadata record: "
                                      "not a pvt job recording", "metadata")
@@ -245,6 +332,7 @@ def read_mcap(path: Path) -> JobRecording:
             samples = {a.name: AxisSamples() for a in axes}
             events: list[RecordedEvent] = []
             frames = Frames()
+            recorder: dict[int, list[dict[str, Any]]] = {}
             for _schema, channel, message in reader.iter_messages(log_time_order=True):
                 obj = json.loads(message.data)
                 topic = channel.topic
@@ -257,6 +345,9 @@ def read_mcap(path: Path) -> JobRecording:
                     name = topic[len(AXIS_TOPIC_PREFIX):]
                     if name in samples:
                         samples[name].append(int(obj["sync"]), float(obj["t"]), obj)
+                elif topic.startswith(RECORDER_TOPIC_PREFIX):
+                    recorder.setdefault(int(obj["node"]), []).append(obj)
+            drive = _read_drive(recorder_meta, recorder) if recorder_meta is not None else None
     except (McapError, OSError, KeyError, ValueError) as exc:
         if isinstance(exc, RecordingError):
             raise
@@ -285,4 +376,5 @@ def read_mcap(path: Path) -> JobRecording:
         tolerance_counts=_opt_int(meta.get("tolerance_counts")),
         frames_dropped=int(meta.get("frames_dropped", "0")),
         format_version=version,
+        drive=drive,
     )

@@ -18,6 +18,10 @@ Per axis and SYNC (`AxisSamples`, columnar, one entry per SYNC any TPDO or set p
 - fifo_fill (EPOS FIFO fill, 64 - 0x60C4:02) or setpoint (a cyclic family's set point): either may be
   absent, so a drive family without a FIFO records the same schema;
 - statusword (0x6041) and buffer_status (0x20C4:01) of TPDO1.
+
+A job with a `record` section also carries what the drives' own data recorders sampled (`drive`, a
+`streamer.recording.drive.DriveRecording`: per node one series per variable, t = 0 at the trigger, and
+the trigger's time on the job's clock where it is known).
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+from streamer.recording.drive import DriveRecording
 
 FORMAT_VERSION = 1
 
@@ -178,6 +184,7 @@ class JobRecording:
     tolerance_counts: int | None = None
     frames_dropped: int = 0
     format_version: int = FORMAT_VERSION
+    drive: DriveRecording | None = None  # the drives' own data recorders (a job's `record` section)
 
     def __post_init__(self) -> None:
         if self.sync_period_ms < 1:
@@ -267,6 +274,7 @@ def build_recording(
     epoch_s: float | None = None,
     underflow_watermark: int | None = None,
     overflow_watermark: int | None = None,
+    drive: DriveRecording | None = None,
 ) -> JobRecording:
     """The recording of one finished job from its plan (`PvtTrajectory`), its `JobTrace` and report.
 
@@ -349,6 +357,7 @@ def build_recording(
         overflow_watermark=overflow_watermark,
         tolerance_counts=int(traj.tolerance_counts),
         frames_dropped=int(log.dropped),
+        drive=drive,
     )
 
 

@@ -70,13 +70,14 @@ class RecordingInputs:
     epoch_s: float | None = None
     underflow_watermark: int | None = None
     overflow_watermark: int | None = None
+    drive: Any = None  # streamer.recording.drive.DriveRecording: the drives' own recorders (a `record` section)
 
     def build(self, job_id: str = "", cell: str | None = None) -> JobRecording:
         return build_recording(self.plan, self.trace, self.report, first_sync=self.first_sync,
                                start_sync=self.start_sync, sync_period_ms=self.sync_period_ms, job_id=job_id,
                                cell=self.cell if cell is None else cell, epoch_s=self.epoch_s,
                                underflow_watermark=self.underflow_watermark,
-                               overflow_watermark=self.overflow_watermark)
+                               overflow_watermark=self.overflow_watermark, drive=self.drive)
 
 
 def as_recording(item: JobRecording | RecordingInputs, job_id: str, cell: str) -> JobRecording:

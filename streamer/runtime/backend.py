@@ -12,6 +12,13 @@ plan's demand per ms, the report: `RecordingInputs`, no Python loop over the sam
 service takes it with `take_recording()` and has it built and written beside its journal, in a worker
 process (streamer/recording/writer.py). The SYNC loop pays only the trace's appends.
 
+A job with a `record` section (`planned.record`, a `RecordRequest`) also gets what the drives' own data
+recorders sampled (seed 004): before the motion `execute` configures and arms the recorder of every
+recorded axis over SDO (a drive that refuses fails the job before anything moves, code RECORDER), after
+it waits for them to stop, uploads and decodes their buffers (streamer/recording/recorder.py), puts the
+result into the job's recording (its MCAP: `/recorder/<node>` channels) and a summary into the report
+(`drive_recording`); a recorder that cannot be read after the motion leaves the job's result as it is.
+
 A failed job leaves the cell NOT ready until `reset()` (fault reset + re-enable over SDO): after a
 fault nothing moves again without a deliberate act (STYLE.md rule 4).
 
@@ -106,6 +113,7 @@ class RuntimeBackend:
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]:
         with self._lock:
             self._recording = None
+        record = planned.record
         if cancel.cancelled:
             return {"result": "cancelled", "message": "cancelled before it started", "faults": [], "axes": []}
         ok, why = self.ready()
@@ -119,6 +127,15 @@ class RuntimeBackend:
         if off:  # an earlier job ended elsewhere (cancelled or failed): plan again from here
             planned = self.plan(planned.job, None)
             traj = planned.trajectory
+        group = None
+        if record is not None:
+            from streamer.recording.drive import DriveRecordingError
+
+            try:
+                group = self._arm_recorders(record, traj)
+            except DriveRecordingError as e:
+                return {"result": "failed", "error": {"code": e.code, "node": None, "message": e.message,
+                                                      "path": e.path}, "faults": [], "axes": []}
         stop = threading.Event()
         cancel.add_callback(stop.set)
         last = [-1.0]
@@ -169,10 +186,14 @@ class RuntimeBackend:
                                "sync": outcome.sync, "detail": dict(outcome.detail)}
             with self._lock:
                 self._fault = f"{outcome.code}: {outcome.message}"
+        drive = None
+        if group is not None:
+            drive, info = self._read_recorders(group, traj, result, core.start_sync)
+            report["drive_recording"] = info
         recording = RecordingInputs(PlanView.of(traj), result.trace, dict(report), result.first_sync,
                                     core.start_sync, self.cell.sync_period_ms, cell=self.cell.name,
                                     underflow_watermark=self.cell.drive.underflow_warning,
-                                    overflow_watermark=self.cell.drive.overflow_warning)
+                                    overflow_watermark=self.cell.drive.overflow_warning, drive=drive)
         with self._lock:
             self._recording = recording
         return report
@@ -195,6 +216,55 @@ class RuntimeBackend:
                 pass  # the bus refused: the core's own quick stop (running job) or the heartbeat loss acts
         return (f"quick stop (controlword 0x000B) sent to node(s) {sent}: each drive ramps down on its quick "
                 "stop deceleration 0x6085 at the next SYNC")
+
+    # ---- the drives' own data recorders (a job's `record` section)
+    def _arm_recorders(self, request: Any, traj: Any) -> Any:
+        from streamer.recording.drive import recorded_axes
+        from streamer.recording.recorder import CanopenSdo, Recorder, RecorderGroup
+
+        names = recorded_axes([self._axes[str(n)] for n in traj.axis_names], request.axes)
+        nodes = [self._axes[name].node_id for name in names]
+        group = RecorderGroup({n: Recorder(CanopenSdo(self.adapter.remote[n])) for n in nodes}, request,
+                              now=self.adapter.now)
+        group.start()
+        return group
+
+    def _read_recorders(self, group: Any, traj: Any, result: Any, start_sync: int | None) -> tuple[Any, Any]:
+        """(DriveRecording or None, the report's summary or error). Trigger times on the job's clock: the
+        start SYNC (movement), the plan's end (end of profile), the node's first EMCY (error), the force
+        write (force); unknown for a digital input and continuous mode."""
+        from bus.events import Emcy
+        from streamer.recording.drive import DriveRecording, DriveRecordingError
+
+        request = group.request
+        try:
+            nodes = group.finish(request.span_s + 5.0)
+        except DriveRecordingError as e:
+            return None, {"error": e.message}
+        times = result.trace.sync_times
+        t0 = times.get(result.first_sync, min(times.values(), default=0.0))
+        start = times.get(start_sync) if start_sync is not None else None
+        trigger_t: dict[int, float | None] = {}
+        for n in nodes:
+            at: float | None = None
+            if request.trigger == "movement" and start is not None:
+                at = start - t0
+            elif request.trigger == "end" and start is not None:
+                at = start - t0 + float(traj.duration_s)
+            elif request.trigger == "force" and group.forced_at is not None:
+                at = group.forced_at - t0
+            elif request.trigger == "error":
+                emcy = [e.event.t for e in result.trace.noted
+                        if isinstance(e.event, Emcy) and e.event.node == n and e.event.code]
+                at = emcy[0] - t0 if emcy else None
+            trigger_t[n] = None if at is None else round(at, 6)
+        names = {a.node_id: a.name for a in self.cell.axes}
+        drive = DriveRecording(request, nodes, names={n: names[n] for n in nodes},
+                               upload={n: r.last_upload for n, r in group.recorders.items()}, trigger_t=trigger_t)
+        info = drive.summary()
+        if group.not_triggered:
+            info["not_triggered"] = group.not_triggered
+        return drive, info
 
     def take_recording(self) -> RecordingInputs | None:
         """The recording (to build) of the job the last `execute` streamed (None if it streamed nothing),

@@ -52,8 +52,8 @@ def tick_log(vcell: VirtualCell) -> dict[int, list[tuple[float, int]]]:
                 _raw.append(d)
                 yield d
 
-        def traced_integrate(demands: Iterable[int], _integrate: Any = m._integrate) -> int:
-            return int(_integrate(record(demands)))
+        def traced_integrate(demands: Iterable[int], _integrate: Any = m._integrate, _record: Any = record) -> int:
+            return int(_integrate(_record(demands)))
 
         def traced_on_sync(t: float, data: bytes = b"", _on_sync: Any = m.on_sync, _raw: list[int] = raw,
                            _rows: list[tuple[float, int]] = rows) -> Any:
@@ -69,7 +69,7 @@ def tick_log(vcell: VirtualCell) -> dict[int, list[tuple[float, int]]]:
     return log
 
 
-def check_cyclic_wire(report: dict[str, Any], out: Path, cell: Any, traj: Any) -> None:
+def check_cyclic_wire(report: dict[str, Any], out: Path, cell: Any, traj: Any, trace: Any) -> None:
     """Set points from bus.log: each at least 100 us before the SYNC after it, one per SYNC per axis from the
     start to the end, and the plan's (the drive's curve through them within the planner's bound)."""
     slots = setpoint_slots(cell.axes)
@@ -88,21 +88,23 @@ def check_cyclic_wire(report: dict[str, Any], out: Path, cell: Any, traj: Any) -
         k = k[k < syncs.size]
         margins = syncs[k] - times[: k.size]
         assert margins.min() >= 100e-6, f"node {node}: a set point {1e6 * margins.min():.0f} us before its SYNC"
-        # the set points that moved: the plan sampled every period, each once, in order
+        # from the frame sent after SYNC S - 1 on: set point 1, 2, ... N of the plan, each once, in order
         sp = cyclic.sample(traj.plan.positions[i], traj.plan.velocities[i], period,
                            pv=traj.stats[i].interpolation == "pv")
-        wire = [r[1] for r in rows]
-        first = next(j for j, x in enumerate(wire) if x != wire[0]) if len(set(wire)) > 1 else 0
-        moving = wire[first - 1:first - 1 + sp.n + 1]
-        assert moving[0] == sp.positions[0]
-        assert moving == [int(x) for x in sp.positions], f"node {node}: the wire's set points are not the plan's"
-        decoded = cyclic.Setpoints(period, np.array(moving, dtype=np.int64),
-                                   np.array([r[2] for r in rows[first - 1:first - 1 + sp.n + 1]], dtype=np.int64))
+        t_before = trace.sync_times[report["axes"][0]["start_sync"] - 1]
+        after = [r for r in rows if r[0] > t_before]
+        before = [r for r in rows if r[0] <= t_before]
+        assert before and all(r[1] == sp.positions[0] for r in before), f"node {node}: holds before the start"
+        moving = [r[1] for r in after[:sp.n]]
+        assert moving == [int(x) for x in sp.positions[1:]], f"node {node}: the wire's set points are not the plan's"
+        assert all(r[1] == sp.positions[-1] for r in after[sp.n:])  # then the hold at the end
+        decoded = cyclic.Setpoints(period, np.array([before[-1][1], *moving], dtype=np.int64),
+                                   np.array([before[-1][2]] + [r[2] for r in after[:sp.n]], dtype=np.int64))
         dev = cyclic.deviation(traj.plan.positions[i], decoded, traj.stats[i].interpolation)[0]
         assert dev <= traj.stats[i].max_deviation_counts
 
 
-def check_family_demo(report: dict[str, Any], traj: Any, out: Path, cell: Any) -> None:
+def check_family_demo(report: dict[str, Any], traj: Any, out: Path, cell: Any, trace: Any) -> None:
     axes = report["axes"]
     assert report["result"] == "done", report
     assert len({a["start_sync"] for a in axes}) == 1 and axes[0]["start_sync"] is not None
@@ -117,15 +119,15 @@ def check_family_demo(report: dict[str, Any], traj: Any, out: Path, cell: Any) -
         for i, node in enumerate(traj.node_ids):
             if node in fifo:
                 assert sent[node] == traj.records(i)
-    check_cyclic_wire(report, out, cell, traj)
+    check_cyclic_wire(report, out, cell, traj, trace)
     assert guarantees(report, traj.tolerance_counts) == []
 
 
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_family_demo_virtual_time(tmp_path: Path, name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])
-    report, _trace = demo.run_fast(cell, traj, tmp_path)
-    check_family_demo(report, traj, tmp_path, cell)
+    report, trace = demo.run_fast(cell, traj, tmp_path)
+    check_family_demo(report, traj, tmp_path, cell, trace)
     assert json.loads((tmp_path / "report.json").read_text()) == report
     assert (tmp_path / "motion.png").stat().st_size > 10_000 and (tmp_path / "job.mcap").exists()
 
@@ -158,5 +160,5 @@ def test_each_cyclic_drive_stays_within_its_bound_at_every_internal_cycle(name: 
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_family_demo_real_time(tmp_path: Path, name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])
-    report, _trace = demo.run_realtime(cell, traj, tmp_path)
-    check_family_demo(report, traj, tmp_path, cell)
+    report, trace = demo.run_realtime(cell, traj, tmp_path)
+    check_family_demo(report, traj, tmp_path, cell, trace)
