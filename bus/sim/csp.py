@@ -18,6 +18,7 @@ while following is EMCY 0x8780 (device.py's SYNC monitoring). Units: counts, cou
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from bus import codec
 from bus.codec import Cia402State
@@ -42,6 +43,12 @@ class CspDrive(CyclicDrive):
 
     def _object_table(self) -> odm.ObjectTable:
         return odm.CSP_TABLE
+
+    def _family_handlers(self) -> dict[Key, Callable[[int], None]]:
+        def write_target(value: int) -> None:
+            self._od[TARGET] = value  # no cached value depends on it (per-SYNC path)
+
+        return {TARGET: write_target}
 
     def _reset_family(self) -> None:
         self._x_prev = 0.0

@@ -31,7 +31,7 @@ target-reached bit). docs/drive-model.md has every reading and the seed sentence
 
 from __future__ import annotations
 
-import itertools
+import bisect
 import math
 from collections import deque
 from collections.abc import Callable
@@ -84,7 +84,8 @@ class XtrapulsDrive(CyclicDrive):
     _sp_arrival: float | None = None  # when the last set point RPDO arrived (since the previous SYNC)
     _prev_sync: float | None = None
     # the PLL: SYNC times of the current run (the last window's), when the run began, locked
-    _pll_times: deque[float]
+    _pll_intervals: deque[float]
+    _pll_sorted: list[float]
     _pll_since: float | None = None
     _locked = False
     setpoints_received = 0
@@ -246,7 +247,8 @@ class XtrapulsDrive(CyclicDrive):
 
     # ---- the PLL (0x2006)
     def _pll_reset(self) -> None:
-        self._pll_times = deque()
+        self._pll_intervals = deque()
+        self._pll_sorted = []
         self._pll_since = None
         self._locked = False
 
@@ -256,29 +258,28 @@ class XtrapulsDrive(CyclicDrive):
             self._pll_reset()
             return
         period_s = period_us * 1e-6
-        times = self._pll_times
-        if prev is not None and times:
-            jitter = abs((t - prev) - period_s)
-            if jitter >= (self.sync_gap_factor - 1.0) * period_s - _EPS_S:
+        if prev is not None and self._pll_since is not None:
+            interval = t - prev
+            if abs(interval - period_s) >= (self.sync_gap_factor - 1.0) * period_s - _EPS_S:
                 if self._ip_active:
                     self.counters.sync_gaps += 1
                     self._fault(codec.EMCY_SYNC_LOST, 0, t)  # error 49: "great jitter (>=half-period)"
                 self._pll_reset()
-                times = self._pll_times
+            else:
+                # the window: the intervals of the last 180 ms, in arrival order and sorted (for the median)
+                window = max(1, math.ceil(PLL_WINDOW_S / period_s - _EPS_S))
+                fifo, ordered = self._pll_intervals, self._pll_sorted
+                fifo.append(interval)
+                bisect.insort(ordered, interval)
+                while len(fifo) > window:
+                    del ordered[bisect.bisect_left(ordered, fifo.popleft())]
+                # the measured period: the median interval (one late SYNC, within the jitter limit, makes one
+                # long and one short interval and leaves it alone; a master whose clock runs off does not)
+                error = abs(ordered[len(ordered) // 2] - period_s)
+                if self._ip_active and len(fifo) == window and error >= PERIOD_TOLERANCE * period_s - _EPS_S:
+                    self._fault(codec.EMCY_SYNC_LOST, 0, t)  # error 49: "period accuracy ... (>=0.4%)"
+                self._locked = t - self._pll_since >= PLL_WINDOW_S - _EPS_S and error < self._sync_error_limit_s
+                return
         if self._pll_since is None:
-            self._pll_since = t
-        window = max(1, math.ceil(PLL_WINDOW_S / period_s - _EPS_S))  # intervals in 180 ms
-        times.append(t)
-        while len(times) > window + 1:
-            times.popleft()
-        if len(times) < 2:
-            self._locked = False
-            return
-        # the measured period: the median interval of the window (one late SYNC, within the jitter limit,
-        # makes one long and one short interval and leaves it alone; a master whose clock runs off does not)
-        intervals = sorted(b - a for a, b in itertools.pairwise(times))
-        measured = intervals[len(intervals) // 2]
-        error = abs(measured - period_s)
-        if self._ip_active and len(times) == window + 1 and error >= PERIOD_TOLERANCE * period_s - _EPS_S:
-            self._fault(codec.EMCY_SYNC_LOST, 0, t)  # error 49: "period accuracy ... (>=0.4%)"
-        self._locked = t - self._pll_since >= PLL_WINDOW_S - _EPS_S and error < self._sync_error_limit_s
+            self._pll_since = t  # the first SYNC of a run
+        self._locked = False
