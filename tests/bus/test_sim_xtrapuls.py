@@ -310,6 +310,22 @@ def test_16_bit_set_points_across_65536_boundaries(start: int) -> None:
     assert r.m.sdo_read(0x6062, 0) == xs[-1] and not r.emcys()
 
 
+def test_16_bit_velocities_of_a_pv_group_are_sign_extended() -> None:
+    a1, a2 = xaxis(1, "pv", mux_group=1), xaxis(2, "pv", mux_group=1)
+    slots = setpoint_slots([a1, a2])
+    assert slots[2].velocity_bits == 16 and slots[2].offset == 4
+    r = Rig(a2, slot=slots[2], initial_position=-70_000.0)
+    assert r.m.sdo_read(0x1602, 2) == 0x60C10110 and r.m.sdo_read(0x1602, 3) == 0x60C10210
+    r.sdo(0x60C1, 1, -70_000)
+    r.frame(0, bytes((NmtCommand.START, 0)))
+    frame = bytearray(8)
+    pack_setpoints(slots[1], frame, 5, 7)
+    pack_setpoints(slots[2], frame, -70_100, -1234)
+    r.frame(0x401, bytes(frame), 0.001)
+    r.sync()
+    assert (r.m.sdo_read(0x60C1, 1), r.m.sdo_read(0x60C1, 2)) == (-70_100, -1234)
+
+
 # ---- the interpolation, tick by tick -------------------------------------------------------------------
 def round_half_away(x: float) -> int:
     return math.floor(x + 0.5) if x >= 0 else -math.floor(-x + 0.5)
