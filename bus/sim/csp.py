@@ -52,9 +52,7 @@ class CspDrive(CyclicDrive):
 
     def _reset_family(self) -> None:
         self._x_prev = 0.0
-        self._poly = (0.0, 0.0, 0.0, 0.0)
-        self._poly_s = []
-        self._poly_playing = False
+        self._reset_interpolator()
 
     def _refresh_family(self, od: dict[Key, int]) -> None:
         few = od[(0x6065, 0)]

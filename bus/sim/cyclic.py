@@ -74,7 +74,7 @@ class CyclicDrive(DriveDevice):
     """A drive that takes one set point per SYNC (see the module docstring). Not used on its own."""
 
     _poly: Poly = (0.0, 0.0, 0.0, 0.0)
-    _poly_s: list[float] = []  # noqa: RUF012 - replaced per period, never mutated
+    _poly_s: list[float]  # s of each tick of the current period (`_reset_interpolator`, `_play`)
     _poly_playing = False  # the demand follows `_poly` this period
     _poly_period_us = 0  # the period `_poly` spans
     _scale = 1.0  # motor counts per user unit
@@ -111,6 +111,13 @@ class CyclicDrive(DriveDevice):
         }
 
     # ---- the interpolator
+    def _reset_interpolator(self) -> None:
+        """Power-on / reset node: no polynomial (a family's `_reset_family` calls it)."""
+        self._poly = (0.0, 0.0, 0.0, 0.0)
+        self._poly_s = []
+        self._poly_playing = False
+        self._poly_period_us = 0
+
     def _play(self, poly: Poly, end: float, active: bool, period_us: int | None = None) -> None:
         """The interpolator's polynomial for the period that starts at this SYNC (p(1) = `end`, the set
         point) over `period_us` (default 0x1006); with `active` the position demand follows it at each

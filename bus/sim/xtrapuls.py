@@ -83,7 +83,7 @@ class XtrapulsDrive(CyclicDrive):
     _v: tuple[float, float] = (0.0, 0.0)
     _sp_arrival: float | None = None  # when the last set point RPDO arrived (since the previous SYNC)
     _prev_sync: float | None = None
-    # the PLL: SYNC times of the current run (the last window's), when the run began, locked
+    # the PLL: the SYNC intervals of the last 180 ms (arrival order, and sorted), when the run began, locked
     _pll_intervals: deque[float]
     _pll_sorted: list[float]
     _pll_since: float | None = None
@@ -114,9 +114,7 @@ class XtrapulsDrive(CyclicDrive):
     def _reset_family(self) -> None:
         self._x = (0.0, 0.0, 0.0)
         self._v = (0.0, 0.0)
-        self._poly = (0.0, 0.0, 0.0, 0.0)
-        self._poly_s = []
-        self._poly_playing = False
+        self._reset_interpolator()
         self._sp_arrival = None
         self._prev_sync = None
         self._pll_reset()
