@@ -702,7 +702,8 @@ def test_configured_and_enabled_over_sdo_in_real_time() -> None:
     virtual bus: the dummy mapping and the shared COB-ID of a multiplexed group of 4, then one frame."""
     cell = xcell(4, "linear", {k: 1 for k in range(1, 5)})
     starts = {1: 10.0, 2: 70_000.0, 3: -70_000.0, 4: 0.0}
-    with SimulatedCell(cell, sync_gap_factor=5.0, initial_positions=starts) as sim, MasterAdapter(None, cell) as m:
+    with SimulatedCell(cell, sync_gap_factor=5.0, initial_positions=starts) as sim, \
+            MasterAdapter(None, cell, sdo_timeout_s=1.0) as m:  # a loaded machine answers SDO late
         m.configure_drives()
         assert m.absent[1] == (0x1012, 0x1013, 0x1019, 0x60C2)  # what a DS-301 v4.01 drive lacks
         m.enable_drives()
