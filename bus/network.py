@@ -218,7 +218,11 @@ class MasterAdapter:
         profile = self.profiles[node_id]
         self.read(node_id, profile.obj("device_type").index)
         absent: list[int] = []
+        od = self._remote(node_id).object_dictionary
         for index in OPTIONAL_OBJECTS:
+            if index not in od:
+                absent.append(index)  # not in the family's EDS (a DS-301 v4.01 drive has no 0x1012/0x1019)
+                continue
             sub = 1 if index in (0x1010, 0x1011, 0x60C2) else 0
             try:
                 self.read_object(node_id, index, sub)

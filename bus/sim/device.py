@@ -140,6 +140,8 @@ class _RxPdo:
     keys: tuple[Key, ...]
     unpacker: struct.Struct
     is_record: bool
+    bits: tuple[int, ...] = ()  # mapped length of each entry (shorter than its object: `_widen`)
+    short: bool = False  # some entry is mapped shorter than its object
 
 
 @dataclass
@@ -194,6 +196,9 @@ class DriveDevice:
     interpolation_mode = 7  # the mode whose interpolation the family implements
     not_stored: frozenset[tuple[int, int]] = frozenset()
     default_profile: DriveProfile = EPOS_IPM  # the family's profile (bus/families.py)
+    quick_stop_options: frozenset[int] = QUICK_STOP_OPTIONS  # 0x605A values the drive accepts (5.. stay in QS)
+    rtr_tpdo_types: frozenset[int] = frozenset()  # RTR-only TPDO types accepted (never sent: no RTR here)
+    accepts_longer_rpdo = False  # an RPDO longer than its mapping: use its first bytes (else EMCY 0x8220)
 
     def __init__(
         self,
@@ -271,7 +276,7 @@ class DriveDevice:
         self._ip_active = False
         self._error_code = 0
         self._error_register = 0
-        self._pending_sync: dict[int, list[tuple[Key, int]]] = {}
+        self._pending_sync: dict[int, list[tuple[Key, int, int]]] = {}
         self._od: dict[Key, int] = {}
         self._rx_by_cob: dict[int, _RxPdo] = {}
         self._tx_sync: list[_TxPdo] = []
@@ -561,7 +566,8 @@ class DriveDevice:
     # NMT and resets
 
     def _boot(self, t: float) -> None:
-        self._out.append(codec.heartbeat_frame(self.node_id, NmtState.BOOTUP))
+        if self._sends_bootup():
+            self._out.append(codec.heartbeat_frame(self.node_id, NmtState.BOOTUP))
         self._nmt = NmtState.PRE_OPERATIONAL
         self._restart_heartbeat(t)
 
@@ -643,7 +649,6 @@ class DriveDevice:
 
     def _refresh_caches(self) -> None:
         od = self._od
-        self._refresh_family(od)
         few = od[(0x6065, 0)]
         self._fe_window = math.inf if few == 0xFFFFFFFF else float(few)
         pw = od[(0x6067, 0)]
@@ -651,10 +656,11 @@ class DriveDevice:
         self._mode = od[(0x6060, 0)]
         self._period_us = od[(0x1006, 0)] if 0x1006 not in self._absent else 0
         self._sync_cob = od[(0x1005, 0)] & 0x7FF
-        ts = od[(0x1012, 0)]
+        # a family's table may lack the CiA 301 v4.2 objects (0x1012, 0x1013, 0x1019): as if absent
+        ts = od.get((0x1012, 0), 0)
         has_ts = 0x1012 not in self._absent and 0x1013 not in self._absent
         self._ts_cob = ts & 0x7FF if has_ts and ts & (1 << 31) else 0
-        self._sync_counter_max = od[(0x1019, 0)] if 0x1019 not in self._absent else 0
+        self._sync_counter_max = od.get((0x1019, 0), 0) if 0x1019 not in self._absent else 0
         self._qs_dec_key: Key = (0x6085, 0) if 0x6085 not in self._absent else (0x6084, 0)
         self._emcy_cob = od[(0x1014, 0)]
         hb = od[(0x1016, 1)]
@@ -665,16 +671,17 @@ class DriveDevice:
         self._qs_option = od[(0x605A, 0)]
         self._v_limit_min = min(self._rpm_limit((0x6081, 0)), self._rpm_limit((0x607F, 0)))
         self._a_limit_min = min(self._acc_limit((0x6083, 0)), self._acc_limit((0x60C5, 0)))
+        self._refresh_family(od)  # last: a family may rescale what was set above (its units)
 
     def _rpm_limit(self, key: Key) -> float:
         """A velocity object (rpm) as counts/ms (no limit when the drive lacks the object)."""
-        if key[0] in self._absent:
+        if key[0] in self._absent or key not in self._od:
             return math.inf
         return self._od[key] * self._rpm_to_cpms
 
     def _acc_limit(self, key: Key) -> float:
         """An acceleration object (rpm/s) as counts/ms^2 (no limit when the drive lacks the object)."""
-        if key[0] in self._absent:
+        if key[0] in self._absent or key not in self._od:
             return math.inf
         return self._od[key] * self._rpm_to_cpms / 1000.0
 
@@ -758,7 +765,7 @@ class DriveDevice:
             self._clock.time_stamp(value)
 
     def _write_quick_stop_option(self, value: int) -> None:
-        if value not in QUICK_STOP_OPTIONS:
+        if value not in self.quick_stop_options:
             raise SdoAbort(odm.ABORT_INVALID_VALUE, f"quick stop option code {value} not supported")
         self._store((0x605A, 0), value)
 
@@ -778,7 +785,8 @@ class DriveDevice:
 
     def _pdo_type_writer(self, comm: int, direction: str) -> Callable[[int], None]:
         def write(value: int) -> None:
-            if not (value <= 240 or value in (254, 255)):
+            rtr = direction == "tx" and value in self.rtr_tpdo_types
+            if not (value <= 240 or value in (254, 255) or rtr):
                 raise SdoAbort(odm.ABORT_INVALID_VALUE,
                                f"{direction}PDO transmission type {value} not supported")
             self._od[(comm, 2)] = value
@@ -796,7 +804,8 @@ class DriveDevice:
             return 0
         index, sub, bits = word >> 16, (word >> 8) & 0xFF, word & 0xFF
         s = self.objects.objects.get((index, sub))
-        if s is None or index in self._absent or not s.pdo or bits != s.dtype.bits:
+        if s is None or index in self._absent or not s.pdo or (
+                bits != s.dtype.bits and not self._may_map_short((index, sub), bits, direction)):
             raise SdoAbort(odm.ABORT_CANNOT_MAP, f"0x{index:04X}:{sub:02X} ({bits} bits) cannot be mapped")
         if (direction == "rx" and not s.writable) or (direction == "tx" and not s.readable):
             raise SdoAbort(odm.ABORT_CANNOT_MAP,
@@ -848,10 +857,12 @@ class DriveDevice:
             if not cob & odm.PDO_DISABLED and count:
                 words = [od[(0x1600 + n, k)] for k in range(1, count + 1)]
                 keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
-                fmt = "<" + "".join(self._struct_code(k) for k in keys)
+                bits = tuple(w & 0xFF for w in words)
+                fmt = "<" + "".join(self._entry_code(k, b) for k, b in zip(keys, bits, strict=True))
                 st = struct.Struct(fmt)
+                short = any(b != self.objects.objects[k].dtype.bits for k, b in zip(keys, bits, strict=True))
                 rx[cob & 0x7FF] = _RxPdo(n + 1, cob & 0x7FF, od[(0x1400 + n, 2)] <= 240, st.size, keys, st,
-                                         self._is_record_pdo(keys))
+                                         self._is_record_pdo(keys), bits, short)
             cob = od[(0x1800 + n, 1)]
             count = od[(0x1A00 + n, 0)]
             if not cob & odm.PDO_DISABLED and count:
@@ -859,10 +870,14 @@ class DriveDevice:
                 keys = tuple((w >> 16, (w >> 8) & 0xFF) for w in words)
                 fmt = "<" + "".join(self._struct_code(k) for k in keys)
                 ttype = od[(0x1800 + n, 2)]
+                if ttype in (252, 253):
+                    continue  # RTR only: this simulation serves no remote requests, so it is never sent
+                # a family's table may lack the optional sub-indices 3/5/6 (seed 003: TPDO parameters 1-2)
                 pdo = _TxPdo(n + 1, cob & 0x7FF, ttype,
                              _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)),
-                             inhibit_s=od[(0x1800 + n, 3)] * 1e-4, event_timer_s=od[(0x1800 + n, 5)] * 1e-3,
-                             start_value=od[(0x1800 + n, 6)])
+                             inhibit_s=od.get((0x1800 + n, 3), 0) * 1e-4,
+                             event_timer_s=od.get((0x1800 + n, 5), 0) * 1e-3,
+                             start_value=od.get((0x1800 + n, 6), 0))
                 pdo.started = not (pdo.start_value and self._sync_counter_max)
                 (tx_sync if ttype <= 240 else tx_event).append(pdo)
         self._rx_by_cob = rx
@@ -875,23 +890,33 @@ class DriveDevice:
 
     def _on_rpdo(self, pdo: _RxPdo, data: bytes, t: float) -> None:
         if len(data) != pdo.length:
-            self.counters.pdo_length_errors += 1
-            code = codec.EMCY_PDO_LENGTH if len(data) < pdo.length else codec.EMCY_PDO_LENGTH_EXCEEDED
-            self._fault(code, 0, t)
-            return
+            if len(data) > pdo.length and self.accepts_longer_rpdo:
+                data = data[:pdo.length]
+            else:
+                self.counters.pdo_length_errors += 1
+                code = codec.EMCY_PDO_LENGTH if len(data) < pdo.length else codec.EMCY_PDO_LENGTH_EXCEEDED
+                self._fault(code, 0, t)
+                return
         if pdo.is_record and not pdo.synchronous:
             self._on_record(data)
             return
-        pairs = list(zip(pdo.keys, pdo.unpacker.unpack(data), strict=True))
+        values = pdo.unpacker.unpack(data)
+        # dummy entries (index < 0x1000, CiA 301 dummy mapping) only hold the place of other data
+        pairs = [(k, v, b) for k, v, b in zip(pdo.keys, values, pdo.bits, strict=True) if k[0] >= 0x1000]
+        self._rpdo_received(pdo.keys, t)
         if pdo.synchronous:
             self._pending_sync[pdo.number] = pairs
         else:
             self._apply_pdo_pairs(pairs)
 
-    def _apply_pdo_pairs(self, pairs: list[tuple[Key, int]]) -> None:
-        for key, value in pairs:
+    def _apply_pdo_pairs(self, pairs: list[tuple[Key, int, int]]) -> None:
+        objects = self.objects.objects
+        for key, value, bits in pairs:
             try:
-                odm.check_value(self.objects.objects[key], value)
+                spec = objects[key]
+                if bits != spec.dtype.bits:
+                    value = self._widen(key, value, bits)
+                odm.check_value(spec, value)
                 self._write(key, value, via_sdo=False)
             except SdoAbort:
                 self.counters.pdo_writes_rejected += 1
@@ -1297,7 +1322,7 @@ class DriveDevice:
             self.counters.segments_completed += 1
             self._segment_done(t)
         elif kind == Source.QUICK_STOP:
-            if self._qs_option in (0, 1, 2):
+            if self._qs_option < 5:  # CiA 402: 1-3 then switch on disabled, 5-8 stay in quick stop
                 self._transition(Internal.QUICK_STOP_DONE)
         elif kind == Source.FAULT:
             self._transition(Internal.FAULT_REACTION_DONE)
@@ -1331,8 +1356,12 @@ class DriveDevice:
 
     def _start_ramp(self, kind: Source, dec_key: Key) -> None:
         """Decelerate from the current demand velocity to standstill with `dec_key` (rpm/s)."""
+        self._ramp(kind, self._acc_limit(dec_key))
+
+    def _ramp(self, kind: Source, deceleration: float) -> None:
+        """Decelerate from the current demand velocity to standstill at `deceleration` counts/ms^2."""
         v0 = self._demand_velocity()
-        dec = max(self._acc_limit(dec_key), 1e-9)
+        dec = max(deceleration, 1e-9)
         self._ip_active = False
         p0 = float(self._demand)
         demands: list[int] = []
@@ -1352,7 +1381,7 @@ class DriveDevice:
             self._on_ramp_done_immediately(kind)
 
     def _on_ramp_done_immediately(self, kind: Source) -> None:
-        if kind == Source.QUICK_STOP and self._qs_option in (0, 1, 2):
+        if kind == Source.QUICK_STOP and self._qs_option < 5:
             self._transition(Internal.QUICK_STOP_DONE)
         elif kind == Source.FAULT:
             self._transition(Internal.FAULT_REACTION_DONE)
@@ -1383,7 +1412,7 @@ class DriveDevice:
         except InvalidTransition:
             self.counters.ignored_commands += 1
             new = state
-        if state == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED and self._qs_option not in (5, 6):
+        if state == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED and self._qs_option < 5:
             self.counters.ignored_commands += 1
             new = state
         if new != state:
@@ -1406,7 +1435,7 @@ class DriveDevice:
             if self._qs_option == 0:
                 self._transition(Internal.QUICK_STOP_DONE)
             else:
-                self._start_ramp(Source.QUICK_STOP, (0x6084, 0) if self._qs_option in (1, 5) else self._qs_dec_key)
+                self._ramp(Source.QUICK_STOP, self._quick_stop_deceleration())
         elif old == ST.QUICK_STOP_ACTIVE and new == ST.OPERATION_ENABLED:
             self._src = None
             self._ip_active = False
@@ -1443,9 +1472,8 @@ class DriveDevice:
         if self.recorder is not None:
             self.recorder.trigger(TRIGGER_ERROR, f"error 0x{code:04X}", t)
         self._emit_emcy(code, bs)
-        was_powered = self._powered
-        if was_powered:
-            self._start_ramp(Source.FAULT, self._qs_dec_key)
+        if self._powered:
+            self._fault_reaction()
         else:
             self._transition(Internal.FAULT_REACTION_DONE)
 
@@ -1457,7 +1485,7 @@ class DriveDevice:
         self._emit_emcy(codec.EMCY_ERROR_RESET, self._emcy_status())
 
     def _emit_emcy(self, code: int, status: int) -> None:
-        if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL):
+        if self._nmt not in (NmtState.PRE_OPERATIONAL, NmtState.OPERATIONAL) or not self._emcy_enabled(code):
             return
         if self._emcy_cob & odm.PDO_DISABLED:
             return
@@ -1485,6 +1513,44 @@ class DriveDevice:
 
     def _struct_code(self, key: Key) -> str:
         return self.objects.objects[key].dtype.struct_code
+
+    def _entry_code(self, key: Key, bits: int) -> str:
+        """The struct code of a mapped entry: its object's type, or that signedness at the mapped length."""
+        dtype = self.objects.objects[key].dtype
+        if bits == dtype.bits:
+            return self._struct_code(key)
+        code = {8: "b", 16: "h", 32: "i", 64: "q"}[bits]
+        return code if dtype.signed else code.upper()
+
+    def _may_map_short(self, key: Key, bits: int, direction: str) -> bool:
+        """May `key` be mapped with fewer bits than its type (seed 003: 16-bit set points)? Default no."""
+        return False
+
+    def _widen(self, key: Key, value: int, bits: int) -> int:
+        """The object value an entry mapped with `bits` (< its type) carries; default: as received
+        (sign-extended for a signed object)."""
+        return value
+
+    def _rpdo_received(self, keys: tuple[Key, ...], t: float) -> None:
+        """An RPDO mapping `keys` arrived at `t` (accepted; synchronous ones are applied at the next SYNC)."""
+
+    def _sends_bootup(self) -> bool:
+        """Boot-up message on entering pre-operational after power-on / reset (CiA 301: yes)."""
+        return True
+
+    def _emcy_enabled(self, code: int) -> bool:
+        """Is the EMCY with `code` sent (0x0000 = error reset)? Default: all."""
+        return True
+
+    def _quick_stop_deceleration(self) -> float:
+        """The quick stop ramp for the option code 0x605A, counts/ms^2 (CiA 402: 1/5 slow down ramp =
+        0x6084, 2/6 quick stop ramp 0x6085)."""
+        return self._acc_limit((0x6084, 0) if self._qs_option in (1, 5) else self._qs_dec_key)
+
+    def _fault_reaction(self) -> None:
+        """The power stage is on and a fault was detected: ramp down with the quick stop deceleration,
+        then fault (a family may switch off at once: `_transition(Internal.FAULT_REACTION_DONE)`)."""
+        self._start_ramp(Source.FAULT, self._qs_dec_key)
 
     def _family_dynamic(self) -> dict[Key, Callable[[], int]]:
         return {}

@@ -171,8 +171,11 @@ class _Builder:
 
 def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: list[list[int]],
             rx_types: list[int], tx_defaults: list[list[int]], tx_types: list[int], max_entries: int,
-            sync_period: tuple[int, int, int]) -> None:
-    """The communication profile every simulated drive has (CiA 301)."""
+            sync_period: tuple[int, int, int], v42: bool = True, empty_pdos_valid: bool = False) -> None:
+    """The communication profile every simulated drive has (CiA 301). `v42`: with the objects CiA 301
+    v4.2 added (time stamp 0x1012/0x1013, SYNC counter 0x1019, TPDO inhibit time / event timer / SYNC
+    start value 0x18xx:03/05/06); without them a DS-301 v4.01 drive (seed 003). `empty_pdos_valid`: a
+    PDO without default mapping still has a valid default COB-ID (seed 003: RPDO4 0x500 + node)."""
     var, group = b.var, b.group
     var(0x1000, "Device type", U32, "ro", 0x00020192)  # CiA 402 servo drive
     var(0x1001, "Error register", U8, "ro", 0, pdo=True)
@@ -190,18 +193,20 @@ def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: li
         (0, "Highest sub-index supported", U8, "ro", 1, None, None, False, False),
         (1, "Restore all default parameters", U32, "rw", 1, None, None, False, False),
     ])
-    # time stamp (seed 001 3.6.1-3.6.2): bit 31 = consume the TIME frame with this COB-ID; 0x1013 is the
-    # master's high-resolution time stamp (us) of the last SYNC it sent
-    var(0x1012, "COB-ID time stamp object", U32, "rw", 0x00000100)
-    var(0x1013, "High resolution time stamp", U32, "rw", 0, pdo=True)
+    if v42:
+        # time stamp (seed 001 3.6.1-3.6.2): bit 31 = consume the TIME frame with this COB-ID; 0x1013 is
+        # the master's high-resolution time stamp (us) of the last SYNC it sent
+        var(0x1012, "COB-ID time stamp object", U32, "rw", 0x00000100)
+        var(0x1013, "High resolution time stamp", U32, "rw", 0, pdo=True)
     var(0x1014, "COB-ID EMCY", U32, "ro", 0x80, rel=True)
     group(0x1016, "Consumer heartbeat time", 8, [
         (0, "Number of entries", U8, "ro", 1, None, None, False, False),
         (1, "Consumer heartbeat time 1", U32, "rw", 0, None, None, False, False),
     ])
     var(0x1017, "Producer heartbeat time", U16, "rw", 0)
-    # CiA 301 SYNC counter: 0 = SYNC without counter; 2..240 = SYNC carries a counter 1..value
-    var(0x1019, "Synchronous counter overflow value", U8, "rw", 0, 0, 240)
+    if v42:
+        # CiA 301 SYNC counter: 0 = SYNC without counter; 2..240 = SYNC carries a counter 1..value
+        var(0x1019, "Synchronous counter overflow value", U8, "rw", 0, 0, 240)
     group(0x1018, "Identity object", 9, [
         (0, "Number of entries", U8, "ro", 4, None, None, False, False),
         (1, "Vendor-ID", U32, "ro", 0x00000000, None, None, False, False),  # a simulation claims no vendor
@@ -213,7 +218,8 @@ def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: li
     for n in range(4):
         rx_cob = 0x200 + 0x100 * n
         tx_cob = 0x180 + 0x100 * n
-        rx_enabled = bool(rx_defaults[n])
+        rx_enabled = bool(rx_defaults[n]) or empty_pdos_valid
+        tx_enabled = bool(tx_defaults[n]) or empty_pdos_valid
         group(0x1400 + n, f"Receive PDO {n + 1} parameter", 9, [
             (0, "Highest sub-index supported", U8, "ro", 2, None, None, False, False),
             (1, "COB-ID used by RPDO", U32, "rw", rx_cob | (0 if rx_enabled else PDO_DISABLED), None, None,
@@ -226,15 +232,19 @@ def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: li
             d = rx_defaults[n][k - 1] if k <= len(rx_defaults[n]) else 0
             entries.append((k, f"Mapped object {k}", U32, "rw", d, None, None, False, False))
         group(0x1600 + n, f"Receive PDO {n + 1} mapping", 9, entries)
-        group(0x1800 + n, f"Transmit PDO {n + 1} parameter", 9, [
-            (0, "Highest sub-index supported", U8, "ro", 6, None, None, False, False),
-            (1, "COB-ID used by TPDO", U32, "rw", tx_cob | (0 if tx_defaults[n] else PDO_DISABLED), None, None,
+        tx_comm: list[_Entry] = [
+            (0, "Highest sub-index supported", U8, "ro", 6 if v42 else 2, None, None, False, False),
+            (1, "COB-ID used by TPDO", U32, "rw", tx_cob | (0 if tx_enabled else PDO_DISABLED), None, None,
              False, True),
             (2, "Transmission type", U8, "rw", tx_types[n], None, None, False, False),
-            (3, "Inhibit time", U16, "rw", 0, None, None, False, False),  # 100 us units (event TPDOs)
-            (5, "Event timer", U16, "rw", 0, None, None, False, False),  # ms (event TPDOs)
-            (6, "SYNC start value", U8, "rw", 0, None, None, False, False),  # with a SYNC counter
-        ])
+        ]
+        if v42:
+            tx_comm += [
+                (3, "Inhibit time", U16, "rw", 0, None, None, False, False),  # 100 us units (event TPDOs)
+                (5, "Event timer", U16, "rw", 0, None, None, False, False),  # ms (event TPDOs)
+                (6, "SYNC start value", U8, "rw", 0, None, None, False, False),  # with a SYNC counter
+            ]
+        group(0x1800 + n, f"Transmit PDO {n + 1} parameter", 9, tx_comm)
         entries = [(0, "Number of mapped objects", U8, "rw", len(tx_defaults[n]), 0, max_entries, False, False)]
         for k in range(1, max_entries + 1):
             d = tx_defaults[n][k - 1] if k <= len(tx_defaults[n]) else 0
@@ -242,8 +252,10 @@ def _cia301(b: _Builder, *, device_name: str, product_code: int, rx_defaults: li
         group(0x1A00 + n, f"Transmit PDO {n + 1} mapping", 9, entries)
 
 
-def _cia402(b: _Builder, *, quick_stop: tuple[int, int, int], quick_stop_decel: int) -> None:
-    """The device profile every family shares (CiA 402; seed 000 4.3.3-4.3.6, seed 003 2)."""
+def _cia402(b: _Builder, *, quick_stop: tuple[int, int, int], quick_stop_decel: int, max_velocity: int = 25000,
+            profile_velocity: int = 1000, acceleration: int = 10000) -> None:
+    """The CiA 402 objects of the EPOS and CSP families (seed 000 4.3.3-4.3.6); velocities and
+    accelerations in the family's units (EPOS: rpm, rpm/s; CSP: counts/s, counts/s^2)."""
     var, group = b.var, b.group
     var(0x603F, "Error code", U16, "ro", 0, pdo=True)
     var(0x6040, "Controlword", U16, "rw", 0, pdo=True)
@@ -263,10 +275,10 @@ def _cia402(b: _Builder, *, quick_stop: tuple[int, int, int], quick_stop_decel: 
         (1, "Min position limit", I32, "rw", -(2**31), None, None, False, False),
         (2, "Max position limit", I32, "rw", 2**31 - 1, None, None, False, False),
     ])
-    var(0x607F, "Max profile velocity", U32, "rw", 25000, pdo=True)
-    var(0x6081, "Profile velocity", U32, "rw", 1000, pdo=True)
-    var(0x6083, "Profile acceleration", U32, "rw", 10000, pdo=True)
-    var(0x6084, "Profile deceleration", U32, "rw", 10000, pdo=True)
+    var(0x607F, "Max profile velocity", U32, "rw", max_velocity, pdo=True)
+    var(0x6081, "Profile velocity", U32, "rw", profile_velocity, pdo=True)
+    var(0x6083, "Profile acceleration", U32, "rw", acceleration, pdo=True)
+    var(0x6084, "Profile deceleration", U32, "rw", acceleration, pdo=True)
     var(0x6085, "Quick stop deceleration", U32, "rw", quick_stop_decel, pdo=True)
     var(0x60C5, "Max acceleration", U32, "rw", 0xFFFFFFFF, pdo=True)
     var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
@@ -327,46 +339,84 @@ def _epos() -> _Builder:
 
 
 def _xtrapuls() -> _Builder:
-    """Infranor XtrapulsPac in interpolated position mode (seed 003; digest in ../shared/reference/)."""
+    """Infranor XtrapulsPac in interpolated position mode (seed 003, CANopen "-ak"; digest in
+    ../shared/reference/). Only the objects the simulated drive models; positions in user units (0x6093),
+    velocities in user units/s, accelerations in user units/s^2, 0x6080 in rpm (seed 003 3.2.2.7)."""
     b = _Builder()
     _cia301(b, device_name="XtrapulsPac IP simulated drive", product_code=0x58495031,  # "XIP1"
-            # seed 003 1 PDO defaults: RPDO1 controlword, RPDO2 0x60FF, RPDO3 IP data (type 1), RPDO4 off;
-            # TPDO1 statusword and TPDO2 velocity RTR only (253), TPDO3 position actual (type 1)
+            # seed 003 3.1.1.5 PDO defaults: RPDO1 controlword (255), RPDO2 0x60FF (255), RPDO3 IP data
+            # (type 1), RPDO4 nothing (type 0, COB-ID 0x500 + node); TPDO1 statusword and TPDO2 velocity RTR
+            # only (253), TPDO3 position actual (type 1), TPDO4 nothing (type 0); up to 4 entries per PDO;
+            # DS-301 v4.01: no time stamp, no SYNC counter, PDO parameters of 2 sub-indices
             rx_defaults=[[0x60400010], [0x60FF0020], [0x60C10120], []], rx_types=[255, 255, 1, 0],
             tx_defaults=[[0x60410010], [0x606C0020], [0x60640020], []], tx_types=[253, 253, 1, 0],
-            max_entries=4, sync_period=(10_000, 0, 150_000))
-    _cia402(b, quick_stop=(1, 0, 7), quick_stop_decel=0x00200000)
+            max_entries=4, sync_period=(10_000, 0, 150_000), v42=False, empty_pdos_valid=True)
     var, group = b.var, b.group
-    # dummy objects for multiplexed RPDOs: PDO-only (CiA 301; seed 003 "Multiplexed RPDO")
+    # dummy objects for multiplexed RPDOs: PDO-only (CiA 301 9.5.3; seed 003 "Multiplexed data")
     for index, name, dt in ((0x0002, "Dummy INTEGER8", I8), (0x0003, "Dummy INTEGER16", I16),
                             (0x0004, "Dummy INTEGER32", I32), (0x0005, "Dummy UNSIGNED8", U8),
                             (0x0006, "Dummy UNSIGNED16", U16), (0x0007, "Dummy UNSIGNED32", U32)):
         var(index, name, dt, "wo", None, pdo=True)
-    group(0x2006, "Sync control", 9, [  # the PLL (seed 003: the header says 4 elements, the list has 5)
+    # ---- manufacturer specific (seed 003 3.1)
+    group(0x2006, "Sync control", 9, [  # the PLL; the header says "4 elements", the list has 5
         (0, "Number of entries", U8, "ro", 5, None, None, False, False),
         (1, "Sync phase", I16, "rw", 0, None, None, False, False),  # us
         (2, "Adjustment threshold", U16, "rw", 20, None, None, False, False),  # us
         (3, "Adjustment value", U16, "rw", 2, None, None, False, False),  # us
-        (4, "Sync error limit", U16, "rw", 500, None, None, False, False),  # us
-        (5, "Sync filter", U8, "rw", 0, 0, 4, False, False),
+        (4, "Sync error limit", U16, "rw", 500, None, None, False, False),  # us: the PLL locks within it
+        (5, "Sync filter", U16, "rw", 0, 0, 4, False, False),  # "0 disabled, 1.4" (stored only)
     ])
-    var(0x2010, "Boot-up message", U16, "rw", 0, 0, 1)  # 0: none (seed 003), 1: on entering pre-op
-    var(0x205F, "EMCY mode", U16, "rw", 1, 0, 2)  # 0 none, 1 on error, 2 on error and reset
-    var(0x30C1, "Interpolator output", I32, "ro", 0, pdo=True)
-    var(0x3350, "16-bit IP references", U8, "rw", 0, 0, 1)
-    var(0x6080, "Max motor speed", U32, "rw", 3000, 100, 60000)  # rpm
-    group(0x6093, "Position factor", 9, [
+    var(0x2010, "CANopen boot-up configuration", U16, "rw", 0, 0, 1)  # 0: no boot-up message, 1: sent
+    var(0x205F, "EMCY message behaviour", U16, "rw", 1, 0, 2)  # 0 none, 1 on error, 2 on error and reset
+    var(0x30C1, "Interpolated data output", I32, "ro", 0, pdo=True)  # the interpolator's output
+    group(0x3300, "Slow down ramp", 8, [  # quick stop options 1 and 5 (user units/s^2; no default printed)
         (0, "Number of entries", U8, "ro", 2, None, None, False, False),
-        (1, "Numerator", U32, "rw", 4096, 1, None, False, False),  # motor increments
-        (2, "Denominator", U32, "rw", 4096, 1, None, False, False),  # user units
+        (1, "Slow down ramp 1", U32, "rw", 0x00200000, None, None, False, False),
+        (2, "Slow down ramp 2", U32, "rw", 0x00200000, None, None, False, False),  # "reserved"
+    ])
+    group(0x3301, "Stop current limit", 8, [  # quick stop options 3 and 7 (per mille of rated current)
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Stop current limit 1", U16, "rw", 1000, 100, 6000, False, False),
+        (2, "Stop current limit 2", U16, "rw", 1000, 100, 6000, False, False),  # "reserved"
+    ])
+    var(0x3350, "Absolute 16-bit position reference", U8, "rw", 0, 0, 1)
+    # ---- device profile (seed 003 3.2)
+    var(0x603F, "Error code", U16, "ro", 0, pdo=True)
+    var(0x6040, "Controlword", U16, "rw", 0, pdo=True)
+    var(0x6041, "Statusword", U16, "ro", 0, pdo=True)
+    var(0x605A, "Quick stop option code", I16, "rw", 1, 0, 7)  # 4 is refused (no such option)
+    var(0x6060, "Modes of operation", I8, "rw", 0, pdo=True)
+    var(0x6061, "Modes of operation display", I8, "ro", 0, pdo=True)
+    var(0x6062, "Position demand value", I32, "ro", 0, pdo=True)
+    var(0x6064, "Position actual value", I32, "ro", 0, pdo=True)
+    var(0x6065, "Following error window", U32, "rw", 2000, pdo=True)  # no default printed: a choice
+    var(0x6067, "Position window", U32, "rw", 0)
+    var(0x606C, "Velocity actual value", I32, "ro", 0, pdo=True)  # user units/s
+    group(0x607D, "Software position limit", 8, [  # stored; enforced only with 0x3360 = 1 (not modelled)
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Min position limit", I32, "rw", -(2**31), None, None, False, False),
+        (2, "Max position limit", I32, "rw", 2**31 - 1, None, None, False, False),
+    ])
+    var(0x607F, "Max profile velocity", U32, "rw", 0, pdo=True)  # limits PP/PV only
+    var(0x6080, "Max motor speed", U32, "rw", 3000, 100, 60000)  # rpm
+    var(0x6081, "Profile velocity", U32, "rw", 0x1000)
+    var(0x6083, "Profile acceleration", U32, "rw", 0x10000)
+    var(0x6084, "Profile deceleration", U32, "rw", 0x10000)
+    var(0x6085, "Quick stop ramp", U32, "rw", 0x00200000)  # quick stop options 2 and 6
+    group(0x6093, "Position factor", 8, [  # motor position = numerator / denominator * user position
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Numerator", U32, "rw", 4096, 4096, 4096, False, False),  # "must be set at 4096" increments/rev
+        (2, "Denominator", U32, "rw", 4096, 1, None, False, False),  # user units per motor revolution
     ])
     var(0x60C0, "Interpolation sub mode select", I16, "rw", 0, -2, 0)  # 0 linear, -1 PV, -2 P3
-    group(0x60C1, "Interpolation data record", 8, [
+    group(0x60C1, "Interpolation data record", 9, [
         (0, "Number of entries", U8, "ro", 2, None, None, False, False),
-        (1, "Position", I32, "rw", 0, None, None, True, False),
-        (2, "Velocity", I32, "rw", 0, None, None, True, False),  # user units/s, PV only
+        (1, "Position", I32, "rw", 0, None, None, True, False),  # user units
+        (2, "Velocity", I32, "rw", 0, None, None, True, False),  # user units/s, sub-mode PV only
     ])
-    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # IP (no cyclic modes on CANopen)
+    var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
+    var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True)  # profile velocity mode (not modelled)
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # the simulation: IP only
     return b
 
 
@@ -377,7 +427,9 @@ def _csp() -> _Builder:
             rx_defaults=[[0x60400010], [0x607A0020], [], []], rx_types=[255, 1, 255, 255],
             tx_defaults=[[0x60410010], [0x60640020], [], []], tx_types=[255, 1, 255, 255],
             max_entries=MAX_PDO_ENTRIES, sync_period=(0, 0, 255_000))
-    _cia402(b, quick_stop=(2, 0, 6), quick_stop_decel=10000)
+    # counts, counts/s, counts/s^2 (the master writes them so: bus/families.py CIA402_CSP)
+    _cia402(b, quick_stop=(2, 0, 6), quick_stop_decel=10_000_000, max_velocity=1_000_000,
+            profile_velocity=100_000, acceleration=1_000_000)
     var, group = b.var, b.group
     var(0x607A, "Target position", I32, "rw", 0, pdo=True)
     group(0x60C2, "Interpolation time period", 9, [  # in CSP: the set point cycle (= the SYNC period)
