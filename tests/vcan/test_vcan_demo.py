@@ -6,6 +6,7 @@ it inside tools/vcan-vm."""
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import json
 import statistics
@@ -16,9 +17,11 @@ from pathlib import Path
 import can
 import pytest
 
+from bus.profile import setpoint_slots
 from planner.config import load_cell
 from streamer import demo
-from streamer.report import decode_candump
+from streamer.cli.demo import guarantees
+from streamer.report import decode_candump, decode_setpoints
 
 pytestmark = pytest.mark.vcan
 ROOT = Path(__file__).resolve().parents[2]
@@ -65,3 +68,35 @@ def test_vcan_demo_sync_period_from_the_candump_log(vcan_demo: tuple[dict, Path]
     p99 = jitter[int(0.99 * (len(jitter) - 1))]
     print(f"SYNC over vcan0: {len(stamps)} SYNCs, mean {1000 * mean:.4f} ms, p99 jitter {1e6 * p99:.0f} us")
     assert abs(mean - period_s) <= 0.01 * period_s
+
+
+def test_vcan_xtrapuls_demo_sets_every_point_before_its_sync(tmp_path: Path) -> None:
+    """configs/xtrapuls.toml (six XtrapulsPac axes, one set point per SYNC, two multiplexed groups) as two
+    processes over vcan0: the demo's guarantees, and every set point on the wire at least 100 us before the
+    SYNC that latches it (the drive's error 50), timed by the kernel's candump stamps."""
+    config = ROOT / "configs" / "xtrapuls.toml"
+    proc = subprocess.run(
+        [sys.executable, "-m", "streamer.cli", "demo", "--config", str(config), "--bus", "socketcan:vcan0",
+         "--quiet", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=240,
+    )
+    print(proc.stdout[-3000:], proc.stderr[-3000:])
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    report = json.loads((tmp_path / "report.json").read_text())
+    cell, _job, traj = demo.prepare(config, bus="socketcan:vcan0")
+    assert report["result"] == "done" and len({a["start_sync"] for a in report["axes"]}) == 1
+    assert guarantees(report, traj.tolerance_counts) == []
+    slots = setpoint_slots(cell.axes)
+    start = {n: int(traj.positions[i, 0]) for i, n in enumerate(traj.node_ids)}
+    sent = decode_setpoints(tmp_path / "bus.log", slots, start, since_s=report["job_start_s"])
+    with can.LogReader(str(tmp_path / "bus.log")) as reader:
+        syncs = [m.timestamp for m in reader if m.arbitration_id == 0x080]
+    for node, rows in sent.items():
+        assert len(rows) >= traj.duration_ms // cell.sync_period_ms, f"node {node}: {len(rows)} set points"
+        margins = []
+        for t, _pos, _vel in rows:
+            k = bisect.bisect_right(syncs, t)
+            if k < len(syncs):
+                margins.append(syncs[k] - t)
+        print(f"node {node}: {len(rows)} set points, least lead before SYNC {1e6 * min(margins):.0f} us")
+        assert min(margins) >= 100e-6
