@@ -46,6 +46,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner import hermite
 from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
@@ -280,15 +281,18 @@ def place_knots(
     min_seg: int,
     max_seg: int,
     acc_share: float = ACC_PLACEMENT_SHARE,
+    hint_gap: int = 0,
 ) -> IntArray:
-    """Greedy shared knot times 0..M (see the module docstring)."""
+    """Greedy shared knot times 0..M (see the module docstring); hints closer than `hint_gap` (default
+    `min_seg`) to a kept one are no section boundary."""
     m = ref.duration_ms
     if m <= 0:
         return np.array([0], dtype=np.int64)
     mand = _mandatory_knots(ref, scales, MANDATORY_GAP)
+    bounds, piece = _structure(ref, mand, hint_gap or min_seg, max_seg)
     cuts: list[int] = []
-    for a, b in zip(mand[:-1].tolist(), mand[1:].tolist(), strict=True):
-        parts = -(-(b - a) // SECTION_MS)  # equal parts, none longer than SECTION_MS
+    for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+        parts = -(-(b - a) // piece)  # equal parts, none longer than `piece`
         cuts.extend(a + (j * (b - a)) // parts for j in range(parts))
     cuts.append(m)
     sec_start = np.array(cuts[:-1], dtype=np.int64)
@@ -332,14 +336,95 @@ def place_knots(
         stay = act[~adv]
         prev[stay] = np.maximum(1, lens[~adv].min(axis=1) // 3)  # length 1 always passes, eventually
     times = np.unique(np.concatenate([*found, np.array([m], dtype=np.int64)]))
-    return _rebalance(ref, times, mand, budget, min_seg, max_seg)
+    times = _rebalance(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
+    return _coarsen(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
+
+
+def _structure(ref: Reference, mand: IntArray, gap: int, max_seg: int) -> tuple[IntArray, int]:
+    """Section boundaries and the longest section: the plan's own structure where it has one.
+
+    With `hints` (a ruckig profile's phases, a user's rows) the plan is one cubic between two of them:
+    they become section boundaries (those closer than `gap` to a kept one are dropped: a short phase is
+    better crossed than isolated, unless the conservative variant keeps them all) and sections are at
+    most `max_seg` long, so a section that a
+    single segment reproduces becomes exactly one. Without hints (toppra's profiles) sections are the
+    stretches between the mandatory knots, cut at `SECTION_MS` for the lockstep placement.
+    """
+    if ref.hints.size == 0:
+        return mand, SECTION_MS
+    kept = mand.tolist()
+    for h in ref.hints.tolist():
+        if min(abs(h - k) for k in kept) >= gap:
+            kept.append(h)
+    return np.array(sorted(kept), dtype=np.int64), max_seg
+
+
+def _acc_misses(
+    ref: Reference, starts: IntArray, lengths: IntArray, acc_axis: FloatArray, min_seg: int, acc_share: float
+) -> NDArray[np.bool_]:
+    """Segments (longer than `min_seg`) whose exact-value Hermite misses the plan's end accelerations by
+    more than `acc_share` of an axis limit (see `_placement_errors`)."""
+    ends = starts + lengths
+    t1 = lengths.astype(np.float64)
+    p, v = ref.positions, ref.velocities
+    dp = p[:, ends] - p[:, starts]
+    acc_s = (6.0 * dp - 2.0 * t1 * v[:, ends] - 4.0 * t1 * v[:, starts]) / (t1 * t1)
+    acc_e = (-6.0 * dp + 4.0 * t1 * v[:, ends] + 2.0 * t1 * v[:, starts]) / (t1 * t1)
+    miss = np.maximum(np.abs(acc_s - ref.acc_right[:, starts]), np.abs(acc_e - ref.acc_left[:, ends]))
+    out: NDArray[np.bool_] = (miss > acc_share * acc_axis[:, None]).any(axis=0) & (lengths > min_seg)
+    return out
+
+
+def _coarsen(
+    ref: Reference,
+    times: IntArray,
+    mand: IntArray,
+    budget: float,
+    min_seg: int,
+    max_seg: int,
+    acc_axis: FloatArray,
+    acc_share: float,
+) -> IntArray:
+    """Drop every knot whose two segments one segment reproduces as well (error at every tick within
+    `budget`, end accelerations within `acc_share`, at most `max_seg` long). Dense user rows and the
+    sections' cuts otherwise cost points that a uniform grid would not spend. Knots at even and odd
+    positions alternate, so no two neighbours are dropped at once; rounds repeat while any is."""
+    t = times
+    for _round in range(64):
+        dropped = False
+        for parity in (1, 2):
+            k = np.arange(parity, t.size - 1, 2)
+            k = k[~np.isin(t[k], mand)]
+            if k.size == 0:
+                continue
+            starts, lengths = t[k - 1], t[k + 1] - t[k - 1]
+            short = lengths <= max_seg
+            k, starts, lengths = k[short], starts[short], lengths[short]
+            if k.size == 0:
+                continue
+            err = _exact_errors(ref, starts, lengths)
+            ok = (err <= budget) & ~_acc_misses(ref, starts, lengths, acc_axis, min_seg, acc_share)
+            if ok.any():
+                t = np.delete(t, k[ok])
+                dropped = True
+        if not dropped:
+            break
+    return t
 
 
 def _rebalance(
-    ref: Reference, times: IntArray, mand: IntArray, budget: float, min_seg: int, max_seg: int
+    ref: Reference,
+    times: IntArray,
+    mand: IntArray,
+    budget: float,
+    min_seg: int,
+    max_seg: int,
+    acc_axis: FloatArray,
+    acc_share: float,
 ) -> IntArray:
-    """Remove or move knots next to segments shorter than `min_seg` where the plan allows it (one pass,
-    all candidate segments checked in one vectorised evaluation)."""
+    """Remove or move knots next to segments shorter than `min_seg` where the plan allows it: position
+    within `budget` at every tick and end accelerations within `acc_share` (one pass, all candidate
+    segments checked in one vectorised evaluation)."""
     t = times
     dt = np.diff(t)
     short = np.nonzero(dt < min_seg)[0]
@@ -366,9 +451,9 @@ def _rebalance(
     if not options:
         return t
     segs = [seg for opt in options for seg in opt[3]]
-    errs = _exact_errors(
-        ref, np.array([x[0] for x in segs], dtype=np.int64), np.array([x[1] for x in segs], dtype=np.int64)
-    )
+    st = np.array([x[0] for x in segs], dtype=np.int64)
+    ln = np.array([x[1] for x in segs], dtype=np.int64)
+    errs = np.where(_acc_misses(ref, st, ln, acc_axis, min_seg, acc_share), np.inf, _exact_errors(ref, st, ln))
     ok: list[bool] = []
     pos = 0
     for opt in options:
@@ -620,7 +705,7 @@ def encode(
         min_seg = min(int(1.6 * min_seg), max_seg)
         acc_share = 2.0 * ACC_PLACEMENT_SHARE
     if times_ms is None:
-        times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share)
+        times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share, 1 if variant == 1 else 0)
     else:
         times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
     want = planned_demand(ref)
