@@ -97,11 +97,15 @@ def _scores(
     budget: FloatArray,
     vlim: FloatArray,
     alim: FloatArray,
+    box: tuple[FloatArray, FloatArray],
 ) -> tuple[FloatArray, FloatArray]:
-    """Per candidate segment: the geometric error over the budget and the larger limit ratio."""
+    """Per candidate segment: the geometric error over the budget (2 where it leaves the position
+    limits) and the larger limit ratio."""
     pos, vel, acc_s, acc_e, ticks, _seg = _segments(q, v, starts, lengths)
     first = np.cumsum(lengths) - lengths
     err = _deviation(pos, q, tangent, curved, ticks, budget)
+    outside = ((pos < box[0][:, None]) | (pos > box[1][:, None])).any(axis=0)
+    err = np.where(outside, np.maximum(err, 2.0), err)
     vr = (np.abs(vel) / vlim[:, None]).max(axis=0)
     geo = np.maximum.reduceat(err, first)
     vel_r = np.maximum.reduceat(vr, first)
@@ -141,6 +145,7 @@ def fit_chain(
     min_seg: int,
     max_seg: int,
     allow_short: bool = True,
+    box: tuple[FloatArray, FloatArray] | None = None,
 ) -> ChainFit:
     """The chain through the profile `q`, `v` (n, M+1; user units, per ms) (module docstring).
 
@@ -149,11 +154,14 @@ def fit_chain(
     switches); `budget` (n,) user units;
     `vlim` per ms and `alim` per ms^2 (n,); `min_seg`/`max_seg`: the encoder's segment bounds (ms).
     `allow_short`: where no segment of `min_seg` passes, try shorter ones (down to `SHORT_MS`) before
-    taking one that overshoots.
+    taking one that overshoots. `box`: the position limits (n,) x 2, which the chain must not leave
+    (the path itself stays inside them: near a waypoint on a limit there is no room for a deviation).
     """
     m = q.shape[1] - 1
     mand = np.unique(np.concatenate([[0, m], mandatory])).astype(np.int64)
     budget = np.maximum(budget, 1e-12)
+    if box is None:
+        box = (np.full(q.shape[0], -np.inf), np.full(q.shape[0], np.inf))
     ty = direction / budget[:, None]
     tangent = ty / np.maximum(np.linalg.norm(ty, axis=0), 1e-300)[None, :]
     sec_start, sec_end = mand[:-1].copy(), mand[1:].copy()
@@ -182,7 +190,7 @@ def fit_chain(
         )
         lens = np.clip(lens, short[:, None], hi[:, None]).astype(np.int64)
         k = lens.shape[1]
-        geo, lim = _scores(q, v, tangent, curved, np.repeat(c, k), lens.ravel(), budget, vlim, alim)
+        geo, lim = _scores(q, v, tangent, curved, np.repeat(c, k), lens.ravel(), budget, vlim, alim, box)
         ok = ((geo <= 1.0) & (lim <= 1.0)).reshape(-1, k)
         rem = room[:, None] - lens
         # preference: at least min_seg (the encoder's quantisation needs it); finish the section; else
@@ -200,7 +208,7 @@ def fit_chain(
         found.append(cur[act].copy())
     knots = np.unique(np.concatenate(found)).astype(np.int64)
     if allow_short:
-        knots = _lengthen(q, v, tangent, curved, knots, mand, budget, vlim, alim, min_seg, max_seg)
+        knots = _lengthen(q, v, tangent, curved, knots, mand, budget, vlim, alim, min_seg, max_seg, box)
     return _chain(q, v, knots, vlim, alim)
 
 
@@ -216,6 +224,7 @@ def _lengthen(
     alim: FloatArray,
     min_seg: int,
     max_seg: int,
+    box: tuple[FloatArray, FloatArray],
 ) -> IntArray:
     """Remove the short segments the greedy fit left, where a neighbouring knot can move (or go) so that
     every segment concerned is at least `min_seg` long and passes: the greedy only looks forward, and a
@@ -248,7 +257,7 @@ def _lengthen(
         segs = [seg for opt in options for seg in opt[2]]
         st = np.array([x[0] for x in segs], dtype=np.int64)
         ln = np.array([x[1] - x[0] for x in segs], dtype=np.int64)
-        geo, lim = _scores(q, v, tangent, curved, st, ln, budget, vlim, alim)
+        geo, lim = _scores(q, v, tangent, curved, st, ln, budget, vlim, alim, box)
         good = (geo <= 1.0) & (lim <= 1.0)
         pos = 0
         for idx, value, sg in options:

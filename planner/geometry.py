@@ -364,3 +364,69 @@ def _run(
     cc = cc / (k ** np.arange(6))[:, None, None]
     cc = cc * vlim[None, None, :]  # z -> user units
     return PiecewisePath(x, cc[::-1].copy(), np.array(blend, dtype=np.int64), n)
+
+
+def polyline_deviation(points: FloatArray, waypoints: FloatArray, scale: FloatArray) -> FloatArray:
+    """How far each of `points` (M, n) is from the polyline through `waypoints` (K, n), per axis in
+    units of `scale` (n,): the smallest, over the points p of the polyline, of max_j |x_j - p_j| / scale_j.
+    A measurement for tests and benchmarks (the planner keeps its paths within 1 by construction).
+
+    The scaled Euclidean distance bounds it from above and is cheap; points where that bound exceeds 1
+    get the exact value (the minimum over each segment of a convex piecewise-linear function of the
+    segment parameter, reached at one of its breakpoints).
+    """
+    x = points / scale[None, :]
+    w = waypoints / scale[None, :]
+    a, d = w[:-1], np.diff(w, axis=0)  # segments a + lam d
+    dd = np.einsum("kj,kj->k", d, d)
+    best = np.full(x.shape[0], np.inf)
+    for k in range(a.shape[0]):
+        r = x - a[k][None, :]
+        lam = np.clip(r @ d[k] / dd[k], 0.0, 1.0) if dd[k] > 0 else np.zeros(x.shape[0])
+        best = np.minimum(best, np.linalg.norm(r - lam[:, None] * d[k][None, :], axis=1))
+    hard = np.nonzero(best > 1.0)[0]
+    if hard.size:
+        best[hard] = _box_distance(x[hard], a, d)
+    return best
+
+
+def point_to_path(points: FloatArray, path: FloatArray, scale: FloatArray) -> FloatArray:
+    """For each of a few `points` (P, n), how close the polyline through the many samples `path` (M, n)
+    comes (same metric as `polyline_deviation`): does a sampled motion pass a waypoint?"""
+    y = path / scale[None, :]
+    a, d = y[:-1], np.diff(y, axis=0)
+    dd = np.maximum(np.einsum("kj,kj->k", d, d), 1e-300)
+    out = np.empty(points.shape[0])
+    for i, p in enumerate(points / scale[None, :]):
+        r = p[None, :] - a
+        lam = np.clip(np.einsum("kj,kj->k", r, d) / dd, 0.0, 1.0)
+        euclid = np.linalg.norm(r - lam[:, None] * d, axis=1)
+        k = int(np.argmin(euclid))
+        out[i] = euclid[k]
+        if out[i] > 1.0:  # exact, on the segments that can still be within 1
+            near = np.nonzero(euclid <= np.sqrt(p.size) * max(out[i], 1.0))[0]
+            out[i] = float(_box_distance(p[None, :], a[near], d[near]).min()) if near.size else out[i]
+    return out
+
+
+def _box_distance(x: FloatArray, a: FloatArray, d: FloatArray) -> FloatArray:
+    """Exact min over segments and lam in [0, 1] of max_j |x_j - a_j - lam d_j| (see polyline_deviation)."""
+    n = x.shape[1]
+    out = np.full(x.shape[0], np.inf)
+    for k in range(a.shape[0]):
+        r = x - a[k][None, :]  # (P, n); f(lam) = max_j |r_j - lam d_j|
+        dk = d[k]
+        cands = [np.zeros(x.shape[0]), np.ones(x.shape[0])]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for j in range(n):
+                if dk[j] != 0.0:
+                    cands.append(r[:, j] / dk[j])
+                for i in range(j + 1, n):
+                    for sgn in (1.0, -1.0):
+                        den = dk[j] - sgn * dk[i]
+                        if den != 0.0:
+                            cands.append((r[:, j] - sgn * r[:, i]) / den)
+        lam = np.clip(np.nan_to_num(np.stack(cands, axis=1)), 0.0, 1.0)  # (P, C)
+        val = np.abs(r[:, None, :] - lam[:, :, None] * dk[None, None, :]).max(axis=2).min(axis=1)
+        out = np.minimum(out, val)
+    return out

@@ -365,16 +365,18 @@ def _switch_mask(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: Float
     similar size in a row are toppra's gridpoint staircase along a smoothly changing bound (a steep one
     in a tight blend), not a bang-bang change."""
     steps = _joint_steps(tau, vt, geom, alim)
-    dw = np.abs(np.diff(np.diff(vt) / np.diff(tau).astype(np.float64)))
+    signed = np.diff(np.diff(vt) / np.diff(tau).astype(np.float64))
+    dw = np.abs(signed)
     pad = np.concatenate([[0.0], dw, [0.0]])
     alone = dw > 2.0 * np.maximum(pad[:-2], pad[2:])
     big = steps > SWITCH_SHARE
-    # two big steps within `CHATTER_MS`: toppra chattering along a constraint (a dip of a few ms), which
-    # the chain smooths over, not a switch
+    # two big steps of opposite signs within `CHATTER_MS`: toppra chattering along a constraint (a dip
+    # of a few ms), which the chain smooths over, not a switch
     at = tau[1:-1][big]
+    sign = np.sign(signed[big])
     near = np.zeros(at.size, dtype=bool)
     if at.size > 1:
-        close = np.diff(at) < CHATTER_MS
+        close = (np.diff(at) < CHATTER_MS) & (sign[1:] != sign[:-1])
         near[:-1] |= close
         near[1:] |= close
     chatter = np.zeros(big.size, dtype=bool)
@@ -408,30 +410,31 @@ def _merge_switch_pieces(
     w = np.diff(v) / h
     s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (v[:-1] + v[1:]) * h)])
     safe = geom.merge_safe(np.clip(s_lin * (geom.length / s_lin[-1]), 0.0, geom.length))
-    short = (h < gap) & safe[:-1] & safe[1:]
-    p = 0
-    while p < h.size:
-        if not short[p]:
-            p += 1
-            continue
-        q = p
-        while q + 1 < h.size and short[q + 1] and t[q + 2] - t[p] < 2 * gap:
-            q += 1
-        a, b = p, q + 1  # the transition runs from breakpoint a to breakpoint b
-        p = q + 1
-        if not (big[a] and big[b]):
+    # transitions: clusters of big steps, each less than `gap` after the previous one, at most 2 gap long
+    big_at = np.nonzero(big[1:-1])[0] + 1
+    clusters: list[tuple[int, int]] = []
+    for i in big_at.tolist():
+        if clusters and t[i] - t[clusters[-1][1]] < gap and t[i] - t[clusters[-1][0]] < 2 * gap:
+            clusters[-1] = (clusters[-1][0], i)
+        else:
+            clusters.append((i, i))
+    at_ends = [(0, int(big_at[0]))] if big_at.size and t[big_at[0]] < gap else []
+    if big_at.size and t[-1] - t[big_at[-1]] < gap:
+        at_ends.append((int(big_at[-1]), t.size - 1))
+    for a, b in [c for c in clusters if c[1] > c[0]] + at_ends:
+        if not all(safe[a : b + 1]):
             continue
         if a == 0 or b == t.size - 1:
             # at the start or the end (rest): the transition's inner breakpoint goes, if the one piece
             # that replaces it accelerates within the range of those it replaces
             if a == 0 and b + 1 < t.size and safe[b + 1]:
-                ends, drop = (0, b + 1), slice(1, b + 1)
+                (e0, e1), drop = (0, b + 1), slice(1, b + 1)
             elif b == t.size - 1 and a >= 1 and keep[a - 1] and safe[a - 1]:
-                ends, drop = (a - 1, b), slice(a, b)
+                (e0, e1), drop = (a - 1, b), slice(a, b)
             else:
                 continue
-            slope = (v[ends[1]] - v[ends[0]]) / (t[ends[1]] - t[ends[0]])
-            span = w[ends[0] : ends[1]]
+            slope = (v[e1] - v[e0]) / (t[e1] - t[e0])
+            span = w[e0:e1]
             if span.min() - 1e-15 <= slope <= span.max() + 1e-15:
                 keep[drop] = False
             continue
@@ -496,6 +499,8 @@ class ChainSpec:
     budget: FloatArray
     min_seg: int
     max_seg: int
+    lower: FloatArray  # position limits (user units), which the chain must not leave
+    upper: FloatArray
 
 
 def _ratios(
@@ -558,6 +563,7 @@ def plan_run(
             chain.min_seg,
             chain.max_seg,
             allow_short,
+            (chain.lower, chain.upper),
         )
         return f.positions, f.velocities, f.acc_left, f.acc_right, f
 

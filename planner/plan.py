@@ -137,6 +137,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                     path_tolerance(job, cell),
                     tol,
                     segment_bounds(scales, tol),
+                    (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg])),
                     info,
                 )
 
@@ -472,6 +473,7 @@ def lines_geometry(
     path_tolerance: FloatArray,
     tolerance_counts: int,
     segments: tuple[int, int],
+    box: tuple[FloatArray, FloatArray],
     info: dict[str, float],
 ) -> tuple[list[PiecewisePath], ChainSpec]:
     """The straight segments with blended corners (planner/geometry.py) for a path job, and how the
@@ -495,7 +497,9 @@ def lines_geometry(
     info["exact_stops"] = float(sum(1 for c in corners if c.half_length < 0))
     # an exact axis only moves on straight runs, where the chain is exact: a tiny budget for the noise
     budget = np.where(free > 0.0, (1.0 - BLEND_SHARE) * free, 0.05 / cpu)
-    return runs, ChainSpec(budget, segments[0], segments[1])
+    # the chain stays inside the limits (half a count of the plan's rounding is allowed outside them)
+    lower, upper = box[0] - 0.4 / cpu, box[1] + 0.4 / cpu
+    return runs, ChainSpec(budget, segments[0], segments[1], lower, upper)
 
 
 def line_deviation_counts(positions: FloatArray, start: FloatArray, end: FloatArray) -> float:

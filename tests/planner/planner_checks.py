@@ -9,6 +9,8 @@ import numpy as np
 from planner import hermite
 from planner.config import CellConfig
 from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK
+from planner.geometry import point_to_path, polyline_deviation
+from planner.job import Job, PathData, path_tolerance
 from planner.record import PvtRecord, pack, unpack
 from planner.trajectory import PvtTrajectory
 
@@ -71,3 +73,19 @@ def assert_invariants(
         assert s.peak_acceleration <= ax.max_acceleration + 1e-9
         assert s.acceleration_excess_share <= ACC_EXCESS_LIMIT + 1e-12
         assert s.max_deviation_counts <= traj.tolerance_counts
+
+
+def assert_path_within(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
+    """A path job along straight segments: at every ms of the drive's demand, every axis within its
+    path tolerance of the polyline through the job's waypoints, and of every waypoint at some ms (an
+    axis whose tolerance is below what the encoding may add, tolerance_counts + 1 count, within that)."""
+    assert isinstance(job.data, PathData) and job.data.geometry == "lines"
+    cpu = traj.counts_per_unit
+    scale = np.maximum(path_tolerance(job, cell), (traj.tolerance_counts + 1.0) / cpu) * (1 + 1e-9)
+    drive = (traj.demand() / cpu[:, None]).T  # (M+1, n) user units, what the drive commands
+    wp = np.asarray(job.data.waypoints)
+    dev = polyline_deviation(drive, wp, scale)
+    assert dev.max() <= 1.0, (float(dev.max()), int(np.argmax(dev)))
+    # the drive moves continuously between two ms: the waypoint against the motion, not its samples
+    near = point_to_path(wp, drive, scale)
+    assert near.max() <= 1.0, (int(np.argmax(near)), float(near.max()))
