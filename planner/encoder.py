@@ -43,6 +43,7 @@ the last knot is the plan's end rounded to counts with velocity 0, exactly.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -665,6 +666,7 @@ def encode(
     start_velocities_rpm: IntArray | None = None,
     times_ms: IntArray | None = None,
     variant: int = 0,
+    uniform_fallback: bool = False,
 ) -> tuple[Knots, Reconstruction]:
     """Knots for `ref` whose drive reconstruction is within `tolerance` counts of it at every ms.
 
@@ -672,6 +674,8 @@ def encode(
     `times_ms` gives the knot times instead of placing them (raw PVT jobs pass their own rows through);
     a segment whose quantised values cannot meet the tolerance is still split in two. `variant` 1 and 2
     are the retries when the quantisation noise exceeded the budget (see the module docstring).
+    `uniform_fallback`: also try the coarsest uniform grid with fewer knots (`_uniform_alternative`;
+    the planner asks for it).
     Raises EncodingNeedsTime or EncodingFailed (internal; the planner turns them into PlanningError).
     """
     n = ref.n_axes
@@ -708,6 +712,104 @@ def encode(
         times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share, 1 if variant == 1 else 0)
     else:
         times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
+    ends = (p_first, v_first, p_last, v_last)
+    if not (times_ms is None and variant == 0 and uniform_fallback):
+        return _quantise(ref, times, scales, tol, ends)
+    # a plan made of whole cubics (a jerk-limited profile's phases, a user's rows, a path's chain)
+    # often allows segments beyond `max_seg` (a worst case of the velocity quantisation), and a uniform
+    # grid may beat the greedy placement: try them too, keep the fewest knots that pass
+    failure: EncodingNeedsTime | EncodingFailed | None = None
+    found: tuple[Knots, Reconstruction] | None = None
+    for grid in (times, place_knots(ref, scales, share * tol, min_seg, SEGMENT_TIME_MAX_MS, acc_share)):
+        if found is not None and grid.size >= found[0].times_ms.size:
+            continue
+        try:
+            other = _quantise(ref, grid, scales, tol, ends)
+        except (EncodingNeedsTime, EncodingFailed) as e:
+            failure = failure or e
+            continue
+        if found is None or other[0].times_ms.size < found[0].times_ms.size:
+            found = other
+    found = _uniform_alternative(ref, scales, tol, ends, found)
+    if found is None:
+        assert failure is not None
+        raise failure
+    return found
+
+
+def _uniform_alternative(
+    ref: Reference,
+    scales: AxisScales,
+    tol: float,
+    ends: tuple[IntArray, IntArray, IntArray, IntArray],
+    best: tuple[Knots, Reconstruction] | None,
+) -> tuple[Knots, Reconstruction] | None:
+    """The coarsest uniform grid's number of knots, if fewer than `best`'s (or `best` is None: no other
+    placement passed) and they pass everything `encode` checks.
+
+    An encoding should never need more knots than the coarsest plain uniform grid that meets the
+    tolerance (planner/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
+    knots than `best`, the same number spread evenly (no short last segment, which the acceleration
+    budget would not allow) and the uniform grid itself have their values chosen and verified like any
+    other placement, and the one with the fewest knots replaces `best`. Only grids with fewer knots
+    than `best` are looked at, each first at three ticks per segment (`_quick_miss`), so this costs
+    little where the adaptive placement is far below the uniform grid (paths).
+    """
+    m = ref.duration_ms
+    count = best[0].times_ms.size if best is not None else m + 2
+    p_first, v_first, _p_last, _v_last = ends
+    want = planned_demand(ref)
+    conv = scales.counts_per_ms_per_rpm[:, None]
+    for dt in range(min(SEGMENT_TIME_MAX_MS, m), 0, -1):
+        points = -(-m // dt) + 1
+        if points >= count:
+            break
+        times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
+        pos = want[:, times].copy()
+        vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
+        pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, 0
+        if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol):
+            continue
+        if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():
+            continue
+        even = np.unique(np.round(np.linspace(0.0, m, points))).astype(np.int64)
+        for grid in (even, times):
+            with contextlib.suppress(EncodingNeedsTime, EncodingFailed):
+                other = _quantise(ref, grid, scales, tol, ends)  # may split segments: count again
+                if best is None or other[0].times_ms.size < best[0].times_ms.size:
+                    best = other
+        break
+    return best
+
+
+def _quick_miss(
+    ref: Reference, times: IntArray, pos: FloatArray, vel: FloatArray, want: IntArray, tol: float
+) -> bool:
+    """Does the drive's reconstruction of these knots miss the planned demand at a quarter, half or three
+    quarters of some segment? (A cheap necessary check before the one at every ms.)"""
+    dt = np.diff(times).astype(np.float64)
+    off = np.clip(np.round(np.array([0.25, 0.5, 0.75])[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
+    h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
+    h = (
+        pos[:, :-1, None] * h00
+        + vel[:, :-1, None] * h10
+        + pos[:, 1:, None] * h01
+        + vel[:, 1:, None] * h11
+    )
+    tick = (times[:-1, None] + off).astype(np.int64)
+    return bool((np.abs(hermite.round_counts_array(h) - want[:, tick]) > tol).any())
+
+
+def _quantise(
+    ref: Reference,
+    times: IntArray,
+    scales: AxisScales,
+    tol: float,
+    ends: tuple[IntArray, IntArray, IntArray, IntArray],
+) -> tuple[Knots, Reconstruction]:
+    """Knot values for the knot times (joint choice, local refinement, verification), splitting the
+    segments that still fail the tolerance (see `encode`)."""
+    p_first, v_first, p_last, v_last = ends
     want = planned_demand(ref)
     for _round in range(MAX_ROUNDS):
         fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}

@@ -15,8 +15,7 @@ geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
    curvature is bounded and continuous and the joint accelerations only step where toppra's path
    acceleration switches (a circular blend would add a step at each of its ends). Every control point
    lies on one of the two legs, so the blend stays inside the triangle (A, c, B): inside the box of the
-   position limits whenever the waypoints are (a spline can swing out, a blend cannot), and a 180-degree
-   reversal turns back before the corner instead of overshooting it.
+   position limits whenever the waypoints are (a spline can swing out, a blend cannot).
 3. Size. For a fixed rho the blend is homothetic in l about c, so its deviation is l times a constant
    of the corner. It is measured in tolerance-scaled coordinates y = q / tol: the largest distance from
    the two legs and the closest approach to c must be <= 1 in the Euclidean norm of y, so every axis
@@ -26,8 +25,10 @@ geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
    fastest. The sampled quantities reduce to three scalars per corner (|Y1|^2, Y1.Y2, |Y2|^2 of the
    scaled leg directions), so all corners are evaluated together.
 4. Exact stops. A corner is an exact stop when its tolerance is 0 on an axis that moves on either of
-   its segments, or when the blend that fits is vanishingly small: the path is cut there into runs,
-   each traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
+   its segments, when it is a reversal (the path turns back on itself: the axes stop there anyway),
+   or when the blend that fits would be traversed too fast for the drive's segments to follow it
+   (`blend_duration_ms`, planner.plan.MIN_BLEND_SEGMENTS): the path is cut there into runs, each
+   traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
 
 `blended_runs` returns the runs as `PiecewisePath` objects (a scipy PPoly of degree 5 per axis) with
 `__call__(s, order)`, `length`, `dof` and `gridpoints()`: what toppra and path.py evaluate.
@@ -209,8 +210,10 @@ def corner_blends(
         hl[sl], rho[sl], dev[sl] = h, r, d
     tiny = hl < MIN_BLEND_SHARE * 2.0 * half
     if alim is not None and min_blend_ms > 0.0 and k > 2:
-        quick = blend_duration_ms(u1, u2, hl, rho, vlim, alim) < min_blend_ms
-        tiny = tiny | (quick & (cos > REVERSAL_COS))
+        tiny = tiny | (blend_duration_ms(u1, u2, hl, rho, vlim, alim) < min_blend_ms)
+    # a reversal stops anyway: a blend would only turn back before the waypoint, in a fold the chain
+    # cannot follow within a few ms
+    tiny = tiny | (cos <= REVERSAL_COS)
     for i in range(k - 2):
         if cos[i] >= COLLINEAR_COS:
             corners.append(Corner(i + 1, 0.0, 0.0, 0.0))  # straight on: no blend, no stop

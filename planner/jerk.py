@@ -176,6 +176,8 @@ def move_reference(
     time-synchronised) and `line_optimal_s` (the continuous duration of the profile before rounding).
     """
     if np.all(start == target):
+        if info is not None:
+            info["straight_line"], info["line_optimal_s"] = 1.0, 0.0
         return hold(start * cpu, 1)
     delta = target - start
     length, v, a, j = line_limits(delta, vlim, alim, jlim)

@@ -230,7 +230,9 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
             return pvt_ref
 
     retime = isinstance(d, PathData | MoveData)
-    ref, knots, rec = encode_with_retries(build, scales, tol, retime=retime, axes=job.axes, info_out=info)
+    ref, knots, rec = encode_with_retries(
+        build, scales, tol, retime=retime, axes=job.axes, info_out=info, uniform_fallback=True
+    )
     try:
         _check_reference_positions(ref, cfg, job.axes)
     except PlanningError as e:
@@ -259,6 +261,7 @@ def encode_with_retries(
     start_positions: IntArray | None = None,
     start_velocities_rpm: IntArray | None = None,
     info_out: dict[str, float] | None = None,
+    uniform_fallback: bool = False,
 ) -> tuple[Reference, Knots, Reconstruction]:
     """Build the reference and encode it; planned motions are slowed down when quantisation needs it.
 
@@ -281,6 +284,7 @@ def encode_with_retries(
                 start_positions=start_positions,
                 start_velocities_rpm=start_velocities_rpm,
                 variant=variant,
+                uniform_fallback=uniform_fallback,
             )
             info_out["time_scale"] = factor
             info_out["encode_variant"] = float(variant)

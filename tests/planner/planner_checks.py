@@ -8,11 +8,13 @@ import numpy as np
 
 from planner import hermite
 from planner.config import CellConfig
-from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK
+from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, Knots, planned_demand
 from planner.geometry import point_to_path, polyline_deviation
-from planner.job import Job, PathData, path_tolerance
+from planner.job import Job, PathData, effective_limits, path_tolerance
+from planner.plan import axis_configs, axis_scales
 from planner.record import PvtRecord, pack, unpack
 from planner.trajectory import PvtTrajectory
+from planner.uniform import meets
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -89,3 +91,17 @@ def assert_path_within(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
     # the drive moves continuously between two ms: the waypoint against the motion, not its samples
     near = point_to_path(wp, drive, scale)
     assert near.max() <= 1.0, (int(np.argmax(near)), float(near.max()))
+
+
+def assert_not_more_than_uniform(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
+    """No uniform grid with fewer points than the encoding meets the tolerance on the same plan (the
+    encoding never needs more records than the coarsest uniform grid, planner/uniform.py)."""
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
+    want = planned_demand(traj.plan)
+    m = traj.duration_ms
+    for dt in range(min(255, m), 0, -1):
+        points = -(-m // dt) + 1
+        if points >= traj.n_points:
+            break
+        assert not meets(traj.plan, scales, traj.tolerance_counts, dt, first, want), (dt, points, traj.n_points)

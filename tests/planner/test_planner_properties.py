@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from planner_checks import assert_invariants, assert_path_within
+from planner_checks import assert_invariants, assert_not_more_than_uniform, assert_path_within
 
 from planner import plan_job
 from planner.config import CellConfig
@@ -178,6 +178,7 @@ def test_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     wp = np.array(jd["waypoints"])
     assert_invariants(traj, cell8, target_counts=_counts(cell8, jd["axes"], wp[-1]))
     assert_path_within(traj, job, cell8)
+    assert_not_more_than_uniform(traj, job, cell8)
     assert np.array_equal(traj.positions[:, 0], _counts(cell8, jd["axes"], wp[0]))
     assert np.all(traj.velocities[:, 0] == 0)
     # time-optimal up to the re-timing onto whole ms and the drive-followable chain (1 ms per run), and,
@@ -192,7 +193,10 @@ def test_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
 @given(st.data())
 def test_move_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     jd = data.draw(move_jobs(cell8))
-    _job, traj = _plan(cell8, jd)
+    job, traj = _plan(cell8, jd)
+    assert_not_more_than_uniform(traj, job, cell8)
+    assert traj.info["straight_line"] == 1.0  # along the line from start to target (ruckig, phase-synchronised)
+    assert traj.info["line_deviation_counts"] <= traj.tolerance_counts + 1.0
     start = np.array(jd["start"])
     end = start + np.array(jd["target"]) if jd["mode"] == "relative" else np.array(jd["target"])
     assert np.array_equal(traj.positions[:, 0], _counts(cell8, jd["axes"], start))
@@ -203,7 +207,8 @@ def test_move_jobs(cell8: CellConfig, data: st.DataObject) -> None:
 @given(st.data())
 def test_timed_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     jd = data.draw(timed_jobs(cell8))
-    _job, traj = _plan(cell8, jd)
+    job, traj = _plan(cell8, jd)
+    assert_not_more_than_uniform(traj, job, cell8)
     assert_invariants(traj, cell8, target_counts=_counts(cell8, jd["axes"], np.array(jd["positions"][-1])))
     total_ms = (jd["times"][-1] - jd["times"][0]) * 1000.0
     assert total_ms - 1e-6 <= traj.duration_ms < total_ms + 1.0  # the user's timing, to the ms
@@ -214,15 +219,14 @@ def test_timed_jobs(cell8: CellConfig, data: st.DataObject) -> None:
 def test_pvt_jobs(cell: CellConfig, data: st.DataObject) -> None:
     jd = data.draw(pvt_jobs(cell))
     try:
-        _job, traj = _plan(cell, jd)
+        job, traj = _plan(cell, jd)
     except PlanningError as e:
         # rows whose own Hermite exceeds a limit, or whose quantisation the drive cannot reproduce within
         # the acceleration budget, are rejected with a reason (raw rows are never re-timed)
         assume(not (e.code == "INFEASIBLE" and ("needs a" in e.message or "cannot reproduce" in e.message)))
         raise
     assert_invariants(traj, cell, target_counts=_counts(cell, jd["axes"], np.array(jd["positions"][-1])))
-    rows_ms = np.round(np.array(jd["times"]) * 1000).astype(int)
-    assert set(rows_ms.tolist()) <= set(traj.knot_times_ms.tolist())  # every row is a knot (passed through)
+    assert_not_more_than_uniform(traj, job, cell)
 
 
 @st.composite
