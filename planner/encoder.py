@@ -730,7 +730,7 @@ def encode(
             continue
         if found is None or other[0].times_ms.size < found[0].times_ms.size:
             found = other
-    found = _uniform_alternative(ref, scales, tol, ends, found)
+    found = _uniform_alternative(ref, scales, tol, ends, found, times.size)
     if found is None:
         assert failure is not None
         raise failure
@@ -743,9 +743,10 @@ def _uniform_alternative(
     tol: float,
     ends: tuple[IntArray, IntArray, IntArray, IntArray],
     best: tuple[Knots, Reconstruction] | None,
+    placed: int,
 ) -> tuple[Knots, Reconstruction] | None:
-    """The coarsest uniform grid's number of knots, if fewer than `best`'s (or `best` is None: no other
-    placement passed) and they pass everything `encode` checks.
+    """The coarsest uniform grid's number of knots, if fewer than `best`'s (or, when no other placement
+    passed, than the `placed` knots of the greedy placement) and they pass everything `encode` checks.
 
     An encoding should never need more knots than the coarsest plain uniform grid that meets the
     tolerance (planner/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
@@ -756,7 +757,7 @@ def _uniform_alternative(
     little where the adaptive placement is far below the uniform grid (paths).
     """
     m = ref.duration_ms
-    count = best[0].times_ms.size if best is not None else m + 2
+    count = best[0].times_ms.size if best is not None else placed
     p_first, v_first, _p_last, _v_last = ends
     want = planned_demand(ref)
     conv = scales.counts_per_ms_per_rpm[:, None]
