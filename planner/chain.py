@@ -40,6 +40,7 @@ VEL_SLACK = 1.0e-4
 _LADDER = np.array([0.6, 0.8, 1.0, 1.25, 1.6, 2.0, 3.0])
 _SHORT = np.array([0.75, 0.5, 0.35])  # of min_seg: shorter segments, when no longer one passes
 SHORT_MS = 4
+_SAMPLES = np.array([0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875])  # where the greedy search checks
 
 
 
@@ -57,14 +58,21 @@ class ChainFit:
 
 
 def _segments(
-    q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray
+    q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray, sampled: bool = False
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray]:
-    """Every tick 1..L of the given segments: Hermite position and velocity (n, ticks), the two end
-    accelerations (n, segs), the tick numbers and the segment of every tick."""
-    total = int(lengths.sum())
-    seg = np.repeat(np.arange(starts.size), lengths)
-    first = np.cumsum(lengths) - lengths
-    off = (np.arange(total) - first[seg] + 1).astype(np.float64)
+    """Every tick 1..L of the given segments (or, `sampled`, the ticks at `_SAMPLES` of each): Hermite
+    position and velocity (n, ticks), the two end accelerations (n, segs), the tick numbers and the
+    segment of every tick."""
+    if sampled:
+        k = _SAMPLES.size
+        seg = np.repeat(np.arange(starts.size), k)
+        ln = lengths[seg].astype(np.float64)
+        off = np.clip(np.round(np.tile(_SAMPLES, starts.size) * ln), 1.0, ln)
+    else:
+        total = int(lengths.sum())
+        seg = np.repeat(np.arange(starts.size), lengths)
+        first = np.cumsum(lengths) - lengths
+        off = (np.arange(total) - first[seg] + 1).astype(np.float64)
     tt = lengths[seg].astype(np.float64)
     x = off / tt
     x2 = x * x
@@ -98,20 +106,40 @@ def _scores(
     vlim: FloatArray,
     alim: FloatArray,
     box: tuple[FloatArray, FloatArray],
+    sampled: bool = False,
 ) -> tuple[FloatArray, FloatArray]:
     """Per candidate segment: the geometric error over the budget (2 where it leaves the position
-    limits) and the larger limit ratio."""
-    pos, vel, acc_s, acc_e, ticks, _seg = _segments(q, v, starts, lengths)
-    first = np.cumsum(lengths) - lengths
+    limits) and the larger limit ratio; at every tick, or (`sampled`, for the greedy search) at a few
+    ticks of each segment plus the exact velocity peak (the velocity of a cubic is a parabola)."""
+    pos, vel, acc_s, acc_e, ticks, _seg = _segments(q, v, starts, lengths, sampled)
+    first = np.arange(starts.size) * _SAMPLES.size if sampled else np.cumsum(lengths) - lengths
     err = _deviation(pos, q, tangent, curved, ticks, budget)
     outside = ((pos < box[0][:, None]) | (pos > box[1][:, None])).any(axis=0)
     err = np.where(outside, np.maximum(err, 2.0), err)
     vr = (np.abs(vel) / vlim[:, None]).max(axis=0)
     geo = np.maximum.reduceat(err, first)
     vel_r = np.maximum.reduceat(vr, first)
+    if sampled:
+        vel_r = np.maximum(vel_r, (_velocity_peak(q, v, starts, lengths) / vlim[:, None]).max(axis=0))
     acc_r = (np.maximum(np.abs(acc_s), np.abs(acc_e)) / alim[:, None]).max(axis=0)
     lim = np.maximum((acc_r - ACC_SLACK), (vel_r - VEL_SLACK))
     return geo, lim
+
+
+def _velocity_peak(q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray) -> FloatArray:
+    """|velocity| at the vertex of each segment's velocity parabola, where it lies inside (n, segs)."""
+    t1 = lengths.astype(np.float64)
+    e = starts + lengths
+    dp = (q[:, starts] - q[:, e]) / t1  # velocity in x = t / T: A x^2 + B x + C
+    va, vb = v[:, starts], v[:, e]
+    a2 = 6.0 * dp + 3.0 * va + 3.0 * vb
+    b1 = -6.0 * dp - 4.0 * va - 2.0 * vb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.where(a2 != 0.0, -b1 / (2.0 * a2), -1.0)
+    inside = (x > 0.0) & (x < 1.0)
+    peak = np.abs(a2 * x * x + b1 * x + va)
+    out: FloatArray = np.where(inside, peak, 0.0)
+    return out
 
 
 def _deviation(
@@ -190,7 +218,7 @@ def fit_chain(
         )
         lens = np.clip(lens, short[:, None], hi[:, None]).astype(np.int64)
         k = lens.shape[1]
-        geo, lim = _scores(q, v, tangent, curved, np.repeat(c, k), lens.ravel(), budget, vlim, alim, box)
+        geo, lim = _scores(q, v, tangent, curved, np.repeat(c, k), lens.ravel(), budget, vlim, alim, box, True)
         ok = ((geo <= 1.0) & (lim <= 1.0)).reshape(-1, k)
         rem = room[:, None] - lens
         # preference: at least min_seg (the encoder's quantisation needs it); finish the section; else
@@ -209,6 +237,13 @@ def fit_chain(
     knots = np.unique(np.concatenate(found)).astype(np.int64)
     if allow_short:
         knots = _lengthen(q, v, tangent, curved, knots, mand, budget, vlim, alim, min_seg, max_seg, box)
+    # the search looked at a few ticks per segment: check every tick, halve what fails the geometry
+    for _round in range(4):
+        geo, _lim = _scores(q, v, tangent, curved, knots[:-1], np.diff(knots), budget, vlim, alim, box)
+        bad = np.nonzero((geo > 1.0) & (np.diff(knots) >= 2))[0]
+        if bad.size == 0:
+            break
+        knots = np.unique(np.concatenate([knots, (knots[bad] + knots[bad + 1]) // 2]))
     return _chain(q, v, knots, vlim, alim)
 
 
@@ -257,7 +292,7 @@ def _lengthen(
         segs = [seg for opt in options for seg in opt[2]]
         st = np.array([x[0] for x in segs], dtype=np.int64)
         ln = np.array([x[1] - x[0] for x in segs], dtype=np.int64)
-        geo, lim = _scores(q, v, tangent, curved, st, ln, budget, vlim, alim, box)
+        geo, lim = _scores(q, v, tangent, curved, st, ln, budget, vlim, alim, box, True)
         good = (geo <= 1.0) & (lim <= 1.0)
         pos = 0
         for idx, value, sg in options:

@@ -344,18 +344,21 @@ def place_knots(
 def _structure(ref: Reference, mand: IntArray, gap: int, max_seg: int) -> tuple[IntArray, int]:
     """Section boundaries and the longest section: the plan's own structure where it has one.
 
-    With `hints` (a ruckig profile's phases, a user's rows) the plan is one cubic between two of them:
-    they become section boundaries (those closer than `gap` to a kept one are dropped: a short phase is
-    better crossed than isolated, unless the conservative variant keeps them all) and sections are at
-    most `max_seg` long, so a section that a
+    With `hints` (a ruckig profile's phases, a user's rows, a path chain's knots) the plan is one cubic
+    between two of them: they become section boundaries (those closer than `gap` to a kept one are
+    dropped, a short phase is better crossed than isolated, unless the acceleration may step there or
+    the conservative variant keeps them all) and sections are at most `max_seg` long, so a section that a
     single segment reproduces becomes exactly one. Without hints (toppra's profiles) sections are the
     stretches between the mandatory knots, cut at `SECTION_MS` for the lockstep placement.
     """
     if ref.hints.size == 0:
         return mand, SECTION_MS
     kept = mand.tolist()
+    kinks = set(ref.breaks.tolist())
     for h in ref.hints.tolist():
-        if min(abs(h - k) for k in kept) >= gap:
+        # a hint where the acceleration may step (a chain's knot, a pvt row) is kept however close: a
+        # segment across it cannot follow the plan
+        if h in kinks or min(abs(h - k) for k in kept) >= gap:
             kept.append(h)
     return np.array(sorted(kept), dtype=np.int64), max_seg
 
@@ -879,6 +882,19 @@ def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
     ).any(axis=0)
     out: IntArray = np.unique(np.concatenate([seg_dev, np.nonzero(acc_bad)[0]])).astype(np.int64)
     return out
+
+
+def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
+    """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
+    acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
+    want = planned_demand(ref)
+    if _bad_segments(ref, knots, scales, tol, want).size:
+        return False
+    try:
+        _check_dynamics(ref, knots, reconstruct(knots, scales), scales)
+    except EncodingNeedsTime:
+        return False
+    return True
 
 
 def _check_dynamics(ref: Reference, knots: Knots, rec: Reconstruction, scales: AxisScales) -> None:

@@ -9,13 +9,18 @@ acceleration budget: the baseline gets the easier test). Whether a `dt` passes i
 `dt`, so the coarsest one is found by trying every `dt` from the longest segment (255 ms, or the
 whole motion) down, and the first that passes wins. The adaptive encoder must not use more points
 than that grid (tests/planner, benchmarks/bench_planner.py).
+
+With `margins`, a grid must also keep the encoder's other promises (velocity and acceleration limits,
+the 5 % acceleration-excess budget): a uniform grid whose last segment is a few ms long can meet the
+tolerance by luck of rounding while shaking the drive's acceleration far beyond the budget, and no
+encoding that keeps the planner's margins may use it. The benchmark reports both.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from planner.encoder import AxisScales, Knots, planned_demand, reconstruct
+from planner.encoder import AxisScales, Knots, planned_demand, reconstruct, within_contract
 from planner.record import SEGMENT_TIME_MAX_MS
 from planner.reference import IntArray, Reference
 
@@ -31,22 +36,27 @@ def uniform_knots(ref: Reference, scales: AxisScales, dt: int, first: Knots) -> 
     return Knots(times, pos, vel)
 
 
-def meets(ref: Reference, scales: AxisScales, tolerance: int, dt: int, first: Knots, want: IntArray) -> bool:
+def meets(
+    ref: Reference, scales: AxisScales, tolerance: int, dt: int, first: Knots, want: IntArray, margins: bool = False
+) -> bool:
     knots = uniform_knots(ref, scales, dt, first)
     dev = np.abs(reconstruct(knots, scales).demand - want)
-    return not bool((dev > tolerance).any())
+    if (dev > tolerance).any():
+        return False
+    return within_contract(ref, knots, scales, float(tolerance)) if margins else True
 
 
 def coarsest_uniform(
-    ref: Reference, scales: AxisScales, tolerance: int, first: Knots
+    ref: Reference, scales: AxisScales, tolerance: int, first: Knots, margins: bool = False
 ) -> tuple[int, int]:
-    """(dt_ms, points) of the coarsest uniform grid meeting `tolerance` on `ref`; points include knot 0.
+    """(dt_ms, points) of the coarsest uniform grid meeting `tolerance` (and with `margins`, every other
+    promise of the encoder) on `ref`; points include knot 0.
 
     `first`: knot 0 as the trajectory has it (one knot: its positions and velocities).
     """
     m = ref.duration_ms
     want = planned_demand(ref)
     for dt in range(min(SEGMENT_TIME_MAX_MS, max(m, 1)), 0, -1):
-        if meets(ref, scales, tolerance, dt, first, want):
+        if meets(ref, scales, tolerance, dt, first, want, margins):
             return dt, -(-m // dt) + 1
     return 1, m + 1
