@@ -308,16 +308,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     stats = []
     if args.jobs > 0:
-        head = (f"{'corpus':10} {'jobs':>4} {'refused':>7} {'pts/unif med':>12} {'worst':>6} {'>1':>3} {'(margins)':>9} "
-                f"{'dur/opt med':>11} {'worst':>6} {'>1.02':>5} {'plan/toppra med':>15} {'slowed':>6}")
+        head = (f"{'corpus':10} {'jobs':>4} {'refused':>7} {'pts/unif med':>12} {'worst':>6} {'>1':>3} "
+                f"{'(margins)':>9} {'dur/opt med':>11} {'worst':>6} {'>1.02':>5} {'plan/toppra med':>15} "
+                f"{'slowed':>6}")
         print(head)
         print("-" * len(head))
         for k, kind in enumerate(KINDS):
             s = corpus(cell, kind, args.jobs, args.seed + k)
             stats.append(s)
-            print(f"{kind:10} {s['jobs']:4d} {100 * s['refused']:6.1f}% {s['eff_median']:12.3f} {s['eff_worst']:6.3f} "
-                  f"{s['over_uniform']:3d} {s['over_margins']:9d} {s['dur_median']:11.4f} {s['dur_worst']:6.4f} {s['over_1_02']:5d} "
-                  f"{s['time_median']:15.2f} {s['slowed']:6d}")
+            print(f"{kind:10} {s['jobs']:4d} {100 * s['refused']:6.1f}% {s['eff_median']:12.3f} "
+                  f"{s['eff_worst']:6.3f} {s['over_uniform']:3d} {s['over_margins']:9d} {s['dur_median']:11.4f} "
+                  f"{s['dur_worst']:6.4f} {s['over_1_02']:5d} {s['time_median']:15.2f} {s['slowed']:6d}")
             for r in s["refusals"]:
                 print(f"    refused: {r}")
         print("slowed: jobs played slower than planned because the encoding needed it (encode_with_retries)")
