@@ -147,9 +147,6 @@ class PiecewisePath:
         out: NDArray[np.bool_] = self.blends[piece] == 0
         return out
 
-    def curved(self, s: FloatArray) -> NDArray[np.bool_]:
-        return ~self.merge_safe(s)
-
     def gridpoints(self) -> FloatArray:
         """toppra's gridpoints: `GRID_PER_BLEND` intervals in every blend (its curvature needs them),
         the straight pieces in proportion to their length, every piece boundary a gridpoint."""

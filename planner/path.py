@@ -19,15 +19,21 @@ Theory of operation.
 3. Re-timing onto the drive's clock (`Profile`): a Hermite segment cannot follow an acceleration
    step inside it, so every breakpoint of the profile is put on a whole millisecond: total time
    rounded up, path velocity taken at the rounded gridpoint times and interpolated linearly in time
-   (each piece's acceleration is an average of toppra's, so it never exceeds them), short pieces
-   between two switches merged, path position rescaled to end exactly at the end of the path.
-4. Verification at every ms of every joint: velocity and acceleration against the limits. A residual
-   overshoot (typically < 1 %) is removed by playing the motion that much slower when that costs less
-   than `RESCALE_SHARE`; larger ones (chattering around reversals, merged switches) tighten the toppra
-   rows of the intervals concerned and solve again (at most `REPAIR_ROUNDS` times, then slow down).
+   (each piece's acceleration is an average of toppra's, so it never exceeds them), short transitions
+   between two switches merged where the path is straight, path position rescaled to end exactly at
+   the end of the path.
+4. Blended paths: the plan is the Hermite chain through the re-timed profile (planner/chain.py), the
+   motion the drive itself reproduces with segments long enough for its quantisation; a run that is
+   one straight segment is the closed-form trapezoid instead (`straight_run`: no toppra, no chain).
+5. Verification at every ms of every joint (of the chain, for blended paths): velocity and
+   acceleration against the limits. Overshoots tighten the toppra rows of the intervals concerned
+   (for a chain, of the whole segment that overshoots) and solve again (at most `REPAIR_ROUNDS` times);
+   a small residual is removed by playing the motion that much slower (`RESCALE_SHARE`), from the best
+   profile seen.
 
-Measured on the demo cell: duration within 0.4-0.9 % of raw toppra's own (which itself exceeds the
-acceleration limits between gridpoints by 2-3 %), one toppra solve in most cases.
+Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw toppra's own duration
+(which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.5 %
+(median) and under 2 % over raw toppra on the same blended path with a fine grid.
 """
 
 from __future__ import annotations
@@ -50,8 +56,7 @@ MAX_DURATION_S = 900.0
 RESCALE_SHARE = 0.005  # a residual overshoot needing less slow-down than this is fixed by slowing down
 STEP_SHARE = 0.15  # a path-acceleration step above this share of a joint's limit is a switch
 CHATTER_MS = 8  # big steps closer than this are chattering, not switches (`_switch_mask`)
-SWITCH_SHARE = 0.35  # steps above this share stay steps; smaller ones become ramps (`_round_corners`)
-ROUND_MS = 8.0  # half-width of those ramps at most
+SWITCH_SHARE = 0.35  # a step above this share that stands alone is a real switch (a chain's knot)
 ACC_SLACK = 1.0e-3  # planned acceleration may exceed the limit by this share (numerical noise)
 VEL_SLACK = 1.0e-4
 _THETAS = (0.0, 0.25, 0.5, 0.75, 1.0)  # where inside each grid interval the constraints are imposed
