@@ -24,7 +24,8 @@ both the tolerance and the acceleration budget below.)
    `SECTION_MS`; knots one segment makes unnecessary are dropped again (`_coarsen`). A placement
    allowed up to 255 ms, and the coarsest uniform grid's number of knots spread evenly, are tried too
    (`_uniform_alternative`): the fewest knots that pass every check win, so an encoding never needs
-   more records than the coarsest uniform grid that is itself a valid encoding (planner/uniform.py). Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
+   more records than the coarsest uniform grid that is itself a valid encoding (planner/uniform.py).
+   Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
    moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
    rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
    segments make acceleration noise); sections are balanced and short segments rebalanced.
