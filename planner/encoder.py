@@ -289,14 +289,16 @@ def place_knots(
     max_seg: int,
     acc_share: float = ACC_PLACEMENT_SHARE,
     hint_gap: int = 0,
+    keep_kinks: bool = True,
 ) -> IntArray:
     """Greedy shared knot times 0..M (see the module docstring); hints closer than `hint_gap` (default
-    `min_seg`) to a kept one are no section boundary."""
+    `min_seg`) to a kept one are no section boundary, unless the acceleration may step there and
+    `keep_kinks`."""
     m = ref.duration_ms
     if m <= 0:
         return np.array([0], dtype=np.int64)
     mand = _mandatory_knots(ref, scales, MANDATORY_GAP)
-    bounds, piece = _structure(ref, mand, hint_gap or min_seg, max_seg)
+    bounds, piece = _structure(ref, mand, hint_gap or min_seg, max_seg, keep_kinks)
     cuts: list[int] = []
     for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
         parts = -(-(b - a) // piece)  # equal parts, none longer than `piece`
@@ -347,7 +349,9 @@ def place_knots(
     return _coarsen(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
 
 
-def _structure(ref: Reference, mand: IntArray, gap: int, max_seg: int) -> tuple[IntArray, int]:
+def _structure(
+    ref: Reference, mand: IntArray, gap: int, max_seg: int, keep_kinks: bool = True
+) -> tuple[IntArray, int]:
     """Section boundaries and the longest section: the plan's own structure where it has one.
 
     With `hints` (a ruckig profile's phases, a user's rows, a path chain's knots) the plan is one cubic
@@ -360,7 +364,7 @@ def _structure(ref: Reference, mand: IntArray, gap: int, max_seg: int) -> tuple[
     if ref.hints.size == 0:
         return mand, SECTION_MS
     kept = mand.tolist()
-    kinks = set(ref.breaks.tolist())
+    kinks = set(ref.breaks.tolist()) if keep_kinks else set()
     for h in ref.hints.tolist():
         # a hint where the acceleration may step (a chain's knot, a pvt row) is kept however close: a
         # segment across it cannot follow the plan
@@ -718,7 +722,11 @@ def encode(
         min_seg = min(int(1.6 * min_seg), max_seg)
         acc_share = 2.0 * ACC_PLACEMENT_SHARE
     if times_ms is None:
-        times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share, 1 if variant == 1 else 0)
+        # the long variant also crosses close kinks: a few ms between two knots shake the acceleration
+        # more than a segment across a small acceleration step
+        times = place_knots(
+            ref, scales, share * tol, min_seg, max_seg, acc_share, 1 if variant == 1 else 0, variant < 2
+        )
     else:
         times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
     ends = (p_first, v_first, p_last, v_last)

@@ -55,6 +55,7 @@ S_MIN, S_MAX = 1e-2, 2.0  # toppra's seidel solver is reliable for path lengths 
 GRID_PER_BLEND = 12  # toppra gridpoint intervals per blend ...
 GRID_LINES = 100  # ... and at least this many over the straight pieces of a run, in proportion to length
 GRID_PER_LINE_MIN = 8
+GRID_RAMP = 10  # intervals over each end of a long straight piece (PiecewisePath.gridpoints)
 GRID_MAX = 1500
 _CHUNK = 512  # corners evaluated together (bounds the temporary arrays)
 
@@ -113,11 +114,21 @@ class Corner:
 class PiecewisePath:
     """One rest-to-rest run: straight pieces and quintic blends, a C2 piecewise polynomial q(s)."""
 
-    def __init__(self, breakpoints: FloatArray, coefficients: FloatArray, blends: IntArray, n_axes: int):
+    def __init__(
+        self,
+        breakpoints: FloatArray,
+        coefficients: FloatArray,
+        blends: IntArray,
+        n_axes: int,
+        ramps: FloatArray | None = None,
+    ):
         from scipy.interpolate import PPoly
 
         self.breakpoints = breakpoints  # (P+1,) s at the piece boundaries
         self.blends = blends  # (P,) 1 where the piece is a blend
+        # (P,) on a straight piece, the path length over which it reaches its top speed from rest (inf:
+        # unknown, or a blend): where the time-optimal profile accelerates, toppra needs its gridpoints
+        self.ramps = ramps if ramps is not None else np.full(blends.size, np.inf)
         self._dof = n_axes
         self.spline = PPoly(coefficients, breakpoints)  # coefficients (6, P, n_axes), user units
         self.d1 = self.spline.derivative(1)
@@ -148,8 +159,11 @@ class PiecewisePath:
         return out
 
     def gridpoints(self) -> FloatArray:
-        """toppra's gridpoints: `GRID_PER_BLEND` intervals in every blend (its curvature needs them),
-        the straight pieces in proportion to their length, every piece boundary a gridpoint."""
+        """toppra's gridpoints: `GRID_PER_BLEND` intervals in every blend (its curvature needs them), the
+        straight pieces in proportion to their length, with `GRID_RAMP` more near each end of a long
+        one, where the profile accelerates or brakes (a long slow line otherwise has a handful of
+        intervals there, and the duration suffers: 2 % measured on 3 s lines at a third of the speed);
+        every piece boundary a gridpoint."""
         b = self.breakpoints
         lengths = np.diff(b)
         lines = self.blends == 0
@@ -161,10 +175,22 @@ class PiecewisePath:
             np.maximum(GRID_PER_LINE_MIN, np.round(budget * lengths / max(total_line, 1e-300))),
             GRID_PER_BLEND,
         ).astype(np.int64)
+        long = lines & (lengths > 3.0 * self.ramps)
+        counts = counts + np.where(long, 2 * GRID_RAMP, 0)
         if counts.sum() > GRID_MAX:  # very many pieces: fewer per piece, at least one interval each
             counts = np.maximum(1, np.floor(counts * GRID_MAX / counts.sum())).astype(np.int64)
-        parts = [b[k] + lengths[k] * np.arange(counts[k]) / counts[k] for k in range(lengths.size)]
-        out: FloatArray = np.concatenate([*parts, b[-1:]])
+            long = long & (counts > 2 * GRID_RAMP)
+        parts = []
+        for k in range(lengths.size):
+            if long[k]:
+                r = 1.5 * float(self.ramps[k])
+                middle = int(counts[k]) - 2 * GRID_RAMP
+                ends = np.arange(GRID_RAMP) / GRID_RAMP * r
+                mid = r + (lengths[k] - 2.0 * r) * np.arange(max(middle, 1)) / max(middle, 1)
+                parts.append(b[k] + np.concatenate([ends, mid, lengths[k] - r + ends]))
+            else:
+                parts.append(b[k] + lengths[k] * np.arange(counts[k]) / counts[k])
+        out: FloatArray = np.unique(np.concatenate([*parts, b[-1:]]))
         return out
 
 
@@ -306,7 +332,7 @@ def blended_runs(
             hl[c.index], rho[c.index] = c.half_length, c.rho
     runs = []
     for a, b in itertools.pairwise(cut):
-        runs.append(_run(z, u, lengths, hl, rho, a, b, vlim, n))
+        runs.append(_run(z, u, lengths, hl, rho, a, b, vlim, n, alim))
     return runs, corners
 
 
@@ -320,11 +346,13 @@ def _run(
     last: int,
     vlim: FloatArray,
     n: int,
+    alim: FloatArray | None = None,
 ) -> PiecewisePath:
     """Pieces of the run from waypoint `first` to `last` as power-basis coefficients in s (z units)."""
     coefs: list[FloatArray] = []  # each (6, n): coefficient of (s - s0)^m, m = 0..5
     plen: list[float] = []
     blend: list[int] = []
+    ramp: list[float] = []
     for seg in range(first, last):
         start_off = hl[seg] if seg > first else 0.0
         end_off = hl[seg + 1] if seg + 1 < last else 0.0
@@ -336,6 +364,7 @@ def _run(
             coefs.append(c)
             plen.append(float(line))
             blend.append(0)
+            ramp.append(_ramp(u[seg], vlim, alim))
         if seg + 1 < last and hl[seg + 1] > 0.0:
             corner = seg + 1
             ell = hl[corner]
@@ -348,6 +377,7 @@ def _run(
             coefs.append(c)
             plen.append(float(lb))
             blend.append(1)
+            ramp.append(np.inf)
     if not coefs:  # a run of one vanishing segment: a zero-length line (callers merge such waypoints)
         c = np.zeros((6, n))
         c[0] = z[first]
@@ -355,6 +385,7 @@ def _run(
         coefs.append(c)
         plen.append(max(float(lengths[first]) if first < lengths.size else 0.0, 1e-12))
         blend.append(0)
+        ramp.append(np.inf)
     total = float(np.sum(plen))
     # rescale s so toppra sees a path length in [S_MIN, S_MAX]: coefficient m scales by 1/k^m
     k = S_MAX / total if total > S_MAX else (S_MIN / total if total < S_MIN else 1.0)
@@ -363,7 +394,22 @@ def _run(
     cc = np.stack(coefs, axis=1)  # (6, P, n) lowest order first
     cc = cc / (k ** np.arange(6))[:, None, None]
     cc = cc * vlim[None, None, :]  # z -> user units
-    return PiecewisePath(x, cc[::-1].copy(), np.array(blend, dtype=np.int64), n)
+    return PiecewisePath(x, cc[::-1].copy(), np.array(blend, dtype=np.int64), n, np.array(ramp) * k)
+
+
+def _ramp(direction: FloatArray, vlim: FloatArray, alim: FloatArray | None) -> float:
+    """Path length (z units) a straight piece along unit `direction` (z) needs to reach its top speed
+    from rest: top speed 1 / max |u_j| (the first joint at its velocity limit), path acceleration the
+    tightest alim_j / (vlim_j |u_j|)."""
+    if alim is None:
+        return float("inf")
+    share = np.abs(direction)
+    moving = share > 0.0
+    if not moving.any():
+        return float("inf")
+    top = 1.0 / float(share.max())
+    acc = float(np.min(alim[moving] / (vlim[moving] * share[moving])))
+    return top * top / (2.0 * acc)
 
 
 def polyline_deviation(points: FloatArray, waypoints: FloatArray, scale: FloatArray) -> FloatArray:

@@ -51,7 +51,6 @@ from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
 from planner.reference import FloatArray, IntArray, Reference
 
 REPAIR_ROUNDS = 3
-SHORT_AFTER = 0  # repair rounds before a chain may use segments shorter than the encoder's minimum
 MAX_DURATION_S = 900.0
 RESCALE_SHARE = 0.005  # a residual overshoot needing less slow-down than this is fixed by slowing down
 STEP_SHARE = 0.15  # a path-acceleration step above this share of a joint's limit is a switch
@@ -506,6 +505,7 @@ class ChainSpec:
     max_seg: int
     lower: FloatArray  # position limits (user units), which the chain must not leave
     upper: FloatArray
+    short: bool = True  # segments shorter than min_seg where nothing else passes (else: slow down)
 
 
 def _ratios(
@@ -550,7 +550,7 @@ def plan_run(
     best: tuple[Any, ...] | None = None
 
     def evaluate(
-        p: Profile, allow_short: bool = True
+        p: Profile, allow_short: bool = chain is None or chain.short
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, ChainFit | None]:
         q, v, acc_l, acc_r = joint_samples(geom, p)
         if chain is None:
@@ -592,8 +592,7 @@ def plan_run(
                         f"limit of {MAX_DURATION_S:g} s",
                         path="waypoints",
                     )
-        # short chain segments cost the encoder: first slow the profile where it needs them
-        q, v, acc_l, acc_r, fit = evaluate(prof, allow_short=attempt >= SHORT_AFTER)
+        q, v, acc_l, acc_r, fit = evaluate(prof)
         acc_ratio, vel_ratio = _ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)
         if acc_ratio.max() <= 1.0 + ACC_SLACK and vel_ratio.max() <= 1.0 + VEL_SLACK:
             break

@@ -20,6 +20,7 @@ Errors are PlanningError with stable codes; no toppra/ruckig/numpy exception esc
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
@@ -150,6 +151,8 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
             def build(f: float, smooth: bool = False) -> Reference:
                 from planner.path import SplineGeometry, plan_path
 
+                # the smooth retry (the encoder failed on short pieces): a chain without short segments
+                spec = None if chain is None else dataclasses.replace(chain, short=not smooth)
                 ref, path_info = plan_path(
                     runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
                     cpu,
@@ -160,7 +163,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                     if smooth
                     else min(MIN_SWITCH_PIECE_MS, min_seg),
                     max_duration_s=MAX_DURATION_S,
-                    chain=chain,
+                    chain=spec,
                 )
                 info.update(path_info)
                 return ref
