@@ -69,13 +69,16 @@ def fit_job_to_cell(job: Job, cell: CellConfig) -> Job:
     for key in ("waypoints", "positions"):
         if key in body:
             body[key] = column(body[key])
-    if "target" in body:
-        body["target"] = column([body["target"]])[0]
+    for key in ("target", "start"):  # a move's target and its assumed start: one position per axis
+        if key in body:
+            body[key] = column([body[key]])[0]
     if "velocities" in body:
         body["velocities"] = column(body["velocities"])
-    for key in ("velocity_scale", "acceleration_scale"):
+    for key in ("velocity_scale", "acceleration_scale", "path_tolerance"):
         if isinstance(body.get(key), list):
             body[key] = [body[key][i % len(src)] for i in range(len(names))]
+    for key, values in body.get("limits", {}).items():
+        body["limits"][key] = [values[i % len(src)] for i in range(len(names))]
     body.pop("job_id", None)
     return job_from_dict(body, cell)
 
