@@ -104,6 +104,9 @@ class AxisScales:
     acceleration_axis: FloatArray  # counts/ms^2, the axis limit the 5 % excess budget refers to
     drive_velocity: FloatArray  # 0x607F in counts/ms
     drive_acceleration: FloatArray  # 0x60C5 in counts/ms^2
+    # axes whose drive truncates its position demand toward zero (the other reading seed 000 permits,
+    # known from `pvt probe`): their deviation is checked as that drive rounds; None: all to nearest
+    toward_zero: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,9 +129,19 @@ class Reconstruction:
     acc_end: FloatArray  # (n_axes, N) acceleration at the end of each segment
 
 
-def planned_demand(ref: Reference) -> IntArray:
+def drive_round(x: FloatArray, toward_zero: NDArray[np.bool_] | None) -> IntArray:
+    """Positions (axis first) rounded to whole counts as each axis' drive rounds its demand: to nearest,
+    or toward zero on the axes flagged in `toward_zero`."""
+    if toward_zero is None or not toward_zero.any():
+        return hermite.round_counts_array(x)
+    tz = toward_zero.reshape((-1,) + (1,) * (x.ndim - 1))
+    out: IntArray = np.where(tz, hermite.truncate_counts_array(x), hermite.round_counts_array(x))
+    return out
+
+
+def planned_demand(ref: Reference, toward_zero: NDArray[np.bool_] | None = None) -> IntArray:
     """The plan rounded to whole counts as the drive rounds: what a perfect encoding would command."""
-    return hermite.round_counts_array(ref.positions)
+    return drive_round(ref.positions, toward_zero)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -151,7 +164,8 @@ def reconstruct(knots: Knots, scales: AxisScales) -> Reconstruction:
         v = knots.velocities_rpm[i].astype(np.float64) * scales.counts_per_ms_per_rpm[i]
         p = knots.positions[i].astype(np.float64)
         pos[i], vel[i], _ = hermite.reconstruct(p, v, dt)
-        demand[i] = hermite.round_counts_array(pos[i])
+        tz = scales.toward_zero is not None and bool(scales.toward_zero[i])
+        demand[i] = hermite.truncate_counts_array(pos[i]) if tz else hermite.round_counts_array(pos[i])
         if dt.size:
             dp = p[1:] - p[:-1]
             acc_s[i] = (6.0 * dp - 2.0 * tt * v[1:] - 4.0 * tt * v[:-1]) / (tt * tt)
@@ -540,7 +554,7 @@ def _segment_costs(
     va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
     if exact:
         dev = np.empty((*pa.shape[:2], pa.shape[2], pb.shape[2]))
-        demand_plan = planned_demand(ref)
+        demand_plan = planned_demand(ref, scales.toward_zero)
         for k in range(dt.size):
             ln = int(dt[k])
             off = np.arange(1, ln + 1, dtype=np.float64)
@@ -549,7 +563,7 @@ def _segment_costs(
             hb = pb[:, k, :, None] * h01 + vb[:, k, :, None] * h11
             hh = ha[:, :, None, :] + hb[:, None, :, :]
             want = demand_plan[:, times[k] + 1 : times[k] + ln + 1]
-            dev[:, k] = np.abs(hermite.round_counts_array(hh) - want[:, None, None, :]).max(axis=3)
+            dev[:, k] = np.abs(drive_round(hh, scales.toward_zero) - want[:, None, None, :]).max(axis=3)
         dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
     else:
         off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0))
@@ -570,6 +584,12 @@ def _segment_costs(
         d = ea[:, :, :, None, :] + eb[:, :, None, :, :]  # Hermite - base, (n, N, C, C, Q)
         want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
         dev = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None, :]).max(axis=4)
+        if scales.toward_zero is not None and scales.toward_zero.any():  # those drives truncate
+            z = np.nonzero(scales.toward_zero)[0]
+            bz = base[z][:, :, None, None, :]
+            dz = np.trunc(d[z].astype(np.float64) + bz) - bz
+            wz = (np.trunc(p_at[z]) - base[z])[:, :, None, None, :]
+            dev[z] = np.abs(dz - wz).max(axis=4)
         err = np.abs(d - frac[:, :, None, None, :]).max(axis=4)
         # the drive's rounded demand against the planned demand at the sample ticks, and the float
         # error as a tie-breaker (smaller is more robust at the ticks in between)
@@ -776,7 +796,7 @@ def _uniform_alternative(
     m = ref.duration_ms
     count = best[0].times_ms.size if best is not None else placed
     p_first, v_first, _p_last, _v_last = ends
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     conv = scales.counts_per_ms_per_rpm[:, None]
     for dt in range(min(SEGMENT_TIME_MAX_MS, m), 0, -1):
         points = -(-m // dt) + 1
@@ -786,7 +806,7 @@ def _uniform_alternative(
         pos = want[:, times].copy()
         vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
         pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, 0
-        if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol):
+        if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol, scales.toward_zero):
             continue
         if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():
             continue
@@ -801,7 +821,13 @@ def _uniform_alternative(
 
 
 def _quick_miss(
-    ref: Reference, times: IntArray, pos: FloatArray, vel: FloatArray, want: IntArray, tol: float
+    ref: Reference,
+    times: IntArray,
+    pos: FloatArray,
+    vel: FloatArray,
+    want: IntArray,
+    tol: float,
+    toward_zero: NDArray[np.bool_] | None = None,
 ) -> bool:
     """Does the drive's reconstruction of these knots miss the planned demand at a quarter, half or three
     quarters of some segment? (A cheap necessary check before the one at every ms.)"""
@@ -815,7 +841,7 @@ def _quick_miss(
         + vel[:, 1:, None] * h11
     )
     tick = (times[:-1, None] + off).astype(np.int64)
-    return bool((np.abs(hermite.round_counts_array(h) - want[:, tick]) > tol).any())
+    return bool((np.abs(drive_round(h, toward_zero) - want[:, tick]) > tol).any())
 
 
 def _quantise(
@@ -828,7 +854,7 @@ def _quantise(
     """Knot values for the knot times (joint choice, local refinement, verification), splitting the
     segments that still fail the tolerance (see `encode`)."""
     p_first, v_first, p_last, v_last = ends
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     for _round in range(MAX_ROUNDS):
         fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
         pos, vel = _choose_values(ref, times, scales, tol, fixed)
@@ -901,7 +927,7 @@ def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
 def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
     """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
     acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     if _bad_segments(ref, knots, scales, tol, want).size:
         return False
     try:

@@ -79,6 +79,8 @@ def axis_scales(cfg: Sequence[AxisConfig], limits: dict[str, FloatArray]) -> Axi
         acceleration_axis=limits["acceleration_axis"] * cpu / 1.0e6,
         drive_velocity=np.array([c.max_profile_velocity for c in cfg]) * cpu / 1000.0,
         drive_acceleration=np.array([c.max_acceleration for c in cfg]) * cpu / 1.0e6,
+        # the drive's rounding of its demand where `pvt probe` found it truncates (else to nearest)
+        toward_zero=np.array([c.probed.rounding == "toward_zero" for c in cfg]),
     )
 
 
@@ -344,7 +346,7 @@ def build_trajectory(
     info: dict[str, float],
 ) -> PvtTrajectory:
     cpu = np.array([c.counts_per_unit for c in cfg])
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     dev = np.abs(rec.demand - want).max(axis=1)
     dev_plan = np.abs(rec.demand - ref.positions).max(axis=1)
     excess = acceleration_excess(ref, knots, rec)

@@ -29,7 +29,7 @@ def uniform_knots(ref: Reference, scales: AxisScales, dt: int, first: Knots) -> 
     """The plain encoding of `ref` on a uniform grid of `dt` ms (knot 0 taken from `first`)."""
     m = ref.duration_ms
     times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
-    pos = planned_demand(ref)[:, times].copy()
+    pos = planned_demand(ref, scales.toward_zero)[:, times].copy()
     vel = np.round(ref.velocities[:, times] / scales.counts_per_ms_per_rpm[:, None]).astype(np.int64)
     pos[:, 0], vel[:, 0] = first.positions[:, 0], first.velocities_rpm[:, 0]
     vel[:, -1] = 0
@@ -55,7 +55,7 @@ def coarsest_uniform(
     `first`: knot 0 as the trajectory has it (one knot: its positions and velocities).
     """
     m = ref.duration_ms
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     for dt in range(min(SEGMENT_TIME_MAX_MS, max(m, 1)), 0, -1):
         if meets(ref, scales, tolerance, dt, first, want, margins):
             return dt, -(-m // dt) + 1
