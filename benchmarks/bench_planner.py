@@ -1,18 +1,26 @@
-"""Planner benchmark: encoding efficiency, duration overhead and planning latency, as ratios against
-baselines measured in the same run (`python -m benchmarks planner`, part of `make bench`).
+"""Planner benchmark: encoding efficiency, duration against the optimum and planning latency, as ratios
+against baselines measured in the same run (`python -m benchmarks planner`, part of `make bench`).
 
-- encoding efficiency: adaptive PVT points / points of the coarsest uniform grid that meets the same
-  tolerance on the same plan (values chosen by the same joint P/V search, checked at every ms).
-  Target <= 0.35, for every example job.
-- duration overhead: encoded duration / toppra's own optimal duration for the same path (raw toppra:
-  the standard joint velocity and acceleration constraints, its default gridpoints, seidel,
-  ParametrizeConstAccel). Target <= 1.01 for the path jobs.
-- planning latency: plan + encode + verify (planner.plan_job) / raw toppra (compute_trajectory) on the
-  same 6-axis 20-waypoint path, medians of interleaved runs. Target ratio <= 2.
+Two tables: every example job of configs/jobs/ plus a 20-waypoint 6-axis path, then a corpus of random
+jobs of each kind (`--jobs`, default 200 per kind: paths, paths with sharp corners, moves, timed, pvt).
+
+- points / uniform: the encoding's PVT points over those of the coarsest uniform grid that meets the same
+  tolerance on the same plan (planner/uniform.py: rounded values, checked at every ms). Target <= 1 for
+  every job; <= 0.35 on moves and paths. `>1 (margins)` counts the jobs above the coarsest uniform grid
+  that also keeps the planner's velocity/acceleration margins (what the property test guarantees).
+- duration / optimum: paths against raw toppra on the same geometric path (the blended segments, or the
+  spline for `geometry = "spline"`; one solve per run between exact stops): joint velocity and
+  acceleration constraints, seidel, ParametrizeConstAccel, on the planner's own gridpoints with every
+  interval halved (toppra's default gridpoints miss the small blends altogether and report a duration
+  up to 30 % too short). Moves against ruckig's continuous optimum along the line. Target <= 1.02.
+- planning time / raw toppra: plan + encode + verify (planner.plan_job) over raw toppra on the same
+  path and gridpoints (medians of interleaved runs for the example paths). Target <= 1.5.
+- refused: the share of random jobs the planner rejects (every random job is feasible).
 """
 
 from __future__ import annotations
 
+import argparse
 import logging
 import statistics
 import time
@@ -23,14 +31,16 @@ from typing import Any
 import numpy as np
 
 from planner.config import CellConfig, load_cell
-from planner.encoder import AxisScales, Knots, _choose_values, _refine, planned_demand, reconstruct
-from planner.job import Job, PathData, effective_limits, job_from_dict, load_job
-from planner.plan import axis_configs, axis_scales, plan_job
-from planner.reference import Reference
+from planner.encoder import Knots
+from planner.errors import PlanningError
+from planner.job import Job, PathData, effective_limits, job_from_dict, load_job, path_tolerance
+from planner.plan import _merge_close, axis_configs, axis_scales, lines_geometry, plan_job, snap
 from planner.trajectory import PvtTrajectory
+from planner.uniform import coarsest_uniform
 
 ROOT = Path(__file__).resolve().parent.parent
-LATENCY_RUNS = 21
+LATENCY_RUNS = 11
+KINDS = ("path", "path-sharp", "move", "timed", "pvt")
 
 
 def benchmark_path(cell: CellConfig, n_waypoints: int = 20, seed: int = 7) -> Job:
@@ -47,147 +57,275 @@ def benchmark_path(cell: CellConfig, n_waypoints: int = 20, seed: int = 7) -> Jo
     )
 
 
-def _scales(job: Job, cell: CellConfig) -> AxisScales:
-    return axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+# ----------------------------------------------------------------------------------------------------
+# baselines
 
 
-def _uniform_ok(ref: Reference, scales: AxisScales, tol: int, start: Knots, dt: int, joint: bool) -> bool:
-    """Does a uniform grid of `dt` ms meet the tolerance? Values rounded (joint=False: the plain
-    encoder) or chosen by the same joint P/V search as the adaptive encoder (joint=True)."""
-    m = ref.duration_ms
-    times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
-    n = ref.n_axes
-    want = planned_demand(ref)
-    if not joint:
-        pos = want[:, times].copy()
-        vel = np.round(ref.velocities[:, times] / scales.counts_per_ms_per_rpm[:, None]).astype(np.int64)
-        pos[:, 0], vel[:, 0] = start.positions[:, 0], start.velocities_rpm[:, 0]
-        vel[:, -1] = 0
-        dev = np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want)
-        return not bool((dev > tol).any())
-    fixed = {0: (start.positions[:, 0], start.velocities_rpm[:, 0]),
-             times.size - 1: (want[:, -1], np.zeros(n, dtype=np.int64))}
-    pos, vel = _choose_values(ref, times, scales, float(tol), fixed)
-    knots = Knots(times, pos, vel)
-    dev = np.abs(reconstruct(knots, scales).demand - want)
-    if (dev > tol).any():
-        bad = np.nonzero((dev > tol).any(axis=0))[0]
-        segs = np.unique(np.clip(np.searchsorted(times, bad, side="left") - 1, 0, times.size - 2))
-        knots = _refine(ref, knots, scales, float(tol), segs, {0, times.size - 1})
-        dev = np.abs(reconstruct(knots, scales).demand - want)
-    return not bool((dev > tol).any())
+def uniform_points(job: Job, cell: CellConfig, traj: PvtTrajectory, margins: bool = False) -> tuple[int, int]:
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
+    return coarsest_uniform(traj.plan, scales, traj.tolerance_counts, first, margins)
 
 
-def coarsest_uniform(traj: PvtTrajectory, scales: AxisScales, *, joint: bool = False) -> tuple[int, int]:
-    """(dt_ms, points) of the coarsest uniform grid that meets the trajectory's tolerance on its plan."""
-    ref = traj.plan
-    start = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
-    m = ref.duration_ms
-    ladder = [d for d in (255, 200, 160, 128, 100, 80, 64, 50, 40, 32, 25, 20, 16, 12, 10, 8, 6, 5, 4, 3, 2, 1)
-              if d <= max(m, 1)]
-    best = 1
-    prev_fail = min(255, max(m, 1)) + 1
-    for d in ladder:
-        if _uniform_ok(ref, scales, traj.tolerance_counts, start, d, joint):
-            best = d
-            break
-        prev_fail = d
-    for d in range(prev_fail - 1, best, -1):  # refine between the first pass and the last failure
-        if _uniform_ok(ref, scales, traj.tolerance_counts, start, d, joint):
-            best = d
-            break
-    return best, -(-m // best) + 1
-
-
-def raw_toppra(job: Job, cell: CellConfig) -> tuple[float, float]:
-    """(wall time s, duration s) of plain toppra on the job's path (the planner's own geometry)."""
-    import toppra as ta
-    from toppra.algorithm import TOPPRA
-    from toppra.constraint import JointAccelerationConstraint, JointVelocityConstraint
-
-    from planner.path import PathGeometry
+def path_geometry(job: Job, cell: CellConfig) -> list[Any]:
+    """The geometric path(s) the planner traverses for this path job (its runs between exact stops)."""
+    from planner.encoder import segment_bounds
+    from planner.path import SplineGeometry
 
     assert isinstance(job.data, PathData)
     lim = effective_limits(job, cell)
+    cfg = axis_configs(job.axes, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)
+    wp[0], wp[-1] = snap(wp[0], cpu), snap(wp[-1], cpu)
+    if job.data.geometry == "spline":
+        return [SplineGeometry(wp, lim["velocity"])]
+    scales = axis_scales(cfg, lim)
+    box = (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg]))
+    runs, _chain = lines_geometry(
+        wp, cpu, lim["velocity"], lim["acceleration"], path_tolerance(job, cell), job.tolerance_counts,
+        segment_bounds(scales, float(job.tolerance_counts)), box, {},
+    )
+    return list(runs)
+
+
+def raw_toppra(job: Job, cell: CellConfig, *, refine: bool = True) -> tuple[float, float]:
+    """(wall time s, duration s) of plain toppra on the job's geometric path (every run)."""
+    from toppra.algorithm import TOPPRA
+    from toppra.constraint import JointAccelerationConstraint, JointVelocityConstraint
+
+    from planner.path import toppra_path
+
+    lim = effective_limits(job, cell)
     vlim, alim = lim["velocity"], lim["acceleration"]
-    geom = PathGeometry(np.asarray(job.data.waypoints), vlim)
-    t0 = time.perf_counter()
-    path = ta.SplineInterpolator(geom.ss, geom.waypoints)
-    constraints = [JointVelocityConstraint(np.vstack([-vlim, vlim]).T),
-                   JointAccelerationConstraint(np.vstack([-alim, alim]).T)]
-    traj = TOPPRA(constraints, path, solver_wrapper="seidel", parametrizer="ParametrizeConstAccel").compute_trajectory()
-    elapsed = time.perf_counter() - t0
-    if traj is None:
-        raise RuntimeError("raw toppra failed on the benchmark path")
-    return elapsed, float(traj.duration)
+    elapsed, duration = 0.0, 0.0
+    for geom in path_geometry(job, cell):
+        grid = geom.gridpoints()
+        if refine:
+            grid = np.unique(np.concatenate([grid, 0.5 * (grid[:-1] + grid[1:])]))
+        constraints = [
+            JointVelocityConstraint(np.vstack([-vlim, vlim]).T),
+            JointAccelerationConstraint(np.vstack([-alim, alim]).T),
+        ]
+        t0 = time.perf_counter()
+        traj = TOPPRA(
+            constraints, toppra_path(geom), gridpoints=grid, solver_wrapper="seidel",
+            parametrizer="ParametrizeConstAccel",
+        ).compute_trajectory()
+        elapsed += time.perf_counter() - t0
+        if traj is None:
+            raise RuntimeError("raw toppra failed on a benchmark path")
+        duration += float(traj.duration)
+    return elapsed, duration
 
 
-def efficiency_rows(cell: CellConfig, jobs: Sequence[tuple[str, Job]]) -> list[dict[str, Any]]:
-    rows = []
-    for name, job in jobs:
-        traj = plan_job(job, cell)
-        dt, uniform_points = coarsest_uniform(traj, _scales(job, cell))
-        jdt, joint_points = coarsest_uniform(traj, _scales(job, cell), joint=True)
-        row: dict[str, Any] = {
-            "job": name, "kind": job.kind, "duration_s": traj.duration_s, "points": traj.n_points,
-            "uniform_dt_ms": dt, "uniform_points": uniform_points,
-            "efficiency": traj.n_points / uniform_points,
-            "joint_uniform_dt_ms": jdt, "joint_uniform_points": joint_points,
-            "efficiency_vs_joint": traj.n_points / joint_points,
-            "max_excess_pct": 100 * max(s.acceleration_excess_share for s in traj.stats),
+def optimum_s(job: Job, cell: CellConfig, traj: PvtTrajectory) -> float | None:
+    if job.kind == "path" and "optimal_s" in traj.info:
+        return raw_toppra(job, cell)[1]
+    if job.kind == "move" and traj.info.get("line_optimal_s", 0.0) > 0.0:
+        return float(traj.info["line_optimal_s"])
+    return None
+
+
+# ----------------------------------------------------------------------------------------------------
+# random jobs (every one feasible: inside the limits, user timings within them)
+
+
+def _axes(rng: np.random.Generator, cell: CellConfig, most: int = 6) -> list[str]:
+    n = int(rng.integers(1, min(most, len(cell.axes)) + 1))
+    return [str(a) for a in rng.permutation(cell.axis_names())[:n]]
+
+
+def _inside(rng: np.random.Generator, cell: CellConfig, axes: Sequence[str], lo: float, hi: float) -> np.ndarray:
+    mn = np.array([cell.axis(a).position_min for a in axes])
+    mx = np.array([cell.axis(a).position_max for a in axes])
+    out: np.ndarray = mn + (mx - mn) * rng.uniform(lo, hi, len(axes))
+    return out
+
+
+def random_job(kind: str, rng: np.random.Generator, cell: CellConfig) -> dict[str, Any]:
+    if kind in ("path", "path-sharp"):
+        axes = _axes(rng, cell)
+        rows = int(rng.integers(3, 11))
+        if kind == "path":
+            wp = [_inside(rng, cell, axes, 0.15, 0.85) for _ in range(rows)]
+        else:  # zig-zag: every corner turns by more than 120 degrees on the first axis pair
+            wp = []
+            for k in range(rows):
+                p = _inside(rng, cell, axes, 0.15, 0.85)
+                side = (0.1, 0.25) if k % 2 == 0 else (0.75, 0.9)
+                edge = _inside(rng, cell, axes[:1], *side)
+                p[0] = edge[0]
+                wp.append(p)
+        job: dict[str, Any] = {"kind": "path", "axes": axes, "waypoints": np.array(wp).tolist()}
+    elif kind == "move":
+        axes = _axes(rng, cell)
+        job = {
+            "kind": "move", "axes": axes, "start": _inside(rng, cell, axes, 0.2, 0.8).tolist(),
+            "target": _inside(rng, cell, axes, 0.1, 0.9).tolist(),
         }
-        if job.kind == "path":
-            _t, optimal = raw_toppra(job, cell)
-            row["toppra_s"] = optimal
-            row["duration_ratio"] = traj.duration_s / optimal
-        if job.kind == "pvt":  # the rows are the user's: passed through, nothing to place
-            row["efficiency"] = row["efficiency_vs_joint"] = float("nan")
-        rows.append(row)
-    return rows
+    elif kind == "timed":
+        axes = _axes(rng, cell)
+        rows = int(rng.integers(2, 7))
+        pos = [_inside(rng, cell, axes, 0.35, 0.65) for _ in range(rows)]
+        vel = np.array([cell.axis(a).velocity for a in axes])
+        acc = np.array([cell.axis(a).acceleration for a in axes])
+        times = [0.0]
+        for k in range(1, rows):
+            dq = np.abs(pos[k] - pos[k - 1])
+            need = float(np.max(np.maximum(3.0 * dq / vel, np.sqrt(20.0 * dq / acc))))
+            times.append(round(times[-1] + need + float(rng.uniform(0.05, 0.6)), 4))
+        job = {"kind": "timed", "axes": axes, "times": times, "positions": np.array(pos).tolist()}
+    else:  # pvt rows sampled from a slowed-down straight move, so the rows respect the limits
+        axes = _axes(rng, cell)
+        move = job_from_dict(
+            {"kind": "move", "axes": axes, "start": _inside(rng, cell, axes, 0.4, 0.6).tolist(),
+             "target": _inside(rng, cell, axes, 0.3, 0.7).tolist(), "velocity_scale": 0.5,
+             "acceleration_scale": 0.4},
+            cell,
+        )
+        traj = plan_job(move, cell)
+        step = int(rng.integers(25, 121))
+        m = traj.duration_ms
+        ticks = list(range(0, m, step))
+        if len(ticks) > 1 and m - ticks[-1] < step // 2:
+            ticks.pop()
+        ticks.append(m)
+        cpu = traj.counts_per_unit[:, None]
+        pos = (traj.plan.positions[:, ticks] / cpu).T
+        velo = (traj.plan.velocities[:, ticks] * 1000.0 / cpu).T
+        velo[0] = 0.0
+        velo[-1] = 0.0
+        job = {"kind": "pvt", "axes": axes, "times": [t / 1000.0 for t in ticks], "positions": pos.tolist(),
+               "velocities": velo.tolist()}
+    if rng.random() < 0.3:
+        job["tolerance_counts"] = int(rng.integers(1, 4))
+    if job["kind"] in ("path", "move") and rng.random() < 0.3:
+        job["velocity_scale"] = float(rng.uniform(0.3, 1.0))
+    return job
+
+
+# ----------------------------------------------------------------------------------------------------
+# measurements
+
+
+def measure(job: Job, cell: CellConfig) -> dict[str, Any]:
+    t0 = time.perf_counter()
+    traj = plan_job(job, cell)
+    elapsed = time.perf_counter() - t0
+    dt, uniform = uniform_points(job, cell, traj)
+    _mdt, strict = uniform_points(job, cell, traj, margins=True)
+    row: dict[str, Any] = {
+        "kind": job.kind, "duration_s": traj.duration_s, "points": traj.n_points, "uniform_dt_ms": dt,
+        "uniform_points": uniform, "efficiency": traj.n_points / uniform, "plan_s": elapsed,
+        "efficiency_margins": traj.n_points / strict,
+        "max_excess_pct": 100 * max(s.acceleration_excess_share for s in traj.stats),
+        "time_scale": traj.info.get("time_scale", 1.0),
+    }
+    opt = optimum_s(job, cell, traj)
+    if opt is not None and opt > 0:
+        row["optimum_s"] = opt
+        row["duration_ratio"] = traj.duration_s / opt
+    if job.kind == "path":
+        raw_s, _ = raw_toppra(job, cell, refine=False)
+        row["toppra_ms"] = 1000 * raw_s
+        row["time_ratio"] = elapsed / raw_s
+    return row
 
 
 def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, float]:
     plan_job(job, cell)  # warm up imports and caches
-    raw_toppra(job, cell)
+    raw_toppra(job, cell, refine=False)
     ours, raw = [], []
     for _ in range(runs):  # interleaved, so load from other processes hits both alike
         t0 = time.perf_counter()
         plan_job(job, cell)
         ours.append(time.perf_counter() - t0)
-        raw.append(raw_toppra(job, cell)[0])
+        raw.append(raw_toppra(job, cell, refine=False)[0])
     med_ours, med_raw = statistics.median(ours), statistics.median(raw)
     return {"plan_ms": 1000 * med_ours, "toppra_ms": 1000 * med_raw, "ratio": med_ours / med_raw}
 
 
+def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]:
+    rng = np.random.default_rng(seed)
+    rows: list[dict[str, Any]] = []
+    refused: list[str] = []
+    for _ in range(count):
+        data = random_job(kind, rng, cell)
+        try:
+            rows.append(measure(job_from_dict(data, cell), cell))
+        except PlanningError as e:
+            refused.append(f"{e.code}: {e.message[:100]}")
+    eff = [r["efficiency"] for r in rows]
+    dur = [r["duration_ratio"] for r in rows if "duration_ratio" in r]
+    tim = [r["time_ratio"] for r in rows if "time_ratio" in r]
+    return {
+        "kind": kind, "jobs": count, "refused": len(refused) / count, "refusals": refused[:5],
+        "eff_median": statistics.median(eff) if eff else float("nan"), "eff_worst": max(eff, default=float("nan")),
+        "over_uniform": sum(1 for e in eff if e > 1.0),
+        "over_margins": sum(1 for r in rows if r["efficiency_margins"] > 1.0),
+        "dur_median": statistics.median(dur) if dur else float("nan"), "dur_worst": max(dur, default=float("nan")),
+        "over_1_02": sum(1 for d in dur if d > 1.02),
+        "time_median": statistics.median(tim) if tim else float("nan"),
+        "slowed": sum(1 for r in rows if r["time_scale"] > 1.0),
+    }
+
+
+def _mark(ok: bool | None) -> str:
+    return "n/a" if ok is None else ("ok" if ok else "MISS")
+
+
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_planner", description=__doc__.split("\n")[0])
+    parser.add_argument("--jobs", type=int, default=200, help="random jobs per kind (default 200)")
+    parser.add_argument("--seed", type=int, default=13)
+    args = parser.parse_args(list(argv) if argv is not None else [])
     logging.getLogger("toppra").setLevel(logging.CRITICAL)
     cell = load_cell(ROOT / "configs" / "demo.toml")
     bench = benchmark_path(cell)
     jobs = [(p.name, load_job(p, cell)) for p in sorted((ROOT / "configs" / "jobs").iterdir())]
     jobs.append(("bench-20 (6 axes, 20 waypoints)", bench))
-    rows = efficiency_rows(cell, jobs)
-    lat = latency(cell, bench)
+    rows = [{"job": name, **measure(job, cell)} for name, job in jobs]
 
-    head = (f"{'job':32} {'kind':5} {'dur s':>7} {'points':>6} {'uniform':>12} {'eff.':>6} {'<=0.35':>6} "
-            f"{'unif.+joint':>12} {'eff.':>6} {'toppra s':>8} {'dur/opt':>7} {'<=1.01':>6} {'acc exc%':>8}")
+    head = (f"{'job':32} {'kind':5} {'dur s':>7} {'points':>6} {'uniform':>12} {'pts/unif':>8} {'target':>6} "
+            f"{'optimum s':>9} {'dur/opt':>7} {'<=1.02':>6} {'plan/toppra':>11} {'acc exc%':>8}")
     print(head)
     print("-" * len(head))
     for r in rows:
-        dur = (f"{r['toppra_s']:8.3f} {r['duration_ratio']:7.4f} "
-               f"{('ok' if r['duration_ratio'] <= 1.01 else 'MISS'):>6}") if "duration_ratio" in r else \
-            f"{'':8} {'':7} {'':6}"
+        target = 0.35 if r["kind"] in ("path", "move") else 1.0
+        dur = (f"{r['optimum_s']:9.3f} {r['duration_ratio']:7.4f} {_mark(r['duration_ratio'] <= 1.02):>6}"
+               if "duration_ratio" in r else f"{'':9} {'':7} {'':6}")
+        tim = f"{r['time_ratio']:11.2f}" if "time_ratio" in r else f"{'':11}"
         print(f"{r['job'][:32]:32} {r['kind']:5} {r['duration_s']:7.3f} {r['points']:6d} "
-              f"{r['uniform_points']:6d} @{r['uniform_dt_ms']:3d}ms {r['efficiency']:6.3f} "
-              f"{('n/a' if r['kind'] == 'pvt' else 'ok' if r['efficiency'] <= 0.35 else 'MISS'):>6} "
-              f"{r['joint_uniform_points']:6d} @{r['joint_uniform_dt_ms']:3d}ms {r['efficiency_vs_joint']:6.3f} "
-              f"{dur} {r['max_excess_pct']:8.1f}")
-    print("uniform: the coarsest uniform grid with rounded values meeting the same tolerance; "
-          "unif.+joint: the same with the adaptive encoder's joint P/V choice")
-    print()
+              f"{r['uniform_points']:6d} @{r['uniform_dt_ms']:3d}ms {r['efficiency']:8.3f} "
+              f"{_mark(r['efficiency'] <= target):>6} {dur} {tim} {r['max_excess_pct']:8.1f}")
+    print("uniform: the coarsest uniform grid (rounded values) meeting the same tolerance on the same plan; "
+          "target <= 0.35 for paths and moves, <= 1 for the rest")
+    lat = latency(cell, bench)
     print(f"planning latency on bench-20: plan+encode median {lat['plan_ms']:.1f} ms, raw toppra median "
-          f"{lat['toppra_ms']:.1f} ms, ratio {lat['ratio']:.2f} (target <= 2: {'ok' if lat['ratio'] <= 2 else 'MISS'})")
-    return {"rows": rows, "latency": lat}
+          f"{lat['toppra_ms']:.1f} ms, ratio {lat['ratio']:.2f} (target <= 1.5: {_mark(lat['ratio'] <= 1.5)})")
+    print()
+
+    stats = []
+    if args.jobs > 0:
+        head = (f"{'corpus':10} {'jobs':>4} {'refused':>7} {'pts/unif med':>12} {'worst':>6} {'>1':>3} "
+                f"{'(margins)':>9} {'dur/opt med':>11} {'worst':>6} {'>1.02':>5} {'plan/toppra med':>15} "
+                f"{'slowed':>6}")
+        print(head)
+        print("-" * len(head))
+        for k, kind in enumerate(KINDS):
+            s = corpus(cell, kind, args.jobs, args.seed + k)
+            stats.append(s)
+            print(f"{kind:10} {s['jobs']:4d} {100 * s['refused']:6.1f}% {s['eff_median']:12.3f} "
+                  f"{s['eff_worst']:6.3f} {s['over_uniform']:3d} {s['over_margins']:9d} {s['dur_median']:11.4f} "
+                  f"{s['dur_worst']:6.4f} {s['over_1_02']:5d} {s['time_median']:15.2f} {s['slowed']:6d}")
+            for r in s["refusals"]:
+                print(f"    refused: {r}")
+        print("slowed: jobs played slower than planned because the encoding needed it (encode_with_retries)")
+    return {"rows": rows, "latency": lat, "corpus": stats}
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    main(sys.argv[1:])

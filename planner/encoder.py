@@ -18,8 +18,14 @@ both the tolerance and the acceleration budget below.)
    the plan's by less than `ACC_PLACEMENT_SHARE` of the axis limit. It runs in lockstep over
    independent sections, so every round is one vectorised evaluation for all sections and axes.
    Sections end at the plan's acceleration steps above `STEP_SHARE` (the planners put those on whole
-   ms; a Hermite segment, whose acceleration is linear, cannot follow a step inside it) and at least
-   every `SECTION_MS`. Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
+   ms; a Hermite segment, whose acceleration is linear, cannot follow a step inside it), at the plan's
+   own structure where it has one (`Reference.hints`: a move's phase boundaries, a user's rows, a
+   path chain's knots; one cubic lies between two of them: `_structure`) and at least every
+   `SECTION_MS`; knots one segment makes unnecessary are dropped again (`_coarsen`). A placement
+   allowed up to 255 ms, and the coarsest uniform grid's number of knots spread evenly, are tried too
+   (`_uniform_alternative`): the fewest knots that pass every check win, so an encoding never needs
+   more records than the coarsest uniform grid that is itself a valid encoding (planner/uniform.py).
+   Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
    moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
    rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
    segments make acceleration noise); sections are balanced and short segments rebalanced.
@@ -43,9 +49,11 @@ the last knot is the plan's end rounded to counts with velocity 0, exactly.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner import hermite
 from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
@@ -96,6 +104,9 @@ class AxisScales:
     acceleration_axis: FloatArray  # counts/ms^2, the axis limit the 5 % excess budget refers to
     drive_velocity: FloatArray  # 0x607F in counts/ms
     drive_acceleration: FloatArray  # 0x60C5 in counts/ms^2
+    # axes whose drive truncates its position demand toward zero (the other reading seed 000 permits,
+    # known from `pvt probe`): their deviation is checked as that drive rounds; None: all to nearest
+    toward_zero: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,9 +129,19 @@ class Reconstruction:
     acc_end: FloatArray  # (n_axes, N) acceleration at the end of each segment
 
 
-def planned_demand(ref: Reference) -> IntArray:
+def drive_round(x: FloatArray, toward_zero: NDArray[np.bool_] | None) -> IntArray:
+    """Positions (axis first) rounded to whole counts as each axis' drive rounds its demand: to nearest,
+    or toward zero on the axes flagged in `toward_zero`."""
+    if toward_zero is None or not toward_zero.any():
+        return hermite.round_counts_array(x)
+    tz = toward_zero.reshape((-1,) + (1,) * (x.ndim - 1))
+    out: IntArray = np.where(tz, hermite.truncate_counts_array(x), hermite.round_counts_array(x))
+    return out
+
+
+def planned_demand(ref: Reference, toward_zero: NDArray[np.bool_] | None = None) -> IntArray:
     """The plan rounded to whole counts as the drive rounds: what a perfect encoding would command."""
-    return hermite.round_counts_array(ref.positions)
+    return drive_round(ref.positions, toward_zero)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -143,7 +164,8 @@ def reconstruct(knots: Knots, scales: AxisScales) -> Reconstruction:
         v = knots.velocities_rpm[i].astype(np.float64) * scales.counts_per_ms_per_rpm[i]
         p = knots.positions[i].astype(np.float64)
         pos[i], vel[i], _ = hermite.reconstruct(p, v, dt)
-        demand[i] = hermite.round_counts_array(pos[i])
+        tz = scales.toward_zero is not None and bool(scales.toward_zero[i])
+        demand[i] = hermite.truncate_counts_array(pos[i]) if tz else hermite.round_counts_array(pos[i])
         if dt.size:
             dp = p[1:] - p[:-1]
             acc_s[i] = (6.0 * dp - 2.0 * tt * v[1:] - 4.0 * tt * v[:-1]) / (tt * tt)
@@ -280,15 +302,20 @@ def place_knots(
     min_seg: int,
     max_seg: int,
     acc_share: float = ACC_PLACEMENT_SHARE,
+    hint_gap: int = 0,
+    keep_kinks: bool = True,
 ) -> IntArray:
-    """Greedy shared knot times 0..M (see the module docstring)."""
+    """Greedy shared knot times 0..M (see the module docstring); hints closer than `hint_gap` (default
+    `min_seg`) to a kept one are no section boundary, unless the acceleration may step there and
+    `keep_kinks`."""
     m = ref.duration_ms
     if m <= 0:
         return np.array([0], dtype=np.int64)
     mand = _mandatory_knots(ref, scales, MANDATORY_GAP)
+    bounds, piece = _structure(ref, mand, hint_gap or min_seg, max_seg, keep_kinks)
     cuts: list[int] = []
-    for a, b in zip(mand[:-1].tolist(), mand[1:].tolist(), strict=True):
-        parts = -(-(b - a) // SECTION_MS)  # equal parts, none longer than SECTION_MS
+    for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+        parts = -(-(b - a) // piece)  # equal parts, none longer than `piece`
         cuts.extend(a + (j * (b - a)) // parts for j in range(parts))
     cuts.append(m)
     sec_start = np.array(cuts[:-1], dtype=np.int64)
@@ -332,14 +359,100 @@ def place_knots(
         stay = act[~adv]
         prev[stay] = np.maximum(1, lens[~adv].min(axis=1) // 3)  # length 1 always passes, eventually
     times = np.unique(np.concatenate([*found, np.array([m], dtype=np.int64)]))
-    return _rebalance(ref, times, mand, budget, min_seg, max_seg)
+    times = _rebalance(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
+    return _coarsen(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
+
+
+def _structure(
+    ref: Reference, mand: IntArray, gap: int, max_seg: int, keep_kinks: bool = True
+) -> tuple[IntArray, int]:
+    """Section boundaries and the longest section: the plan's own structure where it has one.
+
+    With `hints` (a ruckig profile's phases, a user's rows, a path chain's knots) the plan is one cubic
+    between two of them: they become section boundaries (those closer than `gap` to a kept one are
+    dropped, a short phase is better crossed than isolated, unless the acceleration may step there or
+    the conservative variant keeps them all) and sections are at most `max_seg` long, so a section that a
+    single segment reproduces becomes exactly one. Without hints (toppra's profiles) sections are the
+    stretches between the mandatory knots, cut at `SECTION_MS` for the lockstep placement.
+    """
+    if ref.hints.size == 0:
+        return mand, SECTION_MS
+    kept = mand.tolist()
+    kinks = set(ref.breaks.tolist()) if keep_kinks else set()
+    for h in ref.hints.tolist():
+        # a hint where the acceleration may step (a chain's knot, a pvt row) is kept however close: a
+        # segment across it cannot follow the plan
+        if h in kinks or min(abs(h - k) for k in kept) >= gap:
+            kept.append(h)
+    return np.array(sorted(kept), dtype=np.int64), max_seg
+
+
+def _acc_misses(
+    ref: Reference, starts: IntArray, lengths: IntArray, acc_axis: FloatArray, min_seg: int, acc_share: float
+) -> NDArray[np.bool_]:
+    """Segments (longer than `min_seg`) whose exact-value Hermite misses the plan's end accelerations by
+    more than `acc_share` of an axis limit (see `_placement_errors`)."""
+    ends = starts + lengths
+    t1 = lengths.astype(np.float64)
+    p, v = ref.positions, ref.velocities
+    dp = p[:, ends] - p[:, starts]
+    acc_s = (6.0 * dp - 2.0 * t1 * v[:, ends] - 4.0 * t1 * v[:, starts]) / (t1 * t1)
+    acc_e = (-6.0 * dp + 4.0 * t1 * v[:, ends] + 2.0 * t1 * v[:, starts]) / (t1 * t1)
+    miss = np.maximum(np.abs(acc_s - ref.acc_right[:, starts]), np.abs(acc_e - ref.acc_left[:, ends]))
+    out: NDArray[np.bool_] = (miss > acc_share * acc_axis[:, None]).any(axis=0) & (lengths > min_seg)
+    return out
+
+
+def _coarsen(
+    ref: Reference,
+    times: IntArray,
+    mand: IntArray,
+    budget: float,
+    min_seg: int,
+    max_seg: int,
+    acc_axis: FloatArray,
+    acc_share: float,
+) -> IntArray:
+    """Drop every knot whose two segments one segment reproduces as well (error at every tick within
+    `budget`, end accelerations within `acc_share`, at most `max_seg` long). Dense user rows and the
+    sections' cuts otherwise cost points that a uniform grid would not spend. Knots at even and odd
+    positions alternate, so no two neighbours are dropped at once; rounds repeat while any is."""
+    t = times
+    for _round in range(64):
+        dropped = False
+        for parity in (1, 2):
+            k = np.arange(parity, t.size - 1, 2)
+            k = k[~np.isin(t[k], mand)]
+            if k.size == 0:
+                continue
+            starts, lengths = t[k - 1], t[k + 1] - t[k - 1]
+            short = lengths <= max_seg
+            k, starts, lengths = k[short], starts[short], lengths[short]
+            if k.size == 0:
+                continue
+            err = _exact_errors(ref, starts, lengths)
+            ok = (err <= budget) & ~_acc_misses(ref, starts, lengths, acc_axis, min_seg, acc_share)
+            if ok.any():
+                t = np.delete(t, k[ok])
+                dropped = True
+        if not dropped:
+            break
+    return t
 
 
 def _rebalance(
-    ref: Reference, times: IntArray, mand: IntArray, budget: float, min_seg: int, max_seg: int
+    ref: Reference,
+    times: IntArray,
+    mand: IntArray,
+    budget: float,
+    min_seg: int,
+    max_seg: int,
+    acc_axis: FloatArray,
+    acc_share: float,
 ) -> IntArray:
-    """Remove or move knots next to segments shorter than `min_seg` where the plan allows it (one pass,
-    all candidate segments checked in one vectorised evaluation)."""
+    """Remove or move knots next to segments shorter than `min_seg` where the plan allows it: position
+    within `budget` at every tick and end accelerations within `acc_share` (one pass, all candidate
+    segments checked in one vectorised evaluation)."""
     t = times
     dt = np.diff(t)
     short = np.nonzero(dt < min_seg)[0]
@@ -366,9 +479,9 @@ def _rebalance(
     if not options:
         return t
     segs = [seg for opt in options for seg in opt[3]]
-    errs = _exact_errors(
-        ref, np.array([x[0] for x in segs], dtype=np.int64), np.array([x[1] for x in segs], dtype=np.int64)
-    )
+    st = np.array([x[0] for x in segs], dtype=np.int64)
+    ln = np.array([x[1] for x in segs], dtype=np.int64)
+    errs = np.where(_acc_misses(ref, st, ln, acc_axis, min_seg, acc_share), np.inf, _exact_errors(ref, st, ln))
     ok: list[bool] = []
     pos = 0
     for opt in options:
@@ -441,7 +554,7 @@ def _segment_costs(
     va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
     if exact:
         dev = np.empty((*pa.shape[:2], pa.shape[2], pb.shape[2]))
-        demand_plan = planned_demand(ref)
+        demand_plan = planned_demand(ref, scales.toward_zero)
         for k in range(dt.size):
             ln = int(dt[k])
             off = np.arange(1, ln + 1, dtype=np.float64)
@@ -450,7 +563,7 @@ def _segment_costs(
             hb = pb[:, k, :, None] * h01 + vb[:, k, :, None] * h11
             hh = ha[:, :, None, :] + hb[:, None, :, :]
             want = demand_plan[:, times[k] + 1 : times[k] + ln + 1]
-            dev[:, k] = np.abs(hermite.round_counts_array(hh) - want[:, None, None, :]).max(axis=3)
+            dev[:, k] = np.abs(drive_round(hh, scales.toward_zero) - want[:, None, None, :]).max(axis=3)
         dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
     else:
         off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0))
@@ -471,6 +584,12 @@ def _segment_costs(
         d = ea[:, :, :, None, :] + eb[:, :, None, :, :]  # Hermite - base, (n, N, C, C, Q)
         want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
         dev = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None, :]).max(axis=4)
+        if scales.toward_zero is not None and scales.toward_zero.any():  # those drives truncate
+            z = np.nonzero(scales.toward_zero)[0]
+            bz = base[z][:, :, None, None, :]
+            dz = np.trunc(d[z].astype(np.float64) + bz) - bz
+            wz = (np.trunc(p_at[z]) - base[z])[:, :, None, None, :]
+            dev[z] = np.abs(dz - wz).max(axis=4)
         err = np.abs(d - frac[:, :, None, None, :]).max(axis=4)
         # the drive's rounded demand against the planned demand at the sample ticks, and the float
         # error as a tie-breaker (smaller is more robust at the ticks in between)
@@ -580,6 +699,7 @@ def encode(
     start_velocities_rpm: IntArray | None = None,
     times_ms: IntArray | None = None,
     variant: int = 0,
+    uniform_fallback: bool = False,
 ) -> tuple[Knots, Reconstruction]:
     """Knots for `ref` whose drive reconstruction is within `tolerance` counts of it at every ms.
 
@@ -587,6 +707,8 @@ def encode(
     `times_ms` gives the knot times instead of placing them (raw PVT jobs pass their own rows through);
     a segment whose quantised values cannot meet the tolerance is still split in two. `variant` 1 and 2
     are the retries when the quantisation noise exceeded the budget (see the module docstring).
+    `uniform_fallback`: also try the coarsest uniform grid with fewer knots (`_uniform_alternative`;
+    the planner asks for it).
     Raises EncodingNeedsTime or EncodingFailed (internal; the planner turns them into PlanningError).
     """
     n = ref.n_axes
@@ -620,10 +742,119 @@ def encode(
         min_seg = min(int(1.6 * min_seg), max_seg)
         acc_share = 2.0 * ACC_PLACEMENT_SHARE
     if times_ms is None:
-        times = place_knots(ref, scales, share * tol, min_seg, max_seg, acc_share)
+        # the long variant also crosses close kinks: a few ms between two knots shake the acceleration
+        # more than a segment across a small acceleration step
+        times = place_knots(
+            ref, scales, share * tol, min_seg, max_seg, acc_share, 1 if variant == 1 else 0, variant < 2
+        )
     else:
         times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
-    want = planned_demand(ref)
+    ends = (p_first, v_first, p_last, v_last)
+    if not (times_ms is None and variant == 0 and uniform_fallback):
+        return _quantise(ref, times, scales, tol, ends)
+    # a plan made of whole cubics (a jerk-limited profile's phases, a user's rows, a path's chain)
+    # often allows segments beyond `max_seg` (a worst case of the velocity quantisation), and a uniform
+    # grid may beat the greedy placement: try them too, keep the fewest knots that pass
+    failure: EncodingNeedsTime | EncodingFailed | None = None
+    found: tuple[Knots, Reconstruction] | None = None
+    for grid in (times, place_knots(ref, scales, share * tol, min_seg, SEGMENT_TIME_MAX_MS, acc_share)):
+        if found is not None and grid.size >= found[0].times_ms.size:
+            continue
+        try:
+            other = _quantise(ref, grid, scales, tol, ends)
+        except (EncodingNeedsTime, EncodingFailed) as e:
+            failure = failure or e
+            continue
+        if found is None or other[0].times_ms.size < found[0].times_ms.size:
+            found = other
+    found = _uniform_alternative(ref, scales, tol, ends, found, times.size)
+    if found is None:
+        assert failure is not None
+        raise failure
+    return found
+
+
+def _uniform_alternative(
+    ref: Reference,
+    scales: AxisScales,
+    tol: float,
+    ends: tuple[IntArray, IntArray, IntArray, IntArray],
+    best: tuple[Knots, Reconstruction] | None,
+    placed: int,
+) -> tuple[Knots, Reconstruction] | None:
+    """The coarsest uniform grid's number of knots, if fewer than `best`'s (or, when no other placement
+    passed, than the `placed` knots of the greedy placement) and they pass everything `encode` checks.
+
+    An encoding should never need more knots than the coarsest plain uniform grid that meets the
+    tolerance (planner/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
+    knots than `best`, the same number spread evenly (no short last segment, which the acceleration
+    budget would not allow) and the uniform grid itself have their values chosen and verified like any
+    other placement, and the one with the fewest knots replaces `best`. Only grids with fewer knots
+    than `best` are looked at, each first at three ticks per segment (`_quick_miss`), so this costs
+    little where the adaptive placement is far below the uniform grid (paths).
+    """
+    m = ref.duration_ms
+    count = best[0].times_ms.size if best is not None else placed
+    p_first, v_first, _p_last, _v_last = ends
+    want = planned_demand(ref, scales.toward_zero)
+    conv = scales.counts_per_ms_per_rpm[:, None]
+    for dt in range(min(SEGMENT_TIME_MAX_MS, m), 0, -1):
+        points = -(-m // dt) + 1
+        if points >= count:
+            break
+        times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
+        pos = want[:, times].copy()
+        vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
+        pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, 0
+        if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol, scales.toward_zero):
+            continue
+        if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():
+            continue
+        even = np.unique(np.round(np.linspace(0.0, m, points))).astype(np.int64)
+        for grid in (even, times):
+            with contextlib.suppress(EncodingNeedsTime, EncodingFailed):
+                other = _quantise(ref, grid, scales, tol, ends)  # may split segments: count again
+                if best is None or other[0].times_ms.size < best[0].times_ms.size:
+                    best = other
+        break
+    return best
+
+
+def _quick_miss(
+    ref: Reference,
+    times: IntArray,
+    pos: FloatArray,
+    vel: FloatArray,
+    want: IntArray,
+    tol: float,
+    toward_zero: NDArray[np.bool_] | None = None,
+) -> bool:
+    """Does the drive's reconstruction of these knots miss the planned demand at a quarter, half or three
+    quarters of some segment? (A cheap necessary check before the one at every ms.)"""
+    dt = np.diff(times).astype(np.float64)
+    off = np.clip(np.round(np.array([0.25, 0.5, 0.75])[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
+    h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
+    h = (
+        pos[:, :-1, None] * h00
+        + vel[:, :-1, None] * h10
+        + pos[:, 1:, None] * h01
+        + vel[:, 1:, None] * h11
+    )
+    tick = (times[:-1, None] + off).astype(np.int64)
+    return bool((np.abs(drive_round(h, toward_zero) - want[:, tick]) > tol).any())
+
+
+def _quantise(
+    ref: Reference,
+    times: IntArray,
+    scales: AxisScales,
+    tol: float,
+    ends: tuple[IntArray, IntArray, IntArray, IntArray],
+) -> tuple[Knots, Reconstruction]:
+    """Knot values for the knot times (joint choice, local refinement, verification), splitting the
+    segments that still fail the tolerance (see `encode`)."""
+    p_first, v_first, p_last, v_last = ends
+    want = planned_demand(ref, scales.toward_zero)
     for _round in range(MAX_ROUNDS):
         fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
         pos, vel = _choose_values(ref, times, scales, tol, fixed)
@@ -691,6 +922,19 @@ def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
     ).any(axis=0)
     out: IntArray = np.unique(np.concatenate([seg_dev, np.nonzero(acc_bad)[0]])).astype(np.int64)
     return out
+
+
+def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
+    """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
+    acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
+    want = planned_demand(ref, scales.toward_zero)
+    if _bad_segments(ref, knots, scales, tol, want).size:
+        return False
+    try:
+        _check_dynamics(ref, knots, reconstruct(knots, scales), scales)
+    except EncodingNeedsTime:
+        return False
+    return True
 
 
 def _check_dynamics(ref: Reference, knots: Knots, rec: Reconstruction, scales: AxisScales) -> None:

@@ -9,7 +9,10 @@ field ("waypoints[7][2]"), with a message naming the axis and the value. What it
 
 Kinds (docs/formats.md has the full schema):
 
-- path:  `waypoints = [[...], ...]`, one row per waypoint (user units): time-optimal, rest to rest;
+- path:  `waypoints = [[...], ...]`, one row per waypoint (user units): time-optimal, rest to rest,
+         along the straight segments with corners blended within `path_tolerance` (a number or one
+         per axis, user units, >= 0; default `DEFAULT_PATH_TOLERANCE_SHARE` of each axis' travel), or
+         through a spline with `geometry = "spline"`;
 - move:  `target = [...]`, `mode = "absolute" | "relative"`, optional `start = [...]` (where the axes
          are assumed to stand when the caller gives no current position): jerk-limited point to point;
 - timed: `times = [...]` (s), `positions = [[...], ...]`: the user's timing, splined rest to rest;
@@ -59,6 +62,8 @@ MAX_DURATION_S = 900.0  # user timing (timed/pvt) longer than this is TOO_LARGE
 MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
 MAX_TOLERANCE_COUNTS = 1_000_000
 MAX_TEXT = 1000
+GEOMETRIES: tuple[str, ...] = ("lines", "spline")
+DEFAULT_PATH_TOLERANCE_SHARE = 1.0e-2  # of the axis' travel (position_max - position_min)
 
 _COMMON = {
     "kind",
@@ -71,7 +76,7 @@ _COMMON = {
     "limits",
 }
 _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) besides the common ones
-    "path": ({"waypoints"}, set()),
+    "path": ({"waypoints"}, {"path_tolerance", "geometry"}),
     "move": ({"target"}, {"mode", "start"}),
     "timed": ({"times", "positions"}, set()),
     "pvt": ({"times", "positions", "velocities"}, set()),
@@ -98,6 +103,9 @@ def _eq_arrays(a: FloatArray | None, b: FloatArray | None) -> bool:
 @dataclass(frozen=True, eq=False)
 class PathData:
     waypoints: FloatArray  # (n_waypoints, n_axes), user units
+    geometry: Literal["lines", "spline"] = "lines"
+    path_tolerance: tuple[float, ...] | None = None  # per axis, user units; None = the default
+    scalar_tolerance: bool = False  # given as one number (kept for job_to_dict)
 
 
 @dataclass(frozen=True, eq=False)
@@ -188,6 +196,8 @@ class Job:
                 raise PlanningError(
                     AXIS_COUNT, f"{f_name} has {arr.shape[0]} values for {n} axes", path=f_name
                 )
+        if isinstance(self.data, PathData):
+            _check_path_options(self.data, self.axes)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Job):
@@ -199,6 +209,38 @@ class Job:
     @property
     def n_axes(self) -> int:
         return len(self.axes)
+
+
+def _check_path_options(data: PathData, axes: Sequence[str]) -> None:
+    if data.geometry not in GEOMETRIES:
+        raise PlanningError(
+            SCHEMA, f"geometry must be one of {list(GEOMETRIES)}, got {data.geometry!r}", path="geometry"
+        )
+    tol = data.path_tolerance
+    if tol is None:
+        return
+    if data.geometry != "lines":
+        raise PlanningError(
+            SCHEMA,
+            "path_tolerance applies to the straight segments (geometry 'lines'); a spline passes "
+            "through every waypoint",
+            path="path_tolerance",
+        )
+    if len(tol) != len(axes):
+        raise PlanningError(
+            AXIS_COUNT, f"path_tolerance has {len(tol)} values for {len(axes)} axes", path="path_tolerance"
+        )
+    for j, v in enumerate(tol):
+        p = "path_tolerance" if data.scalar_tolerance else f"path_tolerance[{j}]"
+        if not math.isfinite(v):
+            raise PlanningError(NONFINITE, f"{p}{_axis_note(axes, j)} is {_nan_name(v)}", path=p)
+        if v < 0:
+            raise PlanningError(
+                LIMITS,
+                f"{p}{'' if data.scalar_tolerance else _axis_note(axes, j)} is {v:g}; a path tolerance "
+                f"is >= 0 (0: stop exactly at every corner)",
+                path=p,
+            )
 
 
 def _arrays(data: JobData) -> list[tuple[str, FloatArray | None]]:
@@ -407,7 +449,21 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
                 f"a path needs at least 2 distinct waypoints, got {distinct} (use a move job to stand still)",
                 path="waypoints",
             )
-        job_data = PathData(_ro(wp))
+        geometry = data.get("geometry", "lines")
+        if not isinstance(geometry, str):
+            raise PlanningError(TYPE, f"geometry must be a string, got {_show(geometry)}", path="geometry")
+        tol: tuple[float, ...] | None = None
+        tol_scalar = False
+        if data.get("path_tolerance") is not None:
+            value = data["path_tolerance"]
+            if isinstance(value, list | tuple):
+                tol = tuple(float(v) for v in _vector(value, "path_tolerance", axes))
+            else:
+                tol = (_number(value, "path_tolerance"),) * len(axes)
+                tol_scalar = True
+        job_data = PathData(
+            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar
+        )
     elif kind == "move":
         mode = data.get("mode", "absolute")
         if not isinstance(mode, str):
@@ -655,6 +711,10 @@ def job_to_dict(job: Job) -> dict[str, Any]:
     d = job.data
     if isinstance(d, PathData):
         out["waypoints"] = d.waypoints.tolist()
+        if d.geometry != "lines":
+            out["geometry"] = d.geometry
+        if d.path_tolerance is not None:
+            out["path_tolerance"] = d.path_tolerance[0] if d.scalar_tolerance else list(d.path_tolerance)
     elif isinstance(d, MoveData):
         out["target"] = d.target.tolist()
         out["mode"] = d.mode
@@ -713,6 +773,15 @@ def load_job(path: str | Path, cell: CellConfig, *, max_rows: int = MAX_ROWS) ->
         except (json.JSONDecodeError, RecursionError) as e:
             raise PlanningError(SCHEMA, f"job file {str(p)!r} is not valid JSON: {e}", path="") from None
     return job_from_dict(data, cell, max_rows=max_rows)
+
+
+def path_tolerance(job: Job, cell: CellConfig) -> FloatArray:
+    """Per-axis path tolerance (user units) of a path job: the job's, or the default share of the travel."""
+    d = job.data
+    if isinstance(d, PathData) and d.path_tolerance is not None:
+        return np.array(d.path_tolerance, dtype=np.float64)
+    cfg = [cell.axis(a) for a in job.axes]
+    return np.array([DEFAULT_PATH_TOLERANCE_SHARE * (c.position_max - c.position_min) for c in cfg])
 
 
 def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:

@@ -1,6 +1,7 @@
 """plan_job: a validated `Job` on a cell -> `PvtTrajectory` (plan, encode, verify, measure).
 
-Theory of operation. Each job kind has a reference builder (path.py: toppra; jerk.py: ruckig;
+Theory of operation. Each job kind has a reference builder (path.py: toppra along the job's geometry,
+geometry.py's blended segments by default; jerk.py: ruckig along the straight line for moves;
 timed.py: the user's timing) that yields the planned motion of every axis at every ms in counts. The
 encoder (encoder.py) turns it into knots and proves the drive's reconstruction; the statistics in the
 trajectory are measured on that reconstruction. Where the encoder finds the motion too fast for the
@@ -9,12 +10,19 @@ planned kinds (path, move, stop) are played slower and encoded again; user timin
 rejected instead. Start and end positions are snapped to whole counts first: the drive stands on
 whole counts, and the plan must start exactly where the drive is.
 
+A path along straight segments uses its `path_tolerance` minus what the encoding may add
+(`lines_geometry`), so the drive's own motion stays within it; a spline path is checked against the
+software limits and refused at its peak excursion. `info` says how the motion follows its geometry
+(blended corners and exact stops; for moves, whether along the line and how far from it).
+
 Errors are PlanningError with stable codes; no toppra/ruckig/numpy exception escapes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -42,12 +50,19 @@ from planner.job import (
     TimedData,
     check_relative_target,
     effective_limits,
+    path_tolerance,
 )
 from planner.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, PvtTrajectory
 
+if TYPE_CHECKING:
+    from planner.geometry import PiecewisePath
+    from planner.path import ChainSpec
+
 MAX_SLOWDOWNS = 6  # attempts at playing a planned motion slower when the quantisation needs it
 TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
+MIN_BLEND_SEGMENTS = 3.0  # a blend shorter than this many shortest segments is an exact stop (geometry)
+BLEND_SHARE = 0.8  # of the free path tolerance: the blends; the rest, the chain (lines_geometry)
 MIN_SWITCH_PIECE_MS = 10  # shorter profile pieces between two switches are merged (see path.Profile)
 
 
@@ -64,6 +79,8 @@ def axis_scales(cfg: Sequence[AxisConfig], limits: dict[str, FloatArray]) -> Axi
         acceleration_axis=limits["acceleration_axis"] * cpu / 1.0e6,
         drive_velocity=np.array([c.max_profile_velocity for c in cfg]) * cpu / 1000.0,
         drive_acceleration=np.array([c.max_acceleration for c in cfg]) * cpu / 1.0e6,
+        # the drive's rounding of its demand where `pvt probe` found it truncates (else to nearest)
+        toward_zero=np.array([c.probed.rounding == "toward_zero" for c in cfg]),
     )
 
 
@@ -83,7 +100,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     """
     cfg = axis_configs(job.axes, cell)
     n = len(cfg)
-    shape = ["spline"]  # path jobs: "pchip" for the one-axis fallback below
+    shape = ["spline"]  # spline path jobs: "pchip" for the one-axis fallback below
     limits = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
     scales = axis_scales(cfg, limits)
@@ -94,7 +111,6 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
     d = job.data
 
     build: Callable[[float, bool], Reference]
-    times_ms: IntArray | None = None
     if isinstance(d, PathData):
         wp = np.array(d.waypoints, dtype=np.float64)
         if here is not None:
@@ -121,12 +137,28 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                     max_duration_s=MAX_DURATION_S,
                 )
         else:
+            runs = None
+            chain = None
+            if d.geometry == "lines":
+                runs, chain = lines_geometry(
+                    wp,
+                    cpu,
+                    limits["velocity"],
+                    limits["acceleration"],
+                    path_tolerance(job, cell),
+                    tol,
+                    segment_bounds(scales, tol),
+                    (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg])),
+                    info,
+                )
 
             def build(f: float, smooth: bool = False) -> Reference:
-                from planner.path import plan_path
+                from planner.path import SplineGeometry, plan_path
 
+                # the smooth retry (the encoder failed on short pieces): a chain without short segments
+                spec = None if chain is None else dataclasses.replace(chain, short=not smooth)
                 ref, path_info = plan_path(
-                    wp,
+                    runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
                     cpu,
                     limits["velocity"],
                     limits["acceleration"],
@@ -135,7 +167,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                     if smooth
                     else min(MIN_SWITCH_PIECE_MS, min_seg),
                     max_duration_s=MAX_DURATION_S,
-                    shape=shape[0],
+                    chain=spec,
                 )
                 info.update(path_info)
                 return ref
@@ -161,6 +193,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                 cpu,
                 time_scale=f,
                 max_duration_s=MAX_DURATION_S,
+                info=info,
             )
     elif isinstance(d, TimedData):
         pos = np.array(d.positions, dtype=np.float64)
@@ -197,7 +230,7 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
         pos[0], pos[-1] = snap(pos[0], cpu), snap(pos[-1], cpu)
         from planner.timed import check_user_timing, pvt_reference
 
-        pvt_ref, times_ms = pvt_reference(np.array(d.times), pos, vel, cpu)
+        pvt_ref, _rows_ms = pvt_reference(np.array(d.times), pos, vel, cpu)
         # the rows' own Hermite may exceed the limits; quantisation adds up to the 5 % excess budget
         check_user_timing(
             pvt_ref,
@@ -213,21 +246,22 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
 
     retime = isinstance(d, PathData | MoveData)
     ref, knots, rec = encode_with_retries(
-        build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
+        build, scales, tol, retime=retime, axes=job.axes, info_out=info, uniform_fallback=True
     )
     try:
         _check_reference_positions(ref, cfg, job.axes)
     except PlanningError as e:
-        if not (isinstance(d, PathData) and n == 1 and e.code == POSITION_LIMIT and shape[0] == "spline"):
+        spline = isinstance(d, PathData) and d.geometry == "spline"
+        if not (spline and n == 1 and e.code == POSITION_LIMIT and shape[0] == "spline"):
             raise
         # one axis, and the C2 spline overshot its waypoints out of the limits: the shape-preserving
         # path cannot (it stays between consecutive waypoints); slower, but a plan instead of a refusal
         shape[0] = "pchip"
         info["path_shape_pchip"] = 1.0
-        ref, knots, rec = encode_with_retries(
-            build, scales, tol, retime=retime, times_ms=times_ms, axes=job.axes, info_out=info
-        )
+        ref, knots, rec = encode_with_retries(build, scales, tol, retime=retime, axes=job.axes, info_out=info)
         _check_reference_positions(ref, cfg, job.axes)
+    if isinstance(d, MoveData):
+        info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
     # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
     return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
@@ -244,6 +278,7 @@ def encode_with_retries(
     start_positions: IntArray | None = None,
     start_velocities_rpm: IntArray | None = None,
     info_out: dict[str, float] | None = None,
+    uniform_fallback: bool = False,
 ) -> tuple[Reference, Knots, Reconstruction]:
     """Build the reference and encode it; planned motions are slowed down when quantisation needs it.
 
@@ -266,6 +301,7 @@ def encode_with_retries(
                 start_positions=start_positions,
                 start_velocities_rpm=start_velocities_rpm,
                 variant=variant,
+                uniform_fallback=uniform_fallback,
             )
             info_out["time_scale"] = factor
             info_out["encode_variant"] = float(variant)
@@ -310,7 +346,7 @@ def build_trajectory(
     info: dict[str, float],
 ) -> PvtTrajectory:
     cpu = np.array([c.counts_per_unit for c in cfg])
-    want = planned_demand(ref)
+    want = planned_demand(ref, scales.toward_zero)
     dev = np.abs(rec.demand - want).max(axis=1)
     dev_plan = np.abs(rec.demand - ref.positions).max(axis=1)
     excess = acceleration_excess(ref, knots, rec)
@@ -420,22 +456,82 @@ def _check_duration_bound(travel: FloatArray, velocity: FloatArray) -> None:
 
 
 def _check_reference_positions(ref: Reference, cfg: Sequence[AxisConfig], axes: Sequence[str]) -> None:
-    """The planned motion (e.g. a spline bulging between waypoints) must stay inside the software limits."""
+    """The planned motion must stay inside the software limits (a spline can swing out between its
+    waypoints; the straight segments and their blends cannot). The error names the peak excursion: the
+    farthest the motion goes beyond a limit, on the axis where that is largest (share of its travel)."""
+    worst: tuple[float, int, int, float] | None = None  # (share beyond, axis, tick, value in user units)
     for j, c in enumerate(cfg):
         lo, hi = c.position_min * c.counts_per_unit, c.position_max * c.counts_per_unit
         row = ref.positions[j]
-        bad = (row < lo - 0.5) | (row > hi + 0.5)
-        if bad.any():
-            k = int(np.argmax(bad))
-            raise PlanningError(
-                POSITION_LIMIT,
-                f"the planned motion of axis {axes[j]!r} reaches "
-                f"{row[k] / c.counts_per_unit:.4g} at t = {k / 1000:.3f} s, outside the "
-                f"software position limits [{c.position_min:g}, {c.position_max:g}] "
-                f"(the spline through the waypoints bulges there)",
-                path="waypoints",
-                detail={"axis": axes[j], "time_s": k / 1000.0},
-            )
+        beyond = np.maximum(lo - row, row - hi)
+        k = int(np.argmax(beyond))
+        if beyond[k] > 0.5:
+            share = float(beyond[k]) / (hi - lo)
+            if worst is None or share > worst[0]:
+                worst = (share, j, k, float(row[k]) / c.counts_per_unit)
+    if worst is None:
+        return
+    _share, j, k, value = worst
+    c = cfg[j]
+    row = ref.positions[j] / c.counts_per_unit
+    low, high = float(row.min()), float(row.max())
+    raise PlanningError(
+        POSITION_LIMIT,
+        f"the planned motion of axis {axes[j]!r} swings out to {value:.6g} at t = {k / 1000:.3f} s "
+        f"(it spans [{low:.6g}, {high:.6g}]), outside the software position limits "
+        f"[{c.position_min:g}, {c.position_max:g}]: the spline through the waypoints bulges there "
+        f"(geometry = \"lines\", the default, keeps to the straight segments)",
+        path="waypoints",
+        detail={"axis": axes[j], "time_s": k / 1000.0, "peak": value, "min": low, "max": high},
+    )
+
+
+def lines_geometry(
+    wp: FloatArray,
+    cpu: FloatArray,
+    vlim: FloatArray,
+    alim: FloatArray,
+    path_tolerance: FloatArray,
+    tolerance_counts: int,
+    segments: tuple[int, int],
+    box: tuple[FloatArray, FloatArray],
+    info: dict[str, float],
+) -> tuple[list[PiecewisePath], ChainSpec]:
+    """The straight segments with blended corners (planner/geometry.py) for a path job, and how the
+    plan becomes a Hermite chain (planner/chain.py).
+
+    What the encoding may add (the drive's rounded demand within `tolerance_counts` of the rounded
+    plan, half a count of rounding, half a count of snapping the end points) is taken off the path
+    tolerance first, so the drive itself stays within it; an axis whose tolerance does not exceed that
+    is exact (its corners are stops). Of the rest, `BLEND_SHARE` goes to the blends and the remainder
+    to the chain's deviation from the exact profile.
+    """
+    from planner.geometry import blended_runs
+    from planner.path import ChainSpec
+
+    margin = (tolerance_counts + 1.0) / cpu
+    free = path_tolerance - margin
+    runs, corners = blended_runs(
+        wp, vlim, np.where(free > 0.0, BLEND_SHARE * free, free), alim, MIN_BLEND_SEGMENTS * segments[0]
+    )
+    info["blended_corners"] = float(sum(1 for c in corners if c.half_length > 0))
+    info["exact_stops"] = float(sum(1 for c in corners if c.half_length < 0))
+    # an exact axis only moves on straight runs, where the chain is exact: a tiny budget for the noise
+    budget = np.where(free > 0.0, (1.0 - BLEND_SHARE) * free, 0.05 / cpu)
+    # the chain stays inside the limits (half a count of the plan's rounding is allowed outside them)
+    lower, upper = box[0] - 0.4 / cpu, box[1] + 0.4 / cpu
+    return runs, ChainSpec(budget, segments[0], segments[1], lower, upper)
+
+
+def line_deviation_counts(positions: FloatArray, start: FloatArray, end: FloatArray) -> float:
+    """Largest distance (counts, on any axis) of `positions` (n, M+1) from the segment start -> end."""
+    d = end - start
+    dd = float(d @ d)
+    if dd == 0.0:
+        return float(np.abs(positions - start[:, None]).max())
+    rel = positions - start[:, None]
+    lam = np.clip((d @ rel) / dd, 0.0, 1.0)
+    return float(np.abs(rel - d[:, None] * lam[None, :]).max())
 
 
 def warm_up() -> None:

@@ -11,11 +11,16 @@ Accelerations are kept on both sides of every tick (`acc_left` on (m-1, m), `acc
 the time-optimal profiles switch acceleration abruptly, and the planners arrange those switches to fall
 on whole milliseconds (listed in `breaks`), because a Hermite segment can only follow an acceleration
 step that sits on one of its knots.
+
+`hints` are the plan's own structure, where one polynomial piece of it ends and the next begins: the
+phase boundaries of a ruckig profile (rounded to whole ms), the rows of a timed or pvt job. Between two
+hints the plan is one cubic (or close to one), which a single Hermite segment reproduces: the encoder
+starts its knot placement from them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +43,7 @@ class Reference:
     acc_left: FloatArray  # (n_axes, M+1): acceleration on (m-1, m); [:, 0] repeats acc_right[:, 0]
     acc_right: FloatArray  # (n_axes, M+1): acceleration on (m, m+1); [:, M] repeats acc_left[:, M]
     breaks: IntArray  # ms in 1..M-1 where the acceleration may jump (sorted, unique)
+    hints: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # ms in 1..M-1
 
     def __post_init__(self) -> None:
         p = np.ascontiguousarray(self.positions, dtype=np.float64)
@@ -50,9 +56,10 @@ class Reference:
             if not np.all(np.isfinite(a)):
                 raise ValueError(f"reference {name} is not finite")
             object.__setattr__(self, name, _readonly(a))
-        b = np.unique(np.asarray(self.breaks, dtype=np.int64))
-        b = b[(b > 0) & (b < p.shape[1] - 1)]
-        object.__setattr__(self, "breaks", _readonly(b))
+        for name in ("breaks", "hints"):
+            b = np.unique(np.asarray(getattr(self, name), dtype=np.int64))
+            b = b[(b > 0) & (b < p.shape[1] - 1)]
+            object.__setattr__(self, name, _readonly(b))
 
     @property
     def n_axes(self) -> int:

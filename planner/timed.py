@@ -2,12 +2,14 @@
 
 Theory of operation. A `timed` job gives positions at times; the motion is the C2 cubic spline
 through them with zero velocity at both ends (rest to rest, scipy `CubicSpline(bc_type="clamped")`),
-played on the drive's clock: the total time is rounded up to whole ms by stretching the timing by
-less than one ms over the whole job. A `pvt` job gives PVT rows in user units on whole-ms times;
-the reference is the drive's own Hermite through the *unquantised* rows, so the encoder only has to
-quantise them (knot times are the rows' times: passed through). Neither is re-timed to respect the
-limits: a user timing that exceeds a velocity or acceleration limit is rejected (INFEASIBLE) with
-the axis, the time and the value.
+played on the drive's clock: every row's time is rounded to the nearest ms (the last one up), so each
+piece of the spline is one cubic between two whole ms, which one Hermite segment reproduces exactly;
+the rows are the reference's `hints`, where the encoder starts placing knots. (Rows less than 1 ms
+apart cannot all keep a ms of their own: then the whole timing is stretched by less than one ms
+instead, as before.) A `pvt` job gives PVT rows in user units on whole-ms times; the reference is the
+drive's own Hermite through the *unquantised* rows, its rows the hints. Neither is re-timed to
+respect the limits: a user timing that exceeds a velocity or acceleration limit is rejected
+(INFEASIBLE) with the axis, the time and the value.
 """
 
 from __future__ import annotations
@@ -25,8 +27,14 @@ def timed_reference(times: FloatArray, positions: FloatArray, cpu: FloatArray) -
     t = times - times[0]
     total_ms = t[-1] * 1000.0
     m = max(int(np.ceil(total_ms - 1e-6)), 1)
-    lam = m / total_ms  # >= 1: stretch by less than 1 ms
-    spline = CubicSpline(t * lam, positions, bc_type="clamped", axis=0)
+    rows = np.round(t * 1000.0)
+    rows[-1] = m
+    if np.all(np.diff(rows) >= 1):
+        knots_s = rows / 1000.0  # every row on its own whole ms
+    else:
+        knots_s = t * (m / total_ms)  # rows closer than 1 ms: stretch the whole timing instead
+        rows = np.zeros(0)
+    spline = CubicSpline(knots_s, positions, bc_type="clamped", axis=0)
     ts = np.arange(m + 1, dtype=np.float64) / 1000.0
     c = cpu[:, None]
     pos = spline(ts).T * c
@@ -39,7 +47,7 @@ def timed_reference(times: FloatArray, positions: FloatArray, cpu: FloatArray) -
     acc_left = acc.copy()
     acc_right = acc.copy()
     # before the start and after the end the axes rest: the steps are on ticks 0 and M (knots)
-    return Reference(pos, vel, acc_left, acc_right, np.zeros(0, dtype=np.int64))
+    return Reference(pos, vel, acc_left, acc_right, np.zeros(0, dtype=np.int64), rows.astype(np.int64))
 
 
 def pvt_reference(
@@ -83,7 +91,7 @@ def pvt_reference(
     acc_right[:, knots[:-1]] = start_acc
     acc_left[:, 0] = acc_right[:, 0]
     acc_right[:, -1] = acc_left[:, -1]
-    return Reference(pos, vel, acc_left, acc_right, knots[1:-1]), knots
+    return Reference(pos, vel, acc_left, acc_right, knots[1:-1], knots[1:-1]), knots
 
 
 def check_user_timing(

@@ -69,13 +69,16 @@ def fit_job_to_cell(job: Job, cell: CellConfig) -> Job:
     for key in ("waypoints", "positions"):
         if key in body:
             body[key] = column(body[key])
-    if "target" in body:
-        body["target"] = column([body["target"]])[0]
+    for key in ("target", "start"):  # a move's target and its assumed start: one position per axis
+        if key in body:
+            body[key] = column([body[key]])[0]
     if "velocities" in body:
         body["velocities"] = column(body["velocities"])
-    for key in ("velocity_scale", "acceleration_scale"):
+    for key in ("velocity_scale", "acceleration_scale", "path_tolerance"):
         if isinstance(body.get(key), list):
             body[key] = [body[key][i % len(src)] for i in range(len(names))]
+    for key, values in body.get("limits", {}).items():
+        body["limits"][key] = [values[i % len(src)] for i in range(len(names))]
     body.pop("job_id", None)
     return job_from_dict(body, cell)
 
@@ -88,7 +91,10 @@ def prepare(
     sync_ms: int | None = None,
     bus: str | None = None,
     bitrate: int | None = None,
+    commissioned: bool = False,
 ) -> tuple[CellConfig, Job, PvtTrajectory]:
+    """The demo's cell (with the options applied), job (fitted to the cell) and plan. `commissioned`: first
+    measure what the plan depends on of the simulated drives (`commission`), as `pvt demo` does."""
     cell = load_cell(config or ROOT / "configs" / "demo.toml")
     try:
         loaded = load_job(job_path or DEFAULT_JOB, cell)  # validated against the cell as configured
@@ -110,9 +116,29 @@ def prepare(
         cell = replace(cell, sync_period_ms=sync_ms)
     if bus is not None or bitrate is not None:
         cell = replace(cell, bus=cell.bus.with_spec(bus, bitrate))
+    if commissioned:
+        cell = commission(cell)
     job = fit_job_to_cell(loaded, cell)
     traj = plan_job(job, cell)
     return cell, job, traj
+
+
+def commission(cell: CellConfig) -> CellConfig:
+    """The cell with each simulated drive's rounding of its position demand in [axis.probed], measured by
+    the standstill probe (`pvt probe --fast`) in virtual time, where the cell does not state it: the plan
+    is encoded for it (a drive that truncates needs other knots than one that rounds to nearest), as the
+    job service plans with the readings it measures at start-up. The other open points stay for the
+    runtime's own probe at configuration (the TPDO latency, for one, is a property of the run's time)."""
+    from bus.sim.virtual import VirtualCell
+
+    if all(a.probed.rounding is not None for a in cell.axes if a.profile == "epos-ipm"):
+        return cell
+    rt = VirtualRuntime(cell, vcell=VirtualCell(cell))
+    rt.ensure_readings()
+    found = rt.settings.readings
+    return replace(cell, axes=tuple(
+        replace(a, probed=replace(a.probed, rounding=found[a.node_id].rounding)) if a.node_id in found else a
+        for a in cell.axes))
 
 
 def _shown(path: Path) -> str:

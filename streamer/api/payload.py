@@ -47,7 +47,7 @@ MAX_SAFE_INT = 2**53  # integers beyond this are not exact as float64: "huge int
 
 # Fields whose second index is the axis (one row per waypoint/knot), and fields whose first index is.
 _ROW_AXIS_FIELDS = frozenset({"waypoints", "positions", "velocities", "rows", "points"})
-_COLUMN_AXIS_FIELDS = frozenset({"target", "start", "velocity_scale", "acceleration_scale"})
+_COLUMN_AXIS_FIELDS = frozenset({"target", "start", "velocity_scale", "acceleration_scale", "path_tolerance"})
 
 
 @dataclass(frozen=True)
@@ -136,6 +136,8 @@ def _axis_of(parts: tuple[str | int, ...], root: Mapping[str, Any]) -> str | Non
         index = parts[2]
     elif parts[0] in _COLUMN_AXIS_FIELDS and len(parts) >= 2:
         index = parts[1]
+    elif parts[0] == "limits" and len(parts) >= 3:  # limits.velocity[1]: one value per axis
+        index = parts[2]
     if isinstance(index, int) and 0 <= index < len(axes) and isinstance(axes[index], str):
         return str(axes[index])
     return None

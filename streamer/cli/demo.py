@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,
-                                       bus=args.bus, bitrate=args.bitrate)
+                                       bus=args.bus, bitrate=args.bitrate, commissioned=True)
     except PlanningError as e:
         console.print(f"[red]error {e.code}[/red]" + escape((f" at {e.path}" if e.path else "") + f": {e.message}"),
                       highlight=False)

@@ -1,7 +1,9 @@
 """`pvt plan JOB --config CELL [--out pvt.csv] [--plot pvt.png] [--json]`: plan and encode one job.
 
 Prints a summary (duration, points, points per second, max deviation per axis in counts, peak
-velocity and acceleration against the limits). `--out` writes the PVT points as CSV (columns
+velocity and acceleration against the limits) and how the motion follows its geometry: a path along
+straight segments (corners blended within path_tolerance, exact stops) or a spline, a move along the
+straight line from start to target or not. `--out` writes the PVT points as CSV (columns
 axis,node_id,index,time_s,dt_ms,position_counts,velocity_rpm; each axis' first row is its start point
 with dt_ms 0), `--plot` draws position, velocity, acceleration and deviation per axis, `--json` prints
 the summary as JSON instead of the table. A rejected job prints its error code, path and message and
@@ -57,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"error {e.code}" + (f" at {e.path}" if e.path else "") + f": {e.message}", file=sys.stderr)
         return 2
     summary = traj.summary()
+    summary["geometry"] = geometry_note(job, traj.info)
     summary["job"] = str(args.job)
     summary["cell"] = cell.name
     summary["planning_ms"] = round(planning_s * 1000.0, 3)
@@ -75,6 +78,29 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def geometry_note(job: Any, info: dict[str, float]) -> str:
+    """One sentence on how the planned motion follows the job's geometry (path and move jobs)."""
+    from planner.job import MoveData, PathData
+
+    d = job.data
+    if isinstance(d, PathData):
+        if d.geometry == "spline":
+            pchip = " (one axis: the shape-preserving cubic, the spline left the limits)"
+            return "through the waypoints on a cubic spline" + (pchip if "path_shape_pchip" in info else "")
+        if "blended_corners" not in info:
+            return "a straight move (the path spans less than a count)"
+        return (f"along the straight segments: {int(info['blended_corners'])} corner(s) blended within "
+                f"path_tolerance, {int(info.get('exact_stops', 0))} exact stop(s)")
+    if isinstance(d, MoveData):
+        if info.get("straight_line", 0.0) == 1.0:
+            return (f"along the straight line from start to target (the drive within "
+                    f"{info.get('line_deviation_counts', 0.0):.1f} counts of it)")
+        return (f"NOT along the straight line: every axis reaches the target at the same time, but off the "
+                f"line by up to {info.get('line_deviation_counts', 0.0):.0f} counts (ruckig could not plan it "
+                f"along the line)")
+    return ""
+
+
 def _print_table(s: dict[str, Any], units: list[str]) -> None:
     """The summary at the terminal's width (80 columns too): units in the headers (the axes' `unit` when
     they share one, else after each value), numbers without exponents, no value cut."""
@@ -90,6 +116,8 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
     console.print(Text(f"segments {seg['min']}..{seg['max']} ms (mean {seg['mean']:.1f}), tolerance "
                        f"{s['tolerance_counts']} count(s), planned in {s['planning_ms']:.1f} ms"))
     console.print(Text(f"job file {s['job']}"))
+    if s.get("geometry"):
+        console.print(Text(f"geometry: {s['geometry']}"))
     same = units[0] if len(set(units)) == 1 else None
     u = f" [{same}/s]" if same else ""
     u2 = f" [{same}/s²]" if same else ""

@@ -8,9 +8,13 @@ import numpy as np
 
 from planner import hermite
 from planner.config import CellConfig
-from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK
+from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, Knots, planned_demand
+from planner.geometry import point_to_path, polyline_deviation
+from planner.job import Job, PathData, effective_limits, path_tolerance
+from planner.plan import axis_configs, axis_scales
 from planner.record import PvtRecord, pack, unpack
 from planner.trajectory import PvtTrajectory
+from planner.uniform import meets
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -71,3 +75,39 @@ def assert_invariants(
         assert s.peak_acceleration <= ax.max_acceleration + 1e-9
         assert s.acceleration_excess_share <= ACC_EXCESS_LIMIT + 1e-12
         assert s.max_deviation_counts <= traj.tolerance_counts
+
+
+def assert_path_within(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
+    """A path job along straight segments: at every ms of the drive's demand, every axis within its
+    path tolerance of the polyline through the job's waypoints, and of every waypoint at some ms (an
+    axis whose tolerance is below what the encoding may add, tolerance_counts + 1 count, within that)."""
+    assert isinstance(job.data, PathData) and job.data.geometry == "lines"
+    cpu = traj.counts_per_unit
+    scale = np.maximum(path_tolerance(job, cell), (traj.tolerance_counts + 1.0) / cpu) * (1 + 1e-9)
+    drive = (traj.demand() / cpu[:, None]).T  # (M+1, n) user units, what the drive commands
+    wp = np.asarray(job.data.waypoints)
+    dev = polyline_deviation(drive, wp, scale)
+    assert dev.max() <= 1.0, (float(dev.max()), int(np.argmax(dev)))
+    # the drive moves continuously between two ms: the waypoint against the motion, not its samples
+    near = point_to_path(wp, drive, scale)
+    assert near.max() <= 1.0, (int(np.argmax(near)), float(near.max()))
+
+
+def assert_not_more_than_uniform(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
+    """No uniform grid with fewer points than the encoding meets the tolerance on the same plan and
+    keeps the planner's margins (the encoding never needs more records than the coarsest uniform
+    grid that is a valid encoding, planner/uniform.py; the benchmark also counts against grids that
+    only meet the tolerance)."""
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
+    want = planned_demand(traj.plan)
+    m = traj.duration_ms
+    for dt in range(min(255, m), 0, -1):
+        points = -(-m // dt) + 1
+        if points >= traj.n_points:
+            break
+        assert not meets(traj.plan, scales, traj.tolerance_counts, dt, first, want, margins=True), (
+            dt,
+            points,
+            traj.n_points,
+        )

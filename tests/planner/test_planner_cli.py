@@ -56,3 +56,63 @@ def test_rejected_job(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     assert main(["plan", str(bad), "--config", DEMO, "--json"]) == 2
     err = json.loads(capsys.readouterr().out)["error"]
     assert err["code"] == "TYPE" and err["path"] == "waypoints[1][1]" and "'j3'" in err["message"]
+
+
+def test_demo_fits_every_per_axis_field_to_the_axes(tmp_path: Path) -> None:
+    """`pvt demo --axes N --job JOB`: the job's start, limits and path tolerance are fitted to N axes too."""
+    move = CONFIGS / "jobs" / "move.toml"  # has `start` for 6 axes
+    assert main(["demo", "--fast", "--quiet", "--axes", "3", "--job", str(move), "--out", str(tmp_path)]) == 0
+    from planner.config import load_cell
+    from planner.job import MoveData, PathData, job_from_dict
+    from streamer.demo import fit_job_to_cell
+
+    cell = load_cell(DEMO)
+    body = {"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [0.5, 0.2], [0.1, 0.3]],
+            "path_tolerance": [0.01, 0.02], "limits": {"velocity": [1.0, 1.5]}}
+    fitted = fit_job_to_cell(job_from_dict(body, cell), cell.with_axes(3))
+    assert fitted.axes == ("j1", "j2", "j3") and fitted.velocity_limit == (1.0, 1.5, 1.0)
+    assert isinstance(fitted.data, PathData) and fitted.data.path_tolerance == (0.01, 0.02, 0.01)
+    moved = fit_job_to_cell(job_from_dict({"kind": "move", "axes": ["j1"], "start": [0.2], "target": [0.4]}, cell),
+                            cell.with_axes(2))
+    assert isinstance(moved.data, MoveData) and moved.data.start is not None and moved.data.start.size == 2
+
+
+def test_plan_says_how_the_motion_follows_its_geometry(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plan", str(CONFIGS / "jobs" / "move.toml"), "--config", DEMO, "--json"]) == 0
+    move = json.loads(capsys.readouterr().out)
+    assert move["geometry"].startswith("along the straight line") and move["info"]["straight_line"] == 1.0
+    assert main(["plan", str(CONFIGS / "jobs" / "rectangle.toml"), "--config", DEMO]) == 0
+    assert "geometry: along the straight segments" in capsys.readouterr().out
+    from planner.config import load_cell
+    from planner.job import load_job
+    from streamer.cli.plan import geometry_note
+
+    job = load_job(CONFIGS / "jobs" / "move.toml", load_cell(DEMO))
+    note = geometry_note(job, {"straight_line": 0.0, "line_deviation_counts": 812.0})
+    assert note.startswith("NOT along the straight line") and "812 counts" in note
+
+
+def test_rectangle_along_its_segments_and_the_spline_refused_at_its_peak(tmp_path: Path) -> None:
+    """The example rectangle: within its path tolerance of the polyline at every ms; the same waypoints on
+    a spline leave j2's limits, and the refusal names the peak excursion, not the first sample out."""
+    from planner_checks import assert_invariants, assert_path_within
+
+    from planner.config import load_cell
+    from planner.errors import PlanningError
+    from planner.job import job_from_dict, job_to_dict, load_job
+    from planner.plan import plan_job
+
+    cell = load_cell(DEMO)
+    job = load_job(CONFIGS / "jobs" / "rectangle.toml", cell)
+    traj = plan_job(job, cell)
+    assert_invariants(traj, cell)
+    assert_path_within(traj, job, cell)
+    body = job_to_dict(job)
+    body.pop("path_tolerance")
+    body["geometry"] = "spline"
+    with pytest.raises(PlanningError) as e:
+        plan_job(job_from_dict(body, cell), cell)
+    assert e.value.code == "POSITION_LIMIT"
+    peak = e.value.detail["peak"]
+    assert peak == e.value.detail["max"] and peak > 2.2  # the farthest it goes, well past the first sample out
+    assert f"{peak:.6g}" in e.value.message and "'j2'" in e.value.message

@@ -171,6 +171,28 @@ BAD: list[tuple[str, dict[str, Any], str, str, str]] = [
         "velocities[1][0]",
         "int24",
     ),
+    ("limit -inf", path(limits={"velocity": [1, -math.inf, 1]}), "NONFINITE", "limits.velocity[1]", "'j2'"),
+    ("path_tolerance negative", path(path_tolerance=-0.1), "LIMITS", "path_tolerance", ">= 0"),
+    (
+        "path_tolerance of one axis negative",
+        path(path_tolerance=[0.1, -0.2, 0.1]),
+        "LIMITS",
+        "path_tolerance[1]",
+        "'j2'",
+    ),
+    ("path_tolerance NaN", path(path_tolerance=[0.1, 0.1, math.nan]), "NONFINITE", "path_tolerance[2]", "'j3'"),
+    ("path_tolerance count", path(path_tolerance=[0.1, 0.1]), "AXIS_COUNT", "path_tolerance", "2 values"),
+    ("path_tolerance a string", path(path_tolerance="tight"), "TYPE", "path_tolerance", "number"),
+    ("geometry unknown", path(geometry="bezier"), "SCHEMA", "geometry", "bezier"),
+    ("geometry not a string", path(geometry=1), "TYPE", "geometry", "string"),
+    ("tolerance with a spline", path(geometry="spline", path_tolerance=0.1), "SCHEMA", "path_tolerance", "spline"),
+    (
+        "path_tolerance on a move",
+        {"kind": "move", "axes": ["j1"], "target": [0.1], "path_tolerance": 0.1},
+        "SCHEMA",
+        "path_tolerance",
+        "path_tolerance",
+    ),
     ("job_id not a string", path(job_id=5), "TYPE", "job_id", "string"),
     ("job_id with slash", path(job_id="a/b"), "SCHEMA", "job_id", "not allowed"),
     (
@@ -237,6 +259,15 @@ def test_defaults_and_fields(cell: CellConfig) -> None:
     assert job.velocity_scale == (0.5, 0.5, 0.5) and job.acceleration_scale == (1.0, 0.5, 0.25)
     assert job.jerk_limit == (10.0, 10.0, 10.0) and job.velocity_limit is None
     assert isinstance(job.data, PathData) and not job.data.waypoints.flags.writeable
+    assert job.data.geometry == "lines" and job.data.path_tolerance is None
+    tol = job_from_dict(path(path_tolerance=0.01), cell)
+    assert isinstance(tol.data, PathData) and tol.data.path_tolerance == (0.01, 0.01, 0.01)
+    assert job_to_dict(tol)["path_tolerance"] == 0.01  # one value stays one value
+    per_axis = job_from_dict(path(path_tolerance=[0.01, 0, 0.5], geometry="lines"), cell)
+    assert job_to_dict(per_axis)["path_tolerance"] == [0.01, 0.0, 0.5] and "geometry" not in job_to_dict(per_axis)
+    spline = job_from_dict(path(geometry="spline"), cell)
+    assert isinstance(spline.data, PathData) and spline.data.geometry == "spline"
+    assert job_to_dict(spline)["geometry"] == "spline"
     plain = job_from_dict(path(), cell)
     assert plain.tolerance_counts == 1 and plain.velocity_scale == (1.0, 1.0, 1.0)
     move = job_from_dict({"kind": "move", "axes": ["j1"], "target": [0.5]}, cell)
@@ -267,6 +298,13 @@ def job_dicts(draw: st.DrawFn) -> dict[str, Any]:
         wp = [[draw(finite) for _ in range(n)] for _ in range(rows)]
         wp[1][0] = wp[0][0] + 0.5
         out["waypoints"] = wp
+        geometry = draw(st.sampled_from(["default", "lines", "spline"]))
+        if geometry != "default":
+            out["geometry"] = geometry
+        if geometry != "spline" and draw(st.booleans()):
+            out["path_tolerance"] = (
+                draw(st.floats(0.0, 0.1)) if draw(st.booleans()) else [draw(st.floats(0.0, 0.1)) for _ in range(n)]
+            )
     elif kind == "move":
         out["target"] = [draw(finite) for _ in range(n)]
         out["mode"] = draw(st.sampled_from(["absolute", "relative"]))

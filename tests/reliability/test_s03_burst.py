@@ -37,18 +37,25 @@ def test_burst_in_motion_is_buffer_underflow_and_everything_stops(faults, varian
     core = rig.core
     outcome = core.outcome
     assert core.state is JobState.FAILED and outcome is not None, model.describe()
-    assert outcome.code == oc.BUFFER_UNDERFLOW and outcome.node == 2, outcome
+    # a burst that starts inside a batch of records sent in one cycle loses part of it: which ones is unknown,
+    # so that is POINT_LOST at once; a burst that starts on a batch boundary is an underflow when a lost record
+    # falls due (which one happens depends on the plan's segment lengths and the drive's FIFO accounting)
+    assert outcome.code in (oc.BUFFER_UNDERFLOW, oc.POINT_LOST) and outcome.node == 2, outcome
     m = assert_all_stopped_within_one_sync(rig)
     # the drive itself underflowed (or the core predicted it no more than 1 SYNC earlier)
     drive2 = rig.vcell.model(2)
     underflows = [f for f in drive2.fault_log if f.code == oc.EMCY_IP_BUFFER]
-    if not outcome.detail.get("predicted"):
+    if outcome.code == oc.BUFFER_UNDERFLOW and not outcome.detail.get("predicted"):
         assert underflows, drive2.fault_log
     for f in underflows:
         assert rig.sync_at(f.t) <= m + 1
     # what ran before the failure was the plan: nothing out of order, nothing twice
     planned = rig.traj.records(rig.traj.node_ids.index(2))
-    assert rig.entered[2] == planned[: len(rig.entered[2])]
+    if outcome.code == oc.POINT_LOST:  # the rest of the partly lost batch reached the FIFO, after the gap
+        first = int(outcome.detail["first_record"])
+        assert rig.entered[2][:first] == planned[:first] and len(rig.entered[2]) < len(planned)
+    else:
+        assert rig.entered[2] == planned[: len(rig.entered[2])]
     assert_no_motion_resumes(rig)
     how = "predicted by the core" if outcome.detail.get("predicted") else "drive EMCY"
     print(f"[scenario 3] failed {outcome.code} at SYNC {m} ({how}); drive 2 underflow EMCY: {bool(underflows)}")

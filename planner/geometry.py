@@ -1,0 +1,478 @@
+"""Geometric paths for path jobs: straight segments between the waypoints with blended corners.
+
+Theory of operation. A machine builder expects a path job to go along the segments between its
+waypoints and to round the corners within a tolerance (G64 in CNC, the blends of MoveIt's TOTG), not
+to swing through them on a spline. This module turns waypoints and a per-axis tolerance into that
+geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
+
+1. Parametrisation. Everything is built in time-normalised coordinates z = q / v_max (per axis), where
+   the arc length of a segment is the time it takes at full speed; toppra's path parameter s is that
+   arc length (rescaled into [0.01, 2], see `S_MIN`). On a straight piece q'(s) is constant, q''(s) = 0.
+2. Blends. At a corner c between the unit directions u1 (in) and u2 (out), a quintic Bezier curve joins
+   A = c - l u1 to B = c + l u2 through the control points A, A + d u1, A + 2d u1, B - 2d u2, B - d u2, B
+   (d = rho l, 0 < rho <= 1/2). Equally spaced first (and last) three control points make q''(s) = 0 at
+   both ends, and a parameter length of 5 d makes q'(s) there equal the line's: the path is C2, so its
+   curvature is bounded and continuous and the joint accelerations only step where toppra's path
+   acceleration switches (a circular blend would add a step at each of its ends). Every control point
+   lies on one of the two legs, so the blend stays inside the triangle (A, c, B): inside the box of the
+   position limits whenever the waypoints are (a spline can swing out, a blend cannot).
+3. Size. For a fixed rho the blend is homothetic in l about c, so its deviation is l times a constant
+   of the corner. It is measured in tolerance-scaled coordinates y = q / tol: the largest distance from
+   the two legs and the closest approach to c must be <= 1 in the Euclidean norm of y, so every axis
+   stays within its own tolerance (with one value for all axes, the distance itself does). l is also at
+   most half of each adjacent segment, so neighbouring blends never overlap. Of the candidate shapes
+   `RHOS`, the one whose smallest radius of curvature (in z) is largest wins: that corner is the
+   fastest. The sampled quantities reduce to three scalars per corner (|Y1|^2, Y1.Y2, |Y2|^2 of the
+   scaled leg directions), so all corners are evaluated together.
+4. Exact stops. A corner is an exact stop when its tolerance is 0 on an axis that moves on either of
+   its segments, when it is a reversal (the path turns back on itself: the axes stop there anyway),
+   or when the blend that fits would be traversed too fast for the drive's segments to follow it
+   (`blend_duration_ms`, planner.plan.MIN_BLEND_SEGMENTS): the path is cut there into runs, each
+   traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
+
+`blended_runs` returns the runs as `PiecewisePath` objects (a scipy PPoly of degree 5 per axis) with
+`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what toppra and path.py evaluate.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from math import comb
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planner.reference import FloatArray, IntArray
+
+# candidate blend shapes d / l (module docstring, 2); 1/2 puts the two middle control points on c
+RHOS = np.array([0.06, 0.09, 0.12, 0.16, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5])
+_T = np.linspace(0.0, 1.0, 129)  # samples of a blend (odd: includes its middle)
+MIN_BLEND_SHARE = 1e-6  # a blend smaller than this share of its shorter segment is an exact stop
+COLLINEAR_COS = 1.0 - 1e-12  # corners straighter than this are no corners (the path goes straight on)
+REVERSAL_COS = -1.0 + 1e-9  # corners sharper than this are reversals (the path turns back on itself)
+S_MIN, S_MAX = 1e-2, 2.0  # toppra's seidel solver is reliable for path lengths in this range (path.py)
+GRID_PER_BLEND = 12  # toppra gridpoint intervals per blend ...
+GRID_LINES = 100  # ... and at least this many over the straight pieces of a run, in proportion to length
+GRID_PER_LINE_MIN = 8
+GRID_RAMP = 10  # intervals over each end of a long straight piece (PiecewisePath.gridpoints)
+GRID_MAX = 1500
+_CHUNK = 512  # corners evaluated together (bounds the temporary arrays)
+
+
+def _bernstein_to_power() -> FloatArray:
+    """M with B(t) = sum_m (M @ P)[m] t^m for the quintic Bezier with control points P."""
+    m = np.zeros((6, 6))
+    for k in range(6):
+        for i in range(6 - k):
+            m[k + i, k] = comb(5, k) * comb(5 - k, i) * (-1.0) ** i
+    return m
+
+
+_M = _bernstein_to_power()
+
+
+def _shape_coefficients(rho: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Power-basis coefficients (len(rho), 6) of f and g with B(t) - c = l (f(t) u1 + g(t) u2)."""
+    r = np.asarray(rho, dtype=np.float64)[:, None]
+    zero = np.zeros_like(r)
+    one = np.ones_like(r)
+    alpha = np.hstack([-one, -(1.0 - r), -(1.0 - 2.0 * r), zero, zero, zero])
+    beta = np.hstack([zero, zero, zero, 1.0 - 2.0 * r, 1.0 - r, one])
+    f: FloatArray = alpha @ _M.T
+    g: FloatArray = beta @ _M.T
+    return f, g
+
+
+def _powers(t: FloatArray, order: int) -> FloatArray:
+    """(len(t), 6): d^order/dt^order of t^m for m = 0..5."""
+    out = np.zeros((t.size, 6))
+    for k in range(order, 6):
+        c = float(np.prod(np.arange(k - order + 1, k + 1))) if order else 1.0
+        out[:, k] = c * t ** (k - order)
+    return out
+
+
+_F, _G = _shape_coefficients(RHOS)
+_P0, _P1, _P2 = _powers(_T, 0), _powers(_T, 1), _powers(_T, 2)
+# samples of f, g and their t-derivatives: (n_rho, n_t)
+_FS, _GS = _F @ _P0.T, _G @ _P0.T
+_F1, _G1 = _F @ _P1.T, _G @ _P1.T
+_F2, _G2 = _F @ _P2.T, _G @ _P2.T
+
+
+@dataclass(frozen=True)
+class Corner:
+    """The blend at one interior waypoint (z coordinates); `half_length` 0 means an exact stop."""
+
+    index: int  # waypoint index
+    half_length: float  # l: the blend starts l before the corner and ends l after it (z units)
+    rho: float  # d / l
+    deviation: float  # largest deviation of the blend in tolerance-scaled units (<= 1)
+
+
+class PiecewisePath:
+    """One rest-to-rest run: straight pieces and quintic blends, a C2 piecewise polynomial q(s)."""
+
+    def __init__(
+        self,
+        breakpoints: FloatArray,
+        coefficients: FloatArray,
+        blends: IntArray,
+        n_axes: int,
+        ramps: FloatArray | None = None,
+    ):
+        from scipy.interpolate import PPoly
+
+        self.breakpoints = breakpoints  # (P+1,) s at the piece boundaries
+        self.blends = blends  # (P,) 1 where the piece is a blend
+        # (P,) on a straight piece, the path length over which it reaches its top speed from rest (inf:
+        # unknown, or a blend): where the time-optimal profile accelerates, toppra needs its gridpoints
+        self.ramps = ramps if ramps is not None else np.full(blends.size, np.inf)
+        self._dof = n_axes
+        self.spline = PPoly(coefficients, breakpoints)  # coefficients (6, P, n_axes), user units
+        self.d1 = self.spline.derivative(1)
+        self.d2 = self.spline.derivative(2)
+
+    @property
+    def length(self) -> float:
+        return float(self.breakpoints[-1])
+
+    @property
+    def dof(self) -> int:
+        return self._dof
+
+    @property
+    def waypoints(self) -> FloatArray:
+        out: FloatArray = np.asarray(self.spline(self.breakpoints), dtype=np.float64)
+        return out
+
+    def __call__(self, s: FloatArray, order: int = 0) -> FloatArray:
+        f = (self.spline, self.d1, self.d2)[order]
+        out: FloatArray = np.asarray(f(np.clip(s, 0.0, self.length)), dtype=np.float64)
+        return out
+
+    def merge_safe(self, s: FloatArray) -> NDArray[np.bool_]:
+        """True on the straight pieces (path.Profile merges short switch pieces only there)."""
+        piece = np.clip(np.searchsorted(self.breakpoints, s, side="right") - 1, 0, self.blends.size - 1)
+        out: NDArray[np.bool_] = self.blends[piece] == 0
+        return out
+
+    def gridpoints(self) -> FloatArray:
+        """toppra's gridpoints: `GRID_PER_BLEND` intervals in every blend (its curvature needs them), the
+        straight pieces in proportion to their length, with `GRID_RAMP` more near each end of a long
+        one, where the profile accelerates or brakes (a long slow line otherwise has a handful of
+        intervals there, and the duration suffers: 2 % measured on 3 s lines at a third of the speed);
+        every piece boundary a gridpoint."""
+        b = self.breakpoints
+        lengths = np.diff(b)
+        lines = self.blends == 0
+        total_line = float(lengths[lines].sum())
+        n_lines = int(lines.sum())
+        budget = max(GRID_LINES, GRID_PER_LINE_MIN * n_lines)
+        counts = np.where(
+            lines,
+            np.maximum(GRID_PER_LINE_MIN, np.round(budget * lengths / max(total_line, 1e-300))),
+            GRID_PER_BLEND,
+        ).astype(np.int64)
+        long = lines & (lengths > 3.0 * self.ramps)
+        counts = counts + np.where(long, 2 * GRID_RAMP, 0)
+        if counts.sum() > GRID_MAX:  # very many pieces: fewer per piece, at least one interval each
+            counts = np.maximum(1, np.floor(counts * GRID_MAX / counts.sum())).astype(np.int64)
+            long = long & (counts > 2 * GRID_RAMP)
+        parts = []
+        for k in range(lengths.size):
+            if long[k]:
+                r = 1.5 * float(self.ramps[k])
+                middle = int(counts[k]) - 2 * GRID_RAMP
+                ends = np.arange(GRID_RAMP) / GRID_RAMP * r
+                mid = r + (lengths[k] - 2.0 * r) * np.arange(max(middle, 1)) / max(middle, 1)
+                parts.append(b[k] + np.concatenate([ends, mid, lengths[k] - r + ends]))
+            else:
+                parts.append(b[k] + lengths[k] * np.arange(counts[k]) / counts[k])
+        out: FloatArray = np.unique(np.concatenate([*parts, b[-1:]]))
+        return out
+
+
+def corner_blends(
+    waypoints: FloatArray,
+    vlim: FloatArray,
+    tolerance: FloatArray,
+    alim: FloatArray | None = None,
+    min_blend_ms: float = 0.0,
+) -> tuple[list[Corner], FloatArray, FloatArray]:
+    """The blend of every interior waypoint (see the module docstring), and the segments' unit
+    directions (K-1, n) and lengths (K-1,) in z coordinates. `tolerance` (n,) in user units; an axis
+    with tolerance <= 0 must not deviate at all. With `alim`, a blend that cannot last `min_blend_ms`
+    (`blend_duration_ms`: even at the largest speed its curvature allows) is an exact stop instead."""
+    z = waypoints / vlim[None, :]
+    seg = np.diff(z, axis=0)
+    lengths = np.linalg.norm(seg, axis=1)
+    u = seg / np.maximum(lengths, 1e-300)[:, None]
+    k = waypoints.shape[0]
+    corners: list[Corner] = []
+    if k < 3:
+        return corners, u, lengths
+    u1, u2 = u[:-1], u[1:]
+    cos = np.clip(np.einsum("ij,ij->i", u1, u2), -1.0, 1.0)
+    exact_axis = tolerance <= 0.0
+    moving = np.abs(seg) > 0.0
+    stop = (moving[:-1] | moving[1:])[:, exact_axis].any(axis=1) & (cos < COLLINEAR_COS)
+    scale = vlim / np.where(exact_axis, 1.0, tolerance)  # z -> y per axis
+    y1, y2 = u1 * scale[None, :], u2 * scale[None, :]
+    a11 = np.einsum("ij,ij->i", y1, y1)
+    a12 = np.einsum("ij,ij->i", y1, y2)
+    a22 = np.einsum("ij,ij->i", y2, y2)
+    half = 0.5 * np.minimum(lengths[:-1], lengths[1:])
+    hl = np.zeros(k - 2)
+    rho = np.full(k - 2, RHOS[-1])
+    dev = np.zeros(k - 2)
+    for lo in range(0, k - 2, _CHUNK):
+        sl = slice(lo, min(lo + _CHUNK, k - 2))
+        h, r, d = _size(cos[sl], a11[sl], a12[sl], a22[sl], half[sl])
+        hl[sl], rho[sl], dev[sl] = h, r, d
+    tiny = hl < MIN_BLEND_SHARE * 2.0 * half
+    if alim is not None and min_blend_ms > 0.0 and k > 2:
+        tiny = tiny | (blend_duration_ms(u1, u2, hl, rho, vlim, alim) < min_blend_ms)
+    # a reversal stops anyway: a blend would only turn back before the waypoint, in a fold the chain
+    # cannot follow within a few ms
+    tiny = tiny | (cos <= REVERSAL_COS)
+    for i in range(k - 2):
+        if cos[i] >= COLLINEAR_COS:
+            corners.append(Corner(i + 1, 0.0, 0.0, 0.0))  # straight on: no blend, no stop
+        elif stop[i] or tiny[i]:
+            corners.append(Corner(i + 1, -1.0, 0.0, 0.0))  # exact stop
+        else:
+            corners.append(Corner(i + 1, float(hl[i]), float(rho[i]), float(dev[i])))
+    return corners, u, lengths
+
+
+def blend_duration_ms(
+    u1: FloatArray, u2: FloatArray, half_length: FloatArray, rho: FloatArray, vlim: FloatArray, alim: FloatArray
+) -> FloatArray:
+    """A lower bound of the time each blend takes (ms): along it, no faster than its curvature lets
+    every joint's centripetal acceleration stay within its limit (and never above full speed).
+
+    A blend much shorter in time than the encoder's shortest segment swings the joints' accelerations
+    faster than any sequence of drive segments can follow within one count; planner.plan makes those
+    corners exact stops (`MIN_BLEND_SEGMENTS`).
+    """
+    out = np.zeros(half_length.size)
+    for lo in range(0, half_length.size, _CHUNK):
+        sl = slice(lo, min(lo + _CHUNK, half_length.size))
+        f, g = _shape_coefficients(np.where(rho[sl] > 0, rho[sl], RHOS[-1]))
+        ell = half_length[sl][:, None, None]
+        b1 = ell * ((f @ _P1.T)[:, :, None] * u1[sl][:, None, :] + (g @ _P1.T)[:, :, None] * u2[sl][:, None, :])
+        b2 = ell * ((f @ _P2.T)[:, :, None] * u1[sl][:, None, :] + (g @ _P2.T)[:, :, None] * u2[sl][:, None, :])
+        speed = np.linalg.norm(b1, axis=2)  # |dz/dt| of the Bezier parameter
+        tangent = b1 / np.maximum(speed, 1e-300)[:, :, None]
+        normal = b2 - np.einsum("ctk,ctk->ct", b2, tangent)[:, :, None] * tangent
+        curv = normal / np.maximum(speed, 1e-150)[:, :, None] ** 2  # curvature vector in z (per z unit)
+        # joint j: vlim_j * curv_j * zeta^2 <= alim_j, zeta in z units per s (at most 1: full speed)
+        need = (np.abs(curv) * (vlim / alim)[None, None, :]).max(axis=2)
+        zeta = np.minimum(1.0, 1.0 / np.sqrt(np.maximum(need, 1e-300)))
+        out[sl] = 1000.0 * np.trapezoid(speed / zeta, _T, axis=1)
+    return out
+
+
+def _size(
+    cos: FloatArray, a11: FloatArray, a12: FloatArray, a22: FloatArray, half: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Half-length l, shape rho and scaled deviation of the blends of a chunk of corners."""
+    fs, gs = _FS[None], _GS[None]  # (1, R, T)
+    b11, b12, b22 = a11[:, None, None], a12[:, None, None], a22[:, None, None]
+    # y-offset of the blend point from c is p = f Y1 + g Y2 (l = 1)
+    pp = fs * fs * b11 + 2.0 * fs * gs * b12 + gs * gs * b22
+    dist_c = np.sqrt(np.maximum(pp, 0.0)).min(axis=2)  # closest approach to the corner
+    # distance to leg 1 {-lam Y1} and leg 2 {lam Y2}, lam in [0, 1]
+    p_y1 = fs * b11 + gs * b12
+    lam1 = np.clip(-p_y1 / np.maximum(b11, 1e-300), 0.0, 1.0)
+    d1 = pp + 2.0 * lam1 * p_y1 + lam1 * lam1 * b11
+    p_y2 = fs * b12 + gs * b22
+    lam2 = np.clip(p_y2 / np.maximum(b22, 1e-300), 0.0, 1.0)
+    d2 = pp - 2.0 * lam2 * p_y2 + lam2 * lam2 * b22
+    dist_legs = np.sqrt(np.maximum(np.minimum(d1, d2), 0.0)).max(axis=2)
+    dev1 = np.maximum(dist_c, dist_legs)  # (C, R) at l = 1
+    length = np.minimum(1.0 / np.maximum(dev1, 1e-300), half[:, None])
+    # curvature in z (u1, u2 unit, u1.u2 = cos): kappa = |f'g'' - g'f''| sin / |B'|^3
+    c = cos[:, None, None]
+    sin = np.sqrt(np.maximum(1.0 - cos * cos, 0.0))[:, None, None]
+    speed2 = _F1[None] ** 2 + 2.0 * _F1[None] * _G1[None] * c + _G1[None] ** 2
+    cross = np.abs(_F1 * _G2 - _G1 * _F2)[None] * sin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kappa = np.where(speed2 > 1e-24, cross / np.maximum(speed2, 1e-300) ** 1.5, np.inf)
+    kmax = kappa.max(axis=2)  # at l = 1
+    radius = np.where(np.isfinite(kmax) & (kmax > 0), length / np.where(kmax > 0, kmax, 1.0), 0.0)
+    best = np.argmax(radius, axis=1)
+    reversal = cos <= REVERSAL_COS
+    # a reversal turns back along the same line whatever the shape: take the middle one
+    best = np.where(reversal, RHOS.size - 1, best)
+    rows = np.arange(cos.size)
+    hl = length[rows, best]
+    return hl, RHOS[best], dev1[rows, best] * hl
+
+
+def blended_runs(
+    waypoints: FloatArray,
+    vlim: FloatArray,
+    tolerance: FloatArray,
+    alim: FloatArray | None = None,
+    min_blend_ms: float = 0.0,
+) -> tuple[list[PiecewisePath], list[Corner]]:
+    """The runs (between exact stops) of the blended polyline through `waypoints` (user units)."""
+    n = waypoints.shape[1]
+    corners, u, lengths = corner_blends(waypoints, vlim, tolerance, alim, min_blend_ms)
+    z = waypoints / vlim[None, :]
+    k = waypoints.shape[0]
+    cut = [0] + [c.index for c in corners if c.half_length < 0] + [k - 1]
+    hl = np.zeros(k)
+    rho = np.zeros(k)
+    for c in corners:
+        if c.half_length > 0:
+            hl[c.index], rho[c.index] = c.half_length, c.rho
+    runs = []
+    for a, b in itertools.pairwise(cut):
+        runs.append(_run(z, u, lengths, hl, rho, a, b, vlim, n, alim))
+    return runs, corners
+
+
+def _run(
+    z: FloatArray,
+    u: FloatArray,
+    lengths: FloatArray,
+    hl: FloatArray,
+    rho: FloatArray,
+    first: int,
+    last: int,
+    vlim: FloatArray,
+    n: int,
+    alim: FloatArray | None = None,
+) -> PiecewisePath:
+    """Pieces of the run from waypoint `first` to `last` as power-basis coefficients in s (z units)."""
+    coefs: list[FloatArray] = []  # each (6, n): coefficient of (s - s0)^m, m = 0..5
+    plen: list[float] = []
+    blend: list[int] = []
+    ramp: list[float] = []
+    for seg in range(first, last):
+        start_off = hl[seg] if seg > first else 0.0
+        end_off = hl[seg + 1] if seg + 1 < last else 0.0
+        line = lengths[seg] - start_off - end_off
+        if line > 1e-12 * lengths[seg]:
+            c = np.zeros((6, n))
+            c[0] = z[seg] + start_off * u[seg]
+            c[1] = u[seg]
+            coefs.append(c)
+            plen.append(float(line))
+            blend.append(0)
+            ramp.append(_ramp(u[seg], vlim, alim))
+        if seg + 1 < last and hl[seg + 1] > 0.0:
+            corner = seg + 1
+            ell = hl[corner]
+            f, g = _shape_coefficients(np.array([rho[corner]]))
+            lb = 5.0 * rho[corner] * ell  # parameter length: q'(s) at the ends equals the lines'
+            c = np.zeros((6, n))
+            c[0] = z[corner]
+            c += ell * (f[0][:, None] * u[seg][None, :] + g[0][:, None] * u[seg + 1][None, :])
+            c = c / (lb ** np.arange(6))[:, None]
+            coefs.append(c)
+            plen.append(float(lb))
+            blend.append(1)
+            ramp.append(np.inf)
+    if not coefs:  # a run of one vanishing segment: a zero-length line (callers merge such waypoints)
+        c = np.zeros((6, n))
+        c[0] = z[first]
+        c[1] = u[first] if first < u.shape[0] else 0.0
+        coefs.append(c)
+        plen.append(max(float(lengths[first]) if first < lengths.size else 0.0, 1e-12))
+        blend.append(0)
+        ramp.append(np.inf)
+    total = float(np.sum(plen))
+    # rescale s so toppra sees a path length in [S_MIN, S_MAX]: coefficient m scales by 1/k^m
+    k = S_MAX / total if total > S_MAX else (S_MIN / total if total < S_MIN else 1.0)
+    x = np.concatenate([[0.0], np.cumsum(plen)]) * k
+    x[-1] = max(x[-1], x[-2] + 1e-15)
+    cc = np.stack(coefs, axis=1)  # (6, P, n) lowest order first
+    cc = cc / (k ** np.arange(6))[:, None, None]
+    cc = cc * vlim[None, None, :]  # z -> user units
+    return PiecewisePath(x, cc[::-1].copy(), np.array(blend, dtype=np.int64), n, np.array(ramp) * k)
+
+
+def _ramp(direction: FloatArray, vlim: FloatArray, alim: FloatArray | None) -> float:
+    """Path length (z units) a straight piece along unit `direction` (z) needs to reach its top speed
+    from rest: top speed 1 / max |u_j| (the first joint at its velocity limit), path acceleration the
+    tightest alim_j / (vlim_j |u_j|)."""
+    if alim is None:
+        return float("inf")
+    share = np.abs(direction)
+    moving = share > 0.0
+    if not moving.any():
+        return float("inf")
+    top = 1.0 / float(share.max())
+    acc = float(np.min(alim[moving] / (vlim[moving] * share[moving])))
+    return top * top / (2.0 * acc)
+
+
+def polyline_deviation(points: FloatArray, waypoints: FloatArray, scale: FloatArray) -> FloatArray:
+    """How far each of `points` (M, n) is from the polyline through `waypoints` (K, n), per axis in
+    units of `scale` (n,): the smallest, over the points p of the polyline, of max_j |x_j - p_j| / scale_j.
+    A measurement for tests and benchmarks (the planner keeps its paths within 1 by construction).
+
+    The scaled Euclidean distance bounds it from above and is cheap; points where that bound exceeds 1
+    get the exact value (the minimum over each segment of a convex piecewise-linear function of the
+    segment parameter, reached at one of its breakpoints).
+    """
+    x = points / scale[None, :]
+    w = waypoints / scale[None, :]
+    a, d = w[:-1], np.diff(w, axis=0)  # segments a + lam d
+    dd = np.einsum("kj,kj->k", d, d)
+    best = np.full(x.shape[0], np.inf)
+    for k in range(a.shape[0]):
+        r = x - a[k][None, :]
+        lam = np.clip(r @ d[k] / dd[k], 0.0, 1.0) if dd[k] > 0 else np.zeros(x.shape[0])
+        best = np.minimum(best, np.linalg.norm(r - lam[:, None] * d[k][None, :], axis=1))
+    hard = np.nonzero(best > 1.0)[0]
+    if hard.size:
+        best[hard] = _box_distance(x[hard], a, d)
+    return best
+
+
+def point_to_path(points: FloatArray, path: FloatArray, scale: FloatArray) -> FloatArray:
+    """For each of a few `points` (P, n), how close the polyline through the many samples `path` (M, n)
+    comes (same metric as `polyline_deviation`): does a sampled motion pass a waypoint?"""
+    y = path / scale[None, :]
+    a, d = y[:-1], np.diff(y, axis=0)
+    dd = np.maximum(np.einsum("kj,kj->k", d, d), 1e-300)
+    out = np.empty(points.shape[0])
+    for i, p in enumerate(points / scale[None, :]):
+        r = p[None, :] - a
+        lam = np.clip(np.einsum("kj,kj->k", r, d) / dd, 0.0, 1.0)
+        euclid = np.linalg.norm(r - lam[:, None] * d, axis=1)
+        k = int(np.argmin(euclid))
+        out[i] = euclid[k]
+        if out[i] > 1.0:  # exact, on the segments that can still be within 1
+            near = np.nonzero(euclid <= np.sqrt(p.size) * max(out[i], 1.0))[0]
+            out[i] = float(_box_distance(p[None, :], a[near], d[near]).min()) if near.size else out[i]
+    return out
+
+
+def _box_distance(x: FloatArray, a: FloatArray, d: FloatArray) -> FloatArray:
+    """Exact min over segments and lam in [0, 1] of max_j |x_j - a_j - lam d_j| (see polyline_deviation)."""
+    n = x.shape[1]
+    out = np.full(x.shape[0], np.inf)
+    for k in range(a.shape[0]):
+        r = x - a[k][None, :]  # (P, n); f(lam) = max_j |r_j - lam d_j|
+        dk = d[k]
+        cands = [np.zeros(x.shape[0]), np.ones(x.shape[0])]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for j in range(n):
+                if dk[j] != 0.0:
+                    cands.append(r[:, j] / dk[j])
+                for i in range(j + 1, n):
+                    for sgn in (1.0, -1.0):
+                        den = dk[j] - sgn * dk[i]
+                        if den != 0.0:
+                            cands.append((r[:, j] - sgn * r[:, i]) / den)
+        lam = np.clip(np.nan_to_num(np.stack(cands, axis=1)), 0.0, 1.0)  # (P, C)
+        val = np.abs(r[:, None, :] - lam[:, :, None] * dk[None, None, :]).max(axis=2).min(axis=1)
+        out = np.minimum(out, val)
+    return out
