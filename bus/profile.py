@@ -494,7 +494,8 @@ class DriveProfile:
             def vel(v: float) -> int:
                 return max(1, round(v * axis.counts_per_unit))
 
-            acc = vel
+            def acc(a: float) -> int:
+                return max(1, round(a * axis.counts_per_unit))
         return (
             SdoWrite(0x6098, 0, method, "homing method"),
             SdoWrite(0x6099, 1, vel(search_speed), "homing speed: search for switch"),

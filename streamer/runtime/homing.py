@@ -83,7 +83,7 @@ def run_homing(cell: CellConfig, job: Job, port: HomingPort, *, cancelled: Calla
         while len(outcome) < len(axes):
             if cancelled():
                 break
-            for j, a in enumerate(axes):
+            for a in axes:
                 if a.name in outcome:
                     continue
                 sw = port.read(a.node_id, 0x6041, 0)
