@@ -165,3 +165,14 @@ def test_require_homing_refuses_then_accepts_after_homing() -> None:
     ref.forget([cell.axes[0].node_id])  # a boot-up
     with pytest.raises(MotionError):
         ref.check(move)
+
+
+def test_example_home_job_runs_on_the_demo_cell() -> None:
+    from planner.job import load_job
+
+    cell = load_cell("configs/demo.toml")
+    axes = tuple(dataclasses.replace(a, sim=dataclasses.replace(a.sim, home_switch=(0.05, INF))) if k == 0 else a
+                 for k, a in enumerate(cell.axes))
+    cell = dataclasses.replace(cell, axes=axes)
+    rep = VirtualRuntime(cell).home(load_job("configs/homing/home-demo.toml", cell))
+    assert rep["result"] == "done" and all(r["result"] == "attained" for r in rep["axes"])  # type: ignore[union-attr]
