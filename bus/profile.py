@@ -315,6 +315,9 @@ def pack_setpoints(slot: SetpointSlot, frame: bytearray, position: int, velocity
         frame[o:o + 2] = (velocity & 0xFFFF).to_bytes(2, "little")
 
 
+HOMING_MODE = 6  # CiA 402 modes of operation: homing
+
+
 # ---- the profile ----------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class DriveProfile:
@@ -470,6 +473,37 @@ class DriveProfile:
                                        f"{tag} number of entries"))
                 writes.append(SdoWrite(comm, 1, cob_id, f"{tag} COB-ID (valid)"))
         return writes
+
+    def mode_writes(self, axis: AxisConfig, settings: DriveSettings, sync_period_ms: int,
+                    slot: SetpointSlot | None) -> tuple[SdoWrite, ...]:
+        """The family's mode writes of `configuration` (back to the streaming mode after homing)."""
+        return tuple(self._mode_writes(axis, settings, sync_period_ms, slot))
+
+    def homing_writes(self, axis: AxisConfig, method: int, search_speed: float, zero_speed: float,
+                      acceleration: float, offset: float) -> tuple[SdoWrite, ...]:
+        """Homing mode's parameters in the family's units (user units in): method 0x6098, speeds 0x6099:01/02
+        (EPOS rpm, cyclic families counts/s), acceleration 0x609A (rpm/s, counts/s^2), home offset 0x607C
+        (counts), then modes of operation = 6."""
+        if self.kind == "fifo":
+            def vel(v: float) -> int:
+                return max(1, round(axis.velocity_rpm(v)))
+
+            def acc(a: float) -> int:
+                return max(1, round(rpm_per_s(axis, a)))
+        else:
+            def vel(v: float) -> int:
+                return max(1, round(v * axis.counts_per_unit))
+
+            def acc(a: float) -> int:
+                return max(1, round(a * axis.counts_per_unit))
+        return (
+            SdoWrite(0x6098, 0, method, "homing method"),
+            SdoWrite(0x6099, 1, vel(search_speed), "homing speed: search for switch"),
+            SdoWrite(0x6099, 2, vel(zero_speed), "homing speed: search for zero"),
+            SdoWrite(0x609A, 0, acc(acceleration), "homing acceleration"),
+            SdoWrite(0x607C, 0, round(offset * axis.counts_per_unit), "home offset (counts)"),
+            SdoWrite(0x6060, 0, HOMING_MODE, "modes of operation = homing"),
+        )
 
     def hold_writes(self, position: int) -> tuple[SdoWrite, ...]:
         """Before operation is enabled: the set point objects = the drive's position (cyclic families)."""

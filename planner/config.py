@@ -192,6 +192,21 @@ _AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim", "unit", "profile", "ip_
 PROFILE_NAMES = ("epos-ipm", "xtrapuls-ip", "cia402-csp")
 IP_SUBMODES = ("linear", "pv", "p3")
 
+# ---- homing (issue 14; docs/drive-model.md "Homing") -------------------------------------------------------
+# The homing methods (0x6098) the simulated drive of each family performs, the master's single list: a home
+# job asking another method of an axis is refused, and the simulated drive raises homing error (statusword bit
+# 13) for a method it does not perform, as seed 003 says of "an unimplemented selected method". CiA 402's:
+# 17/18 negative/positive limit switch, 19/20 positive home switch, 21/22 negative home switch, 23/27 the cam
+# (a home switch of finite width) searched with a positive/negative initial move and left on the side it was
+# met (seed 002's calibration against a cam with two velocities), 35 (and 37 in CiA 402's later edition) the
+# current position. The XtrapulsPac lists "1..14, 17..30, 33..35" and -1..-4: no 37 (seed 003 0x6098).
+HOMING_CURRENT_POSITION = (35, 37)
+HOMING_METHODS: dict[str, frozenset[int]] = {
+    "epos-ipm": frozenset({17, 18, 19, 20, 21, 22, 23, 27, 35, 37}),
+    "xtrapuls-ip": frozenset({17, 18, 19, 20, 21, 22, 23, 27, 35}),
+    "cia402-csp": frozenset({17, 18, 19, 20, 21, 22, 23, 27, 35, 37}),
+}
+
 
 @dataclass(frozen=True)
 class BusConfig:
@@ -328,6 +343,9 @@ class CellConfig:
     # TPDO2 (position feedback) every n-th SYNC, staggered over the axes; 0 = the smallest n that fits
     # the bus budget (1 on small cells)
     feedback_every_syncs: int = 0
+    # homing (issue 14): jobs that move an axis the master has not referenced (no home job since the drive's
+    # last fault or power cycle) are refused NOT_HOMED
+    require_homing: bool = False
 
     def __post_init__(self) -> None:
         if not (1 <= self.sync_period_ms <= 255):
@@ -458,7 +476,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     cell = data.get("cell")
     if not isinstance(cell, Mapping):
         raise PlanningError(CONFIG, "missing [cell] table", path="cell")
-    cell_keys = ["name", "sync_period_ms", "time_stamp", "feedback_every_syncs"]
+    cell_keys = ["name", "sync_period_ms", "time_stamp", "feedback_every_syncs", "require_homing"]
     extra = sorted(set(cell) - set(cell_keys))
     if extra:
         raise PlanningError(CONFIG, _unknown_keys("[cell]", extra, cell_keys), path=f"cell.{extra[0]}")
@@ -468,6 +486,10 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
     if not isinstance(time_stamp, bool):
         raise PlanningError(CONFIG, f"cell.time_stamp must be true or false, got {time_stamp!r}",
                             path="cell.time_stamp")
+    require_homing = cell.get("require_homing", False)
+    if not isinstance(require_homing, bool):
+        raise PlanningError(CONFIG, f"cell.require_homing must be true or false, got {require_homing!r}",
+                            path="cell.require_homing")
     every = cell.get("feedback_every_syncs", "auto")
     every = 0 if every == "auto" else int(_number("cell", "feedback_every_syncs", every, integer=True))
     raw_axes = data.get("axis")
@@ -523,6 +545,7 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
         source=source,
         time_stamp=time_stamp,
         feedback_every_syncs=every,
+        require_homing=require_homing,
     )
 
 

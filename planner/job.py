@@ -17,6 +17,10 @@ Kinds (docs/formats.md has the full schema):
          are assumed to stand when the caller gives no current position): jerk-limited point to point;
 - timed: `times = [...]` (s), `positions = [[...], ...]`: the user's timing, splined rest to rest;
 - pvt:   `times`, `positions`, `velocities` (user units/s): raw PVT rows, validated, passed through.
+- home:  `method` (0x6098, one per axis or one for all), optional `search_speed` / `zero_speed` (0x6099:01/02,
+         user units/s), `acceleration` (0x609A, user units/s^2), `offset` (0x607C: the position the home
+         position gets, user units), `timeout_s`: the drives reference themselves (homing mode 6); nothing is
+         planned (streamer/runtime/homing.py runs it).
 
 Common optional fields: `job_id`, `description`, `tolerance_counts` (whole counts >= 1, default 1),
 `velocity_scale` / `acceleration_scale` (a number or one per axis, in (0, 1]), and a `[limits]` table
@@ -36,7 +40,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from planner.config import AxisConfig, CellConfig, check_name
+from planner.config import HOMING_METHODS, AxisConfig, CellConfig, check_name
 from planner.errors import (
     AXIS_COUNT,
     AXIS_ID,
@@ -55,9 +59,11 @@ from planner.errors import (
 from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
 from planner.reference import FloatArray
 
-Kind = Literal["path", "move", "timed", "pvt"]
-KINDS: tuple[str, ...] = ("path", "move", "timed", "pvt")
+Kind = Literal["path", "move", "timed", "pvt", "home"]
+KINDS: tuple[str, ...] = ("path", "move", "timed", "pvt", "home")
 MAX_ROWS = 100_000  # waypoints / rows per job (TOO_LARGE above)
+HOME_TIMEOUT_S = 120.0  # the master's default wait for homing attained / error
+MAX_HOME_TIMEOUT_S = 3600.0
 MAX_DURATION_S = 900.0  # user timing (timed/pvt) longer than this is TOO_LARGE
 MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
 MAX_TOLERANCE_COUNTS = 1_000_000
@@ -80,6 +86,7 @@ _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) b
     "move": ({"target"}, {"mode", "start"}),
     "timed": ({"times", "positions"}, set()),
     "pvt": ({"times", "positions", "velocities"}, set()),
+    "home": ({"method"}, {"search_speed", "zero_speed", "acceleration", "offset", "timeout_s"}),
 }
 _LIMIT_KEYS = ("velocity", "acceleration", "jerk")
 # `start = "current"` (path and move jobs): plan from where the axes stand. The planner itself plans a path
@@ -128,8 +135,22 @@ class PvtData:
     velocities: FloatArray  # (n, n_axes), user units/s
 
 
-JobData = PathData | MoveData | TimedData | PvtData
-_DATA_TYPES: dict[str, type] = {"path": PathData, "move": MoveData, "timed": TimedData, "pvt": PvtData}
+@dataclass(frozen=True, eq=False)
+class HomeData:
+    """A home job, per axis: 0x6098 method, 0x6099:01/02 speeds (user units/s), 0x609A acceleration (user
+    units/s^2), 0x607C offset (user units); the time the master waits for the drives (s)."""
+
+    method: tuple[int, ...]
+    search_speed: tuple[float, ...]
+    zero_speed: tuple[float, ...]
+    acceleration: tuple[float, ...]
+    offset: tuple[float, ...]
+    timeout_s: float = HOME_TIMEOUT_S
+
+
+JobData = PathData | MoveData | TimedData | PvtData | HomeData
+_DATA_TYPES: dict[str, type] = {"path": PathData, "move": MoveData, "timed": TimedData, "pvt": PvtData,
+                                "home": HomeData}
 
 
 @dataclass(frozen=True, eq=False)
@@ -244,6 +265,8 @@ def _check_path_options(data: PathData, axes: Sequence[str]) -> None:
 
 
 def _arrays(data: JobData) -> list[tuple[str, FloatArray | None]]:
+    if isinstance(data, HomeData):
+        return []
     if isinstance(data, PathData):
         return [("waypoints", data.waypoints)]
     if isinstance(data, MoveData):
@@ -391,7 +414,8 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
     if kind not in KINDS:
         raise PlanningError(SCHEMA, f"kind must be one of {list(KINDS)}, got {kind!r}", path="kind")
     required, optional = _KIND_FIELDS[kind]
-    allowed = _COMMON | required | optional | ({"start"} if kind == "path" else set())
+    common = _HOME_COMMON if kind == "home" else _COMMON
+    allowed = common | required | optional | ({"start"} if kind == "path" else set())
     unknown = sorted(k for k in data if k not in allowed)
     if unknown:
         raise PlanningError(
@@ -432,7 +456,9 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
     limits = _limits(data.get("limits"), axes, axis_cfg) if "limits" in data else {}
 
     job_data: JobData
-    if kind == "path":
+    if kind == "home":
+        job_data = _home_data(data, axes, axis_cfg)
+    elif kind == "path":
         if data.get("start") is not None and data["start"] != START_CURRENT:
             raise PlanningError(
                 SCHEMA,
@@ -536,6 +562,67 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
         _scalar_scales=(vs_scalar and "velocity_scale" in data, as_scalar and "acceleration_scale" in data),
     )
     return job
+
+
+# ---- home jobs (issue 14) ------------------------------------------------------------------------------
+_HOME_COMMON = {"kind", "axes", "job_id", "description"}
+# defaults from the axis' limits: search at a tenth of its velocity, the zero (final approach) at a tenth of that
+HOME_SEARCH_SHARE = 0.1
+HOME_ZERO_SHARE = 0.01
+
+
+def _per_axis(value: Any, path: str, axes: Sequence[str]) -> tuple[tuple[float, ...], bool]:
+    """One number for every axis, or one per axis: (values, given as one number)."""
+    if isinstance(value, list | tuple):
+        return tuple(float(v) for v in _vector(value, path, axes)), False
+    return (_number(value, path),) * len(axes), True
+
+
+def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[AxisConfig]) -> HomeData:
+    raw = data["method"]
+    methods = raw if isinstance(raw, list | tuple) else [raw] * len(axes)
+    if isinstance(raw, list | tuple) and len(raw) != len(axes):
+        raise PlanningError(AXIS_COUNT, f"method has {len(raw)} values for {len(axes)} axes {list(axes)!r}",
+                            path="method")
+    method: list[int] = []
+    for j, m in enumerate(methods):
+        p = f"method[{j}]" if isinstance(raw, list | tuple) else "method"
+        if isinstance(m, bool) or not isinstance(m, int):
+            raise PlanningError(TYPE, f"{p} of axis {axes[j]!r} must be a whole number (0x6098), got {_show(m)}",
+                                path=p)
+        supported = HOMING_METHODS[cfg[j].profile]
+        if m not in supported:
+            raise PlanningError(SCHEMA, f"{p} of axis {axes[j]!r} is {m}: a {cfg[j].profile} drive homes with "
+                                f"{sorted(supported)} (docs/drive-model.md, Homing)", path=p)
+        method.append(m)
+    speeds: dict[str, tuple[float, ...]] = {}
+    for key, default in (("search_speed", [HOME_SEARCH_SHARE * c.velocity for c in cfg]),
+                         ("zero_speed", [HOME_ZERO_SHARE * c.velocity for c in cfg]),
+                         ("acceleration", [c.acceleration for c in cfg])):
+        vals, scalar = _per_axis(data[key], key, axes) if key in data else (tuple(default), False)
+        limit = [c.velocity if key != "acceleration" else c.acceleration for c in cfg]
+        for j, v in enumerate(vals):
+            p = key if scalar else f"{key}[{j}]"
+            if not 0.0 < v <= limit[j]:
+                unit = f"{cfg[j].unit}/s" if key != "acceleration" else f"{cfg[j].unit}/s^2"
+                raise PlanningError(LIMITS, f"{p} of axis {axes[j]!r} is {v:g} {unit}; it must be > 0 and at most "
+                                    f"the axis' {'velocity' if key != 'acceleration' else 'acceleration'} "
+                                    f"{limit[j]:g} {unit}", path=p)
+        speeds[key] = vals
+    offset, scalar = _per_axis(data["offset"], "offset", axes) if "offset" in data else ((0.0,) * len(axes), False)
+    for j, v in enumerate(offset):
+        c = cfg[j]
+        if not c.position_min <= v <= c.position_max:
+            p = "offset" if scalar else f"offset[{j}]"
+            raise PlanningError(POSITION_LIMIT, f"{p} of axis {axes[j]!r} is {v:g} {c.unit}, outside its position "
+                                f"limits [{c.position_min:g}, {c.position_max:g}] (the home position gets it)",
+                                path=p)
+    timeout = _number(data["timeout_s"], "timeout_s") if "timeout_s" in data else HOME_TIMEOUT_S
+    if not 0.0 < timeout <= MAX_HOME_TIMEOUT_S:
+        raise PlanningError(LIMITS, f"timeout_s is {timeout:g}; it must be in (0, {MAX_HOME_TIMEOUT_S:g}] s",
+                            path="timeout_s")
+    return HomeData(tuple(method), speeds["search_speed"], speeds["zero_speed"], speeds["acceleration"], offset,
+                    timeout)
 
 
 def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
@@ -723,6 +810,9 @@ def job_to_dict(job: Job) -> dict[str, Any]:
     elif isinstance(d, TimedData):
         out["times"] = d.times.tolist()
         out["positions"] = d.positions.tolist()
+    elif isinstance(d, HomeData):
+        out.update(method=list(d.method), search_speed=list(d.search_speed), zero_speed=list(d.zero_speed),
+                   acceleration=list(d.acceleration), offset=list(d.offset), timeout_s=d.timeout_s)
     else:
         out["times"] = d.times.tolist()
         out["positions"] = d.positions.tolist()

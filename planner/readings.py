@@ -90,6 +90,19 @@ def _indices(section: str, key: str, value: Any) -> tuple[int, ...]:
     return tuple(sorted(set(out)))
 
 
+def _pair(section: str, key: str, value: Any, *, infinite: bool) -> tuple[float, float] | None:
+    """None, or [low, high] with low < high (+-inf allowed when `infinite`)."""
+    if value is None:
+        return None
+    ok = isinstance(value, list | tuple) and len(value) == 2 and all(
+        not isinstance(v, bool) and isinstance(v, int | float) and not math.isnan(v)
+        and (infinite or math.isfinite(v)) for v in value)
+    if not ok or not value[0] < value[1]:
+        raise PlanningError(CONFIG, f"{section}.{key} must be [low, high] with low < high (user units"
+                            f"{', -inf/inf allowed' if infinite else ''}), got {value!r}", path=f"{section}.{key}")
+    return float(value[0]), float(value[1])
+
+
 def _float(section: str, key: str, value: Any, low: float, high: float) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise PlanningError(CONFIG, f"{section}.{key} must be a number, got {value!r}", path=f"{section}.{key}")
@@ -113,10 +126,21 @@ class SimDriveOptions:
     tpdo_latency_ms: float = 0.0  # synchronous TPDOs go out up to this long after the SYNC (uniform)
     absent: tuple[int, ...] = ()  # optional objects this drive does not have
     seed: int = 0  # for the TPDO latency draws (node id is added)
+    # homing inputs (issue 14; docs/drive-model.md "Homing"), in the axis' user units of the drive's position
+    # at power-on (the machine's frame, which homing does not move): the home switch is active on [low, high]
+    # (-inf / inf: a switch active on one side of an edge; finite: a cam), the negative limit switch at and
+    # below limit_switches[0], the positive one at and above limit_switches[1]; a homing search that travels
+    # farther than homing_travel (0: the axis' position range) without finding its input is a homing error
+    home_switch: tuple[float, ...] | None = None
+    limit_switches: tuple[float, ...] | None = None
+    homing_travel: float = 0.0
 
     def __post_init__(self) -> None:
         for key in OPEN_POINTS:
             _choice("sim", key, getattr(self, key))
+        for key in ("home_switch", "limit_switches"):
+            object.__setattr__(self, key, _pair("sim", key, getattr(self, key), infinite=key == "home_switch"))
+        _float("sim", "homing_travel", self.homing_travel, 0.0, 1e12)
         _float("sim", "clock_drift_ppm", self.clock_drift_ppm, -5000.0, 5000.0)
         _float("sim", "tpdo_latency_ms", self.tpdo_latency_ms, 0.0, 1000.0)
         object.__setattr__(self, "absent", _indices("sim", "absent", self.absent))

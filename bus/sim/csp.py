@@ -25,7 +25,9 @@ from bus.codec import Cia402State
 from bus.families import CIA402_CSP
 from bus.sim import od as odm
 from bus.sim.cyclic import CyclicDrive, linear
+from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key
+from planner.config import HOMING_METHODS
 
 CSP_MODE = 8
 TARGET: Key = (0x607A, 0)
@@ -35,7 +37,8 @@ class CspDrive(CyclicDrive):
     """A simulated CiA 402 drive in cyclic synchronous position mode (see the module docstring)."""
 
     family = "cia402-csp"
-    supported_modes = frozenset({0, CSP_MODE})
+    supported_modes = frozenset({0, HOMING_MODE, CSP_MODE})
+    homing_methods = HOMING_METHODS["cia402-csp"]
     interpolation_mode = CSP_MODE
     default_profile = CIA402_CSP
 

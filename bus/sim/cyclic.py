@@ -102,6 +102,12 @@ class CyclicDrive(DriveDevice):
             return math.inf
         return self._od[key] * self._scale / 1e6
 
+    def _velocity_cpms(self, value: int) -> float:
+        return value * self._scale / 1000.0  # user units/s
+
+    def _position_counts(self, value: int) -> float:
+        return value * self._scale  # user units
+
     def _family_dynamic(self) -> dict[Key, Callable[[], int]]:
         return {
             (0x6062, 0): lambda: self._demand if self._unit else self._to_user(self._demand),

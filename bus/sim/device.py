@@ -35,6 +35,14 @@ A family with a data recorder (EPOS, seed 004: bus/sim/recorder.py, its objects 
 `recorder`; while it runs, `_run_ticks_recorded` replaces the loop above so that every sample instant is
 hit (sub-stepping the plant when the period is not whole ticks), and the error and halt-end triggers
 fire here. Without a recorder (None, or stopped) the loop is the plain one.
+
+Homing mode (6, every family; bus/sim/homing.py has the inputs and the methods): controlword bit 4 rising in
+operation enabled starts the family's method 0x6098 (`homing_methods`; another one is homing error, bit 13)
+with 0x6099 / 0x609A in the family's units; each search is a demand source (`Source.HOMING`) that ends at
+the tick its input changes; at the end the drive returns to the edge and its position becomes 0x607C
+(`_home_shift`: the counts between the machine's frame, in which the switches stand, and the position it
+reports). Statusword bits 12 (attained, while bit 4 is set) / 13 (error) / 10 per seed 003's table.
+`referenced` is true from a successful homing until a reset or power-on.
 """
 
 from __future__ import annotations
@@ -61,6 +69,7 @@ from bus.codec import (
 from bus.errors import ProtocolError
 from bus.families import EPOS_IPM
 from bus.profile import DriveProfile, FeedbackSchedule, SetpointSlot
+from bus.sim import homing as hm
 from bus.sim import od as odm
 from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams, plant_constants
@@ -98,6 +107,7 @@ class Source(Enum):
     HALT = "halt ramp"
     QUICK_STOP = "quick stop ramp"
     FAULT = "fault reaction ramp"
+    HOMING = "homing"
 
 
 @dataclass
@@ -199,6 +209,7 @@ class DriveDevice:
     quick_stop_options: frozenset[int] = QUICK_STOP_OPTIONS  # 0x605A values the drive accepts (5.. stay in QS)
     rtr_tpdo_types: frozenset[int] = frozenset()  # RTR-only TPDO types accepted (never sent: no RTR here)
     accepts_longer_rpdo = False  # an RPDO longer than its mapping: use its first bytes (else EMCY 0x8220)
+    homing_methods: frozenset[int] = frozenset()  # 0x6098 values it performs (planner.config.HOMING_METHODS)
 
     def __init__(
         self,
@@ -246,6 +257,22 @@ class DriveDevice:
         self.counters = DriveCounters()
         self.fault_log: list[FaultRecord] = []
         self.disturbance_current_a = 0.0  # external load, as motor current (tests: a blocked axis)
+        # homing (bus/sim/homing.py): the switches in the machine's frame, counts
+        cpu = axis.counts_per_unit if axis is not None else 1.0
+        self.inputs = hm.Inputs.of(o.home_switch, o.limit_switches, cpu)
+        travel = o.homing_travel or ((axis.position_max - axis.position_min) if axis is not None else 0.0)
+        self._homing_travel = travel * cpu if travel > 0.0 else float(self.counts_per_rev) * 1000.0
+        self._home_shift = 0  # reported position - machine position, counts
+        self.referenced = False
+        self._hm_state = "idle"  # idle, running, attained, error, interrupted
+        self._hm_phases: list[hm.Phase] = []
+        self._hm_phase: hm.Phase | None = None
+        self._hm_stage = ""  # search, return, failing, stopping
+        self._hm_outcome = ""
+        self._hm_v = 0.0  # counts/ms at the end of the current source
+        self._hm_speeds = (0.0, 0.0, 0.0)  # search, zero (counts/ms), acceleration (counts/ms^2)
+        self._hm_edge = 0
+        self.homing_error_reason = ""
         # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-step
         # while it samples finer than the 1 ms tick: (plant constants, sub-steps per tick, units per sub-step)
         self.recorder: DataRecorder | None = None
@@ -551,7 +578,7 @@ class DriveDevice:
             sw |= codec.SW_IP_ACTIVE
         if self._target_reached():
             sw |= codec.SW_TARGET_REACHED
-        return sw
+        return sw | self._homing_status()
 
     def rx_cob_ids(self) -> frozenset[int]:
         """COB-IDs this drive consumes (NMT, SYNC, enabled RPDOs, monitored heartbeat, time stamp)."""
@@ -599,6 +626,8 @@ class DriveDevice:
         self._od = self.objects.defaults(self.node_id)
         self._od.update(self._stored)
         self._reset_family()
+        self.referenced = False  # seed 003 0x3218: "it is cleared when drive is switched on"
+        self._hm_state = "idle"
         self._ip_active = False
         self._error_code = 0
         self._error_register = 0
@@ -725,6 +754,8 @@ class DriveDevice:
         if value not in self.supported_modes:
             raise SdoAbort(odm.ABORT_INVALID_VALUE, f"mode of operation {value} is not supported (0x6502)")
         old = self._mode
+        if old == hm.HOMING_MODE and value != old:
+            self._homing_abort()
         self._store((0x6060, 0), value)
         if value != old:
             self._mode_changed(old, value)
@@ -1318,7 +1349,9 @@ class DriveDevice:
     def _source_done(self, t: float) -> None:
         kind = self._src_kind
         self._src = None
-        if kind == Source.SEGMENT:
+        if kind == Source.HOMING:
+            self._homing_next()
+        elif kind == Source.SEGMENT:
             self.counters.segments_completed += 1
             self._segment_done(t)
         elif kind == Source.QUICK_STOP:
@@ -1351,6 +1384,9 @@ class DriveDevice:
             return 0.0
         if self._src_kind == Source.SEGMENT:
             return hermite.evaluate(self._seg_coeffs, float(self._src_i - len(self._src)))[1]
+        if self._src_kind == Source.HOMING:
+            i, src = self._src_i, self._src
+            return float(src[i - 1] - src[i - 2]) if i >= 2 else float(src[0] - self._demand) if i == 0 else 0.0
         v = abs(self._ramp_v0) - self._ramp_dec * self._src_i
         return math.copysign(max(0.0, v), self._ramp_v0)
 
@@ -1417,6 +1453,9 @@ class DriveDevice:
             new = state
         if new != state:
             self._enter(new)
+        if self._mode == hm.HOMING_MODE:
+            self._homing_control(cw, prev)
+            return
         if self._state != ST.OPERATION_ENABLED or self._mode != self.interpolation_mode:
             return
         self._mode_control(cw, prev)
@@ -1427,6 +1466,8 @@ class DriveDevice:
     def _enter(self, new: Cia402State) -> None:
         old = self._state
         self._state = new
+        if old == ST.OPERATION_ENABLED and new != old and self._hm_state == "running":
+            self._hm_state = "interrupted"  # the state machine's stop (quick stop, fault, disable) takes over
         if new.power_enabled and not old.power_enabled:
             self._power_on_stage()
         elif not new.power_enabled and old.power_enabled:
@@ -1478,6 +1519,8 @@ class DriveDevice:
             self._transition(Internal.FAULT_REACTION_DONE)
 
     def _fault_reset(self) -> None:
+        if self._hm_state == "error":
+            self._hm_state = "idle"  # bit 13 "is reset ... on rising edge of bit 7 of the Control Word"
         self._enter(codec.next_state(self._state, Command.FAULT_RESET))
         self._clear_latched()
         self._error_code = 0
@@ -1495,6 +1538,9 @@ class DriveDevice:
 
     def _target_reached(self) -> bool:
         state = self._state
+        if state == ST.OPERATION_ENABLED and self._mode == hm.HOMING_MODE:
+            # seed 003's homing table: "If Bit 10 is set, this indicates that the velocity is 0"
+            return self._src is None and abs(self._vel) < hm.STANDSTILL_COUNTS_PER_MS
         if state == ST.OPERATION_ENABLED:
             if self._cw & codec.CW_HALT:
                 return self._src is None
@@ -1504,6 +1550,164 @@ class DriveDevice:
         if state == ST.QUICK_STOP_ACTIVE:
             return self._src is None
         return False
+
+    # ============================================================================================
+    # homing mode (6): bus/sim/homing.py
+
+    @property
+    def homing_state(self) -> str:
+        """idle, running, attained, error or interrupted."""
+        return self._hm_state
+
+    @property
+    def machine_position(self) -> float:
+        """The actual position in the machine's frame (where the switches are), counts."""
+        return self._pos - self._home_shift
+
+    @property
+    def inputs_word(self) -> int:
+        """The home and limit switch inputs now (seed 000 table 3-11 bits), read at the position demand."""
+        return self.inputs.word(self._demand - self._home_shift)
+
+    def _homing_status(self) -> int:
+        if self._mode != hm.HOMING_MODE:
+            return 0
+        if self._hm_state == "error":
+            return hm.SW_HOMING_ERROR
+        # "Bit 12 is reset at 0 ... when bit 4 of the Control Word is at 0"
+        return hm.SW_HOMING_ATTAINED if self._hm_state == "attained" and self._cw & codec.CW_ENABLE_IP else 0
+
+    def _homing_control(self, cw: int, prev: int) -> None:
+        """A controlword in homing mode: bit 4 rising starts, falling (or halt, bit 8) interrupts."""
+        rising = cw & ~prev
+        running = self._hm_state == "running"
+        if running and (not cw & codec.CW_ENABLE_IP or cw & codec.CW_HALT):
+            self._hm_state = "interrupted"  # "can be interrupted when clear"; seed 000: 0x011F halt homing
+            self._homing_stop_motion("stopping")
+            return
+        if not rising & codec.CW_ENABLE_IP or cw & codec.CW_HALT:
+            return
+        method = self._od.get((0x6098, 0), 0)
+        if self._state != ST.OPERATION_ENABLED and method not in hm.CURRENT_POSITION_METHODS:
+            # "homing launched whereas the drive is not in 'operation enabled' (except for homing method 35)"
+            self._homing_fail(f"homing started in {self._state.value}")
+            return
+        self._homing_start(method)
+
+    def _homing_start(self, method: int) -> None:
+        self.homing_error_reason = ""
+        self._hm_state = "running"
+        plan = hm.phases(method, self.inputs, self._demand - self._home_shift) \
+            if method in self.homing_methods else None
+        if plan is None:
+            self._homing_fail(f"method {method} is not implemented")  # "an unimplemented selected method"
+            return
+        od = self._od
+        self._hm_speeds = (self._velocity_cpms(od[(0x6099, 1)]), self._velocity_cpms(od[(0x6099, 2)]),
+                           self._acc_limit((0x609A, 0)))
+        self._hm_phases = list(plan)
+        self._hm_v = 0.0
+        if not plan:
+            self._homing_reference(self._demand)  # 35/37: the current position is the home position
+            return
+        self._homing_phase()
+
+    def _homing_phase(self) -> None:
+        ph = self._hm_phases.pop(0)
+        self._hm_phase = ph
+        search_v, zero_v, acc = self._hm_speeds
+        v = ph.direction * (search_v if ph.speed == "search" else zero_v)
+        shift, inputs = self._home_shift, self.inputs
+        limit_signal = "positive" if ph.direction > 0 else "negative"
+
+        def done(d: float) -> bool:
+            return inputs.state(ph.signal, d - shift) == ph.until
+
+        def limit(d: float) -> bool:
+            return ph.signal != limit_signal and inputs.state(limit_signal, d - shift)
+
+        s = hm.search(float(self._demand), self._hm_v, v, acc, done, limit, self._homing_travel, self._round)
+        self._hm_stage, self._hm_outcome, self._hm_v = "search", s.outcome, s.velocity
+        self._set_source(s.demands, Source.HOMING)
+
+    def _homing_next(self) -> None:
+        """A homing source ran to its end."""
+        stage = self._hm_stage
+        if stage == "failing":
+            self._hm_v = 0.0
+            self._hm_state = "error"
+            return
+        if stage == "stopping":
+            self._hm_v = 0.0
+            return
+        if stage == "return":
+            self._homing_reference(self._hm_edge)
+            return
+        ph = self._hm_phase
+        assert ph is not None
+        outcome = self._hm_outcome
+        if outcome == "limit" and ph.on_limit is not None:
+            self._hm_phases = list(ph.on_limit)
+            self._homing_phase()
+        elif outcome != "found":
+            what = "a limit switch" if outcome == "limit" else f"no {ph.signal} switch edge within the travel"
+            self._homing_fail(f"{what} (method {self._od.get((0x6098, 0), 0)})")
+        elif self._hm_phases:
+            self._homing_phase()
+        else:
+            # the home position: the edge just found; stop and come back to it at the zero speed
+            self._hm_edge = self._demand
+            _, zero_v, acc = self._hm_speeds
+            ramp = hm.stop(float(self._demand), self._hm_v, acc, self._round)
+            end = ramp[-1] if ramp else self._demand
+            back = hm.move_to(float(end), self._hm_edge, zero_v, acc)
+            self._hm_stage, self._hm_v = "return", 0.0
+            if ramp or back:
+                self._set_source(ramp + back, Source.HOMING)
+            else:
+                self._homing_reference(self._hm_edge)
+
+    def _homing_reference(self, at: int) -> None:
+        """The drive stands at the home position `at` (counts, reported frame): it becomes 0x607C."""
+        offset = round(self._position_counts(self._od.get((0x607C, 0), 0)))
+        delta = offset - at
+        self._pos += delta
+        self._demand += delta
+        self._home_shift += delta
+        self.referenced = True
+        self._hm_state = "attained"
+
+    def _homing_fail(self, reason: str) -> None:
+        self.homing_error_reason = reason
+        self._hm_state = "error"
+        self._homing_stop_motion("failing")
+
+    def _homing_stop_motion(self, stage: str) -> None:
+        """Ramp down at 0x609A from the current homing motion (the state is already set)."""
+        if self._src is None or self._src_kind != Source.HOMING:
+            return
+        v = self._demand_velocity()
+        ramp = hm.stop(float(self._demand), v, self._hm_speeds[2] or self._acc_limit((0x609A, 0)), self._round)
+        self._hm_stage = stage  # bit 13 with bit 10 clear while it ramps down: "error occurred, velocity is not 0"
+        self._set_source(ramp, Source.HOMING)
+        if not ramp:
+            self._src = None
+            self._homing_next()
+
+    def _homing_abort(self) -> None:
+        """Mode changed away from homing: the demand holds where it is."""
+        if self._src is not None and self._src_kind == Source.HOMING:
+            self._src = None
+        if self._hm_state == "running":
+            self._hm_state = "interrupted"
+
+    def _velocity_cpms(self, value: int) -> float:
+        """A velocity object's value (the family's unit: rpm here) as counts/ms."""
+        return value * self._rpm_to_cpms
+
+    def _position_counts(self, value: int) -> float:
+        """A position object's value (the family's unit: counts here) as counts."""
+        return float(value)
 
     # ============================================================================================
     # what a family adds (the defaults: a CiA 402 drive with no interpolation of its own)

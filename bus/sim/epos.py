@@ -44,6 +44,7 @@ from bus.codec import (
 )
 from bus.sim import od as odm
 from bus.sim.device import DriveDevice, Source, _first_violation
+from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key, SdoAbort
 from bus.sim.recorder import (
     CONTROL_FORCE_TRIGGER,
@@ -55,6 +56,7 @@ from bus.sim.recorder import (
     RecorderConfig,
 )
 from planner import hermite, record
+from planner.config import HOMING_METHODS
 from planner.record import PvtRecord
 
 IP_MODE = 7
@@ -64,7 +66,8 @@ class EposDrive(DriveDevice):
     """A simulated maxon-EPOS-like drive in interpolated position mode (see the module docstring)."""
 
     family = "epos-ipm"
-    supported_modes = frozenset({0, IP_MODE})
+    supported_modes = frozenset({0, HOMING_MODE, IP_MODE})
+    homing_methods = HOMING_METHODS["epos-ipm"]
     interpolation_mode = IP_MODE
     not_stored = frozenset({(0x20C1, 0), (0x60C4, 6), (0x60C4, 4), (0x2010, 0)})
     recorder: DataRecorder  # a new one at every reset (`_reset_family`)

@@ -284,6 +284,20 @@ def _cia402(b: _Builder, *, quick_stop: tuple[int, int, int], quick_stop_decel: 
     var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
 
 
+def _homing(b: _Builder, *, method: int, speeds: tuple[int, int], acceleration: int) -> None:
+    """Homing mode's objects (CiA 402 / seed 003 "Homing Mode"): home offset 0x607C (position unit), method
+    0x6098, speeds 0x6099 (switch search, zero search; velocity unit), acceleration 0x609A."""
+    var, group = b.var, b.group
+    var(0x607C, "Home offset", I32, "rw", 0)
+    var(0x6098, "Homing method", I8, "rw", method)
+    group(0x6099, "Homing speeds", 8, [
+        (0, "Number of entries", U8, "ro", 2, None, None, False, False),
+        (1, "Speed during search for switch", U32, "rw", speeds[0], None, None, False, False),
+        (2, "Speed during search for zero", U32, "rw", speeds[1], None, None, False, False),
+    ])
+    var(0x609A, "Homing acceleration", U32, "rw", acceleration)
+
+
 def _epos() -> _Builder:
     b = _Builder()
     _cia301(b, device_name="EPOS-IPM simulated drive", product_code=0x49504D31,  # "IPM1"
@@ -334,7 +348,9 @@ def _epos() -> _Builder:
         (5, "Size of data record", U8, "wo", 8, 8, 8, False, False),
         (6, "Buffer clear", U8, "wo", 0, 0, 1, False, False),
     ])
-    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # bit 6: interpolated position mode
+    # homing (seed 000 6.3 states no defaults: CiA 402's method 0 "no homing", speeds in rpm, rpm/s)
+    _homing(b, method=0, speeds=(100, 10), acceleration=1000)
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000060)  # bits 5, 6: homing, interpolated position
     return b
 
 
@@ -416,7 +432,9 @@ def _xtrapuls() -> _Builder:
     ])
     var(0x60F4, "Following error actual value", I32, "ro", 0, pdo=True)
     var(0x60FF, "Target velocity", I32, "rw", 0, pdo=True)  # profile velocity mode (not modelled)
-    var(0x6502, "Supported drive modes", U32, "ro", 0x00000040)  # the simulation: IP only
+    # seed 003 "Homing Mode" defaults: method 0x23 (35), speeds 0x19 / 0x0A, acceleration 0x00010000
+    _homing(b, method=35, speeds=(0x19, 0x0A), acceleration=0x00010000)
+    var(0x6502, "Supported drive modes", U32, "ro", 0x00000060)  # the simulation: homing and IP
     return b
 
 
@@ -437,7 +455,8 @@ def _csp() -> _Builder:
         (1, "Interpolation time period value", U8, "rw", 10, 1, 255, False, False),
         (2, "Interpolation time index", I8, "rw", -3, -3, -3, False, False),
     ])
-    var(0x6502, "Supported drive modes", U32, "ro", 0x00000080)  # bit 7: cyclic synchronous position
+    _homing(b, method=0, speeds=(100_000, 10_000), acceleration=1_000_000)  # counts/s, counts/s^2
+    var(0x6502, "Supported drive modes", U32, "ro", 0x000000A0)  # bits 5, 7: homing, cyclic synchronous position
     return b
 
 

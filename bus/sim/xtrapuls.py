@@ -44,7 +44,9 @@ from bus.codec import Cia402State, Internal
 from bus.families import XTRAPULS_IP
 from bus.sim import od as odm
 from bus.sim.cyclic import CyclicDrive, Poly, hermite_pv, linear, parabola_p3
+from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key, SdoAbort
+from planner.config import HOMING_METHODS
 
 IP_MODE = 7
 SUBMODE_LINEAR, SUBMODE_PV, SUBMODE_P3 = 0, -1, -2
@@ -73,7 +75,8 @@ class XtrapulsDrive(CyclicDrive):
     """A simulated Infranor XtrapulsPac in interpolated position mode (see the module docstring)."""
 
     family = "xtrapuls-ip"
-    supported_modes = frozenset({0, IP_MODE})
+    supported_modes = frozenset({0, HOMING_MODE, IP_MODE})
+    homing_methods = HOMING_METHODS["xtrapuls-ip"]
     interpolation_mode = IP_MODE
     default_profile = XTRAPULS_IP
     quick_stop_options = frozenset({0, 1, 2, 3, 5, 6, 7})  # seed 003 0x605A
@@ -204,6 +207,8 @@ class XtrapulsDrive(CyclicDrive):
         sw = self._state.statusword_bits | codec.SW_REMOTE
         if self._ip_active:
             sw |= codec.SW_IP_ACTIVE
+        if self._mode == HOMING_MODE:  # bits 13 / 12 / 10 of the homing table ("velocity is 0": bit 10)
+            sw |= self._homing_status() | (codec.SW_TARGET_REACHED if self._target_reached() else 0)
         return sw
 
     @property

@@ -30,6 +30,12 @@ controlword 0x000B, quick stop, to every axis in that reaction and nothing after
 sends 0x000B to every drive of the cell itself (idle ones included); each drive ramps down on its quick
 stop deceleration 0x6085 (synchronous RPDO1: at the next SYNC). The job ends failed EMERGENCY_STOP and
 the cell stays not ready until `reset()`. (A planned emergency deceleration comes with issue 15.)
+
+Home jobs (kind "home") are not planned: `execute` runs them with streamer/runtime/homing.py over SDO while
+the periodic SYNC runs, and `referencing` (a `Referencing`) keeps which axes are referenced: with the cell's
+`require_homing`, `validate` refuses NOT_HOMED a job on axes that are not (nor homed by a home job accepted
+before it), and `execute` fails it NOT_HOMED if they still are not when it comes up. A drive's boot-up
+(power cycle, reset node) and a failed job's faulting drive un-reference its axes.
 """
 
 from __future__ import annotations
@@ -43,7 +49,7 @@ from typing import Any
 from bus import codec
 from bus.cob import pack_controlword, rpdo1_id
 from bus.errors import BusError
-from bus.events import AdapterError
+from bus.events import AdapterError, Bootup, Event
 from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
 from planner.job import Job, job_from_dict
@@ -52,6 +58,7 @@ from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajec
 from streamer.core.coordinator import Coordinator
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
+from streamer.runtime.homing import Referencing, home_end_positions, run_homing
 from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import make_stop_planner
 
@@ -68,6 +75,7 @@ class RuntimeBackend:
         self._fault: str = ""
         self._emergency = False  # an emergency stop hit the job that runs (or the idle cell)
         self._recording: RecordingInputs | None = None
+        self.referencing = Referencing(self.cell)
         if sim:
             from bus.sim.node import SimulatedCell
             from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
@@ -75,6 +83,7 @@ class RuntimeBackend:
             self._sim = SimulatedCell(self.cell, sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
         try:
             self.adapter = MasterAdapter(None, self.cell)
+            self.adapter.on_event(self._on_adapter_event)
             self.adapter.configure_drives()
             self.runtime = RealtimeRuntime(self.cell, self.adapter)
             # what the cell does not state of the drives' readings, measured once at start-up (no motion);
@@ -89,9 +98,15 @@ class RuntimeBackend:
             raise
         self._axes = {a.name: a for a in self.cell.axes}
 
+    def _on_adapter_event(self, ev: Event) -> None:
+        if isinstance(ev, Bootup):  # the drive rebooted: it forgot its reference
+            self.referencing.forget([ev.node])
+
     # ---- planning (intake thread)
     def validate(self, body: Mapping[str, Any]) -> Job:
-        return job_from_dict(body, self.cell)
+        job = job_from_dict(body, self.cell)
+        self.referencing.check(job)
+        return job
 
     def current_positions(self) -> dict[str, float]:
         """Where every axis' position demand stands now, user units (the next plan must start there)."""
@@ -103,6 +118,10 @@ class RuntimeBackend:
         return out
 
     def plan(self, job: Job, start: Mapping[str, float] | None) -> Planned:
+        if job.kind == "home":  # nothing to plan: the drives search; they end at their home positions
+            self.referencing.planned(job)
+            return Planned(job=job, trajectory=None, duration_s=0.0, points=0,
+                           end_positions=home_end_positions(job))
         here = self.current_positions()
         begin = [(start or {}).get(a, here[a]) for a in job.axes]
         t0 = time.perf_counter()
@@ -120,6 +139,31 @@ class RuntimeBackend:
         if not ok:
             return {"result": "failed", "error": {"code": "NOT_READY", "node": None, "message": why},
                     "faults": [], "axes": []}
+        if planned.job.kind == "home":
+            return self._home(planned.job, emit, cancel)
+        try:
+            self.referencing.check(planned.job, at_start=True)
+        except Exception as e:  # a MotionError NOT_HOMED: the home job before it failed
+            return {"result": "failed", "error": {"code": getattr(e, "code", "NOT_HOMED"), "node": None,
+                                                  "path": "axes", "message": str(e)}, "faults": [], "axes": []}
+        report = self._execute_motion(planned, emit, cancel, record)
+        self.referencing.finished(planned.job, report)
+        return report
+
+    def _home(self, job: Job, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]:
+        """A home job: homing mode on its drives over SDO while SYNC runs (streamer/runtime/homing.py)."""
+        try:
+            report = run_homing(self.cell, job, _RealtimePort(self.adapter), cancelled=lambda: cancel.cancelled,
+                                progress=lambda p: emit("running", {"progress": round(p, 4), "state": "homing"}))
+        except BusError as e:
+            report = {"result": "failed", "kind": "home", "faults": [], "axes": [],
+                      "error": {"code": e.code, "node": e.node, "message": e.message}}
+            with self._lock:
+                self._fault = f"{e.code}: {e.message}"
+        self.referencing.finished(job, report)
+        return report
+
+    def _execute_motion(self, planned: Planned, emit: Emit, cancel: CancelToken, record: Any) -> Mapping[str, Any]:
         traj = planned.trajectory
         snap = self.runtime.snapshot()
         off = [name for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True))
@@ -312,6 +356,28 @@ class RuntimeBackend:
         if self._sim is not None:
             self._sim.stop()
             self._sim = None
+
+
+class _RealtimePort:
+    """`HomingPort` of the real-time backend: SDO over the adapter, waiting = sleeping while SYNC runs."""
+
+    def __init__(self, adapter: MasterAdapter):
+        self.adapter = adapter
+
+    def write(self, node: int, index: int, sub: int, value: int) -> None:
+        self.adapter.write(node, index, sub, value)
+
+    def read(self, node: int, index: int, sub: int) -> int:
+        return self.adapter.read(node, index, sub)
+
+    def enable(self) -> None:
+        self.adapter.enable_drives()
+
+    def wait(self, seconds: float) -> None:
+        time.sleep(seconds)
+
+    def now(self) -> float:
+        return self.adapter.now()
 
 
 def open_backend(cell: CellConfig, *, sim: bool = False, interface: str | None = None,

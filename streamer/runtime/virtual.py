@@ -41,7 +41,7 @@ import math
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 from bus.cob import SYNC_COB_ID, TIME_STAMP_COB_ID, classify
 from bus.codec import Frame, frame_bits
@@ -65,6 +65,7 @@ from bus.profile import DriveProfile, frame_to_event
 from bus.sim.od import ABORT_NO_OBJECT, ABORT_NO_SUBINDEX, ABORT_UNSUPPORTED_ACCESS, ABORT_WRITE_ONLY, SdoAbort
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
+from planner.job import Job
 from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState, Reaction
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
@@ -645,11 +646,49 @@ class VirtualRuntime:
             self._core = None
         return VirtualResult(core, self.trace, first, self._sync, settled)
 
+    def home(self, job: Job, *, cancel_at_s: float | None = None) -> dict[str, Any]:
+        """Run a home job (streamer/runtime/homing.py) on the simulated drives, SYNC running between the
+        statusword reads; returns its report."""
+        from streamer.runtime.homing import run_homing
+
+        self.ensure_readings()
+        self._core = None
+        self.trace = None
+        t0 = self.now
+        return run_homing(self.cell, job, _VirtualPort(self),
+                          cancelled=lambda: cancel_at_s is not None and self.now - t0 >= cancel_at_s)
+
     def _settled(self) -> bool:
         return all(
             m.position_actual == m.position_demand and abs(m.velocity_actual_rpm) < 1.0
             for m in self.vcell.models.values()
         )
+
+
+class _VirtualPort:
+    """`HomingPort` of the virtual-time runtime: SDO written straight into the models (as `enable_drives`),
+    waiting = SYNC cycles with no job."""
+
+    def __init__(self, rt: VirtualRuntime):
+        self.rt = rt
+
+    def write(self, node: int, index: int, sub: int, value: int) -> None:
+        t = self.rt.now
+        for f in self.rt.vcell.sdo_write(node, index, sub, value, t):
+            self.rt._bus.submit(f, t, _DRIVES)
+
+    def read(self, node: int, index: int, sub: int) -> int:
+        return self.rt.vcell.sdo_read(node, index, sub)
+
+    def enable(self) -> None:
+        self.rt.enable_drives(self.rt.now)
+
+    def wait(self, seconds: float) -> None:
+        for _ in range(max(1, round(seconds / self.rt.period_s))):
+            self.rt._cycle_once()
+
+    def now(self) -> float:
+        return self.rt.now
 
 
 def send_frames(sends: Sequence[Send]) -> list[Frame]:

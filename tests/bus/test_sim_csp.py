@@ -81,7 +81,7 @@ class Rig:
 def test_enable_in_mode_8_follows_without_a_start_bit() -> None:
     r = Rig(configure=False)
     m = r.m
-    assert m.sdo_read(0x6502, 0) == 0x80  # cyclic synchronous position
+    assert m.sdo_read(0x6502, 0) == 0xA0  # homing and cyclic synchronous position
     assert m.has_object(0x1019) and m.has_object(0x1012) and m.has_object(0x1013)  # CiA 301 v4.2
     with pytest.raises(SdoAbort) as e:
         m.sdo_write(0x6060, 0, 7)

@@ -168,7 +168,7 @@ def test_bit4_starts_ip_and_bit12_reports_it_halt_does_nothing() -> None:
 
 def test_modes_and_submodes() -> None:
     r = Rig(configure=False)
-    assert r.m.sdo_read(0x6502, 0) == 0x40  # interpolated position mode only
+    assert r.m.sdo_read(0x6502, 0) == 0x60  # homing and interpolated position mode
     r.sdo(0x6060, 0, 7)
     assert r.m.sdo_read(0x6061, 0) == 7 and r.m.mode == 7
     assert abort_code(r.m.sdo_write, 0x6060, 0, 8) == odm.ABORT_INVALID_VALUE  # no CSP on CANopen

@@ -1,0 +1,218 @@
+"""Home jobs on the master side: homing mode on the drives, and which axes are referenced.
+
+Theory of operation. A home job (planner/job.py, kind "home") is not planned: `run_homing` has the drives
+reference themselves, all axes of the job at once, through a `HomingPort` (the virtual-time runtime plays
+SYNC cycles while it waits, the real-time one sleeps while its periodic SYNC runs):
+
+1. the drives are enabled as for a job (operation enabled, controlword bit 4 low);
+2. per axis the family's homing writes (bus/profile.py `homing_writes`: 0x6098, 0x6099:01/02, 0x609A,
+   0x607C in the drive's units, then 0x6060 = 6) and controlword 0x001F (bit 4 rising starts homing);
+3. every period it reads each statusword until bit 13 (homing error) or bits 12 and 10 ("Homing procedure
+   successfully completed", seed 003's table), or the job's `timeout_s` passes;
+4. always, for every axis it touched: controlword 0x000F (bit 4 low interrupts a homing still running),
+   the set point objects = the position (cyclic families), the family's mode writes again
+   (`mode_writes`, so the streaming mode is what `configuration` set), and the enable sequence.
+
+The job is done when every axis attained; else failed HOMING_ERROR (an axis reported bit 13) or
+HOMING_TIMEOUT, naming the axes. A cancel interrupts every axis (bit 4 low) and ends "cancelled".
+
+`Referencing` is what the backends keep of it: the axes homed since their drive last faulted or booted.
+With `cell.require_homing`, a job that moves an axis that is neither referenced nor homed by a home job
+accepted before it is refused NOT_HOMED (at admission, and again when it comes up: the home job may have
+failed). A home job's success references its axes; a homing error, a drive fault in any job (its axes), a
+failed home job and a drive's boot-up (a power cycle or reset node: the drive forgot its reference, seed
+003 0x3218 "cleared when drive is switched on") un-reference them.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, Protocol
+
+from bus.families import PROFILES
+from bus.profile import setpoint_slots
+from planner.config import CellConfig
+from planner.job import HomeData, Job
+
+HOMING_ERROR = "HOMING_ERROR"
+HOMING_TIMEOUT = "HOMING_TIMEOUT"
+NOT_HOMED = "NOT_HOMED"
+SW_TARGET_REACHED = 1 << 10
+SW_HOMING_ATTAINED = 1 << 12
+SW_HOMING_ERROR = 1 << 13
+CW_ENABLE_OPERATION = 0x000F
+CW_START_HOMING = 0x001F
+
+
+class HomingPort(Protocol):
+    """What `run_homing` needs of a runtime: SDO access, the enable sequence and a clock that advances."""
+
+    def write(self, node: int, index: int, sub: int, value: int) -> None: ...
+
+    def read(self, node: int, index: int, sub: int) -> int: ...
+
+    def enable(self) -> None: ...
+
+    def wait(self, seconds: float) -> None: ...
+
+    def now(self) -> float: ...
+
+
+def run_homing(cell: CellConfig, job: Job, port: HomingPort, *, cancelled: Callable[[], bool] = lambda: False,
+               progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+    """Home the job's axes (see the module docstring); returns the report (result done/failed/cancelled)."""
+    data = job.data
+    if not isinstance(data, HomeData):
+        raise TypeError(f"run_homing needs a home job, got kind {job.kind!r}")
+    axes = [cell.axis(a) for a in job.axes]
+    slots = setpoint_slots(cell.axes)
+    t0 = port.now()
+    outcome: dict[str, str] = {}
+    started: list[int] = []
+    try:
+        port.enable()
+        for j, a in enumerate(axes):
+            profile = PROFILES[a.profile]
+            for w in profile.homing_writes(a, data.method[j], data.search_speed[j], data.zero_speed[j],
+                                           data.acceleration[j], data.offset[j]):
+                port.write(a.node_id, w.index, w.sub, w.value)
+            started.append(j)
+            port.write(a.node_id, 0x6040, 0, CW_START_HOMING)
+        deadline = t0 + data.timeout_s
+        while len(outcome) < len(axes):
+            if cancelled():
+                break
+            for a in axes:
+                if a.name in outcome:
+                    continue
+                sw = port.read(a.node_id, 0x6041, 0)
+                if sw & SW_HOMING_ERROR:
+                    outcome[a.name] = "error"
+                elif sw & SW_HOMING_ATTAINED and sw & SW_TARGET_REACHED:
+                    outcome[a.name] = "attained"
+            if progress is not None:
+                progress(min(0.99, len(outcome) / len(axes)))
+            if len(outcome) == len(axes):
+                break
+            if port.now() > deadline:
+                for a in axes:
+                    outcome.setdefault(a.name, "timeout")
+                break
+            port.wait(cell.sync_period_s)
+    finally:
+        for j in started:  # back to streaming: bit 4 low, hold where it is, the family's mode, enabled
+            a = axes[j]
+            profile = PROFILES[a.profile]
+            port.write(a.node_id, 0x6040, 0, CW_ENABLE_OPERATION)
+            here = port.read(a.node_id, 0x6064, 0)
+            for w in (*profile.hold_writes(here), *profile.mode_writes(a, cell.drive, cell.sync_period_ms,
+                                                                        slots.get(a.node_id))):
+                port.write(a.node_id, w.index, w.sub, w.value)
+        if started:
+            port.enable()
+    duration = port.now() - t0
+    rows = []
+    for j, a in enumerate(axes):
+        pos = port.read(a.node_id, 0x6064, 0)
+        rows.append({"name": a.name, "node_id": a.node_id, "method": data.method[j],
+                     "result": outcome.get(a.name, "cancelled"), "position": pos / a.counts_per_unit,
+                     "home_position": data.offset[j]})
+    report: dict[str, Any] = {"result": "done", "kind": "home", "sync_period_ms": cell.sync_period_ms,
+                              "duration_s": round(duration, 6), "faults": [], "axes": rows}
+    errors = [r for r in rows if r["result"] == "error"]
+    late = [r for r in rows if r["result"] == "timeout"]
+    if cancelled() and len(outcome) < len(axes):
+        report.update(result="cancelled", message="homing interrupted (controlword bit 4 low)")
+    elif errors:
+        names = ", ".join(f"{r['name']!r} (node {r['node_id']}, method {r['method']})" for r in errors)
+        report.update(result="failed", error={
+            "code": HOMING_ERROR, "node": errors[0]["node_id"], "path": "method",
+            "message": f"homing error (statusword bit 13) on axis {names}: the drive did not find its home "
+                       "position (a switch not found within its travel, a limit switch, or a method it does "
+                       "not perform); the axis is not referenced",
+            "detail": {"axes": [r["name"] for r in errors]}})
+    elif late:
+        names = ", ".join(f"{r['name']!r} (node {r['node_id']})" for r in late)
+        report.update(result="failed", error={
+            "code": HOMING_TIMEOUT, "node": late[0]["node_id"], "path": "timeout_s",
+            "message": f"homing of axis {names} neither attained (statusword bits 12 and 10) nor failed (bit 13) "
+                       f"within timeout_s = {data.timeout_s:g} s; interrupted (bit 4 low), not referenced",
+            "detail": {"axes": [r["name"] for r in late]}})
+    return report
+
+
+def home_end_positions(job: Job) -> dict[str, float]:
+    """Where a home job leaves its axes when it succeeds: each at its home position (0x607C)."""
+    assert isinstance(job.data, HomeData)
+    return dict(zip(job.axes, job.data.offset, strict=True))
+
+
+class Referencing:
+    """Which axes are referenced, and the `require_homing` check (see the module docstring). Thread-safe."""
+
+    def __init__(self, cell: CellConfig):
+        self.cell = cell
+        self._lock = threading.Lock()
+        self._referenced: set[str] = set()
+        self._pending: dict[str, int] = {}  # axis -> home jobs accepted and not run yet
+
+    @property
+    def referenced(self) -> frozenset[str]:
+        with self._lock:
+            return frozenset(self._referenced)
+
+    def check(self, job: Job, *, at_start: bool = False) -> None:
+        """Raise NOT_HOMED (a MotionError) if `require_homing` and a job that moves axes is on unreferenced
+        ones (at admission, axes a queued home job will reference count as referenced)."""
+        if not self.cell.require_homing or job.kind == "home":
+            return
+        with self._lock:
+            ok = self._referenced if at_start else self._referenced | {a for a, n in self._pending.items() if n}
+            missing = [a for a in job.axes if a not in ok]
+        if missing:
+            from streamer.api.errors import MotionError
+
+            raise MotionError(
+                NOT_HOMED,
+                f"cell {self.cell.name!r} requires homing (cell.require_homing) and axis(es) {missing} are not "
+                "referenced (no home job since their drive powered on or faulted); submit a home job for them "
+                "first", path="axes", detail={"axes": missing})
+
+    def planned(self, job: Job) -> None:
+        """A home job was accepted: its axes will be referenced when it runs."""
+        if job.kind == "home":
+            with self._lock:
+                for a in job.axes:
+                    self._pending[a] = self._pending.get(a, 0) + 1
+
+    def finished(self, job: Job, report: Mapping[str, Any]) -> None:
+        """A job ended: a home job references (attained) or un-references its axes; a failed job un-references
+        the axes of the drive that faulted (all its axes when no node is named)."""
+        with self._lock:
+            if job.kind == "home":
+                for a in job.axes:
+                    if self._pending.get(a):
+                        self._pending[a] -= 1
+                for row in report.get("axes", ()):
+                    if isinstance(row, Mapping) and row.get("name") in job.axes:
+                        if row.get("result") == "attained":
+                            self._referenced.add(str(row["name"]))
+                        else:
+                            self._referenced.discard(str(row["name"]))
+                return
+            if report.get("result") == "failed":
+                err = report.get("error")
+                node = err.get("node") if isinstance(err, Mapping) else None
+                names = {a.name for a in self.cell.axes if a.node_id == node} if node is not None else set(job.axes)
+                self._referenced -= names
+
+    def forget(self, nodes: Iterable[int]) -> None:
+        """These drives booted (power cycle, reset node) or faulted: their axes are not referenced."""
+        nodes = set(nodes)
+        with self._lock:
+            self._referenced -= {a.name for a in self.cell.axes if a.node_id in nodes}
+
+    def status(self) -> dict[str, Sequence[str] | bool]:
+        with self._lock:
+            return {"require_homing": self.cell.require_homing, "referenced": sorted(self._referenced)}
