@@ -98,9 +98,13 @@ def long_path(minutes: float) -> Any:
     cell, _, _ = demo.prepare(axes=3)
     way = [[0.0, 0.0, 0.0], [0.6, 0.45, -0.55], [0.62, 0.70, -0.80], [0.60, 0.30, -0.35], [-0.20, 0.10, 0.40],
            [-0.85, 0.55, -0.30], [-0.87, 0.78, -0.60], [-0.40, 0.30, -0.10]]
-    reps = max(1, round(minutes * 60 / 3.3))
-    job = job_from_dict({"kind": "path", "axes": ["j1", "j2", "j3"], "waypoints": way * reps + [[0.0] * 3]}, cell)
-    return cell, plan_job(job, cell)
+    def plan(reps: int) -> Any:
+        job = job_from_dict({"kind": "path", "axes": ["j1", "j2", "j3"], "waypoints": way * reps + [[0.0] * 3]},
+                            cell)
+        return plan_job(job, cell)
+
+    once = plan(1).duration_s  # one round (its duration depends on the planner's geometry)
+    return cell, plan(max(1, round(minutes * 60 / once)))
 
 
 def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict[str, Any]:
