@@ -494,6 +494,11 @@ class Coordinator:
         return min(1.0, max(0.0, self._elapsed(self._sync) / self._job_end_ms))
 
     @property
+    def stream_duration_ms(self) -> int:
+        """How long the stream runs from the start SYNC: the plan's duration, or longer/shorter after a splice."""
+        return self._job_end_ms
+
+    @property
     def change_results(self) -> tuple[ChangeResult, ...]:
         """Every `Change` fed so far and what became of it, in order."""
         return tuple(self._change_results)
