@@ -15,16 +15,26 @@ Knot 0 of the stop is exactly the given state (position rounded to counts, veloc
 values the streamer passed in), so the stop's records continue the queued stream seamlessly. A stop
 is never refused for leaving the software limits (the drive's own 0x607D still applies): it is the
 shortest coordinated stop there is; `PvtTrajectory.stats` reports where it ends.
+
+A change (`plan_change`, a new target while the axes move: a move submitted with buffer "aborting")
+is planned the same way from the same kind of state, but with ruckig's position interface to the new
+target at rest, time-synchronised so that every axis arrives at the same instant. Unlike a stop it can
+be refused: a target outside the software limits, or a motion that swings out of them on the way (a
+late change at speed brakes past the target and comes back), raises POSITION_LIMIT; ruckig's own
+refusal raises INFEASIBLE. When an axis is past its new target in its direction of travel (it must brake
+beyond it and reverse), or the change's motion crosses the target before it settles, the change reports
+it (`ChangePlan.overrun_axes`, seed 002's TARGET_OVERRUN warning), but still plans it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from planner.config import CellConfig
-from planner.errors import AXIS_COUNT, NONFINITE, PlanningError
+from planner.config import AxisConfig, CellConfig
+from planner.errors import AXIS_COUNT, INFEASIBLE, NONFINITE, POSITION_LIMIT, PlanningError
 from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
 from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
@@ -108,6 +118,196 @@ def plan_stop_from_wire(
         else np.asarray(accelerations_counts_per_ms2, dtype=np.float64) * 1.0e6 / cpu
     )
     return plan_stop(cell, axis_names, p.tolist(), v.tolist(), a.tolist(), tolerance_counts=tolerance_counts)
+
+
+@dataclass(frozen=True)
+class ChangePlan:
+    """A planned change: the trajectory from the given state to the new target (knot 0 is that state to the
+    count and the rpm), and the axes that brake past their new target and come back (TARGET_OVERRUN)."""
+
+    trajectory: PvtTrajectory
+    overrun_axes: tuple[str, ...]
+    overrun_counts: tuple[int, ...]  # per overrun axis: how far past its target it goes (counts)
+
+
+def plan_change(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions: Sequence[float],
+    velocities: Sequence[float],
+    accelerations: Sequence[float],
+    target: Sequence[float],
+    *,
+    tolerance_counts: int = 1,
+    velocity_limit: Sequence[float] | None = None,
+    acceleration_limit: Sequence[float] | None = None,
+    jerk_limit: Sequence[float] | None = None,
+) -> ChangePlan:
+    """Every axis from (position, velocity, acceleration) to `target` at rest, all arriving together (user
+    units, /s, /s^2). Limits default to the cell's per-axis velocity, acceleration and jerk."""
+    names = tuple(axis_names)
+    cfg = axis_configs(names, cell)
+    n = len(cfg)
+    p = _vec(positions, "positions", n)
+    v = _vec(velocities, "velocities", n)
+    a = _vec(accelerations, "accelerations", n)
+    goal = _vec(target, "target", n)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    vlim = _vec(velocity_limit, "velocity_limit", n) if velocity_limit is not None else np.array(
+        [c.velocity for c in cfg])
+    alim = _vec(acceleration_limit, "acceleration_limit", n) if acceleration_limit is not None else np.array(
+        [c.acceleration for c in cfg])
+    jlim = _vec(jerk_limit, "jerk_limit", n) if jerk_limit is not None else np.array([c.jerk for c in cfg])
+    _check_target(goal, cfg, names)
+    limits = {
+        "velocity": np.array([c.max_profile_velocity for c in cfg]),  # as a stop: braking from above vlim
+        "acceleration": alim,
+        "jerk": jlim,
+        "velocity_axis": vlim,
+        "acceleration_axis": alim,
+    }
+    scales = axis_scales(cfg, limits)
+    conv = scales.counts_per_ms_per_rpm
+    p0 = np.round(p * cpu).astype(np.int64)
+    v0 = np.round(v * cpu / 1000.0 / conv).astype(np.int64)
+    p_exact = p0 / cpu
+    v_exact = v0 * conv * 1000.0 / cpu
+    goal = np.round(goal * cpu) / cpu  # the target on whole counts, as every plan's end
+    info: dict[str, float] = {}
+
+    def build(f: float, smooth: bool = False) -> Reference:
+        return _change_reference(p_exact, v_exact, a, goal, np.maximum(vlim, np.abs(v_exact)),
+                                 np.maximum(alim, np.abs(a)), jlim, cpu, time_scale=f)
+
+    ref, knots, rec = encode_with_retries(
+        build, scales, int(tolerance_counts), retime=True, axes=names, start_positions=p0,
+        start_velocities_rpm=v0, info_out=info,
+    )
+    _check_swing(ref.positions, cfg, names)
+    traj = build_trajectory("move", names, cfg, ref, knots, rec, scales, int(tolerance_counts), limits, info)
+    over: list[str] = []
+    by: list[int] = []
+    for j, name in enumerate(names):
+        row = ref.positions[j]
+        end = float(goal[j] * cpu[j])
+        # past the target in its direction of travel (it must brake beyond it and come back), or the
+        # change's own motion crosses the target before it settles there
+        side = float(np.sign(float(p0[j]) - end))
+        heading = float(np.sign(float(v_exact[j])))
+        if side != 0.0 and heading == side:
+            past = float(np.max((row - end) * side))
+        else:
+            ahead = side if side != 0.0 else -heading
+            past = float(np.max((row - end) * -ahead)) if ahead != 0.0 else 0.0
+        if past > max(1.0, float(tolerance_counts)):
+            over.append(name)
+            by.append(round(past))
+    return ChangePlan(traj, tuple(over), tuple(by))
+
+
+def plan_change_from_wire(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions_counts: Sequence[int],
+    velocities_rpm: Sequence[int],
+    accelerations_counts_per_ms2: Sequence[float] | None,
+    target: Sequence[float],
+    *,
+    tolerance_counts: int = 1,
+    velocity_limit: Sequence[float] | None = None,
+    acceleration_limit: Sequence[float] | None = None,
+    jerk_limit: Sequence[float] | None = None,
+) -> ChangePlan:
+    """plan_change with the state in drive units (counts, rpm, counts/ms^2) and the target in user units."""
+    p, v, a = _from_wire(cell, axis_names, positions_counts, velocities_rpm, accelerations_counts_per_ms2)
+    return plan_change(cell, axis_names, p, v, a, target, tolerance_counts=tolerance_counts,
+                       velocity_limit=velocity_limit, acceleration_limit=acceleration_limit, jerk_limit=jerk_limit)
+
+
+def _from_wire(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions_counts: Sequence[int],
+    velocities_rpm: Sequence[int],
+    accelerations_counts_per_ms2: Sequence[float] | None,
+) -> tuple[list[float], list[float], list[float]]:
+    cfg = axis_configs(tuple(axis_names), cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    conv = np.array([c.counts_per_rev / 60000.0 for c in cfg])
+    p = np.asarray(positions_counts, dtype=np.float64) / cpu
+    v = np.asarray(velocities_rpm, dtype=np.float64) * conv * 1000.0 / cpu
+    a = (
+        np.zeros(len(cfg))
+        if accelerations_counts_per_ms2 is None
+        else np.asarray(accelerations_counts_per_ms2, dtype=np.float64) * 1.0e6 / cpu
+    )
+    return p.tolist(), v.tolist(), a.tolist()
+
+
+def _change_reference(
+    position: FloatArray,
+    velocity: FloatArray,
+    acceleration: FloatArray,
+    target: FloatArray,
+    vlim: FloatArray,
+    alim: FloatArray,
+    jlim: FloatArray,
+    cpu: FloatArray,
+    *,
+    time_scale: float = 1.0,
+) -> Reference:
+    """ruckig's position interface from the given state to the target at rest, time-synchronised."""
+    from planner.jerk import _input, _reference, _ruckig, _solve, sample_profiles
+
+    n = position.size
+    _ruckig()  # imported (and its absence reported) before the input is built
+    inp = _input(n, vlim, alim, jlim)
+    inp.current_position = [float(x) for x in position]
+    inp.current_velocity = [float(x) for x in velocity]
+    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.target_position = [float(x) for x in target]
+    inp.target_velocity = [0.0] * n
+    inp.target_acceleration = [0.0] * n
+    traj = _solve(inp, n)
+    if time_scale > 1.0:
+        inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
+        traj = _solve(inp, n)
+    duration_ms = max(round(traj.duration * 1000.0), 1)
+    pos, vel, acc = sample_profiles(traj, n, duration_ms)
+    pos[:, 0] = position
+    vel[:, 0] = velocity
+    pos[:, -1] = target
+    return _reference(pos, vel, acc, cpu)
+
+
+def _check_target(goal: FloatArray, cfg: Sequence[AxisConfig], names: Sequence[str]) -> None:
+    for j, c in enumerate(cfg):
+        if not c.position_min <= float(goal[j]) <= c.position_max:
+            raise PlanningError(
+                POSITION_LIMIT,
+                f"target[{j}] of axis {names[j]!r} is {float(goal[j]):g}, outside the software position limits "
+                f"[{c.position_min:g}, {c.position_max:g}]",
+                path=f"target[{j}]",
+                detail={"axis": names[j], "target": float(goal[j])},
+            )
+
+
+def _check_swing(positions: FloatArray, cfg: Sequence[AxisConfig], names: Sequence[str]) -> None:
+    """A change at speed may brake past its target (or the limit) before it can come back: refuse it when the
+    way there leaves the software limits."""
+    for j, c in enumerate(cfg):
+        row = positions[j] / c.counts_per_unit
+        low, high = float(row.min()), float(row.max())
+        half = 0.5 / c.counts_per_unit
+        if low < c.position_min - half or high > c.position_max + half:
+            raise PlanningError(
+                INFEASIBLE,
+                f"axis {names[j]!r} cannot reach its new target without leaving the software position limits "
+                f"[{c.position_min:g}, {c.position_max:g}]: braking from where it is goes to "
+                f"{low if low < c.position_min else high:.6g}",
+                path=f"target[{j}]",
+                detail={"axis": names[j], "min": low, "max": high},
+            )
 
 
 def _vec(x: Sequence[float], name: str, n: int) -> FloatArray:

@@ -1,16 +1,23 @@
-"""The streamer core's stop planner, backed by the planner's jerk-limited stop (ruckig).
+"""The streamer core's stop and change planners, backed by the planner's jerk-limited motions (ruckig).
 
 The core asks for a stop from the state at the end of what is queued, in drive units (counts, rpm,
 counts/ms^2, see `StopRequest`); `planner.stop.plan_stop_from_wire` plans it from exactly those wire
 values, so knot 0 of the stop is the queued knot to the count and the rpm. Planning runs on whatever
 thread handles the cancel (a stop for 6 axes plans in a few ms; the core has a SYNC period of margin
 per queued record).
+
+A change (a new target while the axes move, `streamer.core.Change`) is asked for the same state and
+planned by `planner.stop.plan_change_from_wire` to the new target; `ChangePlanner` keeps what it planned
+(the trajectory, the axes that overrun their target, the planning time) for the job that asked.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Sequence
+
 from planner.config import CellConfig
-from planner.stop import plan_stop_from_wire
+from planner.stop import ChangePlan, plan_change_from_wire, plan_stop_from_wire
 from planner.trajectory import PvtTrajectory
 from streamer.core.plan_source import StopPlanner, StopRequest
 
@@ -30,3 +37,44 @@ def make_stop_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
         )
 
     return plan
+
+
+class ChangePlanner:
+    """The `planner` of a `Change` to absolute targets (user units, by axis name): called by the core with
+    the state at the end of the queue; `planned` is what it returned (None until then, or when it raised),
+    `error` the exception it raised, `planning_s` the wall time it took."""
+
+    def __init__(self, cell: CellConfig, traj: PvtTrajectory, target: dict[str, float], *,
+                 tolerance_counts: int | None = None, velocity_limit: Sequence[float] | None = None,
+                 acceleration_limit: Sequence[float] | None = None, jerk_limit: Sequence[float] | None = None):
+        names = tuple(str(n) for n in traj.axis_names)
+        missing = [n for n in names if n not in target]
+        extra = [n for n in target if n not in names]
+        if missing or extra:
+            raise ValueError(f"a change must give a target for every axis of the running job {list(names)}"
+                             f" (missing {missing}, not in the job {extra})")
+        self._cell = cell
+        self._names_by_node = dict(zip(traj.node_ids, names, strict=True))
+        self._target = dict(target)
+        self._tol = traj.tolerance_counts if tolerance_counts is None else tolerance_counts
+        self._limits = (velocity_limit, acceleration_limit, jerk_limit)
+        self.planned: ChangePlan | None = None
+        self.error: BaseException | None = None
+        self.planning_s = 0.0
+
+    def __call__(self, request: StopRequest) -> PvtTrajectory:
+        names = [self._names_by_node[n] for n in request.node_ids]
+        t0 = time.perf_counter()
+        try:
+            self.planned = plan_change_from_wire(
+                self._cell, names, request.positions_counts, request.velocities_rpm,
+                request.accelerations_counts_per_ms2, [self._target[n] for n in names],
+                tolerance_counts=self._tol, velocity_limit=self._limits[0], acceleration_limit=self._limits[1],
+                jerk_limit=self._limits[2],
+            )
+        except BaseException as exc:
+            self.error = exc
+            raise
+        finally:
+            self.planning_s = time.perf_counter() - t0
+        return self.planned.trajectory

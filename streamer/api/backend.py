@@ -70,6 +70,15 @@ Contract, method by method (which service thread calls it, what it may raise):
   0x6085); a running `execute` then returns "failed" with code EMERGENCY_STOP, and `ready()` stays
   False until `reset()`. Any thread; returns what it did (for the reply). Without it the service's
   emergency stop falls back to the jerk-limited stop of a cancel.
+- optional `change(job, mode, emit) -> (Planned, info)`: a move submitted with `buffer = "aborting"` while a
+  job runs: replace the running job's remainder with it, without stopping, planned from the state at the
+  end of what is queued (streamer.core.Change); from then on the new job's progress goes to `emit`.
+  Returns the new job's `Planned` and what was done (`time_ms`: where it begins in the running stream,
+  `reaction_ms`: from the request to that point, `overrun_axes`: axes that pass the new target, ...).
+  Raises `MotionError(COMMAND_REJECTED)` naming the reason when it cannot be made (out of reach within the
+  limits and position limits, cannot be streamed in time, the running plan's end already queued); the
+  running job then goes on untouched. Intake thread; it waits for the SYNC thread's answer (a period or two).
+  Without it, `aborting` is rejected while a job runs.
 - optional `take_recording()`: the recording of the job the last `execute` ran (a
   `streamer.recording.JobRecording`, or `streamer.recording.writer.RecordingInputs` to build it from),
   or None; each once. Called on the executor thread right after `execute`; the service writes it
@@ -110,6 +119,7 @@ class Planned:
     end_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at the end
     start_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at knot 0
     record: Any = None  # the job's `record` section (a streamer.recording.drive.RecordRequest), or None
+    lead_ms: int | None = None  # the job's own lead (`lead_ms`, checked by the service), None: the cell's
 
     def __post_init__(self) -> None:
         if not self.duration_s >= 0.0:

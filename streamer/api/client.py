@@ -51,7 +51,7 @@ from streamer.api.payload import encode_submission, unpack
 from streamer.api.security import ClientSecurity
 from streamer.api.zenoh_config import DEFAULT_CONNECT, client_config
 
-FINAL_EVENTS = frozenset({"done", "failed", "cancelled"})
+FINAL_EVENTS = frozenset({"done", "failed", "cancelled", "aborted"})
 RUN_SUFFIX_LEN = 9  # "-" and 8 hex digits
 
 
@@ -211,6 +211,7 @@ class Job:
         self.job_id = job_id
         self.cell = client.cell
         self.accepted: dict[str, Any] = dict(accepted or {})
+        self.body: dict[str, Any] | None = None  # the job as submitted through this client (change() reads axes)
         self._inbox: queue.Queue[bytes | None] = queue.Queue()  # None: the service's token vanished
         self._lock = threading.RLock()
         self._seen: list[JobEvent] = []
@@ -257,6 +258,49 @@ class Job:
         return JobStatus.from_wire(
             self.client._query(keys.job_cancel(self.cell, self.job_id), timeout=timeout)
         )
+
+    def stop(self, timeout: float | None = None) -> JobStatus:
+        """Stop this job with the normal deceleration (its jerk-limited stop trajectory); as `cancel()`."""
+        return self.cancel(timeout=timeout)
+
+    def emergency_stop(self, timeout: float | None = None) -> dict[str, Any]:
+        """The cell's emergency stop (every axis, this job's included): `MotionClient.stop(emergency=True)`."""
+        return self.client.stop(emergency=True, timeout=timeout)
+
+    def halt(self, timeout: float | None = None) -> dict[str, Any]:
+        """Halt: the running job stops with the normal deceleration, the queue is NOT held (the next job may
+        start): `MotionClient.halt()`."""
+        return self.client.halt(timeout=timeout)
+
+    def change(
+        self,
+        target: Sequence[float] | Mapping[str, float],
+        *,
+        mode: str = "absolute",
+        axes: Sequence[str] | None = None,
+        buffer: str = "aborting",
+        job_id: str | None = None,
+        lead_ms: int | None = None,
+        timeout: float | None = None,
+    ) -> Job:
+        """A new target for this running job: a move submitted with `buffer` ("aborting": it replaces this
+        job's remainder without stopping; this job then ends `aborted`). The new job's handle; MotionError
+        COMMAND_REJECTED (with the reason) when the change cannot be made, and this job goes on untouched.
+        `target`: by axis name, or a list in the order of `axes` (default: this job's axes)."""
+        if isinstance(target, Mapping):
+            names = list(target)
+            values = [float(target[n]) for n in names]
+        else:
+            known = axes if axes is not None else (self.body or {}).get("axes")
+            if not isinstance(known, Sequence) or isinstance(known, str):
+                raise MotionError(E.BAD_REQUEST, "change(): give the target by axis name, or the axes (this handle "
+                                  "does not know the job's axes)", path="axes")
+            names = [str(a) for a in known]
+            values = [float(x) for x in target]
+        body: dict[str, Any] = {"kind": "move", "axes": names, "target": values, "mode": mode, "buffer": buffer}
+        if lead_ms is not None:
+            body["lead_ms"] = lead_ms
+        return self.client.submit(body, job_id=job_id, timeout=timeout)
 
     def history(self, after: int = 0, timeout: float | None = None) -> list[JobEvent]:
         """The journalled events (seq > after), from the service."""
@@ -570,6 +614,13 @@ class MotionClient:
                           timeout=timeout)
         return dict(msg) if isinstance(msg, Mapping) else {}
 
+    def halt(self, timeout: float | None = None) -> dict[str, Any]:
+        """Halt: the running job stops with the normal deceleration (its jerk-limited stop trajectory) and ends
+        cancelled, but the queue is not held: the next queued job starts from where the axes stopped. The
+        answer: {cell, held, job_id, method, message}."""
+        msg = self._query(keys.halt(self.cell), timeout=timeout)
+        return dict(msg) if isinstance(msg, Mapping) else {}
+
     def hold(self, timeout: float | None = None) -> dict[str, Any]:
         """Hold the queue: the running job goes on, no further job starts until `resume()`."""
         msg = self._query(keys.hold(self.cell), timeout=timeout)
@@ -625,6 +676,7 @@ class MotionClient:
             handle.close()
             raise
         handle.accepted = dict(reply) if isinstance(reply, Mapping) else {"job_id": jid}
+        handle.body = body
         self._track(handle)
         return handle
 

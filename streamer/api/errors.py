@@ -28,6 +28,7 @@ INTERNAL = "INTERNAL"  # a bug: an unexpected exception in the service or the ba
 SERVICE_RESTART = "SERVICE_RESTART"  # the service died while the job was queued or running
 SERVICE_STOPPED = "SERVICE_STOPPED"  # the service was shut down while the job was queued
 EMERGENCY_STOP = "EMERGENCY_STOP"  # the job was ended by an emergency stop (quick stop on every drive)
+COMMAND_REJECTED = "COMMAND_REJECTED"  # a change of the running motion that cannot be made (seed 002)
 INFEASIBLE = "INFEASIBLE"  # (planner code) a queued job that no longer starts where the axes stand
 TIMEOUT = "TIMEOUT"  # client side: no answer in time
 NO_SERVICE = "NO_SERVICE"  # client side: no service answered for this cell
@@ -51,6 +52,7 @@ API_CODES = frozenset(
         SERVICE_RESTART,
         SERVICE_STOPPED,
         EMERGENCY_STOP,
+        COMMAND_REJECTED,
         TIMEOUT,
         NO_SERVICE,
         SERVICE_GONE,

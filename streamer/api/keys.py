@@ -83,6 +83,10 @@ def hold(cell: str) -> str:
     return f"{base(cell)}/hold"
 
 
+def halt(cell: str) -> str:
+    return f"{base(cell)}/halt"
+
+
 def resume(cell: str) -> str:
     return f"{base(cell)}/resume"
 

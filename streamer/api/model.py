@@ -11,6 +11,7 @@ raises, so a late or duplicated event can never resurrect a finished job.
     QUEUED     --priming-->    RUNNING    --running-->    RUNNING
     RUNNING    --cancelling--> CANCELLING --cancelling--> CANCELLING   (progress while stopping)
     RUNNING    --done/failed/cancelled--> DONE/FAILED/CANCELLED
+    RUNNING    --aborted-->    ABORTED    (a change replaced it: `replaced_by` names the job that took over)
     CANCELLING --done/failed/cancelled--> DONE/FAILED/CANCELLED        (done: the plan's end was queued)
     QUEUED     --failed/cancelled-->      FAILED/CANCELLED   (restart, not ready, shutdown, cancel)
 """
@@ -30,13 +31,14 @@ class JobState(enum.Enum):
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
+    ABORTED = "aborted"  # replaced while it moved by a change (`replaced_by` names the job that took over)
 
     @property
     def final(self) -> bool:
         return self in _FINAL
 
 
-_FINAL = frozenset({JobState.DONE, JobState.FAILED, JobState.CANCELLED})
+_FINAL = frozenset({JobState.DONE, JobState.FAILED, JobState.CANCELLED, JobState.ABORTED})
 
 
 class EventType(enum.Enum):
@@ -48,10 +50,11 @@ class EventType(enum.Enum):
     DONE = "done"
     FAILED = "failed"
     CANCELLED = "cancelled"
+    ABORTED = "aborted"
 
     @property
     def final(self) -> bool:
-        return self in (EventType.DONE, EventType.FAILED, EventType.CANCELLED)
+        return self in (EventType.DONE, EventType.FAILED, EventType.CANCELLED, EventType.ABORTED)
 
 
 class InvalidTransition(RuntimeError):
@@ -70,6 +73,7 @@ TRANSITIONS: Mapping[tuple[JobState | None, EventType], JobState] = {
     (JobState.RUNNING, EventType.FAILED): JobState.FAILED,
     (JobState.RUNNING, EventType.CANCELLED): JobState.CANCELLED,
     (JobState.RUNNING, EventType.CANCELLING): JobState.CANCELLING,
+    (JobState.RUNNING, EventType.ABORTED): JobState.ABORTED,
     (JobState.CANCELLING, EventType.CANCELLING): JobState.CANCELLING,
     (JobState.CANCELLING, EventType.DONE): JobState.DONE,
     (JobState.CANCELLING, EventType.FAILED): JobState.FAILED,

@@ -70,12 +70,14 @@ from streamer.api.errors import MotionError, error_from_exception
 from streamer.api.model import Event, EventType, InvalidTransition, JobRecord, JobState, transition
 from streamer.api.payload import DEFAULT_LIMITS, PayloadLimits, Submission, decode_submission, pack, plain
 from streamer.api.store import JobStore
+from streamer.core.settings import StreamerSettings
 from streamer.recording.files import RecordingFiles, RecordingRetention, default_recordings_dir
 from streamer.recording.writer import RecordingWriter
 
 log = logging.getLogger(__name__)
 
 API_VERSION = 1
+REPAIR_SYNCS = StreamerSettings.repair_syncs  # the feeders' repair horizon (the floor of a job's lead_ms)
 ENCODING = "application/msgpack"
 
 
@@ -118,6 +120,7 @@ class _Queued:
     cancel_requested: bool = False
     emergency: bool = False  # an emergency stop hit it
     emitter: _Emitter | None = None
+    replaced_by: _Queued | None = None  # a change took the running motion over (this job ended aborted)
 
     @property
     def kind(self) -> str:
@@ -161,7 +164,7 @@ class _Emitter:
     After `mark_cancelling()` every update is published as a `cancelling` event (the job's state is then
     CANCELLING), in order with the ones before: both go through this object's lock."""
 
-    def __init__(self, service: JobService, job_id: str, min_interval_s: float):
+    def __init__(self, service: JobService, job_id: str, min_interval_s: float, *, paused: bool = False):
         self._service = service
         self._job_id = job_id
         self._min_interval_s = min_interval_s
@@ -170,6 +173,9 @@ class _Emitter:
         self._held: dict[str, Any] | None = None
         self._closed = False
         self._cancelling = False
+        # a change's emitter is handed to the backend before the job is journalled running: it keeps the
+        # latest update until `unpause()`, so no progress event can come before the job's `priming`
+        self._paused = paused
         self.progress = 0.0  # the latest progress the backend reported (status, telemetry)
 
     def __call__(self, event_type: str, fields: Mapping[str, Any] | None = None) -> None:
@@ -189,12 +195,20 @@ class _Emitter:
             if self._closed:
                 return
             self.progress = data["progress"]
-            if now - self._last_sent < self._min_interval_s and data["progress"] < 1.0:
+            if self._paused or (now - self._last_sent < self._min_interval_s and data["progress"] < 1.0):
                 self._held = data  # the latest update is sent at the end if nothing newer goes out
                 return
             self._last_sent = now
             self._held = None
             self._service._post_progress(self._job_id, self._type(), data)
+
+    def unpause(self) -> None:
+        with self._lock:
+            self._paused = False
+            held, self._held = self._held, None
+            if held is not None and not self._closed:
+                self._last_sent = time.monotonic()
+                self._service._post_progress(self._job_id, self._type(), held)
 
     def _type(self) -> EventType:
         return EventType.CANCELLING if self._cancelling else EventType.RUNNING
@@ -218,7 +232,7 @@ class _Emitter:
         with self._lock:
             self._closed = True
             held, self._held = self._held, None
-            if held is not None:
+            if held is not None and not self._paused:
                 self._service._post_progress(self._job_id, self._type(), held)
 
 
@@ -239,6 +253,37 @@ def _split_record(body: dict[str, Any]) -> tuple[dict[str, Any], Any]:
                 raise MotionError(BAD_RECORD, f"record.axes[{i}]: {name!r} is not an axis of the job ({axes})",
                                   path=f"record.axes[{i}]")
     return rest, request
+
+BUFFER_MODES = ("queued", "aborting", "buffered")
+LEAD_MS_MAX = 5000
+
+
+def _split_buffer(
+    body: dict[str, Any], sync_period_ms: int, repair_syncs: int
+) -> tuple[dict[str, Any], str, int | None]:
+    """The job body without `buffer` and `lead_ms` (the service's, not the planner's), and both checked.
+    A lead shorter than the repair horizon ((repair_syncs + 1) SYNC periods) would not shorten anything: the
+    feeders keep that much queued anyway to see and resend a lost batch."""
+    rest = {k: v for k, v in body.items() if k not in ("buffer", "lead_ms")}
+    buffer = body.get("buffer", "queued")
+    if not isinstance(buffer, str):
+        raise MotionError(E.TYPE, f"buffer must be a string, got {buffer!r}", path="buffer")
+    if buffer not in BUFFER_MODES:
+        raise MotionError(E.SCHEMA, f"buffer must be one of {list(BUFFER_MODES)}, got {buffer!r}", path="buffer")
+    lead = body.get("lead_ms")
+    if lead is not None:
+        if isinstance(lead, bool) or not isinstance(lead, int):
+            raise MotionError(E.TYPE, f"lead_ms must be an integer (ms), got {lead!r}", path="lead_ms")
+        least = (repair_syncs + 1) * sync_period_ms
+        if not least <= lead <= LEAD_MS_MAX:
+            raise MotionError(
+                E.SCHEMA,
+                f"lead_ms = {lead} is outside {least}..{LEAD_MS_MAX} ms: the minimum is {repair_syncs + 1} SYNC "
+                f"periods of {sync_period_ms} ms (records in flight and the time to see and resend a lost batch)",
+                path="lead_ms", detail={"lead_ms": lead, "minimum_ms": least, "maximum_ms": LEAD_MS_MAX},
+            )
+    return rest, buffer, lead
+
 
 class JobService:
     """Serves one cell on an open Zenoh session. Several services may share one session (one per cell).
@@ -326,6 +371,7 @@ class JobService:
             s.declare_queryable(keys.reset(c), lambda q: self._control_q.put(("reset", q))),
             s.declare_queryable(keys.stop(c), lambda q: self._control_q.put(("stop", q))),
             s.declare_queryable(keys.hold(c), lambda q: self._control_q.put(("hold", q))),
+            s.declare_queryable(keys.halt(c), lambda q: self._control_q.put(("halt", q))),
             s.declare_queryable(keys.resume(c), lambda q: self._control_q.put(("resume", q))),
         ]
         self._token = s.liveliness().declare_token(keys.alive(c))
@@ -570,7 +616,8 @@ class JobService:
                 f"{existing.state.value}); use a new job_id",
                 path="job_id",
             )
-        job_body, record = _split_record(sub.body)
+        job_body, buffer, lead_ms = _split_buffer(sub.body, self.backend.cell.sync_period_ms, REPAIR_SYNCS)
+        job_body, record = _split_record(job_body)
         job = self.backend.validate(job_body)
         ready, reason = self._ready()
         if not ready:
@@ -584,6 +631,15 @@ class JobService:
                 E.BUSY,
                 f"the queue of cell {self.cell!r} is full ({self.options.queue_limit} jobs); try again later",
             )
+        if buffer == "aborting":
+            with self._cv:
+                current, queued = self._current, list(self._pending)
+            if current is not None:
+                if queued:
+                    raise MotionError(E.COMMAND_REJECTED, f"jobs {queued} are queued after the running job "
+                                      f"{current.job_id!r}: an aborting change would skip them (cancel them first)",
+                                      path="buffer")
+                return self._admit_change(sub, via, job_id, job, current, t0, body)
         with self._cv:
             start = dict(self._queue_end) if (self._pending or self._current is not None) else None
         if sub.start_current and sub.kind == "path":
@@ -597,6 +653,8 @@ class JobService:
             raise MotionError(E.INTERNAL, f"backend.plan returned {type(planned).__name__}, not Planned")
         if record is not None:
             planned = dataclasses.replace(planned, record=record)
+        if lead_ms is not None:
+            planned = dataclasses.replace(planned, lead_ms=lead_ms)
         planning_s = time.perf_counter() - t0
         post = _Post(
             job_id=job_id,
@@ -629,6 +687,66 @@ class JobService:
         if record is None:
             raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
         self.counters["accepted"] += 1
+        return record, False, planning_s
+
+    def _admit_change(self, sub: Submission, via: str, job_id: str, job: Any, current: _Queued, t0: float,
+                      body: bytes) -> tuple[JobRecord, bool, float]:
+        """`buffer = "aborting"` while `current` moves: the backend splices the job in after what is queued
+        (or refuses, COMMAND_REJECTED, and nothing changes); the running job ends `aborted` naming this one,
+        which is journalled running at once and owns the motion (and its cancel token) from here on."""
+        change = getattr(self.backend, "change", None)
+        if not callable(change):
+            raise MotionError(E.COMMAND_REJECTED, "this backend cannot change a running motion", path="buffer")
+        with self._cv:
+            moving = current.started and not current.cancel_requested and current.emitter is not None
+        if not moving:
+            raise MotionError(E.COMMAND_REJECTED, f"the running job {current.job_id!r} is "
+                              f"{'stopping' if current.cancel_requested else 'not moving yet'}: nothing to change",
+                              path="buffer")
+        emitter = _Emitter(self, job_id, 1.0 / self.options.progress_hz, paused=True)
+        planned, info = change(job, "aborting", emitter)
+        if not isinstance(planned, Planned):
+            raise MotionError(E.INTERNAL, f"backend.change returned {type(planned).__name__}, not Planned")
+        planning_s = time.perf_counter() - t0
+        item = _Queued(job_id, planned, token=current.token, body=sub.body, started=True, emitter=emitter)
+        old = current.emitter
+        with self._cv:
+            current.replaced_by = item
+            self._current = item
+            self._queue_end.clear()
+            self._queue_end.update(planned.end_positions)
+        if old is not None:
+            old.close()
+        now = self._clock()
+        aborted = self._post(current.job_id, [(EventType.ABORTED, {
+            "replaced_by": job_id, "message": f"replaced by job {job_id!r} (buffer aborting) at "
+            f"{info.get('time_ms')} ms of the running stream", "progress": old.progress if old else None,
+        }, {"finished_t": now})])
+        post = _Post(
+            job_id=job_id,
+            events=[
+                (EventType.ACCEPTED, {"via": via, "kind": sub.kind, "buffer": "aborting"}, {}),
+                (EventType.PLANNED, {"planned_duration_s": planned.duration_s, "points": planned.points},
+                 {"planned_duration_s": planned.duration_s, "points": planned.points}),
+                (EventType.PRIMING, {"replaces": current.job_id, "change": info}, {"started_t": now}),
+                *([(EventType.RUNNING, {"progress": 0.0, "warning": "TARGET_OVERRUN",
+                                        "overrun_axes": info["overrun_axes"],
+                                        "message": f"axes {info['overrun_axes']} pass their new target and come back"},
+                    {"progress": 0.0})] if info.get("overrun_axes") else []),
+            ],
+            new_job={"kind": sub.kind, "via": via, "body_hash": sub.body_hash, "body": body,
+                     "planned_duration_s": planned.duration_s, "points": planned.points},
+        )
+        self._events_q.put(post)
+        aborted.wait(timeout=60.0)
+        post.wait(timeout=60.0)
+        emitter.unpause()
+        record = self.store.get(job_id)
+        if record is None:
+            raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
+        self.counters["changes"] += 1
+        log.info("job %s replaces job %s (aborting) at %s ms of the stream, reaction %s ms", job_id,
+                 current.job_id, info.get("time_ms"), info.get("reaction_ms"))
         return record, False, planning_s
 
     def _answer_rejection(self, sub: _Submit, job_id: str | None, err: MotionError) -> None:
@@ -725,10 +843,14 @@ class JobService:
                           **({"detail": err.detail} if err.detail else {})},
             }
         finally:
-            emitter.close()
-        report = self._record(item.job_id, report)
+            with self._cv:  # a change may have handed the motion on: the report is the last owner's
+                last = item
+                while last.replaced_by is not None:
+                    last = last.replaced_by
+            (last.emitter or emitter).close()
+        report = self._record(last.job_id, report)
         etype, data, updates = self._final_from_report(report)
-        self._post(item.job_id, [(etype, data, updates)]).wait(60)
+        self._post(last.job_id, [(etype, data, updates)]).wait(60)
 
     # -- the start of a queued job -------------------------------------------------------------------
     def _positions(self) -> dict[str, float] | None:
@@ -1005,6 +1127,7 @@ class JobService:
             "reset": self._q_reset,
             "stop": self._q_stop,
             "hold": self._q_hold,
+            "halt": self._q_halt,
             "resume": self._q_resume,
         }
         while True:
@@ -1187,6 +1310,23 @@ class JobService:
             "job_id": current.job_id if current is not None else None,
             "message": what,
             "queued_jobs": self.service_status()["queued_jobs"],
+        })
+
+    def _q_halt(self, query: zenoh.Query) -> None:
+        """Halt: the running job stops on its jerk-limited stop (ends cancelled); unlike stop, the queue is not
+        held, so the next job starts from where the axes came to rest."""
+        with self._cv:
+            current = self._current
+        if current is None:
+            method, what = "none", "nothing was moving"
+        elif self._cancel_running(current, "halt requested"):
+            method, what = "stop_trajectory", "the running job stops on its jerk-limited stop trajectory"
+        else:
+            method, what = "stop_trajectory", "the running job was already stopping"
+        self.counters["halt"] += 1
+        self._reply(query, keys.halt(self.cell), {
+            "cell": self.cell, "held": self.held, "job_id": current.job_id if current is not None else None,
+            "method": method, "message": what,
         })
 
     def _q_hold(self, query: zenoh.Query) -> None:

@@ -21,6 +21,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.watch",
     "streamer.cli.cancel",
     "streamer.cli.stop",
+    "streamer.cli.halt",
     "streamer.cli.hold",
     "streamer.cli.resume",
     "streamer.cli.jobs",

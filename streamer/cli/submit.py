@@ -3,13 +3,19 @@
     pvt submit configs/jobs/pick.toml --connect tcp/127.0.0.1:7447 --cell demo --wait
     pvt submit JOB --wait --timeout 60          # stop *waiting* after 60 s (the job goes on)
     pvt submit JOB --connect tls/127.0.0.1:7447 --ca ca.pem --cert operator.pem --key operator.key
+    pvt submit MOVE --buffer aborting           # a new target for the running move, without stopping
+
+`--buffer aborting` (a move): replaces the running job's remainder without stopping (it ends aborted);
+COMMAND_REJECTED (exit 2) when the change cannot be made, and the running job goes on. `--lead-ms MS`:
+this job's lead time (a change or a stop acts after it; shorter reacts faster, with less margin).
 
 Each run is a new job: the file's `job_id` is a name, the run's id is `<job_id>-<8 hex digits>` (as
 `MotionClient.submit`); `--job-id` gives the exact id, and resubmitting an exact id is idempotent: that
 is how to find out whether a submission whose answer never came was accepted.
 
 Exit status (streamer/cli/connect.py): 0 accepted (with --wait: done); 1 the job failed; 2 rejected
-(never accepted: fix it and submit again) or bad usage; 3 the job was cancelled; 4 --timeout ran out
+(never accepted: fix it and submit again) or bad usage; 3 the job was cancelled (or aborted: replaced by a
+change); 4 --timeout ran out
 while the job was still queued or running (it was not cancelled); 5 no service, or the service went
 away while waiting (the job's fate is unknown: look with `pvt jobs` or `pvt status`). --wait waits as
 long as the job is queued or running, however long the queue. Ctrl-C while waiting cancels the job
@@ -55,6 +61,10 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=None, metavar="S",
                    help="with --wait: stop waiting after S seconds, exit 4 (the job goes on); default: wait "
                         "while it is queued or running")
+    p.add_argument("--buffer", choices=("queued", "aborting", "buffered"), default=None,
+                   help="aborting: replace the running move without stopping; default queued (after the others)")
+    p.add_argument("--lead-ms", type=int, default=None, metavar="MS",
+                   help="this job's lead time (motion queued ahead; a change or stop acts after it)")
     p.add_argument("--put", action="store_true", help="submit by put (fire and forget) instead of a query")
     p.add_argument("--json", action="store_true", help="print the reply / final status as JSON")
     connect.add_arguments(p)
@@ -74,6 +84,10 @@ def run(args: argparse.Namespace) -> int:
         body = load_job_file(args.job)
         name = body.pop("job_id", None)
         job_id = args.job_id or run_job_id(name)
+        if args.buffer is not None:
+            body["buffer"] = args.buffer
+        if args.lead_ms is not None:
+            body["lead_ms"] = args.lead_ms
     except MotionError as err:
         console.print(f"[red]rejected:[/red] {escape(str(err))}", highlight=False)
         return EXIT_REJECTED
@@ -170,4 +184,5 @@ def _follow(job: Any, args: argparse.Namespace, console: Any, out: Any) -> int:
         console.print(escape(f"job {job.job_id}: {status.state.value}"), highlight=False)
     if status.state == JobState.DONE:
         return EXIT_OK
-    return EXIT_CANCELLED if status.state == JobState.CANCELLED else EXIT_FAILED
+    # a job replaced by a change (aborted) did not reach its own end, as a cancelled one
+    return EXIT_CANCELLED if status.state in (JobState.CANCELLED, JobState.ABORTED) else EXIT_FAILED

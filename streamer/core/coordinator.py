@@ -126,7 +126,14 @@ from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder, pack_frame
 from streamer.core.drive_time import DriveTime
 from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder, stream_framing
 from streamer.core.outcome import JobOutcome, JobResult
-from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
+from streamer.core.plan_source import (
+    Change,
+    ChangeResult,
+    PvtTrajectoryLike,
+    StopPlanner,
+    StopRequest,
+    StreamPlan,
+)
 from streamer.core.schedule import (
     FillPolicy,
     consumed_at,
@@ -232,6 +239,13 @@ _EVENT_TYPES: dict[str, type] = {
     "AdapterError": AdapterError,
     "BusLoad": BusLoad,
     "Cancel": Cancel,
+    "Change": Change,
+}
+# a change is answered in every state (a refusal names why), so that whoever asked always learns the result
+_CHANGE_HANDLERS: dict[JobState, str] = {
+    **{st: "_change_refused" for st in JobState},
+    _J.STARTING: "_change_in_motion",
+    _J.RUNNING: "_change_in_motion",
 }
 
 
@@ -239,7 +253,9 @@ def dispatch_table() -> dict[tuple[JobState, type], str]:
     table: dict[tuple[JobState, type], str] = {}
     for state in JobState:
         for name, etype in _EVENT_TYPES.items():
-            if state in TERMINAL:
+            if name == "Change":
+                table[(state, etype)] = _CHANGE_HANDLERS[state]
+            elif state in TERMINAL:
                 table[(state, etype)] = "_ignore"
             elif name == "Cancel":
                 table[(state, etype)] = _CANCEL_HANDLERS[state]
@@ -421,6 +437,10 @@ class Coordinator:
         self._record_frames = 0
         self._control_frames = 0
         self._cancel_info: dict[str, Any] = {}
+        # the stream as (start ms, plan) pieces: the job's plan, then every change spliced in (a cyclic axis'
+        # state at a time comes from the piece that covers it)
+        self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]
+        self._change_results: list[ChangeResult] = []
         self._check_feasible()
 
     # ---- public surface ---------------------------------------------------------------------------
@@ -472,6 +492,21 @@ class Coordinator:
         if self._start_sync is None or self._sync is None:
             return 0.0
         return min(1.0, max(0.0, self._elapsed(self._sync) / self._job_end_ms))
+
+    @property
+    def stream_duration_ms(self) -> int:
+        """How long the stream runs from the start SYNC: the plan's duration, or longer/shorter after a splice."""
+        return self._job_end_ms
+
+    @property
+    def change_results(self) -> tuple[ChangeResult, ...]:
+        """Every `Change` fed so far and what became of it, in order."""
+        return tuple(self._change_results)
+
+    @property
+    def pieces(self) -> tuple[tuple[int, StreamPlan], ...]:
+        """The stream as (start ms from the job's start, plan): the job's plan, then each change."""
+        return tuple(self._pieces)
 
     def fifo_fills(self) -> dict[int, int | None]:
         """Last reported fill per node (for live displays; None for a cyclic axis: it has no FIFO)."""
@@ -1352,18 +1387,106 @@ class Coordinator:
         }
         self._set_state(JobState.CANCELLING)
 
-    def _cancel_in_motion(self, ev: Cancel) -> None:
-        self._t = ev.t
+    def _queue_end(self, at_plan_end: bool = False) -> tuple[int, int, bool]:
+        """(k, t0, done): the plan records every axis has queued (k), the time of knot k from the job's start
+        (t0), and whether the stream's last segment is already queued (nothing can follow it any more).
+        `at_plan_end`: the knot before the end record instead (a buffered change is appended there)."""
         n_segments = len(self._ends) - 1
         if self._feeders:
             k = max(min(len(self._ends), f.max_sent - f.lead) for f in self._feeders)  # plan records queued
-            done = k >= n_segments
+            if at_plan_end:  # done once the end record (time 0) went out: interpolation stops there
+                done = k > n_segments or any(f.sent_index >= f.n for f in self._cyclic)
+                k = n_segments
+            else:
+                done = k >= n_segments
             t0 = self._ends[k - 1] if k > 0 else 0
+        elif at_plan_end:  # after the last set point: done once it was sent (the holds that follow stay put)
+            k = 0
+            t0 = max(f.end_ms for f in self._cyclic)
+            done = any(f.sent_index >= f.n for f in self._cyclic)
         else:  # one set point per SYNC: the stop starts after the last set point sent
             k = 0
             sent = max(f.sent_index for f in self._cyclic)
             done = all(f.sent_index >= f.n for f in self._cyclic)
             t0 = max(0, sent) * self._period
+        return k, t0, done
+
+    def _state_request(self, k: int, t0: int) -> StopRequest:
+        """The state of every axis at knot k / time t0: what a stop or a change must start from."""
+        positions: list[int] = []
+        velocities: list[int] = []
+        accs: list[float | None] = []
+        for f in self._axes:
+            if isinstance(f, FifoFeeder):
+                positions.append(f.records[k - 1].position if k > 0 else f.start_position)
+                velocities.append(f.records[k - 1].velocity if k > 0 else 0)
+                accs.append(f.end_acceleration(k - 1))
+            else:  # the stream's planned state at t0 (the cyclic axis follows the plan, not the records)
+                start, piece = next((o, pl) for o, pl in reversed(self._pieces) if o <= t0)
+                pos, vel, acc = self._reference(piece, f.axis)
+                i = min(t0 - start, pos.size - 1)
+                cpr = self._settings.counts_per_rev.get(f.node_id)
+                positions.append(hermite.round_counts(float(pos[i])))
+                velocities.append(round(hermite.counts_per_ms_to_rpm(float(vel[i]), cpr)) if cpr else 0)
+                accs.append(float(acc[i]) if cpr else None)
+        return StopRequest(
+            knot_index=k,
+            time_ms=t0,
+            node_ids=self._plan.node_ids,
+            positions_counts=tuple(positions),
+            velocities_rpm=tuple(velocities),
+            accelerations_counts_per_ms2=None
+            if any(a is None for a in accs)
+            else tuple(float(a or 0.0) for a in accs),
+        )
+
+    def _splice_problem(self, request: StopRequest, planned: PvtTrajectoryLike) -> tuple[StreamPlan | None, str]:
+        """(the plan to splice, "") or (None, why it cannot be): it must start at the request's state and be
+        streamable in time from there (the dry run of the fill)."""
+        k, t0 = request.knot_index, request.time_ms
+        try:
+            plan = StreamPlan.from_trajectory(planned)
+        except Exception as exc:
+            return None, f"the trajectory cannot be streamed: {type(exc).__name__}: {exc}"
+        if plan.node_ids != self._plan.node_ids or plan.start_positions != request.positions_counts:
+            return None, (
+                f"the trajectory does not start at knot {k} of every axis "
+                f"(starts {list(plan.start_positions)}, queued {list(request.positions_counts)})"
+            )
+        if self._feeders:
+            new_ends = self._ends[:k] + [t0 + e for e in segment_ends(plan.segment_ms)]
+            assert self._sync is not None
+            _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
+            short = dry_run(new_ends, self._policy, self._step, k, now_hi)
+            if short is not None:
+                return None, (f"the trajectory cannot be streamed in time ({short.fill} records left at "
+                              f"{short.elapsed_ms} ms)")
+        return plan, ""
+
+    def _splice(self, k: int, t0: int, plan: StreamPlan) -> None:
+        """Put `plan` after knot k (time t0) of every axis: FIFO axes get its records after record k, cyclic
+        axes its set points from t0 on; nothing already sent is taken back."""
+        for f in self._axes:
+            if isinstance(f, FifoFeeder):
+                rid = rpdo2_id(f.node_id)
+                f.splice(k, list(plan.records[f.axis]), [Send(rid, frame) for frame in plan.frames[f.axis]])
+            else:
+                pos, vel, _ = self._reference(plan, f.axis)
+                f.splice(t0, pos, vel)
+                if f.state is FeederState.DRAINING:  # it had sent its last set point: the new part has more
+                    f.state = FeederState.STREAMING
+        new_ends = self._ends[:k] + [t0 + e for e in segment_ends(plan.segment_ms)]
+        self._ends = new_ends
+        self._t_end = new_ends[-1]
+        self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
+        self._lockstep = min(self._lockstep, k)
+        self._lock_prev = min(self._lock_prev, k)
+        self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
+        self._pieces = [(o, pl) for o, pl in self._pieces if o < t0] + [(t0, plan)]
+
+    def _cancel_in_motion(self, ev: Cancel) -> None:
+        self._t = ev.t
+        k, t0, done = self._queue_end()
         if done:
             self._cancel_info = {
                 "stop": "plan_end",
@@ -1375,68 +1498,17 @@ class Coordinator:
         if self._stop_planner is None:
             self._halt("no stop planner was given")
             return
-        positions: list[int] = []
-        velocities: list[int] = []
-        accs: list[float | None] = []
-        for f in self._axes:
-            if isinstance(f, FifoFeeder):
-                positions.append(f.records[k - 1].position)
-                velocities.append(f.records[k - 1].velocity)
-                accs.append(f.end_acceleration(k - 1))
-            else:  # the plan's state at t0 (the cyclic axis follows the plan, not the records)
-                pos, vel, acc = self._reference(self._plan, f.axis)
-                i = min(t0, pos.size - 1)
-                cpr = self._settings.counts_per_rev.get(f.node_id)
-                positions.append(hermite.round_counts(float(pos[i])))
-                velocities.append(round(hermite.counts_per_ms_to_rpm(float(vel[i]), cpr)) if cpr else 0)
-                accs.append(float(acc[i]) if cpr else None)
-        request = StopRequest(
-            knot_index=k,
-            time_ms=t0,
-            node_ids=self._plan.node_ids,
-            positions_counts=tuple(positions),
-            velocities_rpm=tuple(velocities),
-            accelerations_counts_per_ms2=None
-            if any(a is None for a in accs)
-            else tuple(float(a or 0.0) for a in accs),
-        )
+        request = self._state_request(k, t0)
         try:
-            stop = StreamPlan.from_trajectory(self._stop_planner(request))
+            planned = self._stop_planner(request)
         except Exception as exc:  # the planner's failure is recorded in the outcome, and halt takes over
             self._halt(f"the stop planner failed: {type(exc).__name__}: {exc}")
             return
-        if stop.node_ids != self._plan.node_ids or stop.start_positions != request.positions_counts:
-            self._halt(
-                f"the stop trajectory does not start at knot {k} of every axis "
-                f"(starts {list(stop.start_positions)}, queued {list(request.positions_counts)})"
-            )
+        stop, why = self._splice_problem(request, planned)
+        if stop is None:
+            self._halt(why.replace("the trajectory", "the stop trajectory", 1))
             return
-        new_ends = [e for e in self._ends if e <= t0] + [t0 + e for e in segment_ends(stop.segment_ms)]
-        if self._feeders:
-            assert self._sync is not None
-            _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
-            short = dry_run(new_ends, self._policy, self._step, k, now_hi)
-            if short is not None:
-                self._halt(
-                    f"the stop trajectory cannot be streamed in time ({short.fill} records left at "
-                    f"{short.elapsed_ms} ms)"
-                )
-                return
-        for f in self._axes:
-            if isinstance(f, FifoFeeder):
-                rid = rpdo2_id(f.node_id)
-                f.splice(k, list(stop.records[f.axis]), [Send(rid, frame) for frame in stop.frames[f.axis]])
-            else:
-                pos, vel, _ = self._reference(stop, f.axis)
-                f.splice(t0, pos, vel)
-                if f.state is FeederState.DRAINING:  # it had sent its last set point: the stop has more
-                    f.state = FeederState.STREAMING
-        self._ends = new_ends
-        self._t_end = new_ends[-1]
-        self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
-        self._lockstep = min(self._lockstep, k)
-        self._lock_prev = min(self._lock_prev, k)
-        self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
+        self._splice(k, t0, stop)
         self._cancel_info = {
             "stop": "trajectory",
             "knot": k,
@@ -1446,6 +1518,51 @@ class Coordinator:
                        f"{stop.duration_ms} ms long",
         }
         self._set_state(JobState.CANCELLING)
+
+    # ---- change ------------------------------------------------------------------------------------
+    def _change_refused(self, ev: Change) -> None:
+        st = self._state
+        why = {
+            _J.CONFIGURING: "the job has not started moving yet",
+            _J.PRIMING: "the job has not started moving yet",
+            _J.CANCELLING: "the job is stopping",
+            _J.HALTING: "the job is halting",
+            _J.FINISHING: "the running plan's end is already queued: the axes come to rest at its target (submit "
+                          "the move as a new job)",
+        }.get(st, f"the job has ended ({st.value})")
+        self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, sync=self._sync))
+
+    def _change_in_motion(self, ev: Change) -> None:
+        """Splice another trajectory after what is queued (aborting) or after the plan's end (buffered); the
+        job goes on RUNNING. Refused (nothing changes) when it cannot be planned, does not start where the
+        axes will be, or cannot be streamed in time: the caller learns it from `change_results`."""
+        self._t = ev.t
+        buffered = ev.mode == "buffered"
+        if ev.mode not in ("aborting", "buffered"):
+            self._change_results.append(ChangeResult(ev.tag, ev.mode, False, f"unknown mode {ev.mode!r}",
+                                                     sync=self._sync))
+            return
+        k, t0, done = self._queue_end(at_plan_end=buffered)
+        if done:
+            self._change_results.append(ChangeResult(
+                ev.tag, ev.mode, False, "the running plan's end is already queued: the axes come to rest at its "
+                "target (submit the move as a new job)", knot=k, time_ms=t0, sync=self._sync))
+            return
+        request = self._state_request(k, t0)
+        try:
+            planned = ev.planner(request)
+        except Exception as exc:
+            self._change_results.append(ChangeResult(ev.tag, ev.mode, False, str(exc) or type(exc).__name__,
+                                                     knot=k, time_ms=t0, sync=self._sync))
+            return
+        plan, why = self._splice_problem(request, planned)
+        if plan is None:
+            self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, knot=k, time_ms=t0,
+                                                     sync=self._sync))
+            return
+        self._splice(k, t0, plan)
+        self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
+                                                 duration_ms=plan.duration_ms, sync=self._sync))
 
     def _halt(self, reason: str) -> None:
         """Halt (bit 8) on the FIFO axes; a cyclic axis has no halt in its mode (XtrapulsPac: "only in PV,

@@ -64,6 +64,38 @@ class StopRequest:
 
 
 StopPlanner = Callable[[StopRequest], PvtTrajectoryLike]
+ChangePlanner = Callable[[StopRequest], PvtTrajectoryLike]
+
+
+@dataclass(frozen=True)
+class Change:
+    """A change of the running motion, fed to the core like `Cancel` (the core's answer: `ChangeResult`).
+
+    `mode` "aborting": the motion after what is already queued is replaced by the trajectory `planner`
+    returns for the state at the end of the queue (a `StopRequest`: the same state a stop starts from).
+    "buffered": it is appended at the plan's end (the state there is rest at the final knot), so the
+    axes go on without the stop and restart of a new job. `tag` names who asked (the new job's id).
+    """
+
+    t: float
+    planner: ChangePlanner
+    mode: str = "aborting"
+    tag: str = ""
+
+
+@dataclass(frozen=True)
+class ChangeResult:
+    """What the core did with a `Change`: accepted (spliced at `knot`, `time_ms` from the job's start,
+    the new part lasting `duration_ms`) or not (`reason`, the running motion untouched)."""
+
+    tag: str
+    mode: str
+    accepted: bool
+    reason: str = ""
+    knot: int | None = None
+    time_ms: int | None = None
+    duration_ms: int | None = None
+    sync: int | None = None  # the SYNC the core had seen when it decided
 
 
 def _as_int(value: object, what: str) -> int:

@@ -54,15 +54,38 @@ from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
 from planner.job import Job, job_from_dict
 from planner.plan import plan_job
+from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
+from streamer.api.errors import MotionError
 from streamer.core.coordinator import Coordinator
+from streamer.core.plan_source import Change, ChangeResult
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
 from streamer.runtime.homing import Referencing, home_end_positions, run_homing
 from streamer.runtime.realtime import RealtimeRuntime
-from streamer.stop import make_stop_planner
+from streamer.stop import ChangePlanner, make_stop_planner
 
 FIFO_SIZE = 64
+CHANGE_ANSWER_S = 2.0  # how long change() waits for the SYNC thread's answer (it comes within a period or two)
+
+
+@dataclasses.dataclass
+class _Piece:
+    """The part of the running stream one job owns: the job's plan, or a change spliced into it."""
+
+    traj: Any  # planner PvtTrajectory
+    emit: Emit
+    t0_ms: float  # where it starts in the stream (ms from the start SYNC)
+    duration_ms: float
+
+
+@dataclasses.dataclass
+class _Waiting:
+    planner: ChangePlanner
+    emit: Emit
+    done: threading.Event = dataclasses.field(default_factory=threading.Event)
+    result: ChangeResult | None = None
+    fed_elapsed_ms: float | None = None  # the stream time when the core took the request
 CW_QUICK_STOP = 0x000B  # CiA 402 controlword: quick stop (bit 2 low)
 EMERGENCY_STOP = "EMERGENCY_STOP"
 
@@ -76,6 +99,8 @@ class RuntimeBackend:
         self._emergency = False  # an emergency stop hit the job that runs (or the idle cell)
         self._recording: RecordingInputs | None = None
         self.referencing = Referencing(self.cell)
+        self._piece: _Piece | None = None  # the running stream's current owner (None: nothing streams)
+        self._waiting: list[_Waiting] = []  # changes fed to the core, not answered yet (in order)
         if sim:
             from bus.sim.node import SimulatedCell
             from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
@@ -183,34 +208,50 @@ class RuntimeBackend:
         stop = threading.Event()
         cancel.add_callback(stop.set)
         last = [-1.0]
-        planned_ms = float(traj.duration_ms) or 1.0
         stopping: dict[str, float] = {}  # after a cancel: the stream's end and where the plan was cut (ms)
+        piece = _Piece(traj, emit, 0.0, float(traj.duration_ms) or 1.0)
+        with self._lock:
+            self._piece = piece
+            self._waiting = []
+        answered = [0]
 
         def on_change(core: Coordinator) -> None:
+            if len(core.change_results) > answered[0]:
+                self._answer_changes(core, answered)
+            pc = self._piece or piece
             p = core.progress
             if p - last[0] < 0.01 and not (p >= 1.0 > last[0]):
                 return
             last[0] = p
             state = core.state.value
+            elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
+            planned_ms = pc.duration_ms
             if state not in ("cancelling", "halting"):
-                emit("running", {"progress": round(p, 4), "state": state})
+                progress = 1.0 if p >= 1.0 else min(1.0, max(0.0, elapsed / planned_ms))
+                pc.emit("running", {"progress": round(progress, 4), "state": state})
                 return
             if not stopping:  # the first update after the cancel: how the stream ends now
                 rep = core.report()
                 info = rep.cancel
-                stopping["end"] = float(rep.duration_ms) or 1.0
-                cut = info.get("time_ms") if info.get("stop") == "trajectory" else (
+                stopping["end"] = (float(rep.duration_ms) or 1.0) - pc.t0_ms
+                cut = info.get("time_ms") - pc.t0_ms if info.get("stop") == "trajectory" else (
                     planned_ms if info.get("stop") == "plan_end" else None)
-                stopping["cut"] = float(cut) if cut is not None else min(planned_ms, p * stopping["end"])
-            elapsed = p * stopping["end"]
+                stopping["cut"] = float(cut) if cut is not None else min(planned_ms, elapsed)
             cut = stopping["cut"]
             fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state}
             if stopping["end"] > cut:
                 fields["stop_progress"] = round(min(1.0, max(0.0, (elapsed - cut) / (stopping["end"] - cut))), 4)
-            emit("running", fields)
+            pc.emit("running", fields)
 
-        result = self.runtime.run(traj, stop_planner=make_stop_planner(self.cell, traj), cancel=stop,
-                                  on_change=on_change)
+        try:
+            result = self.runtime.run(traj, stop_planner=make_stop_planner(self.cell, traj), cancel=stop,
+                                      on_change=on_change, lead_ms=planned.lead_ms)
+        finally:
+            with self._lock:
+                self._piece = None
+                waiting, self._waiting = self._waiting, []
+            for w in waiting:  # the job ended before the core took them
+                w.done.set()
         core = result.coordinator
         report = build_report(traj, core.report(), result.trace, sync_period_ms=self.cell.sync_period_ms,
                               first_sync=result.first_sync, last_sync=result.last_sync,
@@ -241,6 +282,95 @@ class RuntimeBackend:
         with self._lock:
             self._recording = recording
         return report
+
+    # ---- changes of the running motion (the intake thread asks, the SYNC thread answers)
+    def change(self, job: Job, mode: str, emit: Emit) -> tuple[Planned, dict[str, Any]]:
+        """Replace the running job's remainder with `job` (a move; mode "aborting") or append it at the running
+        plan's end ("buffered"), without stopping. Returns the new job's `Planned` and what the core did
+        (`time_ms`, `reaction_ms`, `overrun_axes`, ...); progress of the new job goes to `emit` from then on.
+        Raises MotionError COMMAND_REJECTED with the reason when it cannot be made (the running job goes on
+        untouched)."""
+        with self._lock:
+            piece = self._piece
+        if piece is None:
+            raise MotionError(E.COMMAND_REJECTED, "no job is moving: there is nothing to change", path="buffer")
+        names = tuple(str(n) for n in piece.traj.axis_names)
+        if tuple(job.axes) != names and set(job.axes) != set(names):
+            raise MotionError(E.COMMAND_REJECTED, f"the change moves axes {list(job.axes)} but the running job moves "
+                              f"{list(names)}: a change replaces a motion of the same axes", path="axes")
+        target = self._change_target(job, piece)
+        try:
+            planner = ChangePlanner(self.cell, piece.traj, target, tolerance_counts=job.tolerance_counts)
+        except ValueError as exc:
+            raise MotionError(E.COMMAND_REJECTED, str(exc), path="target") from None
+        waiting = _Waiting(planner, emit)
+        with self._lock:
+            self._waiting.append(waiting)
+        if not self.runtime.submit(Change(self.adapter.now(), planner, mode=mode)):
+            with self._lock:
+                if waiting in self._waiting:
+                    self._waiting.remove(waiting)
+            raise MotionError(E.COMMAND_REJECTED, "the running job has just ended: submit the move as a new job",
+                              path="buffer")
+        if not waiting.done.wait(CHANGE_ANSWER_S) or waiting.result is None:
+            raise MotionError(E.COMMAND_REJECTED, "the running job ended before the change could be made",
+                              path="buffer")
+        res = waiting.result
+        if not res.accepted:
+            err = planner.error
+            code = getattr(err, "code", None)
+            raise MotionError(E.COMMAND_REJECTED, f"the change cannot be made: {res.reason}", path="target",
+                              detail={"reason": res.reason, **({"planner_code": code} if code else {}),
+                                      "knot": res.knot, "time_ms": res.time_ms})
+        plan = planner.planned
+        assert plan is not None
+        traj = plan.trajectory
+        planned = planned_from_trajectory(job, traj, planner.planning_s)
+        info: dict[str, Any] = {
+            "mode": mode, "time_ms": res.time_ms, "duration_ms": res.duration_ms, "knot": res.knot,
+            "reaction_ms": None if waiting.fed_elapsed_ms is None or res.time_ms is None
+            else round(res.time_ms - waiting.fed_elapsed_ms, 1),
+            "planning_s": round(planner.planning_s, 6),
+            "overrun_axes": list(plan.overrun_axes),
+            "overrun_counts": list(plan.overrun_counts),
+        }
+        return planned, info
+
+    def _change_target(self, job: Job, piece: _Piece) -> dict[str, float]:
+        """The absolute target of a change, by axis name. The one place a move mode becomes a target (a relative
+        move: from where the running job's demand stands now; 15a's modes plug in here)."""
+        data = job.data
+        target = [float(x) for x in getattr(data, "target", ())]
+        if len(target) != len(job.axes):
+            raise MotionError(E.COMMAND_REJECTED, f"a {job.kind} job cannot change a running motion: only a move "
+                              "with a target can", path="kind")
+        mode = getattr(data, "mode", "absolute")
+        if mode == "relative":
+            here = self.current_positions()
+            target = [here[a] + x for a, x in zip(job.axes, target, strict=True)]
+        elif mode != "absolute":
+            raise MotionError(E.COMMAND_REJECTED, f"mode {mode!r} cannot change a running motion (absolute or "
+                              "relative)", path="mode")
+        return dict(zip(job.axes, target, strict=True))
+
+    def _answer_changes(self, core: Coordinator, answered: list[int]) -> None:
+        """SYNC thread: hand each new ChangeResult to the change() waiting for it; an accepted change makes its
+        job the owner of the stream from its splice on (progress goes to it)."""
+        results = core.change_results
+        s = core.start_sync
+        for res in results[answered[0]:]:
+            with self._lock:
+                waiting = self._waiting.pop(0) if self._waiting else None
+                if waiting is None:
+                    continue
+                if res.sync is not None and s is not None:
+                    waiting.fed_elapsed_ms = float(max(0, res.sync - s) * self.cell.sync_period_ms)
+                waiting.result = res
+                if res.accepted and waiting.planner.planned is not None and res.time_ms is not None:
+                    traj = waiting.planner.planned.trajectory
+                    self._piece = _Piece(traj, waiting.emit, float(res.time_ms), float(traj.duration_ms) or 1.0)
+            waiting.done.set()
+        answered[0] = len(results)
 
     def emergency_stop(self) -> str:
         """Quick stop on every axis, now (see the module docstring); the cell is not ready until reset()."""

@@ -143,6 +143,14 @@ class RealtimeRuntime:
         if self._running or self._probing:
             self._events.put(ev)
 
+    def submit(self, ev: object) -> bool:
+        """Queue an event for the running job's core (a `Change`), fed on the job's thread in order with the bus
+        events; False when no job runs (nothing would take it)."""
+        if not self._running:
+            return False
+        self._events.put(ev)  # type: ignore[arg-type]
+        return True
+
     def snapshot(self) -> dict[int, NodeSnapshot]:
         with self._snap_lock:
             return {n: replace(s) for n, s in self._snapshot.items()}
@@ -245,13 +253,19 @@ class RealtimeRuntime:
         settle_s: float = 3.0,
         on_change: Callable[[Coordinator], None] | None = None,
         timeout_s: float | None = None,
+        lead_ms: int | None = None,
     ) -> RealtimeResult:
-        """Stream one trajectory: enable the drives, start SYNC if it is not running, run to the end."""
+        """Stream one trajectory: enable the drives, start SYNC if it is not running, run to the end.
+
+        `lead_ms`: this job's lead (how much motion is kept queued: a change or a stop acts after it), else
+        the settings'. Events given to `submit()` while it runs (a `Change`) are fed to the core in order
+        with the bus events, on this thread."""
         cell = self.cell
         self.ensure_readings()
         wall0 = time.monotonic()
         self.adapter.enable_drives()
-        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)
+        settings = self.settings if lead_ms is None else replace(self.settings, lead_ms=lead_ms)
+        core = Coordinator(trajectory, settings, stop_planner=stop_planner)
         nodes = set(core.node_ids)
         trace = JobTrace([(a.node_id, a.name) for a in cell.axes if a.node_id in nodes],
                          sync_period_s=cell.sync_period_s, bitrate=cell.bus.bitrate)
@@ -262,7 +276,7 @@ class RealtimeRuntime:
         self._tap.trace = trace
         if not self.adapter.sync_running:
             self.adapter.start_sync()
-        limit = timeout_s if timeout_s is not None else core.report().duration_ms / 1000.0 + 30.0
+        limit = timeout_s if timeout_s is not None else core.stream_duration_ms / 1000.0 + 30.0
         first_sync: int | None = None
         last_sync = -1
         cancelled = False
@@ -277,6 +291,8 @@ class RealtimeRuntime:
                 if ev is None:
                     if settle_until is not None and time.monotonic() >= settle_until:
                         break  # the job ended and nothing comes any more (bus-off: no SYNC, no TPDO)
+                    if timeout_s is None:  # a change may have made the stream longer
+                        limit = max(limit, core.stream_duration_ms / 1000.0 + 30.0)
                     if time.monotonic() - wall0 > limit:
                         raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
                     continue
@@ -294,6 +310,8 @@ class RealtimeRuntime:
                     settled = self._settled(trace, nodes)
                     if settled or now >= settle_until:
                         break
+                if timeout_s is None:
+                    limit = max(limit, core.stream_duration_ms / 1000.0 + 30.0)
                 if time.monotonic() - wall0 > limit:
                     raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
         finally:

@@ -596,8 +596,12 @@ class VirtualRuntime:
         max_s: float | None = None,
         settle_s: float = 3.0,
         on_sync: Callable[[Coordinator, int], None] | None = None,
+        feed: Callable[[Coordinator, int, float], Sequence[object]] | None = None,
     ) -> VirtualResult:
-        """Stream one trajectory to the drives. Returns when the job ended and the axes settled."""
+        """Stream one trajectory to the drives. Returns when the job ended and the axes settled.
+
+        `feed(core, sync, t)`, after each SYNC: events to feed the core at that moment (a `Change`, a
+        `Cancel`), as the real-time runtime feeds what another thread asked for."""
         self.ensure_readings()
         t_enable = self._cycle_time(self._cycle + 1) - self.period_s / 2
         self._core = None
@@ -629,6 +633,9 @@ class VirtualRuntime:
                     self._apply(core, Cancel(t), t)
                 if on_sync is not None:
                     on_sync(core, self._sync)
+                if feed is not None:
+                    for ev in feed(core, self._sync, t):
+                        self._apply(core, ev, t)  # type: ignore[arg-type]
                 if core.state in TERMINAL:
                     if settle_until is None:
                         settle_until = t + settle_s

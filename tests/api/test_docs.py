@@ -59,6 +59,7 @@ def test_key_table_matches_keys_module() -> None:
         keys.reset("CELL"),
         keys.stop("CELL"),
         keys.hold("CELL"),
+        keys.halt("CELL"),
         keys.resume("CELL"),
         keys.telemetry("CELL"),
         keys.alive("CELL"),

@@ -1,0 +1,109 @@
+"""A change of the running motion through the service (issue 15 section 2): `buffer = "aborting"` on the
+real backend with simulated drives (real time, 3 axes): the running job ends aborted naming the new one,
+which runs to its own target; a change out of reach is COMMAND_REJECTED and the running job goes on to its
+own end. And the `buffer` / `lead_ms` fields' checks (fake backend)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import pytest
+
+from planner.config import CellConfig
+from streamer.api.client import Job
+from streamer.api.errors import MotionError
+from tests.api.conftest import Served
+
+AXES = ["j1", "j2", "j3"]
+FIRST = [2.5, -1.8, 2.2]
+
+
+def wait_moving(job: Job, progress: float = 0.15, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = job.status(timeout=5)
+        if st.state.value == "running" and st.progress >= progress:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"job {job.job_id} not moving after {timeout} s")
+
+
+@pytest.fixture
+def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
+    from streamer.runtime.backend import RuntimeBackend
+
+    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
+    try:
+        return serve(backend=backend)
+    except BaseException:
+        backend.close()
+        raise
+
+
+def test_an_aborting_move_replaces_the_running_job_and_runs_to_its_own_target(real: Served) -> None:
+    target = [-0.5, 0.6, -0.8]
+    try:
+        with real.client() as client:
+            a = client.submit({"kind": "move", "axes": AXES, "target": FIRST}, job_id="run-a")
+            wait_moving(a)
+            b = a.change(target=target, job_id="run-b")
+            assert b.accepted["state"] == "running"
+            done = b.wait(timeout=60)
+            assert done.state.value == "done", done
+            first = a.wait(timeout=10)
+            assert first.state.value == "aborted"
+            last = a.history()[-1]
+            assert last.type == "aborted" and last.data["replaced_by"] == "run-b"
+            started = next(e for e in b.history() if e.type == "priming")
+            assert started.data["replaces"] == "run-a" and started.data["change"]["reaction_ms"] >= 0
+        here = real.backend.current_positions()  # type: ignore[attr-defined]
+        cell = real.backend.cell
+        for name, x in zip(AXES, target, strict=True):
+            assert abs(here[name] - x) * cell.axis(name).counts_per_unit < 0.5, (name, here[name], x)
+    finally:
+        real.service.close()
+        real.backend.close()  # type: ignore[attr-defined]
+
+
+def test_a_change_that_cannot_be_made_is_rejected_and_the_running_job_goes_on(real: Served) -> None:
+    # (the planner's refusals, out of reach within the limits or not streamable in time, and the running
+    # job's records exactly as planned after one: tests/streamer/test_change.py, in virtual time)
+    try:
+        with real.client() as client:
+            a = client.submit({"kind": "move", "axes": AXES, "target": FIRST}, job_id="run-a")
+            wait_moving(a)
+            with pytest.raises(MotionError) as info:
+                client.submit({"kind": "move", "axes": AXES[:2], "target": [0.0, 0.0], "buffer": "aborting"},
+                              job_id="run-c")
+            assert info.value.code == "COMMAND_REJECTED" and "same axes" in info.value.message
+            assert info.value.path == "axes"
+            done = a.wait(timeout=60)
+            assert done.state.value == "done", done
+        here = real.backend.current_positions()  # type: ignore[attr-defined]
+        for name, x in zip(AXES, FIRST, strict=True):
+            assert abs(here[name] - x) * real.backend.cell.axis(name).counts_per_unit < 0.5
+    finally:
+        real.service.close()
+        real.backend.close()  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize(("extra", "code", "path", "words"), [
+    ({"buffer": "later"}, "SCHEMA", "buffer", "aborting"),
+    ({"buffer": 3}, "TYPE", "buffer", "string"),
+    ({"lead_ms": 10}, "SCHEMA", "lead_ms", "lead_ms = 10 is outside 30..5000"),
+    ({"lead_ms": 1.5}, "TYPE", "lead_ms", "integer"),
+])
+def test_buffer_and_lead_are_checked(serve: Callable[..., Served], extra: dict[str, object], code: str, path: str,
+                                     words: str) -> None:
+    served = serve()
+    with served.client() as client, pytest.raises(MotionError) as info:
+        client.submit({"kind": "move", "axes": ["j1"], "target": [0.1], **extra})
+    assert info.value.code == code and info.value.path == path and words in info.value.message
+
+
+def test_an_aborting_move_with_nothing_running_is_queued_like_any_job(serve: Callable[..., Served]) -> None:
+    served = serve()
+    with served.client() as client:
+        job = client.submit({"kind": "move", "axes": ["j1"], "target": [0.1], "buffer": "aborting", "lead_ms": 50})
+        assert job.wait(timeout=30).state.value == "done"
