@@ -131,11 +131,18 @@ def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict
             catch_up(t)
 
         def on_integrate(demands: Any) -> int:
-            done = integrate(demands)
+            ds: list[int] = []  # the demand of each tick of the batch, as the drive takes it (lazily)
+
+            def taken() -> Any:
+                for d in demands:
+                    ds.append(int(d))
+                    yield d
+
+            done = integrate(taken())
             if m.ip_active or m._src is not None:
-                for _ in range(done):
+                for j in range(done):
                     if pending:
-                        samples[node].append((pending.pop(0), m.position_demand))
+                        samples[node].append((pending.pop(0), ds[j]))
             return done
 
         m._catch_up = on_catch_up  # type: ignore[method-assign]
@@ -150,7 +157,10 @@ def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict
     out: dict[str, Any] = {"result": result.coordinator.state.value, "max": 0, "final": 0, "offset_ms": 0.0}
     for i, node in enumerate(traj.node_ids):
         pts = samples[node]
-        t_ms = np.array([(t - t_start) * 1000.0 for t, _ in pts])
+        # the drive's grid starts when it receives the SYNC (a frame's transmission later): that constant
+        # latency is no clock error, so the plan is compared at true time minus it (tick 1 is due at 1 ms)
+        lat_ms = (pts[0][0] - t_start) * 1000.0 - 1.0 if pts else 0.0
+        t_ms = np.array([(t - t_start) * 1000.0 - lat_ms for t, _ in pts])
         d = np.array([v for _, v in pts])
         keep = (t_ms >= 0) & (t_ms <= traj.duration_ms)
         ref = np.interp(t_ms[keep], np.arange(planned.shape[1]), planned[i].astype(float))
@@ -161,7 +171,7 @@ def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict
         # how late the drive's last tick of the plan came, against true time
         ticks = len(pts)
         out["offset_ms"] = max(out["offset_ms"], abs((pts[min(ticks, traj.duration_ms) - 1][0] - t_start) * 1000.0
-                                                      - min(ticks, traj.duration_ms)))
+                                                      - lat_ms - min(ticks, traj.duration_ms)))
     return out
 
 
