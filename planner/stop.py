@@ -15,6 +15,14 @@ Knot 0 of the stop is exactly the given state (position rounded to counts, veloc
 values the streamer passed in), so the stop's records continue the queued stream seamlessly. A stop
 is never refused for leaving the software limits (the drive's own 0x607D still applies): it is the
 shortest coordinated stop there is; `PvtTrajectory.stats` reports where it ends.
+
+The emergency stop (`plan_emergency_stop[_from_wire]`, seed 002's "Emergency stop", for the streaming
+side's emergency verb) is the same stop with each axis' emergency deceleration (cell config
+`emergency_deceleration`, default a multiple of the acceleration limit capped at 0x60C5) and a jerk
+that reaches it within EMERGENCY_RISE_MS: the steepest the encoder still reproduces within the
+tolerance and the 5 % acceleration-excess budget at the demo's scales without playing it slower (a
+pure step, infinite jerk, would put acceleration steps between knots that a Hermite segment cannot
+follow). Its trajectory's kind is "emergency_stop".
 """
 
 from __future__ import annotations
@@ -29,6 +37,8 @@ from planner.plan import axis_configs, axis_scales, build_trajectory, encode_wit
 from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
 
+EMERGENCY_RISE_MS = 10.0  # ms from zero to the full emergency deceleration (sets the emergency jerk)
+
 
 def plan_stop(
     cell: CellConfig,
@@ -40,6 +50,51 @@ def plan_stop(
     tolerance_counts: int = 1,
 ) -> PvtTrajectory:
     """Stop every axis in `axis_names` from (position, velocity, acceleration) in user units (/s, /s^2)."""
+    cfg = axis_configs(tuple(axis_names), cell)
+    return _stop(
+        cell, axis_names, positions, velocities, accelerations, np.array([c.acceleration for c in cfg]),
+        np.array([c.jerk for c in cfg]), tolerance_counts=tolerance_counts, kind="stop",
+    )
+
+
+def emergency_jerk(cell: CellConfig, axis_names: Sequence[str]) -> FloatArray:
+    """The emergency stop's jerk per axis (user units/s^3): full emergency deceleration within
+    EMERGENCY_RISE_MS, never less than the axis' own jerk limit."""
+    cfg = axis_configs(tuple(axis_names), cell)
+    return np.array([max(c.jerk, c.emergency_stop_deceleration / (EMERGENCY_RISE_MS / 1000.0)) for c in cfg])
+
+
+def plan_emergency_stop(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions: Sequence[float],
+    velocities: Sequence[float],
+    accelerations: Sequence[float],
+    *,
+    tolerance_counts: int = 1,
+) -> PvtTrajectory:
+    """plan_stop at each axis' emergency deceleration (`AxisConfig.emergency_stop_deceleration`) and the
+    steep `emergency_jerk`: seed 002's emergency stop, "the motor is stopped within this time"."""
+    cfg = axis_configs(tuple(axis_names), cell)
+    return _stop(
+        cell, axis_names, positions, velocities, accelerations,
+        np.array([c.emergency_stop_deceleration for c in cfg]), emergency_jerk(cell, axis_names),
+        tolerance_counts=tolerance_counts, kind="emergency_stop",
+    )
+
+
+def _stop(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions: Sequence[float],
+    velocities: Sequence[float],
+    accelerations: Sequence[float],
+    deceleration: FloatArray,
+    jerk: FloatArray,
+    *,
+    tolerance_counts: int,
+    kind: str,
+) -> PvtTrajectory:
     names = tuple(axis_names)
     cfg = axis_configs(names, cell)
     n = len(cfg)
@@ -49,10 +104,10 @@ def plan_stop(
     cpu = np.array([c.counts_per_unit for c in cfg])
     limits = {
         "velocity": np.array([c.velocity for c in cfg]),
-        "acceleration": np.array([c.acceleration for c in cfg]),
-        "jerk": np.array([c.jerk for c in cfg]),
+        "acceleration": deceleration,
+        "jerk": jerk,
         "velocity_axis": np.array([c.velocity for c in cfg]),
-        "acceleration_axis": np.array([c.acceleration for c in cfg]),
+        "acceleration_axis": deceleration,
     }
     # a stop that starts while accelerating at full speed briefly goes faster than the axis limit
     # (it must first bring the acceleration to zero): the hard bound it is checked against is 0x607F
@@ -84,7 +139,7 @@ def plan_stop(
         start_velocities_rpm=v0,
         info_out=info,
     )
-    return build_trajectory("stop", names, cfg, ref, knots, rec, scales, int(tolerance_counts), limits, info)
+    return build_trajectory(kind, names, cfg, ref, knots, rec, scales, int(tolerance_counts), limits, info)
 
 
 def plan_stop_from_wire(
@@ -97,6 +152,31 @@ def plan_stop_from_wire(
     tolerance_counts: int = 1,
 ) -> PvtTrajectory:
     """plan_stop with the state in drive units (counts, rpm, counts/ms^2), as the streamer holds it."""
+    p, v, a = _from_wire(cell, axis_names, positions_counts, velocities_rpm, accelerations_counts_per_ms2)
+    return plan_stop(cell, axis_names, p, v, a, tolerance_counts=tolerance_counts)
+
+
+def plan_emergency_stop_from_wire(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions_counts: Sequence[int],
+    velocities_rpm: Sequence[int],
+    accelerations_counts_per_ms2: Sequence[float] | None = None,
+    *,
+    tolerance_counts: int = 1,
+) -> PvtTrajectory:
+    """plan_emergency_stop with the state in drive units (counts, rpm, counts/ms^2), as plan_stop_from_wire."""
+    p, v, a = _from_wire(cell, axis_names, positions_counts, velocities_rpm, accelerations_counts_per_ms2)
+    return plan_emergency_stop(cell, axis_names, p, v, a, tolerance_counts=tolerance_counts)
+
+
+def _from_wire(
+    cell: CellConfig,
+    axis_names: Sequence[str],
+    positions_counts: Sequence[int],
+    velocities_rpm: Sequence[int],
+    accelerations_counts_per_ms2: Sequence[float] | None,
+) -> tuple[list[float], list[float], list[float]]:
     cfg = axis_configs(tuple(axis_names), cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
     conv = np.array([c.counts_per_rev / 60000.0 for c in cfg])
@@ -107,7 +187,7 @@ def plan_stop_from_wire(
         if accelerations_counts_per_ms2 is None
         else np.asarray(accelerations_counts_per_ms2, dtype=np.float64) * 1.0e6 / cpu
     )
-    return plan_stop(cell, axis_names, p.tolist(), v.tolist(), a.tolist(), tolerance_counts=tolerance_counts)
+    return p.tolist(), v.tolist(), a.tolist()
 
 
 def _vec(x: Sequence[float], name: str, n: int) -> FloatArray:
