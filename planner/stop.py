@@ -19,10 +19,12 @@ shortest coordinated stop there is; `PvtTrajectory.stats` reports where it ends.
 The emergency stop (`plan_emergency_stop[_from_wire]`, seed 002's "Emergency stop", for the streaming
 side's emergency verb) is the same stop with each axis' emergency deceleration (cell config
 `emergency_deceleration`, default a multiple of the acceleration limit capped at 0x60C5) and a jerk
-that reaches it within EMERGENCY_RISE_MS: the steepest the encoder still reproduces within the
-tolerance and the 5 % acceleration-excess budget at the demo's scales without playing it slower (a
-pure step, infinite jerk, would put acceleration steps between knots that a Hermite segment cannot
-follow). Its trajectory's kind is "emergency_stop".
+that reaches it within EMERGENCY_RISE_MS (10 ms: the steepest the encoder reproduces within the
+tolerance and the 5 % acceleration-excess budget on the demo's axes; a pure step, infinite jerk, would
+put acceleration steps between knots that a Hermite segment cannot follow). On axes too coarse for it
+(few counts per unit: one rpm is then a large velocity step) the rise time doubles until the encoding
+passes, never below the axis' own jerk; `info["emergency_rise_ms"]` says which was used. Its
+trajectory's kind is "emergency_stop".
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from planner.config import CellConfig
-from planner.errors import AXIS_COUNT, NONFINITE, PlanningError
+from planner.errors import AXIS_COUNT, INFEASIBLE, NONFINITE, PlanningError
 from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
 from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
@@ -57,13 +59,6 @@ def plan_stop(
     )
 
 
-def emergency_jerk(cell: CellConfig, axis_names: Sequence[str]) -> FloatArray:
-    """The emergency stop's jerk per axis (user units/s^3): full emergency deceleration within
-    EMERGENCY_RISE_MS, never less than the axis' own jerk limit."""
-    cfg = axis_configs(tuple(axis_names), cell)
-    return np.array([max(c.jerk, c.emergency_stop_deceleration / (EMERGENCY_RISE_MS / 1000.0)) for c in cfg])
-
-
 def plan_emergency_stop(
     cell: CellConfig,
     axis_names: Sequence[str],
@@ -74,13 +69,26 @@ def plan_emergency_stop(
     tolerance_counts: int = 1,
 ) -> PvtTrajectory:
     """plan_stop at each axis' emergency deceleration (`AxisConfig.emergency_stop_deceleration`) and the
-    steep `emergency_jerk`: seed 002's emergency stop, "the motor is stopped within this time"."""
+    steepest jerk the encoder reproduces (module docstring): seed 002's emergency stop, "the motor is
+    stopped within this time"."""
     cfg = axis_configs(tuple(axis_names), cell)
-    return _stop(
-        cell, axis_names, positions, velocities, accelerations,
-        np.array([c.emergency_stop_deceleration for c in cfg]), emergency_jerk(cell, axis_names),
-        tolerance_counts=tolerance_counts, kind="emergency_stop",
-    )
+    decel = np.array([c.emergency_stop_deceleration for c in cfg])
+    floor = np.array([c.jerk for c in cfg])
+    rise = EMERGENCY_RISE_MS
+    while True:
+        # the steepest jerk the encoder reproduces: a coarse axis (few counts per unit, a large rpm step)
+        # needs a gentler one; never gentler than the axis' own jerk limit
+        jerk = np.maximum(floor, decel / (rise / 1000.0))
+        try:
+            traj = _stop(cell, axis_names, positions, velocities, accelerations, decel, jerk,
+                         tolerance_counts=tolerance_counts, kind="emergency_stop")
+        except PlanningError as e:
+            if e.code != INFEASIBLE or np.all(jerk <= floor):
+                raise
+            rise *= 2.0
+            continue
+        traj.info["emergency_rise_ms"] = rise
+        return traj
 
 
 def _stop(

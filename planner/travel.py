@@ -38,7 +38,8 @@ Position modes, per axis (user units):
 Velocity mode (seed 002's ENDLESS_PLUS / ENDLESS_MINUS, PLCopen's MC_MoveVelocity): per axis a signed
 velocity, snapped toward zero to whole rpm (the wire's resolution, so the cruise is exactly what the
 drive is sent). `plan_velocity` ramps from the start state (jerk-limited, ruckig's velocity interface,
-all axes reaching their velocities together) and then cruises for `chunk_ms` (DEFAULT_CHUNK_MS); the
+all axes reaching their velocities together) and then cruises for `chunk_ms` (DEFAULT_CHUNK_MS, at
+least MIN_CHUNK_MS: shorter cruise segments would turn the knots' rounding into acceleration noise); the
 trajectory is open-ended (`PvtTrajectory.open_end` holds its `CruiseState`; its last knot moves at the
 cruise velocity and it has no end record). `extend_velocity` gives the next chunk from exactly where the
 previous one ended. Cruise knots are computed in integers from one anchor: position(e) = anchor +
@@ -71,6 +72,7 @@ from planner.reference import FloatArray, IntArray, Reference, hold
 from planner.trajectory import PvtTrajectory
 
 DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension)
+MIN_CHUNK_MS = 100  # shorter cruise segments turn the knots' rounding (<= 1 count) into acceleration noise
 MAX_CHUNK_MS = 60_000
 LIMIT_MARGIN_COUNTS = 1.0  # a limit stop ends this far inside the software limits (the knots round)
 CRUISE_SEGMENT_MS = 250  # cruise knots at most this far apart (<= 255, the PVT time field)
@@ -366,7 +368,7 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
     """The next chunk of an open-ended velocity move: knot 0 is exactly the previous chunk's last knot;
     `chunk_ms` of cruise (default: the plan's), or up to the limit stop (closed) where the position
     limits come first (see the module docstring)."""
-    from planner.encoder import Knots, planned_demand, reconstruct
+    from planner.encoder import ACC_EXCESS_LIMIT, Knots, acceleration_excess, planned_demand, reconstruct
     from planner.plan import axis_scales, build_trajectory, encode_with_retries
 
     st = traj_or_state.open_end if isinstance(traj_or_state, PvtTrajectory) else traj_or_state
@@ -402,29 +404,44 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
         if (dev > tol).any():  # cannot happen by construction (module docstring); never send it if it did
             raise PlanningError(INFEASIBLE, f"cruise chunk deviates {int(dev.max())} counts "
                                 f"from its plan (tolerance {tol})", path="tolerance_counts")
+        # the knots' rounding (up to a count between two knots) makes 6 * count / T^2 of acceleration
+        excess = acceleration_excess(ref, knots, rec).max(axis=1) / scales.acceleration_axis
+        if (excess > ACC_EXCESS_LIMIT).any():
+            j = int(np.argmax(excess))
+            raise PlanningError(
+                INFEASIBLE,
+                f"cruise segments of {int(np.diff(times).min())} ms make {100 * excess[j]:.1f} % of axis "
+                f"{st.axes[j]!r}'s acceleration limit of noise (rounding to whole counts): use longer chunks",
+                path="chunk_ms",
+            )
         return build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info,
                                 dataclasses.replace(st, elapsed_ms=e0 + chunk, chunk_ms=chunk))
-    cruise_ms = max(latest - e0, 0)
-    start = anchor + v_cpm * e0
-    stop = _stop_from_cruise(start + v_cpm * cruise_ms, v_cpm, np.array(st.deceleration), np.array(st.jerk), cpu)
-    ref = _concat(_cruise(start, v_cpm, cruise_ms), None, stop) if cruise_ms > 0 else stop
+    # the limit stop: cruise from knot 0 exactly (a whole count: the plan must start on it) to the last ms
+    # from which the stop fits, then brake; played slower where the encoding needs it, starting earlier
+    # then, since a slower stop needs more room
+    start = p_first.astype(np.float64)
+    decel, jerk = np.array(st.deceleration), np.array(st.jerk)
     info["position_limit_stop"] = 1.0
     info["limit_axis"] = float(axis)
 
     def build(f: float, smooth: bool = False) -> Reference:
-        return ref
+        stop = _stop_from_cruise(np.zeros(len(cfg)), v_cpm, decel, jerk, cpu, time_scale=f)
+        latest_f, _axis = _latest_stop(start, v_cpm, stop.positions[:, -1], lo, hi)
+        cruise_ms = max(latest_f, 0)
+        stop = _stop_from_cruise(start + v_cpm * cruise_ms, v_cpm, decel, jerk, cpu, time_scale=f)
+        return _concat(_cruise(start, v_cpm, cruise_ms), None, stop) if cruise_ms > 0 else stop
 
     ref, knots, rec = encode_with_retries(
-        build, scales, tol, retime=False, axes=st.axes, start_positions=p_first, start_velocities_rpm=v_first,
+        build, scales, tol, retime=True, axes=st.axes, start_positions=p_first, start_velocities_rpm=v_first,
         info_out=info,
     )
     return build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info)
 
 
 def _check_chunk(chunk_ms: int) -> None:
-    if not (isinstance(chunk_ms, int) and 1 <= chunk_ms <= MAX_CHUNK_MS):
-        raise PlanningError(LIMITS, f"chunk_ms must be a whole number of ms in 1..{MAX_CHUNK_MS}, got {chunk_ms!r}",
-                            path="chunk_ms")
+    if not (isinstance(chunk_ms, int) and MIN_CHUNK_MS <= chunk_ms <= MAX_CHUNK_MS):
+        raise PlanningError(LIMITS, f"chunk_ms must be a whole number of ms in {MIN_CHUNK_MS}..{MAX_CHUNK_MS}, got "
+                            f"{chunk_ms!r}", path="chunk_ms")
 
 
 def _velocity_ramp(
@@ -479,7 +496,8 @@ def _stop_distance(v: FloatArray, dlim: FloatArray, jlim: FloatArray, cpu: Float
 
 
 def _stop_from_cruise(
-    p_counts: FloatArray, v_cpm: FloatArray, dlim: FloatArray, jlim: FloatArray, cpu: FloatArray
+    p_counts: FloatArray, v_cpm: FloatArray, dlim: FloatArray, jlim: FloatArray, cpu: FloatArray, *,
+    time_scale: float = 1.0,
 ) -> Reference:
     """The stop from cruising at `v_cpm` (counts/ms) at `p_counts`: jerk-limited at the deceleration."""
     from planner.jerk import stop_reference
@@ -487,7 +505,7 @@ def _stop_from_cruise(
     if np.all(v_cpm == 0.0):
         return hold(p_counts, 1)
     v = v_cpm * 1000.0 / cpu
-    return stop_reference(p_counts / cpu, v, np.zeros(v.size), np.abs(v) + 1.0, dlim, jlim, cpu)
+    return stop_reference(p_counts / cpu, v, np.zeros(v.size), np.abs(v) + 1.0, dlim, jlim, cpu, time_scale=time_scale)
 
 
 def _latest_stop(
