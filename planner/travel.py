@@ -75,6 +75,8 @@ DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each ex
 MIN_CHUNK_MS = 100  # shorter cruise segments turn the knots' rounding (<= 1 count) into acceleration noise
 MAX_CHUNK_MS = 60_000
 LIMIT_MARGIN_COUNTS = 1.0  # a limit stop ends this far inside the software limits (the knots round)
+STOP_RESERVE = 1.3  # a chunk stays open-ended only if a stop this much slower (longer) still fits from its end,
+# so the limit stop may be played slower where the encoding needs it and still end inside the limits
 CRUISE_SEGMENT_MS = 250  # cruise knots at most this far apart (<= 255, the PVT time field)
 _RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
 
@@ -298,47 +300,47 @@ def plan_velocity(
     down = (v_rpm * v0 >= 0) & (np.abs(v_rpm) < np.abs(v0))
     slower = np.minimum(limits["acceleration_up"], limits["deceleration"])
     ramp_acc = np.where(up, limits["acceleration_up"], np.where(down, limits["deceleration"], slower))
-    ramp = _velocity_ramp(p0 / cpu, v0 * conv * 1000.0 / cpu, a0 * 1.0e6 / cpu, v_cpm * 1000.0 / cpu, ramp_acc,
-                          limits["jerk"], cpu)
+    v_user = v_cpm * 1000.0 / cpu
+    asked = np.asarray(d.velocity)
+    decel, jerk = limits["deceleration"], limits["jerk"]
     open_ended = bool(np.any(v_rpm != 0))
-    info: dict[str, float] = {"velocity_ramp_ms": float(ramp.duration_ms)}
-    cruise_ms = chunk_ms
-    stop: Reference | None = None
+    info: dict[str, float] = {}
+    # open-ended if a stop from the chunk's end still fits with STOP_RESERVE to spare (decided once, at the
+    # plan's own timing: the end velocity the encoder pins depends on it)
+    ramp = _velocity_ramp(p0 / cpu, v0 * conv * 1000.0 / cpu, a0 * 1.0e6 / cpu, v_user, ramp_acc, jerk, cpu)
+    info["velocity_ramp_ms"] = float(ramp.duration_ms)
     if open_ended:
+        reserve = _stop_distance(v_user, decel, jerk, cpu, STOP_RESERVE)
+        open_ended = _latest_stop(ramp.positions[:, -1], v_cpm, reserve, lo, hi)[0] >= chunk_ms
+    moving_to = bool(np.any(v_rpm != 0))
+
+    def build(f: float, smooth: bool = False) -> Reference:
+        """Ramp, cruise, and (closed at the limits) the stop, the ramp and stop played `f` times slower."""
+        slow = ramp if f <= 1.0 else _velocity_ramp(p0 / cpu, v0 * conv * 1000.0 / cpu, a0 * 1.0e6 / cpu, v_user,
+                                                    ramp_acc, jerk, cpu, time_scale=f)
+        p_r = slow.positions[:, -1]
+        if open_ended:
+            return _concat(slow, _cruise(p_r, v_cpm, chunk_ms), None)
+        if not moving_to:  # a ramp to rest (already at rest: hold still for 1 ms, a valid no-op)
+            return slow if slow.duration_ms > 0 else hold(slow.positions[:, 0], 1)
         # the latest cruise ms after the ramp from which the stop still ends inside the limits
-        dist = _stop_distance(v_cpm * 1000.0 / cpu, limits["deceleration"], limits["jerk"], cpu)
-        p_r = ramp.positions[:, -1]
-        latest, axis = _latest_stop(p_r, v_cpm, dist, lo, hi)
+        latest, j = _latest_stop(p_r, v_cpm, _stop_distance(v_user, decel, jerk, cpu, f), lo, hi)
         if latest < 0:
-            j = axis
             raise PlanningError(
                 POSITION_LIMIT,
-                f"velocity[{j}] of axis {job.axes[j]!r} is {float(d.velocity[j]):g}/s: after its ramp, at "
-                f"{p_r[j] / cpu[j]:g}, it needs {abs(dist[j]) / cpu[j]:g} to stop, beyond the software position "
-                f"limits [{cfg[j].position_min:g}, {cfg[j].position_max:g}]",
+                f"velocity[{j}] of axis {job.axes[j]!r} is {float(asked[j]):g}/s: after its ramp, at "
+                f"{p_r[j] / cpu[j]:g}, it cannot stop inside the software position limits "
+                f"[{cfg[j].position_min:g}, {cfg[j].position_max:g}]",
                 path=f"velocity[{j}]",
                 detail={"axis": job.axes[j]},
             )
-        if latest < chunk_ms:
-            cruise_ms = latest
-            stop = _stop_from_cruise(p_r + v_cpm * latest, v_cpm, limits["deceleration"], limits["jerk"], cpu)
-            open_ended = False
-            info["position_limit_stop"] = 1.0
-            info["limit_axis"] = float(axis)
-    if not open_ended:
-        cruise_ms = cruise_ms if stop is not None else 0
-    ref = _concat(ramp, _cruise(ramp.positions[:, -1], v_cpm, cruise_ms) if cruise_ms > 0 else None, stop)
-    _check_inside(ref, cfg, job.axes, cpu, d.velocity)
+        info["position_limit_stop"] = 1.0
+        info["limit_axis"] = float(j)
+        cruise_ms = latest  # past the chunk where only the reserve closed it: this is the last chunk
+        stop = _stop_from_cruise(p_r + v_cpm * cruise_ms, v_cpm, decel, jerk, cpu, time_scale=f)
+        return _concat(slow, _cruise(p_r, v_cpm, cruise_ms) if cruise_ms > 0 else None, stop)
 
-    def build(f: float, smooth: bool = False) -> Reference:
-        if f <= 1.0:
-            return ref
-        slow = _velocity_ramp(p0 / cpu, v0 * conv * 1000.0 / cpu, a0 * 1.0e6 / cpu, v_cpm * 1000.0 / cpu, ramp_acc,
-                              limits["jerk"], cpu, time_scale=f)
-        return _concat(slow, _cruise(slow.positions[:, -1], v_cpm, cruise_ms) if cruise_ms > 0 else None,
-                       None if stop is None else _stop_from_cruise(
-                           slow.positions[:, -1] + v_cpm * cruise_ms, v_cpm, limits["deceleration"],
-                           limits["jerk"], cpu))
+    _check_inside(build(1.0), cfg, job.axes, cpu, asked)
 
     ref, knots, rec = encode_with_retries(
         build, scales, tol, retime=True, axes=job.axes, start_positions=p0, start_velocities_rpm=v0, info_out=info,
@@ -387,8 +389,8 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
     anchor = np.array(st.anchor_counts, dtype=np.float64)
     lo = np.array([c.position_min for c in cfg]) * cpu + LIMIT_MARGIN_COUNTS
     hi = np.array([c.position_max for c in cfg]) * cpu - LIMIT_MARGIN_COUNTS
-    dist = _stop_distance(v_cpm * 1000.0 / cpu, np.array(st.deceleration), np.array(st.jerk), cpu)
-    latest, axis = _latest_stop(anchor, v_cpm, dist, lo, hi)  # in cruise ms since the anchor
+    reserve = _stop_distance(v_cpm * 1000.0 / cpu, np.array(st.deceleration), np.array(st.jerk), cpu, STOP_RESERVE)
+    latest, axis = _latest_stop(anchor, v_cpm, reserve, lo, hi)  # in cruise ms since the anchor
     info: dict[str, float] = {"velocity_extension": 1.0, "cruise_elapsed_ms": float(e0)}
     p_first = np.array(st.position_at(e0), dtype=np.int64)
     v_first = np.array(st.velocity_rpm, dtype=np.int64)
@@ -489,9 +491,12 @@ def _cruise(start_counts: FloatArray, v_cpm: FloatArray, duration_ms: int) -> Re
     return _line(np.asarray(start_counts, dtype=np.float64), v_cpm, duration_ms)
 
 
-def _stop_distance(v: FloatArray, dlim: FloatArray, jlim: FloatArray, cpu: FloatArray) -> FloatArray:
+def _stop_distance(
+    v: FloatArray, dlim: FloatArray, jlim: FloatArray, cpu: FloatArray, time_scale: float = 1.0
+) -> FloatArray:
     """Counts each axis travels in the (time-synchronised) stop from cruising at `v` (user units/s)."""
-    out: FloatArray = _stop_from_cruise(np.zeros(v.size), v * cpu / 1000.0, dlim, jlim, cpu).positions[:, -1].copy()
+    stop = _stop_from_cruise(np.zeros(v.size), v * cpu / 1000.0, dlim, jlim, cpu, time_scale=time_scale)
+    out: FloatArray = stop.positions[:, -1].copy()
     return out
 
 

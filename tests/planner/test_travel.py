@@ -507,3 +507,39 @@ def test_travel_settings_defaults_and_checks(cell: CellConfig, rotary: CellConfi
         cell_from_dict(no_period)
     assert e.value.code == "CONFIG" and e.value.path == "axis[0].modulo_tolerance"
     assert "modulo_period" in e.value.message
+
+
+@settings(max_examples=30, deadline=None)
+@given(data=st.data())
+def test_velocity_plans_from_random_states(cell: CellConfig, data: st.DataObject) -> None:
+    """From any state inside the limits (moving, accelerating): either a plan that starts exactly at the
+    state, stays within the tolerance, the excess budget and the software limits, and cruises at the wire
+    velocity; or POSITION_LIMIT naming a velocity field."""
+    names = list(cell.axis_names())
+    axes = data.draw(st.lists(st.sampled_from(names), min_size=1, max_size=4, unique=True))
+    cfg = [cell.axis(a) for a in axes]
+    pos = [data.draw(st.floats(0.6 * c.position_min, 0.6 * c.position_max)) for c in cfg]
+    vel = [data.draw(st.floats(-0.8, 0.8)) * c.velocity for c in cfg]
+    acc = [data.draw(st.floats(-0.8, 0.8)) * c.acceleration for c in cfg]
+    want = [data.draw(st.floats(-1.0, 1.0)) * c.velocity for c in cfg]
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    conv = np.array([c.counts_per_rev / 60000.0 for c in cfg])
+    state = MotionState(tuple(int(x) for x in np.round(np.array(pos) * cpu)),
+                        tuple(int(x) for x in np.round(np.array(vel) * cpu / 1000.0 / conv)),
+                        tuple(float(x) for x in np.array(acc) * cpu / 1.0e6))
+    job = job_from_dict({"kind": "move", "axes": axes, "mode": "velocity", "velocity": want}, cell)
+    try:
+        traj = plan_velocity(job, cell, state, chunk_ms=data.draw(st.integers(100, 3000)))
+    except PlanningError as e:
+        assert e.code == "POSITION_LIMIT" and e.path.startswith("velocity["), e
+        return
+    assert traj.positions[:, 0].tolist() == list(state.positions_counts)
+    assert traj.velocities[:, 0].tolist() == list(state.velocities_rpm)
+    _check_chunk(traj)
+    inside = traj.drive_profile()[0] / cpu[:, None]
+    assert np.all(inside.min(axis=1) >= [c.position_min - 1e-6 for c in cfg])
+    assert np.all(inside.max(axis=1) <= [c.position_max + 1e-6 for c in cfg])
+    if traj.open_ended:
+        assert traj.velocities[:, -1].tolist() == np.trunc(np.array(want) * cpu / 1000.0 / conv).astype(int).tolist()
+    else:
+        assert np.all(traj.velocities[:, -1] == 0)
