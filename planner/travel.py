@@ -66,7 +66,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from planner.config import AxisConfig, CellConfig
-from planner.errors import AXIS_COUNT, INFEASIBLE, LIMITS, NONFINITE, POSITION_LIMIT, SCHEMA, PlanningError
+from planner.errors import (
+    AXIS_COUNT,
+    AXIS_ID,
+    ENCODING_RANGE,
+    INFEASIBLE,
+    LIMITS,
+    NONFINITE,
+    POSITION_LIMIT,
+    SCHEMA,
+    PlanningError,
+)
 from planner.job import MODULO_MODES, Job, MoveData, check_relative_target, effective_limits
 from planner.reference import FloatArray, IntArray, Reference, hold
 from planner.trajectory import PvtTrajectory
@@ -220,8 +230,8 @@ class CruiseState:
     docstring. `elapsed_ms` is the cruise time at the end of the trajectory that carries this state.
     """
 
+    cell: CellConfig
     axes: tuple[str, ...]
-    cfg: tuple[AxisConfig, ...]
     anchor_counts: tuple[int, ...]
     velocity_rpm: tuple[int, ...]
     elapsed_ms: int
@@ -232,6 +242,10 @@ class CruiseState:
     acceleration_axis: tuple[float, ...]
     tolerance_counts: int = 1
     chunk_ms: int = DEFAULT_CHUNK_MS
+
+    @property
+    def cfg(self) -> tuple[AxisConfig, ...]:
+        return tuple(self.cell.axis(a) for a in self.axes)
 
     def position_at(self, elapsed_ms: int) -> list[int]:
         """Cruise position (counts) of every axis `elapsed_ms` after the anchor, rounded half up, exactly."""
@@ -260,7 +274,6 @@ def plan_velocity(
     """A velocity move: ramp from `start_state` (default: at rest at the job's `start`, else 0) to the
     job's velocities, then cruise `chunk_ms`; open-ended unless the position limits end it (see the module
     docstring). The streaming side extends it with `extend_velocity` while it runs."""
-    from planner.cyclic import with_cyclic_stats
     from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
 
     d = job.data
@@ -349,8 +362,8 @@ def plan_velocity(
     cruise = None
     if open_ended:
         cruise = CruiseState(
+            cell=cell,
             axes=tuple(job.axes),
-            cfg=tuple(cfg),
             anchor_counts=tuple(int(x) for x in knots.positions[:, -1]),
             velocity_rpm=tuple(int(x) for x in v_rpm),
             elapsed_ms=0,
@@ -363,7 +376,7 @@ def plan_velocity(
             chunk_ms=chunk_ms,
         )
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, checks, info, cruise)
-    return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
+    return _with_cyclic_stats(traj, cfg, cell)
 
 
 def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | None = None) -> PvtTrajectory:
@@ -416,8 +429,9 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
                 f"{st.axes[j]!r}'s acceleration limit of noise (rounding to whole counts): use longer chunks",
                 path="chunk_ms",
             )
-        return build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info,
+        traj = build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info,
                                 dataclasses.replace(st, elapsed_ms=e0 + chunk, chunk_ms=chunk))
+        return _with_cyclic_stats(traj, cfg, st.cell)
     # the limit stop: cruise from knot 0 exactly (a whole count: the plan must start on it) to the last ms
     # from which the stop fits, then brake; played slower where the encoding needs it, starting earlier
     # then, since a slower stop needs more room
@@ -437,7 +451,60 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
         build, scales, tol, retime=True, axes=st.axes, start_positions=p_first, start_velocities_rpm=v_first,
         info_out=info,
     )
-    return build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info)
+    traj = build_trajectory("move", st.axes, cfg, ref, knots, rec, scales, tol, limits, info)
+    return _with_cyclic_stats(traj, cfg, st.cell)
+
+
+def _with_cyclic_stats(traj: PvtTrajectory, cfg: Sequence[AxisConfig], cell: CellConfig) -> PvtTrajectory:
+    """planner/cyclic.py's stats of the axes fed one set point per SYNC. An open-ended chunk does not end at
+    rest (what `cyclic.assess` assumes of a plan's end): its set points are sampled from the plan carried
+    on at the cruise velocity for two more periods, and the drive's deviation is measured up to the
+    chunk's end."""
+    from planner.cyclic import INTERPOLATIONS, deviation, interpolation_of, sample, wire_problem, with_cyclic_stats
+
+    if traj.open_end is None or all(interpolation_of(c) is None for c in cfg):
+        return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
+    period = cell.sync_period_ms
+    in_job = {c.name for c in cfg}
+    for c in cfg:  # as with_cyclic_stats: a multiplexed frame carries every axis of its group
+        left_out = [a.name for a in cell.axes if c.mux_group and a.mux_group == c.mux_group and a.name not in in_job]
+        if left_out:
+            raise PlanningError(AXIS_ID, f"axis {c.name!r} shares multiplexed frame (mux_group {c.mux_group}) with "
+                                f"{left_out}: a job must include every axis of the group", path="axes",
+                                detail={"axis": c.name, "mux_group": c.mux_group, "missing": left_out})
+    ref = traj.plan
+    m = ref.duration_ms
+    extra = np.arange(1, 2 * period + 1, dtype=np.float64)
+    stats = list(traj.stats)
+    for i, c in enumerate(cfg):
+        interp = interpolation_of(c)
+        if interp is None:
+            continue
+        v_end = ref.velocities[i, -1]
+        pos = np.concatenate([ref.positions[i], ref.positions[i, -1] + v_end * extra])
+        vel = np.concatenate([ref.velocities[i], np.full(extra.size, v_end)])
+        sp = sample(pos, vel, period, pv=interp == "pv")
+        problem = wire_problem(c, sp)
+        if problem is not None:
+            raise PlanningError(ENCODING_RANGE, problem[0], path=f"axis[{c.name}]", detail=problem[1])
+        whole, raw = deviation(pos, sp, interp, until_ms=m)
+        alternatives = {
+            other: deviation(pos, sample(pos, vel, period, pv=other == "pv"), other, until_ms=m)[0]
+            for other in INTERPOLATIONS if other != interp
+        } if c.profile == "xtrapuls-ip" else {}
+        if whole > traj.tolerance_counts:
+            raise PlanningError(
+                INFEASIBLE,
+                f"axis {c.name!r}: its drive's own {interp} interpolation at a {period} ms SYNC period deviates "
+                f"{whole} counts from the velocity move's plan (tolerance {traj.tolerance_counts})",
+                path=f"axis[{c.name}]",
+                detail={"axis": c.name, "deviation_counts": whole, "interpolation": interp,
+                        "sync_period_ms": period, "alternatives": alternatives},
+            )
+        stats[i] = dataclasses.replace(stats[i], max_deviation_counts=whole, max_deviation_from_plan_counts=raw,
+                                       interpolation=interp, setpoint_period_ms=period,
+                                       interpolation_alternatives=alternatives)
+    return dataclasses.replace(traj, stats=tuple(stats))
 
 
 def _check_chunk(chunk_ms: int) -> None:

@@ -4,6 +4,7 @@ emergency stop, and the cell's travel settings."""
 from __future__ import annotations
 
 import copy
+import itertools
 from fractions import Fraction
 from typing import Any
 
@@ -11,10 +12,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from planner_checks import assert_invariants
+from planner_checks import CONFIGS, assert_invariants
 
 from planner import hermite
-from planner.config import CellConfig, cell_from_dict
+from planner.config import CellConfig, cell_from_dict, load_cell
 from planner.encoder import ACC_EXCESS_LIMIT
 from planner.errors import PlanningError
 from planner.job import effective_limits, job_from_dict, job_to_dict
@@ -375,7 +376,7 @@ def test_cruise_positions_are_the_exact_integer_sum(rpm: int, cpr: int, anchor: 
                          position_max=(2**31 - 1) / cpu - 1)]
     cell = cell_from_dict(data)
     ax = cell.axes[0]
-    cruise = CruiseState(("c",), (ax,), (anchor,), (rpm,), 0, (ax.acceleration,), (ax.jerk,), (ax.velocity,),
+    cruise = CruiseState(cell, ("c",), (anchor,), (rpm,), 0, (ax.acceleration,), (ax.jerk,), (ax.velocity,),
                          (ax.acceleration,), (ax.acceleration,))
     elapsed = 0
     for chunk in chunks:
@@ -544,3 +545,25 @@ def test_velocity_plans_from_random_states(cell: CellConfig, data: st.DataObject
         assert traj.velocities[:, -1].tolist() == np.trunc(np.array(want) * cpu / 1000.0 / conv).astype(int).tolist()
     else:
         assert np.all(traj.velocities[:, -1] == 0)
+
+
+@pytest.mark.parametrize("config", ["xtrapuls.toml", "mixed.toml"])
+def test_velocity_on_cyclic_drives(config: str) -> None:
+    """Axes fed one set point per SYNC: each chunk's stats are their drive's own interpolation, measured to
+    the chunk's end (the motion goes on after it), within the tolerance."""
+    cell = load_cell(CONFIGS / config)
+    axes = list(cell.axes)
+    job = job_from_dict({"kind": "move", "axes": [a.name for a in axes], "mode": "velocity",
+                         "velocity": [0.1 * a.velocity * (-1) ** i for i, a in enumerate(axes)]}, cell)
+    chunks = [plan_velocity(job, cell, chunk_ms=1000)]
+    while chunks[-1].open_ended and len(chunks) < 4:
+        chunks.append(extend_velocity(chunks[-1]))
+    for prev, chunk in itertools.pairwise(chunks):
+        assert np.array_equal(chunk.positions[:, 0], prev.positions[:, -1])
+    cyclic = [i for i, a in enumerate(axes) if a.profile != "epos-ipm"]
+    assert cyclic
+    for chunk in chunks:
+        for i in cyclic:
+            s = chunk.stats[i]
+            assert s.interpolation == axes[i].ip_submode or (axes[i].profile == "cia402-csp" and s.interpolation)
+            assert s.setpoint_period_ms == cell.sync_period_ms and s.max_deviation_counts <= chunk.tolerance_counts
