@@ -31,6 +31,14 @@ NAME_RULE = "1-64 characters of letters, digits, '_', '-' and '.', not starting 
 _NAME = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]{0,63}$")
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1  # the drive's position range in counts (0x607A, 0x6064)
 DEFAULT_UNIT = "rad"  # an axis' user unit when [[axis]] has no `unit`
+# An emergency stop brakes harder than a normal one: by default at this multiple of the axis' acceleration
+# limit, never above the drive's own 0x60C5 (the encoder and the drive refuse more).
+EMERGENCY_DECELERATION_FACTOR = 2.0
+# The target window by default: this many counts around the target (a servo at rest dithers by a count
+# or two; seed 002 gives no default), and the in-target timeout (ms) after the plan has ended.
+DEFAULT_TARGET_WINDOW_COUNTS = 10
+DEFAULT_IN_TARGET_TIMEOUT_MS = 1000
+MAX_IN_TARGET_TIMEOUT_MS = 600_000
 
 
 def valid_name(value: object) -> bool:
@@ -106,6 +114,16 @@ class AxisConfig:
     ip_submode: str = "pv"
     mux_group: int = 0
     unit: str = DEFAULT_UNIT  # the user unit's name ("rad", "mm", ...): labels of tables and plots
+    # travel commands (seed 002, planner/travel.py): a modulo axis' period (user units; 0 = not a modulo axis)
+    # and its tolerance window (+- user units around a modulo target, 8020:0F); the emergency stop's
+    # deceleration (user units/s^2; 0 = the default, `emergency_stop_deceleration`); the target window
+    # (user units; 0 = the default, `target_window_user`) and the in-target timeout the streaming side
+    # watches when a move's plan has ended (PRE_TARGET -> TARGET)
+    modulo_period: float = 0.0
+    modulo_tolerance: float = 0.0
+    emergency_deceleration: float = 0.0
+    target_window: float = 0.0
+    in_target_timeout_ms: int = DEFAULT_IN_TARGET_TIMEOUT_MS
 
     def __post_init__(self) -> None:
         where = f"axis '{self.name}'"
@@ -155,6 +173,7 @@ class AxisConfig:
                     f"[{INT32_MIN}, {INT32_MAX}]",
                     path=f"axis.{key}",
                 )
+        self._check_travel(where)
         if self.acceleration > self.max_acceleration:
             raise PlanningError(
                 LIMITS,
@@ -170,6 +189,46 @@ class AxisConfig:
                 f"drive's max_profile_velocity_rpm {self.max_profile_velocity_rpm} (0x607F)",
                 path="axis.velocity",
             )
+
+    def _check_travel(self, where: str) -> None:
+        """The travel-command settings (seed 002): a modulo window narrower than half the period (else the
+        nearest modulo position would be ambiguous), an emergency deceleration the drive can do."""
+        for key in ("modulo_period", "modulo_tolerance", "emergency_deceleration", "target_window"):
+            if getattr(self, key) < 0:
+                raise PlanningError(LIMITS, f"{key} of {where} must be >= 0, got {getattr(self, key)}",
+                                    path=f"axis.{key}")
+        if self.modulo_tolerance > 0 and self.modulo_period == 0:
+            raise PlanningError(CONFIG, f"modulo_tolerance of {where} is {self.modulo_tolerance:g} but the axis has "
+                                "no modulo_period: the window belongs to a modulo axis", path="axis.modulo_tolerance")
+        if self.modulo_period > 0 and not self.modulo_tolerance < self.modulo_period / 2:
+            raise PlanningError(LIMITS, f"modulo_tolerance {self.modulo_tolerance:g} of {where} must be below half "
+                                f"the modulo_period {self.modulo_period:g}", path="axis.modulo_tolerance")
+        if self.emergency_deceleration > self.max_acceleration:
+            raise PlanningError(LIMITS, f"emergency_deceleration {self.emergency_deceleration:g} of {where} exceeds "
+                                f"the drive's max_acceleration {self.max_acceleration:g} (0x60C5)",
+                                path="axis.emergency_deceleration")
+        if not (isinstance(self.in_target_timeout_ms, int)
+                and 1 <= self.in_target_timeout_ms <= MAX_IN_TARGET_TIMEOUT_MS):
+            raise PlanningError(LIMITS, f"in_target_timeout_ms of {where} must be a whole number of ms in "
+                                f"1..{MAX_IN_TARGET_TIMEOUT_MS}, got {self.in_target_timeout_ms!r}",
+                                path="axis.in_target_timeout_ms")
+
+    @property
+    def is_modulo(self) -> bool:
+        return self.modulo_period > 0
+
+    @property
+    def emergency_stop_deceleration(self) -> float:
+        """User units/s^2: `emergency_deceleration`, or EMERGENCY_DECELERATION_FACTOR x the acceleration
+        limit capped at the drive's 0x60C5."""
+        if self.emergency_deceleration > 0:
+            return self.emergency_deceleration
+        return min(EMERGENCY_DECELERATION_FACTOR * self.acceleration, self.max_acceleration)
+
+    @property
+    def target_window_user(self) -> float:
+        """User units: `target_window`, or DEFAULT_TARGET_WINDOW_COUNTS counts."""
+        return self.target_window if self.target_window > 0 else DEFAULT_TARGET_WINDOW_COUNTS / self.counts_per_unit
 
     # unit conversions (user units <-> drive units)
     def to_counts(self, user: float) -> float:
@@ -462,7 +521,8 @@ def _section(data: Mapping[str, Any], key: str, cls: type, path: str) -> Any:
     return cls(**kwargs)
 
 
-_AXIS_OPTIONAL = ("probed", "sim", "unit", "profile", "ip_submode", "mux_group")
+_AXIS_TRAVEL = ("modulo_period", "modulo_tolerance", "emergency_deceleration", "target_window", "in_target_timeout_ms")
+_AXIS_OPTIONAL = ("probed", "sim", "unit", "profile", "ip_submode", "mux_group", *_AXIS_TRAVEL)
 _AXIS_REQUIRED = [f.name for f in fields(AxisConfig) if f.name not in _AXIS_OPTIONAL]
 
 
@@ -528,6 +588,11 @@ def cell_from_dict(data: Mapping[str, Any], *, source: str = "") -> CellConfig:
                 kw[key] = ax[key]
         if "mux_group" in ax:
             kw["mux_group"] = int(_number(p, "mux_group", ax["mux_group"], integer=True))
+        for key in _AXIS_TRAVEL:
+            if key in ax:  # given in the file: > 0 (0 is the dataclass' "not set"), but a window may be 0
+                integer = key == "in_target_timeout_ms"
+                val = _number(p, key, ax[key], positive=key != "modulo_tolerance", integer=integer)
+                kw[key] = int(val) if integer else val
         kw["probed"] = drive_readings(data.get("probed"), ax.get("probed"), p)
         kw["sim"] = sim_options(data.get("sim"), ax.get("sim"), p)
         try:

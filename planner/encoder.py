@@ -44,7 +44,8 @@ both the tolerance and the acceleration budget below.)
    pieces merged more widely), then plays planned motions slower (sub-count moves need it).
 
 Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
-the last knot is the plan's end rounded to counts with velocity 0, exactly.
+the last knot is the plan's end rounded to counts with velocity 0 (or the given end velocity of an
+open-ended velocity move), exactly.
 """
 
 from __future__ import annotations
@@ -700,10 +701,12 @@ def encode(
     times_ms: IntArray | None = None,
     variant: int = 0,
     uniform_fallback: bool = False,
+    end_velocities_rpm: IntArray | None = None,
 ) -> tuple[Knots, Reconstruction]:
     """Knots for `ref` whose drive reconstruction is within `tolerance` counts of it at every ms.
 
     `start_positions`/`start_velocities_rpm` fix knot 0 (default: the plan's start rounded, at rest);
+    `end_velocities_rpm` the last knot's velocity (default 0: an open-ended velocity move ends cruising);
     `times_ms` gives the knot times instead of placing them (raw PVT jobs pass their own rows through);
     a segment whose quantised values cannot meet the tolerance is still split in two. `variant` 1 and 2
     are the retries when the quantisation noise exceeded the budget (see the module docstring).
@@ -727,7 +730,7 @@ def encode(
         else np.zeros(n, dtype=np.int64)
     )
     p_last = hermite.round_counts_array(ref.positions[:, m])
-    v_last = np.zeros(n, dtype=np.int64)
+    v_last = np.zeros(n, dtype=np.int64) if end_velocities_rpm is None else np.asarray(end_velocities_rpm, np.int64)
     for a in (p_first, p_last):
         if a.min() < POSITION_MIN or a.max() > POSITION_MAX:
             i = int(np.argmax((a < POSITION_MIN) | (a > POSITION_MAX)))
@@ -795,7 +798,7 @@ def _uniform_alternative(
     """
     m = ref.duration_ms
     count = best[0].times_ms.size if best is not None else placed
-    p_first, v_first, _p_last, _v_last = ends
+    p_first, v_first, _p_last, v_last = ends
     want = planned_demand(ref, scales.toward_zero)
     conv = scales.counts_per_ms_per_rpm[:, None]
     for dt in range(min(SEGMENT_TIME_MAX_MS, m), 0, -1):
@@ -805,7 +808,7 @@ def _uniform_alternative(
         times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
         pos = want[:, times].copy()
         vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
-        pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, 0
+        pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, v_last
         if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol, scales.toward_zero):
             continue
         if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():

@@ -30,6 +30,7 @@ SCHEMA = "SCHEMA"
 TYPE = "TYPE"
 CONFIG = "CONFIG"
 TOO_LARGE = "TOO_LARGE"
+MODULO_RANGE = "MODULO_RANGE"  # a modulo target outside what its mode allows (seed 002: MODULO_SHORT)
 
 CODES = frozenset(
     {
@@ -47,6 +48,7 @@ CODES = frozenset(
         TYPE,
         CONFIG,
         TOO_LARGE,
+        MODULO_RANGE,
     }
 )
 

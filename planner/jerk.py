@@ -169,8 +169,12 @@ def move_reference(
     time_scale: float = 1.0,
     max_duration_s: float = 900.0,
     info: dict[str, float] | None = None,
+    dlim: FloatArray | None = None,
 ) -> Reference:
     """Rest-to-rest, jerk-limited move from `start` to `target` (user units) along the straight line.
+
+    `dlim`: a deceleration limit per axis other than `alim` (a job's ramps, seed 002): ruckig brakes with
+    its `min_acceleration` (along the line, s only grows: speeding up is positive, braking negative).
 
     `info` receives `straight_line` (1.0, or 0.0 when the line failed and all axes were only
     time-synchronised) and `line_optimal_s` (the continuous duration of the profile before rounding).
@@ -186,10 +190,12 @@ def move_reference(
     inp.current_position = [0.0]
     inp.target_position = [length]
     inp.max_velocity, inp.max_acceleration, inp.max_jerk = [v], [a], [j]
+    if dlim is not None:
+        inp.min_acceleration = [-line_limits(delta, vlim, dlim, jlim)[2]]
     try:
         traj = _solve(inp, 1)
     except PlanningError:
-        return _time_synchronised(start, target, vlim, alim, jlim, cpu, time_scale, max_duration_s, info)
+        return _time_synchronised(start, target, vlim, alim, jlim, cpu, time_scale, max_duration_s, info, dlim)
     optimal = float(traj.duration)
     duration_ms = max(int(np.ceil(optimal * time_scale * 1000.0 - 1e-6)), 1)
     if duration_ms > max_duration_s * 1000.0:
@@ -227,10 +233,15 @@ def _time_synchronised(
     time_scale: float,
     max_duration_s: float,
     info: dict[str, float] | None,
+    dlim: FloatArray | None = None,
 ) -> Reference:
     """The fallback: every axis its own profile, all arriving together (leaves the straight line)."""
     n = start.size
     inp = _input(n, vlim, alim, jlim)
+    if dlim is not None:  # an axis moving down speeds up with negative acceleration, brakes with positive
+        up = target >= start
+        inp.max_acceleration = [float(x) for x in np.where(up, alim, dlim)]
+        inp.min_acceleration = [float(-x) for x in np.where(up, dlim, alim)]
     inp.current_position = [float(x) for x in start]
     inp.current_velocity = [0.0] * n
     inp.current_acceleration = [0.0] * n

@@ -13,8 +13,12 @@ Kinds (docs/formats.md has the full schema):
          along the straight segments with corners blended within `path_tolerance` (a number or one
          per axis, user units, >= 0; default `DEFAULT_PATH_TOLERANCE_SHARE` of each axis' travel), or
          through a spline with `geometry = "spline"`;
-- move:  `target = [...]`, `mode = "absolute" | "relative"`, optional `start = [...]` (where the axes
-         are assumed to stand when the caller gives no current position): jerk-limited point to point;
+- move:  `target = [...]`, `mode` (absolute, relative, additive, modulo_short/plus/minus/current: how the
+         target is read, planner/travel.py), optional `start = [...]` (where the axes are assumed to stand
+         when the caller gives no current position): jerk-limited point to point; or `mode = "velocity"`
+         with `velocity = [...]` (signed, user units/s): endless travel, planned open-ended; optional
+         `ramps = {accel_ms, decel_ms}` (seed 002's ramp times for 0 -> 100 % of the axis' velocity
+         limit) instead of `limits.acceleration` / `acceleration_scale`;
 - timed: `times = [...]` (s), `positions = [[...], ...]`: the user's timing, splined rest to rest;
 - pvt:   `times`, `positions`, `velocities` (user units/s): raw PVT rows, validated, passed through.
 - home:  `method` (0x6098, one per axis or one for all), optional `search_speed` / `zero_speed` (0x6099:01/02,
@@ -48,6 +52,7 @@ from planner.errors import (
     ENCODING_RANGE,
     LIMITS,
     LIMITS_EXCEED_DRIVE,
+    MODULO_RANGE,
     NON_MONOTONIC,
     NONFINITE,
     POSITION_LIMIT,
@@ -61,6 +66,16 @@ from planner.reference import FloatArray
 
 Kind = Literal["path", "move", "timed", "pvt", "home"]
 KINDS: tuple[str, ...] = ("path", "move", "timed", "pvt", "home")
+MoveMode = Literal[
+    "absolute", "relative", "additive", "velocity", "modulo_short", "modulo_plus", "modulo_minus", "modulo_current"
+]
+MOVE_MODES: tuple[str, ...] = (
+    "absolute", "relative", "additive", "velocity", "modulo_short", "modulo_plus", "modulo_minus", "modulo_current"
+)
+MODULO_MODES: tuple[str, ...] = ("modulo_short", "modulo_plus", "modulo_minus", "modulo_current")
+OFFSET_MODES: tuple[str, ...] = ("relative", "additive")  # target is an offset (from the actual / last target)
+RAMP_KEYS = ("accel_ms", "decel_ms")
+MAX_RAMP_MS = 600_000.0
 MAX_ROWS = 100_000  # waypoints / rows per job (TOO_LARGE above)
 HOME_TIMEOUT_S = 120.0  # the master's default wait for homing attained / error
 MAX_HOME_TIMEOUT_S = 3600.0
@@ -83,7 +98,7 @@ _COMMON = {
 }
 _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) besides the common ones
     "path": ({"waypoints"}, {"path_tolerance", "geometry"}),
-    "move": ({"target"}, {"mode", "start"}),
+    "move": (set(), {"target", "mode", "start", "velocity", "ramps"}),  # target or velocity: by mode
     "timed": ({"times", "positions"}, set()),
     "pvt": ({"times", "positions", "velocities"}, set()),
     "home": ({"method"}, {"search_speed", "zero_speed", "acceleration", "offset", "timeout_s"}),
@@ -115,11 +130,26 @@ class PathData:
     scalar_tolerance: bool = False  # given as one number (kept for job_to_dict)
 
 
+@dataclass(frozen=True)
+class Ramps:
+    """Seed 002's ramp times (ms for 0 -> 100 % of the axis' speed range, here its velocity limit), per axis.
+    One of the two given alone serves both; `scalar` remembers a single number (for job_to_dict)."""
+
+    accel_ms: tuple[float, ...]
+    decel_ms: tuple[float, ...]
+    given: tuple[bool, bool] = (True, True)  # accel_ms, decel_ms given in the job
+    scalar: tuple[bool, bool] = (False, False)
+
+
 @dataclass(frozen=True, eq=False)
 class MoveData:
-    target: FloatArray  # (n_axes,), user units
-    mode: Literal["absolute", "relative"] = "absolute"
+    # (n_axes,), user units: the absolute target, or the offset (relative, additive), or the modulo
+    # position (modulo modes); zeros in velocity mode (the job has no target: `velocity` instead)
+    target: FloatArray
+    mode: MoveMode = "absolute"
     start: FloatArray | None = None  # (n_axes,) assumed start when the caller gives none
+    velocity: FloatArray | None = None  # (n_axes,) user units/s, signed: velocity mode only
+    ramps: Ramps | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,7 +238,7 @@ class Job:
                 continue
             if not np.all(np.isfinite(arr)):
                 raise PlanningError(NONFINITE, f"{f_name} contains NaN or infinity", path=f_name)
-            want = n if arr.ndim == 1 and f_name in ("target", "start") else None
+            want = n if arr.ndim == 1 and f_name in ("target", "start", "velocity") else None
             if arr.ndim == 2 and arr.shape[1] != n:
                 raise PlanningError(
                     AXIS_COUNT, f"{f_name} rows have {arr.shape[1]} values for {n} axes", path=f_name
@@ -219,6 +249,15 @@ class Job:
                 )
         if isinstance(self.data, PathData):
             _check_path_options(self.data, self.axes)
+        if isinstance(self.data, MoveData):
+            if self.data.mode not in MOVE_MODES:
+                raise PlanningError(SCHEMA, f"mode must be one of {list(MOVE_MODES)}, got {self.data.mode!r}",
+                                    path="mode")
+            if (self.data.mode == "velocity") != (self.data.velocity is not None):
+                raise PlanningError(SCHEMA, "velocity goes with mode 'velocity', and only with it", path="velocity")
+            if self.data.ramps is not None and self.acceleration_limit is not None:
+                raise PlanningError(SCHEMA, "ramps and limits.acceleration both set the acceleration: give one",
+                                    path="ramps")
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Job):
@@ -270,7 +309,7 @@ def _arrays(data: JobData) -> list[tuple[str, FloatArray | None]]:
     if isinstance(data, PathData):
         return [("waypoints", data.waypoints)]
     if isinstance(data, MoveData):
-        return [("target", data.target), ("start", data.start)]
+        return [("target", data.target), ("start", data.start), ("velocity", data.velocity)]
     if isinstance(data, TimedData):
         return [("times", data.times), ("positions", data.positions)]
     return [("times", data.times), ("positions", data.positions), ("velocities", data.velocities)]
@@ -491,34 +530,7 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar
         )
     elif kind == "move":
-        mode = data.get("mode", "absolute")
-        if not isinstance(mode, str):
-            raise PlanningError(TYPE, f"mode must be a string, got {_show(mode)}", path="mode")
-        if mode not in ("absolute", "relative"):
-            raise PlanningError(SCHEMA, f"mode must be 'absolute' or 'relative', got {mode!r}", path="mode")
-        target = _vector(data["target"], "target", axes)
-        given = data.get("start")
-        start = _vector(given, "start", axes) if given is not None and given != START_CURRENT else None
-        if start is not None:
-            _check_positions(start[None, :], "start", axes, axis_cfg, vector=True)
-        if mode == "absolute":
-            _check_positions(target[None, :], "target", axes, axis_cfg, vector=True)
-        else:
-            span = np.array([a.position_max - a.position_min for a in axis_cfg])
-            for j in range(len(axes)):
-                if abs(target[j]) > span[j]:
-                    raise PlanningError(
-                        POSITION_LIMIT,
-                        f"target[{j}] of axis {axes[j]!r} moves {target[j]:g}, more "
-                        f"than the axis' whole range {span[j]:g}",
-                        path=f"target[{j}]",
-                    )
-            if start is not None:
-                check_relative_target(start, target, axes, axis_cfg)
-                _check_positions((start + target)[None, :], "target", axes, axis_cfg, vector=True)
-        job_data = MoveData(
-            _ro(target), cast(Literal["absolute", "relative"], mode), None if start is None else _ro(start)
-        )
+        job_data = _move_data(data, axes, axis_cfg, limits, vscale, "acceleration_scale" in data)
     else:
         times = _series(data["times"], "times", max_rows)
         pos = _matrix(data["positions"], "positions", axes, max_rows)
@@ -623,6 +635,154 @@ def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[Axi
                             path="timeout_s")
     return HomeData(tuple(method), speeds["search_speed"], speeds["zero_speed"], speeds["acceleration"], offset,
                     timeout)
+
+
+def _move_data(
+    data: Mapping[str, Any],
+    axes: tuple[str, ...],
+    cfg: Sequence[AxisConfig],
+    limits: dict[str, tuple[float, ...]],
+    vscale: tuple[float, ...],
+    has_acc_scale: bool,
+) -> MoveData:
+    """The move's mode, its target (or velocity), start and ramps, each checked against the cell."""
+    mode = data.get("mode", "absolute")
+    if not isinstance(mode, str):
+        raise PlanningError(TYPE, f"mode must be a string, got {_show(mode)}", path="mode")
+    if mode not in MOVE_MODES:
+        raise PlanningError(SCHEMA, f"mode must be one of {list(MOVE_MODES)}, got {mode!r}", path="mode")
+    given = data.get("start")
+    start = _vector(given, "start", axes) if given is not None and given != START_CURRENT else None
+    if start is not None:
+        _check_positions(start[None, :], "start", axes, cfg, vector=True)
+    ramps = _ramps(data["ramps"], axes, cfg) if "ramps" in data else None
+    if ramps is not None:
+        for other, present in (("limits.acceleration", "acceleration" in limits),
+                               ("acceleration_scale", has_acc_scale)):
+            if present:
+                raise PlanningError(
+                    SCHEMA,
+                    f"ramps and {other} both set the move's acceleration: give one of them (ramps: seed 002's "
+                    f"times for 0 -> 100 % of the velocity limit; {other}: the acceleration itself)",
+                    path="ramps",
+                    detail={"fields": ["ramps", other]},
+                )
+    if mode == "velocity":
+        if "target" in data:
+            raise PlanningError(SCHEMA, "a move with mode 'velocity' has no target: it travels endlessly at "
+                                "`velocity = [...]` (user units/s)", path="target")
+        if "velocity" not in data:
+            raise PlanningError(SCHEMA, "missing field 'velocity' in a move job with mode 'velocity'", path="velocity")
+        vel = _vector(data["velocity"], "velocity", axes)
+        vlim = limits.get("velocity") or tuple(c.velocity for c in cfg)
+        for j, v in enumerate(vel):
+            top = vlim[j] * vscale[j]
+            if abs(v) > top * (1 + 1e-12):
+                raise PlanningError(
+                    LIMITS,
+                    f"velocity[{j}] of axis {axes[j]!r} is {v:g}/s, above its velocity limit {top:g}/s "
+                    f"(the axis' or limits.velocity, times velocity_scale)",
+                    path=f"velocity[{j}]",
+                )
+        return MoveData(_ro(np.zeros(len(axes))), "velocity", None if start is None else _ro(start), _ro(vel), ramps)
+    if "velocity" in data:
+        raise PlanningError(SCHEMA, f"velocity belongs to mode 'velocity', not {mode!r} (a move's speed: "
+                            "limits.velocity or velocity_scale)", path="velocity")
+    if "target" not in data:
+        raise PlanningError(SCHEMA, "missing field 'target' in a move job", path="target")
+    target = _vector(data["target"], "target", axes)
+    if mode == "absolute":
+        _check_positions(target[None, :], "target", axes, cfg, vector=True)
+    elif mode in OFFSET_MODES:
+        span = np.array([a.position_max - a.position_min for a in cfg])
+        for j in range(len(axes)):
+            if abs(target[j]) > span[j]:
+                raise PlanningError(
+                    POSITION_LIMIT,
+                    f"target[{j}] of axis {axes[j]!r} moves {target[j]:g}, more "
+                    f"than the axis' whole range {span[j]:g}",
+                    path=f"target[{j}]",
+                )
+        if start is not None:  # planned without a service: the offset counts from `start`
+            check_relative_target(start, target, axes, cfg)
+            _check_positions((start + target)[None, :], "target", axes, cfg, vector=True)
+    else:
+        _check_modulo_targets(mode, target, axes, cfg)
+    return MoveData(_ro(target), cast(MoveMode, mode), None if start is None else _ro(start), None, ramps)
+
+
+def _check_modulo_targets(mode: str, target: FloatArray, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> None:
+    """Seed 002: "For modulo positioning with start type MODULO_SHORT, only modulo target positions within
+    the basic period (e.g. less than 360°) are permitted, otherwise an error is returned"; the other
+    directions take targets >= 0, a full period more for each extra turn."""
+    for j, c in enumerate(cfg):
+        if not c.is_modulo:
+            raise PlanningError(
+                SCHEMA,
+                f"mode {mode!r} needs modulo axes, but axis {axes[j]!r} has no modulo_period in the cell",
+                path="mode",
+                detail={"axis": axes[j]},
+            )
+        v = float(target[j])
+        if mode == "modulo_short" and not 0.0 <= v < c.modulo_period:
+            raise PlanningError(
+                MODULO_RANGE,
+                f"target[{j}] of axis {axes[j]!r} is {v:g}, outside the basic period [0, {c.modulo_period:g}) "
+                f"that mode 'modulo_short' accepts (the shortest way makes no extra turns; use modulo_plus or "
+                f"modulo_minus for those)",
+                path=f"target[{j}]",
+                detail={"axis": axes[j], "value": v, "period": c.modulo_period},
+            )
+        if v < 0.0:
+            raise PlanningError(
+                MODULO_RANGE,
+                f"target[{j}] of axis {axes[j]!r} is {v:g}; a modulo target is >= 0 (the direction is the "
+                f"mode's: {mode!r}; each further period adds a turn)",
+                path=f"target[{j}]",
+                detail={"axis": axes[j], "value": v, "period": c.modulo_period},
+            )
+
+
+def _ramps(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> Ramps:
+    """ramps = {accel_ms = ..., decel_ms = ...}: a number or one per axis; one alone serves both."""
+    if not isinstance(value, Mapping):
+        raise PlanningError(TYPE, f"ramps must be a table with {list(RAMP_KEYS)}, got {_show(value)}", path="ramps")
+    for key in value:
+        if key not in RAMP_KEYS:
+            raise PlanningError(SCHEMA, f"unknown field {key!r} in ramps (allowed: {list(RAMP_KEYS)})",
+                                path=f"ramps.{key}")
+    if not any(k in value for k in RAMP_KEYS):
+        raise PlanningError(SCHEMA, f"ramps needs {RAMP_KEYS[0]} and/or {RAMP_KEYS[1]}", path="ramps")
+    out: dict[str, tuple[float, ...]] = {}
+    scalar: dict[str, bool] = {}
+    for key in RAMP_KEYS:
+        if key not in value:
+            continue
+        p = f"ramps.{key}"
+        raw = value[key]
+        scalar[key] = not isinstance(raw, list | tuple)
+        vals = np.full(len(axes), _number(raw, p)) if scalar[key] else _vector(raw, p, axes)
+        for j, ms in enumerate(vals):
+            at = p if scalar[key] else f"{p}[{j}]"
+            note = f" (axis {axes[j]!r})" if scalar[key] else _axis_note(axes, j)
+            if not 0.0 < ms <= MAX_RAMP_MS:
+                raise PlanningError(LIMITS, f"{at}{note} is {ms:g} ms; a ramp time is in (0, {MAX_RAMP_MS:g}] ms",
+                                    path=at)
+            acc = cfg[j].velocity / (ms / 1000.0)
+            if acc > cfg[j].max_acceleration * (1 + 1e-12):
+                raise PlanningError(
+                    LIMITS_EXCEED_DRIVE,
+                    f"{at}{note} is {ms:g} ms: 0 -> {cfg[j].velocity:g}/s (the axis' velocity limit, its speed "
+                    f"range) in that time is {acc:g}/s^2, above the drive's max acceleration 0x60C5 "
+                    f"{cfg[j].max_acceleration:g}/s^2",
+                    path=at,
+                )
+        out[key] = tuple(float(v) for v in vals)
+    accel = out.get("accel_ms", out.get("decel_ms"))
+    decel = out.get("decel_ms", out.get("accel_ms"))
+    assert accel is not None and decel is not None
+    return Ramps(accel, decel, ("accel_ms" in out, "decel_ms" in out),
+                 (scalar.get("accel_ms", False), scalar.get("decel_ms", False)))
 
 
 def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
@@ -803,10 +963,20 @@ def job_to_dict(job: Job) -> dict[str, Any]:
         if d.path_tolerance is not None:
             out["path_tolerance"] = d.path_tolerance[0] if d.scalar_tolerance else list(d.path_tolerance)
     elif isinstance(d, MoveData):
-        out["target"] = d.target.tolist()
+        if d.velocity is not None:
+            out["velocity"] = d.velocity.tolist()
+        else:
+            out["target"] = d.target.tolist()
         out["mode"] = d.mode
         if d.start is not None:
             out["start"] = d.start.tolist()
+        if d.ramps is not None:
+            ramps: dict[str, Any] = {}
+            for key, vals, given, scalar in zip(RAMP_KEYS, (d.ramps.accel_ms, d.ramps.decel_ms), d.ramps.given,
+                                                d.ramps.scalar, strict=True):
+                if given:
+                    ramps[key] = vals[0] if scalar else list(vals)
+            out["ramps"] = ramps
     elif isinstance(d, TimedData):
         out["times"] = d.times.tolist()
         out["positions"] = d.positions.tolist()
@@ -882,10 +1052,20 @@ def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:
         job.acceleration_limit if job.acceleration_limit is not None else [c.acceleration for c in cfg]
     )
     jerk = np.array(job.jerk_limit if job.jerk_limit is not None else [c.jerk for c in cfg])
+    dec = acc
+    ramps = job.data.ramps if isinstance(job.data, MoveData) else None
+    if ramps is not None:  # seed 002: the ramp time takes 0 -> 100 % of the speed range (the velocity limit)
+        speed_range = np.array([c.velocity for c in cfg])
+        acc = speed_range / (np.array(ramps.accel_ms) / 1000.0)
+        dec = speed_range / (np.array(ramps.decel_ms) / 1000.0)
+    scale = np.array(job.acceleration_scale)
     return {
         "velocity": vel * np.array(job.velocity_scale),
-        "acceleration": acc * np.array(job.acceleration_scale),
+        # the bound every check uses: the larger of the two ramps (moves plan with each where it applies)
+        "acceleration": np.maximum(acc, dec) * scale,
+        "acceleration_up": acc * scale,  # speeding up
+        "deceleration": dec * scale,  # slowing down
         "jerk": jerk,
         "velocity_axis": vel,  # before scaling: what "the axis limit" means in the checks
-        "acceleration_axis": acc,
+        "acceleration_axis": np.maximum(acc, dec),
     }

@@ -58,6 +58,7 @@ from planner.trajectory import AxisStats, PvtTrajectory
 if TYPE_CHECKING:
     from planner.geometry import PiecewisePath
     from planner.path import ChainSpec
+    from planner.travel import CruiseState
 
 MAX_SLOWDOWNS = 6  # attempts at playing a planned motion slower when the quantisation needs it
 TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
@@ -90,14 +91,32 @@ def snap(x: FloatArray, cpu: FloatArray) -> FloatArray:
     return out
 
 
-def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None) -> PvtTrajectory:
+def plan_job(
+    job: Job,
+    cell: CellConfig,
+    *,
+    start: Sequence[float] | None = None,
+    last_target: Sequence[float | None] | None = None,
+    last_direction: Sequence[int] | None = None,
+) -> PvtTrajectory:
     """Plan, encode and verify `job` on `cell`.
 
     `start`: where the axes stand now (user units, one per job axis). A move starts there (relative
     moves are relative to it); path, timed and pvt jobs start at their first row, which must then be
     within `tolerance_counts` of it (the first row is replaced by `start` so knot 0 is the drive's
-    position). Without `start`, a move starts at its `start` field, else at 0.
+    position). Without `start`, a move starts at its `start` field, else at 0. `last_target` and
+    `last_direction` serve the additive and modulo_current modes (planner/travel.py). A velocity move is
+    planned open-ended from rest there (`travel.plan_velocity`, which also takes a moving start).
     """
+    d0 = job.data
+    if isinstance(d0, MoveData) and d0.mode == "velocity":
+        from planner.travel import MotionState, plan_velocity
+
+        rest = None
+        if start is not None:
+            cpu0 = np.array([cell.axis(a).counts_per_unit for a in job.axes])
+            rest = MotionState.at_rest(np.round(_start_vector(start, job.axes) * cpu0).astype(np.int64).tolist())
+        return plan_velocity(job, cell, rest)
     cfg = axis_configs(job.axes, cell)
     n = len(cfg)
     shape = ["spline"]  # spline path jobs: "pchip" for the one-axis fallback below
@@ -176,7 +195,12 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
         _check_within(origin, cfg, job.axes, "start")
         if d.mode == "relative":
             check_relative_target(origin, d.target, job.axes, cfg, "current position" if here is not None else "start")
-        target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
+        if d.mode in ("absolute", "relative"):
+            target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
+        else:  # additive, modulo: what the target means (planner/travel.py)
+            from planner.travel import resolve_target
+
+            target = resolve_target(job, cell, origin, last_target, last_direction=last_direction)
         _check_within(target, cfg, job.axes, "target")
         a, b = snap(origin, cpu), snap(target, cpu)
         _check_duration_bound(np.abs(b - a), limits["velocity"])
@@ -188,12 +212,13 @@ def plan_job(job: Job, cell: CellConfig, *, start: Sequence[float] | None = None
                 a,
                 b,
                 limits["velocity"],
-                limits["acceleration"],
+                limits["acceleration_up"],
                 limits["jerk"],
                 cpu,
                 time_scale=f,
                 max_duration_s=MAX_DURATION_S,
                 info=info,
+                dlim=limits["deceleration"] if d.ramps is not None else None,
             )
     elif isinstance(d, TimedData):
         pos = np.array(d.positions, dtype=np.float64)
@@ -279,6 +304,7 @@ def encode_with_retries(
     start_velocities_rpm: IntArray | None = None,
     info_out: dict[str, float] | None = None,
     uniform_fallback: bool = False,
+    end_velocities_rpm: IntArray | None = None,
 ) -> tuple[Reference, Knots, Reconstruction]:
     """Build the reference and encode it; planned motions are slowed down when quantisation needs it.
 
@@ -302,6 +328,7 @@ def encode_with_retries(
                 start_velocities_rpm=start_velocities_rpm,
                 variant=variant,
                 uniform_fallback=uniform_fallback,
+                end_velocities_rpm=end_velocities_rpm,
             )
             info_out["time_scale"] = factor
             info_out["encode_variant"] = float(variant)
@@ -344,6 +371,7 @@ def build_trajectory(
     tol: int,
     limits: dict[str, FloatArray],
     info: dict[str, float],
+    open_end: CruiseState | None = None,
 ) -> PvtTrajectory:
     cpu = np.array([c.counts_per_unit for c in cfg])
     want = planned_demand(ref, scales.toward_zero)
@@ -389,6 +417,7 @@ def build_trajectory(
         plan=ref,
         stats=tuple(stats),
         info=dict(info),
+        open_end=open_end,
     )
 
 

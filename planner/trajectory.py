@@ -10,6 +10,11 @@ any time, the drive's position demand at every ms, and the state at any knot (fo
 Deviation is measured in whole counts: drive demand (the Hermite rounded as the drive rounds) minus
 planned demand (the plan rounded the same way), at every ms of every axis; the encoder guarantees it
 is within `tolerance_counts`. Against the unrounded plan that is within tolerance + 0.5 counts.
+
+Open-ended trajectories (a velocity move, planner/travel.py) end moving: `open_end` holds the cruise
+they end in (`travel.CruiseState`), their last knot has the cruise velocity, and `records()` leaves out
+the end record (time 0 would end the drive's interpolation): the streamer sends the records of
+`travel.extend_velocity(traj)` next, whose knot 0 is exactly this trajectory's last knot.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ import csv
 import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +31,9 @@ from planner import hermite
 from planner.errors import ENCODING_RANGE, PlanningError
 from planner.record import PvtRecord, pack
 from planner.reference import FloatArray, IntArray, Reference
+
+if TYPE_CHECKING:
+    from planner.travel import CruiseState
 
 CSV_COLUMNS = ("axis", "node_id", "index", "time_s", "dt_ms", "position_counts", "velocity_rpm")
 
@@ -85,6 +93,7 @@ class PvtTrajectory:
     plan: Reference  # the planned motion at every ms, counts
     stats: tuple[AxisStats, ...]
     info: dict[str, float] = field(default_factory=dict)  # e.g. optimal_s (toppra), planning details
+    open_end: CruiseState | None = None  # set: the motion goes on (velocity move), see the module docstring
 
     def __post_init__(self) -> None:
         n = len(self.axis_names)
@@ -101,8 +110,8 @@ class PvtTrajectory:
             )
         if len(self.node_ids) != n or self.plan.n_axes != n or self.plan.duration_ms != int(dt.sum()):
             raise ValueError("node_ids, plan and knots disagree on axes or duration")
-        if np.any(vel[:, -1] != 0):
-            raise ValueError("a trajectory ends at rest (last knot velocity 0)")
+        if self.open_end is None and np.any(vel[:, -1] != 0):
+            raise ValueError("a trajectory ends at rest (last knot velocity 0) unless it is open-ended")
         for name, a in (
             ("dt_ms", dt),
             ("positions", pos),
@@ -117,6 +126,11 @@ class PvtTrajectory:
     @property
     def n_axes(self) -> int:
         return len(self.axis_names)
+
+    @property
+    def open_ended(self) -> bool:
+        """The motion goes on after the last knot (a velocity move's chunk): see the module docstring."""
+        return self.open_end is not None
 
     @property
     def n_segments(self) -> int:
@@ -151,12 +165,14 @@ class PvtTrajectory:
     # -- wire ----------------------------------------------------------------------------------------
 
     def records(self, axis_index: int) -> list[PvtRecord]:
-        """(p_k, v_k, dt_k) for k = 1..N, then the end record (p_N, 0, 0)."""
+        """(p_k, v_k, dt_k) for k = 1..N, then the end record (p_N, 0, 0), which an open-ended trajectory
+        leaves out (its extension's records follow)."""
         p = self.positions[axis_index].tolist()
         v = self.velocities[axis_index].tolist()
         dt = self.dt_ms.tolist()
         out = [PvtRecord(p[k], v[k], dt[k - 1]) for k in range(1, len(p))]
-        out.append(PvtRecord(p[-1], 0, 0))
+        if self.open_end is None:
+            out.append(PvtRecord(p[-1], 0, 0))
         return out
 
     def packed(self, axis_index: int) -> list[bytes]:
@@ -260,6 +276,7 @@ class PvtTrajectory:
                 "mean": float(self.dt_ms.mean()),
             },
             "info": dict(self.info),
+            "open_ended": self.open_ended,
             "axes": [s.to_dict() for s in self.stats],
         }
 

@@ -116,3 +116,11 @@ def test_rectangle_along_its_segments_and_the_spline_refused_at_its_peak(tmp_pat
     peak = e.value.detail["peak"]
     assert peak == e.value.detail["max"] and peak > 2.2  # the farthest it goes, well past the first sample out
     assert f"{peak:.6g}" in e.value.message and "'j2'" in e.value.message
+
+
+def test_velocity_job_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    """`pvt plan` on a velocity move plans its first, open-ended chunk and says so."""
+    assert main(["plan", str(CONFIGS / "jobs" / "velocity.toml"), "--config", DEMO, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["open_ended"] is True and summary["info"]["velocity_ramp_ms"] > 0
+    assert summary["geometry"].startswith("endless travel") and "open-ended" in summary["geometry"]
