@@ -14,6 +14,7 @@ Exit codes of `pvt submit`, `status`, `watch`, `cancel`, `stop`, `hold`, `resume
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from typing import Any
 
 from streamer.cli import tls_options
@@ -97,3 +98,25 @@ def find_service(client: Any, timeout: float) -> None:
                 "(--cell NAME)"
             ) from None
         raise Unreachable(f"{err.message}; no cell is up there (is `pvt serve` running?)") from None
+
+
+def request(args: argparse.Namespace, verb: str, call: Callable[[Any], dict[str, Any]]) -> dict[str, Any] | int:
+    """One request to the cell's service: `call(client)`'s reply, or, when the service cannot be reached or
+    refuses, the exit status after `pvt VERB: reason` on stderr (no service 5, refused 2)."""
+    from rich.console import Console
+
+    from streamer.api.errors import MotionError
+
+    err = Console(stderr=True)
+    try:
+        client = open_client(args)
+    except Unreachable as exc:
+        err.print(f"pvt {verb}: {exc}", highlight=False, markup=False)
+        return exc.status
+    with client:
+        try:
+            reply: dict[str, Any] = call(client)
+            return reply
+        except MotionError as exc:
+            err.print(f"pvt {verb}: {exc}", highlight=False, markup=False)
+            return EXIT_NO_SERVICE if exc.code in UNREACHED else EXIT_REJECTED

@@ -30,20 +30,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from streamer.api.errors import MotionError
-
-    err = Console(stderr=True)
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt halt: {exc}", highlight=False, markup=False)
-        return exc.status
-    with client:
-        try:
-            reply = client.halt()
-        except MotionError as exc:
-            err.print(f"pvt halt: {exc}", highlight=False, markup=False)
-            return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
+    reply = connect.request(args, "halt", lambda client: client.halt())
+    if isinstance(reply, int):
+        return reply
     job = reply.get("job_id")
     Console().print(f"cell {args.cell}: " + (f"job {job}: {reply.get('message')}" if job else "nothing was moving"),
                     highlight=False, markup=False)

@@ -28,20 +28,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from streamer.api.errors import MotionError
-
-    err = Console(stderr=True)
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt hold: {exc}", highlight=False, markup=False)
-        return exc.status
-    with client:
-        try:
-            reply = client.hold()
-        except MotionError as exc:
-            err.print(f"pvt hold: {exc}", highlight=False, markup=False)
-            return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
+    reply = connect.request(args, "hold", lambda client: client.hold())
+    if isinstance(reply, int):
+        return reply
     running = reply.get("running_job")
     Console().print(f"queue of cell {args.cell} held ({len(reply.get('queued_jobs') or [])} queued)"
                     + (f"; job {running} runs on to its end" if running else "")

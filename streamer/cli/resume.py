@@ -33,20 +33,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    from streamer.api.errors import MotionError
-
-    err = Console(stderr=True)
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt resume: {exc}", highlight=False, markup=False)
-        return exc.status
-    with client:
-        try:
-            reply = client.resume(reset=args.reset)
-        except MotionError as exc:
-            err.print(f"pvt resume: {exc}", highlight=False, markup=False)
-            return connect.EXIT_NO_SERVICE if exc.code in connect.UNREACHED else connect.EXIT_REJECTED
+    reply = connect.request(args, "resume", lambda client: client.resume(reset=args.reset))
+    if isinstance(reply, int):
+        return reply
     queued = reply.get("queued_jobs") or []
     Console().print(
         f"cell {args.cell} resumed{' after a reset' if reply.get('reset') else ''}"
