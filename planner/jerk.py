@@ -77,6 +77,16 @@ def _input(n: int, vlim: FloatArray, alim: FloatArray, jlim: FloatArray) -> Any:
     return inp
 
 
+def solve_sampled(inp: Any, n: int, time_scale: float = 1.0) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Solve `inp` (stretched to `time_scale` times its duration, on whole ms, when > 1) and sample the
+    profiles at every ms: (position, velocity, acceleration), each (n, duration_ms + 1)."""
+    traj = _solve(inp, n)
+    if time_scale > 1.0:
+        inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
+        traj = _solve(inp, n)
+    return sample_profiles(traj, n, max(round(traj.duration * 1000.0), 1))
+
+
 def sample_profiles(traj: Any, n: int, duration_ms: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Position, velocity, acceleration of every axis at every ms 0..duration_ms (user units, per s)."""
     return sample_at(traj, n, np.arange(duration_ms + 1, dtype=np.float64) * CYCLE_S)
@@ -292,12 +302,7 @@ def stop_reference(
     inp.current_acceleration = [float(x) for x in acceleration]
     inp.target_velocity = [0.0] * n
     inp.target_acceleration = [0.0] * n
-    traj = _solve(inp, n)
-    if time_scale > 1.0:
-        inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
-        traj = _solve(inp, n)
-    duration_ms = max(round(traj.duration * 1000.0), 1)
-    pos, vel, acc = sample_profiles(traj, n, duration_ms)
+    pos, vel, acc = solve_sampled(inp, n, time_scale)
     pos[:, 0] = position
     vel[:, 0] = velocity
     return _reference(pos, vel, acc, cpu)

@@ -328,7 +328,7 @@ def _change_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """ruckig's position interface from the given state to the target at rest, time-synchronised."""
-    from planner.jerk import _input, _reference, _ruckig, _solve, sample_profiles
+    from planner.jerk import _input, _reference, _ruckig, solve_sampled
 
     n = position.size
     _ruckig()  # imported (and its absence reported) before the input is built
@@ -339,12 +339,7 @@ def _change_reference(
     inp.target_position = [float(x) for x in target]
     inp.target_velocity = [0.0] * n
     inp.target_acceleration = [0.0] * n
-    traj = _solve(inp, n)
-    if time_scale > 1.0:
-        inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
-        traj = _solve(inp, n)
-    duration_ms = max(round(traj.duration * 1000.0), 1)
-    pos, vel, acc = sample_profiles(traj, n, duration_ms)
+    pos, vel, acc = solve_sampled(inp, n, time_scale)
     pos[:, 0] = position
     vel[:, 0] = velocity
     pos[:, -1] = target

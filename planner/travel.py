@@ -519,7 +519,7 @@ def _velocity_ramp(
 ) -> Reference:
     """Jerk-limited ramp (user units) from (p, v, a) to velocity `target` at acceleration 0, all axes
     arriving together (ruckig's velocity interface, time-synchronised, whole ms)."""
-    from planner.jerk import _input, _ruckig, _solve, sample_profiles
+    from planner.jerk import _input, _ruckig, solve_sampled
 
     n = p.size
     if np.all(v == target) and np.all(a == 0.0):
@@ -532,12 +532,7 @@ def _velocity_ramp(
     inp.current_acceleration = [float(x) for x in a]
     inp.target_velocity = [float(x) for x in target]
     inp.target_acceleration = [0.0] * n
-    traj = _solve(inp, n)
-    if time_scale > 1.0:
-        inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
-        traj = _solve(inp, n)
-    duration_ms = max(round(traj.duration * 1000.0), 1)
-    pos, vel, acc = sample_profiles(traj, n, duration_ms)
+    pos, vel, acc = solve_sampled(inp, n, time_scale)
     pos[:, 0], vel[:, 0] = p, v
     vel[:, -1] = target  # sample_profiles pins a rest end; this ramp ends cruising
     acc[:, -1] = 0.0
