@@ -134,6 +134,7 @@ from streamer.core.plan_source import (
     StopRequest,
     StreamPlan,
 )
+from streamer.core.positioning import NotInTarget, PositioningChange, PositioningState, PositioningTracker
 from streamer.core.schedule import (
     FillPolicy,
     consumed_at,
@@ -307,6 +308,8 @@ class JobReport:
     duration_ms: int
     cancel: dict[str, Any] = field(default_factory=dict)
     axes: tuple[AxisTelemetry, ...] = ()
+    positioning: dict[int, str] = field(default_factory=dict)  # node -> PositioningState name, at the end
+    warnings: tuple[NotInTarget, ...] = ()
 
 
 class Coordinator:
@@ -441,6 +444,7 @@ class Coordinator:
         # state at a time comes from the piece that covers it)
         self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]
         self._change_results: list[ChangeResult] = []
+        self._positioning = PositioningTracker(self._plan, s.target_window_counts, s.in_target_timeout_ms)
         self._check_feasible()
 
     # ---- public surface ---------------------------------------------------------------------------
@@ -508,6 +512,20 @@ class Coordinator:
         """The stream as (start ms from the job's start, plan): the job's plan, then each change."""
         return tuple(self._pieces)
 
+    def positioning(self) -> dict[int, PositioningState]:
+        """Each axis' positioning state now (seed 002's 9020:03; streamer/core/positioning.py), by node id."""
+        return self._positioning.states()
+
+    @property
+    def positioning_changes(self) -> tuple[PositioningChange, ...]:
+        """Every positioning state change of the job so far, in order (node, state, ms from the start SYNC)."""
+        return tuple(self._positioning.changes)
+
+    @property
+    def warnings(self) -> tuple[NotInTarget, ...]:
+        """Warnings of the job so far (`not_in_target`: an axis outside its window after its in-target timeout)."""
+        return tuple(self._positioning.warnings)
+
     def fifo_fills(self) -> dict[int, int | None]:
         """Last reported fill per node (for live displays; None for a cyclic axis: it has no FIFO)."""
         return {f.node_id: f.last_fill if isinstance(f, FifoFeeder) else None for f in self._axes}
@@ -542,6 +560,8 @@ class Coordinator:
             duration_ms=self._job_end_ms,
             cancel=dict(self._cancel_info),
             axes=self.telemetry(),
+            positioning={n: st.name for n, st in self._positioning.states().items()},
+            warnings=tuple(self._positioning.warnings),
         )
 
     # ---- construction-time feasibility --------------------------------------------------------------
@@ -723,6 +743,8 @@ class Coordinator:
 
     def _finish(self, result: JobResult, message: str, detail: dict[str, Any] | None = None) -> None:
         state = JobState.DONE if result is JobResult.DONE else JobState.CANCELLED
+        if state is JobState.CANCELLED:
+            self._positioning.stopped(self._elapsed_now())
         self._set_state(state, JobOutcome(result, None, None, message, self._sync, self._t, detail or {}))
 
     def _fail(self, code: str, message: str, node: int | None, detail: dict[str, Any] | None = None) -> None:
@@ -736,6 +758,7 @@ class Coordinator:
                 f.fire(FeederInput.FAULT)
         if node is not None and node in self._by_node:
             self._by_node[node].errors.append(code)
+        self._positioning.failed(self._elapsed_now())
         self._set_state(
             JobState.FAILED,
             JobOutcome(JobResult.FAILED, code, node, message, self._sync, self._t, detail or {}),
@@ -827,7 +850,9 @@ class Coordinator:
             self._update_safe_prefix(m)
         if self._cyclic and self._state not in TERMINAL:
             self._send_setpoints(m)
-        if st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms:
+        self._track_time(m)
+        if (st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms
+                and not self._all_feeders(_ALL_FINISHED)):  # all finished: the in-target timeout bounds the wait
             late = next(f for f in self._axes if f.state is not FeederState.FINISHED)
             self._fail(
                 oc.FINISH_TIMEOUT,
@@ -1200,6 +1225,7 @@ class Coordinator:
                 if f.spec.starts_with_bit4:
                     self._emit_cw(f, CW_START_IP)
         self._set_state(JobState.PRIMING)
+        self._positioning.start()
         if self._cyclic and self._sync is not None:
             self._send_setpoints(self._sync)
         # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
@@ -1217,7 +1243,9 @@ class Coordinator:
             _ALL_FINISHED
         ):
             if st is JobState.FINISHING:
-                self._finish(JobResult.DONE, f"all {len(self._axes)} axes finished the plan")
+                if not self._positioning.settled():
+                    return  # PRE_TARGET: waiting for the target windows (or their in-target timeouts)
+                self._finish_done()
             elif st is JobState.CANCELLING:
                 self._finish(
                     JobResult.CANCELLED,
@@ -1249,6 +1277,7 @@ class Coordinator:
             f.first_demand = ev.position_demand
             self._try_configure()
             return
+        self._track_actual(f.node_id, ev.position_actual, m)
         if self._state is JobState.HALTING or f.state is FeederState.FAULTED:
             return  # under halt each drive ramps down on its own: there is no plan to check against
         s = self._start_sync
@@ -1299,6 +1328,7 @@ class Coordinator:
             f.first_demand = ev.position_demand
             self._try_configure()
             return
+        self._track_actual(f.node_id, ev.position_actual, m)
         if f.state in (FeederState.HALTING, FeederState.FAULTED, FeederState.FINISHED):
             return
         s = self._start_sync
@@ -1463,9 +1493,11 @@ class Coordinator:
                               f"{short.elapsed_ms} ms)")
         return plan, ""
 
-    def _splice(self, k: int, t0: int, plan: StreamPlan) -> None:
+    def _splice(self, k: int, t0: int, plan: StreamPlan, kind: str = "change",
+                start_rpm: Sequence[int] | None = None) -> None:
         """Put `plan` after knot k (time t0) of every axis: FIFO axes get its records after record k, cyclic
-        axes its set points from t0 on; nothing already sent is taken back."""
+        axes its set points from t0 on; nothing already sent is taken back. `kind` ("change", "stop",
+        "emergency") and `start_rpm` (the velocities it starts from) are for the positioning state."""
         for f in self._axes:
             if isinstance(f, FifoFeeder):
                 rid = rpdo2_id(f.node_id)
@@ -1483,6 +1515,7 @@ class Coordinator:
         self._lock_prev = min(self._lock_prev, k)
         self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._pieces = [(o, pl) for o, pl in self._pieces if o < t0] + [(t0, plan)]
+        self._positioning.splice(t0, plan, kind, start_rpm if start_rpm is not None else [0] * plan.n_axes)
 
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
@@ -1508,7 +1541,7 @@ class Coordinator:
         if stop is None:
             self._halt(why.replace("the trajectory", "the stop trajectory", 1))
             return
-        self._splice(k, t0, stop)
+        self._splice(k, t0, stop, "stop", request.velocities_rpm)
         self._cancel_info = {
             "stop": "trajectory",
             "knot": k,
@@ -1518,6 +1551,43 @@ class Coordinator:
                        f"{stop.duration_ms} ms long",
         }
         self._set_state(JobState.CANCELLING)
+
+    # ---- positioning state (seed 002's 9020:03; streamer/core/positioning.py) ----------------------------
+    def _elapsed_now(self) -> int | None:
+        """Interpolation time at the last SYNC (None before the start SYNC: nothing moved yet)."""
+        s = self._start_sync
+        if s is None or self._sync is None or self._sync < s:
+            return None
+        return self._elapsed(self._sync)
+
+    def _track_time(self, m: int) -> None:
+        s = self._start_sync
+        if s is None or m < s or self._state in TERMINAL:
+            return
+        self._positioning.on_time(self._elapsed(m))
+        if self._state is JobState.FINISHING:
+            self._progress_job()
+
+    def _track_actual(self, node: int, actual: int, m: int) -> None:
+        s = self._start_sync
+        if s is None or m < s or self._state in TERMINAL:
+            return
+        self._positioning.on_actual(node, actual, self._elapsed(m))
+        if self._state is JobState.FINISHING:
+            self._progress_job()
+
+    def _finish_done(self) -> None:
+        warnings = self._positioning.warnings
+        message = f"all {len(self._axes)} axes finished the plan"
+        detail: dict[str, Any] = {}
+        if warnings:
+            message += "; " + "; ".join(
+                f"node {w.node} not in its target window ({w.window_counts} counts) {w.timeout_ms} ms after the "
+                f"plan's end: {w.error_counts:+d} counts from the target" for w in warnings)
+            detail["warnings"] = [
+                {"code": w.code, "node": w.node, "error_counts": w.error_counts, "window_counts": w.window_counts,
+                 "timeout_ms": w.timeout_ms} for w in warnings]
+        self._finish(JobResult.DONE, message, detail)
 
     # ---- change ------------------------------------------------------------------------------------
     def _change_refused(self, ev: Change) -> None:
@@ -1560,7 +1630,7 @@ class Coordinator:
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, knot=k, time_ms=t0,
                                                      sync=self._sync))
             return
-        self._splice(k, t0, plan)
+        self._splice(k, t0, plan, "change", request.velocities_rpm)
         self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
                                                  duration_ms=plan.duration_ms, sync=self._sync))
 
@@ -1578,5 +1648,6 @@ class Coordinator:
                 cf.fire(FeederInput.HALT)
                 self._emit_cw(cf, CW_QUICK_STOP)
         self._halt_sync = (self._sync if self._sync is not None else 0) + 1
+        self._positioning.halted(self._elapsed_now())
         self._cancel_info = {"stop": "halt", "reason": reason, "summary": f"halt (bit 8): {reason}"}
         self._set_state(JobState.HALTING)
