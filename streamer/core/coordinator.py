@@ -129,6 +129,7 @@ from streamer.core.outcome import JobOutcome, JobResult
 from streamer.core.plan_source import (
     Change,
     ChangeResult,
+    EmergencyStop,
     PvtTrajectoryLike,
     StopPlanner,
     StopRequest,
@@ -241,12 +242,24 @@ _EVENT_TYPES: dict[str, type] = {
     "BusLoad": BusLoad,
     "Cancel": Cancel,
     "Change": Change,
+    "EmergencyStop": EmergencyStop,
 }
 # a change is answered in every state (a refusal names why), so that whoever asked always learns the result
 _CHANGE_HANDLERS: dict[JobState, str] = {
     **{st: "_change_refused" for st in JobState},
     _J.STARTING: "_change_in_motion",
     _J.RUNNING: "_change_in_motion",
+}
+
+
+_EMERGENCY_HANDLERS: dict[JobState, str] = {
+    _J.CONFIGURING: "_emergency_before_start",
+    _J.PRIMING: "_emergency_before_start",
+    _J.STARTING: "_emergency_in_motion",
+    _J.RUNNING: "_emergency_in_motion",
+    _J.FINISHING: "_emergency_in_motion",
+    _J.CANCELLING: "_emergency_in_motion",
+    _J.HALTING: "_emergency_in_motion",
 }
 
 
@@ -260,6 +273,8 @@ def dispatch_table() -> dict[tuple[JobState, type], str]:
                 table[(state, etype)] = "_ignore"
             elif name == "Cancel":
                 table[(state, etype)] = _CANCEL_HANDLERS[state]
+            elif name == "EmergencyStop":
+                table[(state, etype)] = _EMERGENCY_HANDLERS[state]
             else:
                 table[(state, etype)] = _EVENT_HANDLERS[name]
     return table
@@ -444,6 +459,7 @@ class Coordinator:
         # state at a time comes from the piece that covers it)
         self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]
         self._change_results: list[ChangeResult] = []
+        self._emergency: dict[str, Any] | None = None  # what an EmergencyStop did (see `emergency`)
         self._positioning = PositioningTracker(self._plan, s.target_window_counts, s.in_target_timeout_ms)
         self._check_feasible()
 
@@ -520,6 +536,17 @@ class Coordinator:
     def positioning_changes(self) -> tuple[PositioningChange, ...]:
         """Every positioning state change of the job so far, in order (node, state, ms from the start SYNC)."""
         return tuple(self._positioning.changes)
+
+    @property
+    def emergency(self) -> dict[str, Any] | None:
+        """What an `EmergencyStop` did: None (none fed), {"method": "emergency_trajectory", "knot", "time_ms",
+        "stop_duration_ms"} (spliced after what is queued), or {"method": "quick_stop", "reason"}."""
+        return None if self._emergency is None else dict(self._emergency)
+
+    @property
+    def positioning_change_count(self) -> int:
+        """How many positioning changes so far (cheap: a runtime polls it to publish the states when they move)."""
+        return len(self._positioning.changes)
 
     @property
     def warnings(self) -> tuple[NotInTarget, ...]:
@@ -1633,6 +1660,62 @@ class Coordinator:
         self._splice(k, t0, plan, "change", request.velocities_rpm)
         self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
                                                  duration_ms=plan.duration_ms, sync=self._sync))
+
+    # ---- emergency stop ----------------------------------------------------------------------------
+    def _emergency_before_start(self, ev: EmergencyStop) -> None:
+        self._emergency = {"method": "before_start", "reason": "the job had not started moving"}
+        self._cancel_before_start(Cancel(ev.t))
+        self._cancel_info["emergency"] = True
+
+    def _emergency_in_motion(self, ev: EmergencyStop) -> None:
+        """Splice the emergency stop (the emergency deceleration) after what is queued, as the cancel's stop;
+        the drives' quick stop only when no plan is possible in time. A second emergency stop while the first
+        one's trajectory runs plans again from the end of the queue (its end may already be queued: that one
+        stands)."""
+        self._t = ev.t
+        if (self._emergency is not None and self._emergency.get("method") == "emergency_trajectory"
+                and self._queue_end()[2]):
+            return
+        why = self._emergency_splice(ev)
+        if why:
+            self._emergency_quick_stop(why)
+
+    def _emergency_splice(self, ev: EmergencyStop) -> str:
+        """Splice the planned emergency stop; "" when done, else why it could not be."""
+        if self._state is JobState.HALTING:
+            return "the job is halting (no plan to append to)"
+        if ev.planner is None:
+            return "no emergency stop planner was given"
+        k, t0, done = self._queue_end()
+        if done:
+            return "the plan's end is already queued (nothing can follow it)"
+        request = self._state_request(k, t0)
+        try:
+            planned = ev.planner(request)
+        except Exception as exc:
+            return f"the emergency stop planner failed: {type(exc).__name__}: {exc}"
+        stop, why = self._splice_problem(request, planned)
+        if stop is None:
+            return why.replace("the trajectory", "the emergency stop trajectory", 1)
+        self._splice(k, t0, stop, "emergency", request.velocities_rpm)
+        self._emergency = {"method": "emergency_trajectory", "knot": k, "time_ms": t0,
+                           "stop_duration_ms": stop.duration_ms, "sync": self._sync}
+        self._cancel_info = {
+            "stop": "emergency_trajectory", "knot": k, "time_ms": t0, "stop_duration_ms": stop.duration_ms,
+            "emergency": True,
+            "summary": f"emergency stop trajectory from {'knot ' + str(k) + ' ' if self._feeders else ''}{t0} ms, "
+                       f"{stop.duration_ms} ms long",
+        }
+        if self._state is not JobState.CANCELLING:
+            self._set_state(JobState.CANCELLING)
+        return ""
+
+    def _emergency_quick_stop(self, reason: str) -> None:
+        """No plan possible in time: quick stop (0x000B) on every axis now, and the job fails EMERGENCY_STOP."""
+        self._emergency = {"method": "quick_stop", "reason": reason, "sync": self._sync}
+        self._positioning.emergency(self._elapsed_now())
+        self._fail(oc.EMERGENCY_STOP, f"emergency stop: quick stop (controlword 0x000B) to every axis: {reason}",
+                   None, {"method": "quick_stop", "reason": reason})
 
     def _halt(self, reason: str) -> None:
         """Halt (bit 8) on the FIFO axes; a cyclic axis has no halt in its mode (XtrapulsPac: "only in PV,

@@ -59,6 +59,7 @@ from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajec
 from streamer.api.errors import MotionError
 from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change, ChangeResult
+from streamer.core.positioning import NotInTarget
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
 from streamer.runtime.homing import Referencing, home_end_positions, run_homing
@@ -101,6 +102,9 @@ class RuntimeBackend:
         self.referencing = Referencing(self.cell)
         self._piece: _Piece | None = None  # the running stream's current owner (None: nothing streams)
         self._waiting: list[_Waiting] = []  # changes fed to the core, not answered yet (in order)
+        # each axis' positioning state (seed 002's 9020:03), as the running job's core last said (the SYNC thread
+        # replaces the dict, telemetry reads it): IDLE until a job ran, then what its last job left
+        self._positioning: dict[str, str] = {a.name: "IDLE" for a in cell.axes}
         if sim:
             from bus.sim.node import SimulatedCell
             from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
@@ -214,21 +218,29 @@ class RuntimeBackend:
             self._piece = piece
             self._waiting = []
         answered = [0]
+        seen_positioning = [-1]
+        names = dict(zip(traj.node_ids, (str(n) for n in traj.axis_names), strict=True))
 
         def on_change(core: Coordinator) -> None:
             if len(core.change_results) > answered[0]:
                 self._answer_changes(core, answered)
             pc = self._piece or piece
             p = core.progress
-            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]):
+            moved = core.positioning_change_count != seen_positioning[0]
+            if moved:
+                seen_positioning[0] = core.positioning_change_count
+                self._positioning = {**self._positioning,
+                                     **{names[n]: st.name for n, st in core.positioning().items()}}
+            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]) and not moved:
                 return
             last[0] = p
             state = core.state.value
+            positioning = {names[n]: st.name for n, st in core.positioning().items()}
             elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
             planned_ms = pc.duration_ms
             if state not in ("cancelling", "halting"):
                 progress = 1.0 if p >= 1.0 else min(1.0, max(0.0, elapsed / planned_ms))
-                pc.emit("running", {"progress": round(progress, 4), "state": state})
+                pc.emit("running", {"progress": round(progress, 4), "state": state, "positioning": positioning})
                 return
             if not stopping:  # the first update after the cancel: how the stream ends now
                 rep = core.report()
@@ -238,7 +250,8 @@ class RuntimeBackend:
                     planned_ms if info.get("stop") == "plan_end" else None)
                 stopping["cut"] = float(cut) if cut is not None else min(planned_ms, elapsed)
             cut = stopping["cut"]
-            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state}
+            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state,
+                                      "positioning": positioning}
             if stopping["end"] > cut:
                 fields["stop_progress"] = round(min(1.0, max(0.0, (elapsed - cut) / (stopping["end"] - cut))), 4)
             pc.emit("running", fields)
@@ -258,6 +271,11 @@ class RuntimeBackend:
                               readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp,
                               setpoints={n: core.setpoints(n) for n in traj.node_ids})
         outcome = core.outcome
+        final = core.report()
+        self._positioning = {**self._positioning, **{names[n]: st for n, st in final.positioning.items()}}
+        report["positioning"] = {names[n]: st for n, st in final.positioning.items()}
+        if final.warnings:
+            report["warnings"] = [self._warning(w, names[w.node]) for w in final.warnings]
         with self._lock:
             emergency = self._emergency
         if emergency and report["result"] != "done":
@@ -282,6 +300,16 @@ class RuntimeBackend:
         with self._lock:
             self._recording = recording
         return report
+
+    def _warning(self, w: NotInTarget, name: str) -> dict[str, Any]:
+        """A core warning for the report: the axis by name, the error in counts and in the axis' user units."""
+        a = self._axes[name]
+        return {"code": w.code, "axis": name, "node": w.node, "error_counts": w.error_counts,
+                "error": w.error_counts / a.counts_per_unit, "window_counts": w.window_counts,
+                "window": w.window_counts / a.counts_per_unit, "timeout_ms": w.timeout_ms, "unit": a.unit,
+                "message": f"axis {name!r} is {w.error_counts:+d} counts ({w.error_counts / a.counts_per_unit:+.6g} "
+                           f"{a.unit}) from its target {w.timeout_ms} ms after the plan's end (target window "
+                           f"{w.window_counts} counts)"}
 
     # ---- changes of the running motion (the intake thread asks, the SYNC thread answers)
     def change(self, job: Job, mode: str, emit: Emit) -> tuple[Planned, dict[str, Any]]:
@@ -462,6 +490,7 @@ class RuntimeBackend:
                 "velocity": s.velocity_counts_per_s / a.counts_per_unit,
                 "fifo_fill": None if s.free_size is None else FIFO_SIZE - s.free_size,
                 "state": state,
+                "positioning": self._positioning.get(a.name, "IDLE"),
             })
         return out
 
