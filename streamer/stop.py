@@ -6,6 +6,9 @@ values, so knot 0 of the stop is the queued knot to the count and the rpm. Plann
 thread handles the cancel (a stop for 6 axes plans in a few ms; the core has a SYNC period of margin
 per queued record).
 
+The emergency stop (`make_emergency_planner`, fed as `streamer.core.EmergencyStop`) is the same stop at each
+axis' emergency deceleration (`planner.stop.plan_emergency_stop_from_wire`).
+
 A change (a new target while the axes move, `streamer.core.Change`) is asked for the same state and
 planned by `planner.stop.plan_change_from_wire` to the new target; `ChangePlanner` keeps what it planned
 (the trajectory, the axes that overrun their target, the planning time) for the job that asked.
@@ -17,7 +20,7 @@ import time
 from collections.abc import Sequence
 
 from planner.config import CellConfig
-from planner.stop import ChangePlan, plan_change_from_wire, plan_stop_from_wire
+from planner.stop import ChangePlan, plan_change_from_wire, plan_emergency_stop_from_wire, plan_stop_from_wire
 from planner.trajectory import PvtTrajectory
 from streamer.core.plan_source import StopPlanner, StopRequest
 
@@ -28,6 +31,25 @@ def make_stop_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
     def plan(request: StopRequest) -> PvtTrajectory:
         names = [names_by_node[n] for n in request.node_ids]
         return plan_stop_from_wire(
+            cell,
+            names,
+            request.positions_counts,
+            request.velocities_rpm,
+            request.accelerations_counts_per_ms2,
+            tolerance_counts=traj.tolerance_counts,
+        )
+
+    return plan
+
+
+def make_emergency_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
+    """The planner of a `streamer.core.EmergencyStop`: the stop at each axis' emergency deceleration (cell config
+    `emergency_deceleration`), from the same state as the cancel's stop."""
+    names_by_node = dict(zip(traj.node_ids, traj.axis_names, strict=True))
+
+    def plan(request: StopRequest) -> PvtTrajectory:
+        names = [names_by_node[n] for n in request.node_ids]
+        return plan_emergency_stop_from_wire(
             cell,
             names,
             request.positions_counts,

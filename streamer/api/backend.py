@@ -65,11 +65,14 @@ Contract, method by method (which service thread calls it, what it may raise):
   starts where the axes stand (the job before it may have been cancelled or stopped): a move is re-planned
   from there, a path/timed/pvt job fails INFEASIBLE naming the axis and both positions, unless it said
   `start = "current"` (a path is then planned from where the axes stand through all its waypoints).
-- optional `emergency_stop() -> str`: the fastest stop the motion runtime has, now, on every axis (the
-  real backend: quick stop, controlword 0x000B, each drive ramps down on its quick stop deceleration
-  0x6085); a running `execute` then returns "failed" with code EMERGENCY_STOP, and `ready()` stays
-  False until `reset()`. Any thread; returns what it did (for the reply). Without it the service's
-  emergency stop falls back to the jerk-limited stop of a cancel.
+- optional `emergency_stop() -> str | Mapping`: the fastest stop the motion runtime has, on every axis (the
+  real backend: the running job's planned emergency stop at each axis' emergency deceleration, spliced
+  after what is queued; the quick stop, controlword 0x000B, each drive ramping down on its quick stop
+  deceleration 0x6085, when no plan is possible or nothing runs); a running `execute` then returns
+  "failed" with code EMERGENCY_STOP, and `ready()` stays False until `reset()`. Any thread; returns what
+  it did for the reply: a message (method `quick_stop`) or `{"method": "emergency_trajectory" |
+  "quick_stop", "message": ...}`. Without it the service's emergency stop falls back to the jerk-limited
+  stop of a cancel.
 - optional `change(job, mode, emit) -> (Planned, info)`: a move submitted with `buffer = "aborting"` while a
   job runs: replace the running job's remainder with it, without stopping, planned from the state at the
   end of what is queued (streamer.core.Change); from then on the new job's progress goes to `emit`.

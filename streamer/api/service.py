@@ -33,8 +33,9 @@ executor checks that it still starts where the axes stand (`current_positions()`
 job before it may have been cancelled or stopped elsewhere. A move is re-planned from there; a path,
 timed or pvt job fails INFEASIBLE naming the axis, where it stands and where the job starts, unless the
 job said `start = "current"` (a path is then planned from where the axes stand through its waypoints).
-Stop with `emergency=true` calls the backend's `emergency_stop()` (quick stop on every drive) when it
-has one; `resume` then re-enables the drives.
+Stop with `emergency=true` calls the backend's `emergency_stop()` when it has one (the real backend: the
+running job's planned emergency stop at the emergency deceleration, or the quick stop on every drive when no
+plan is possible; the reply's `method` says which); `resume` then re-enables the drives.
 
 A cancel of the running job is journalled at once as a `cancelling` event (state CANCELLING); the
 backend's later progress updates are published as `cancelling` events too, with the progress of the
@@ -1282,12 +1283,18 @@ class JobService:
                 if not current.started:
                     current.token.cancel()  # it had not started: it never will
             try:
-                what = str(stop_all())
+                did = stop_all()
             except Exception as exc:
                 log.exception("backend.emergency_stop() raised")
                 raise MotionError(E.INTERNAL, f"backend.emergency_stop() raised {type(exc).__name__}: {exc}") from None
             self._emergency_pending = True
-            method = "quick_stop"
+            # a backend says what it did: a message (the quick stop), or {"method", "message", ...} (the planned
+            # emergency stop, "emergency_trajectory", or its fallback "quick_stop")
+            if isinstance(did, Mapping):
+                method = str(did.get("method", "quick_stop"))
+                what = str(did.get("message", ""))
+            else:
+                method, what = "quick_stop", str(did)
             log.warning("EMERGENCY STOP of cell %r%s: %s", self.cell,
                         f" (job {current.job_id} running)" if current is not None else "", what)
         elif current is not None:

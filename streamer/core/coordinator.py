@@ -129,11 +129,13 @@ from streamer.core.outcome import JobOutcome, JobResult
 from streamer.core.plan_source import (
     Change,
     ChangeResult,
+    EmergencyStop,
     PvtTrajectoryLike,
     StopPlanner,
     StopRequest,
     StreamPlan,
 )
+from streamer.core.positioning import NotInTarget, PositioningChange, PositioningState, PositioningTracker
 from streamer.core.schedule import (
     FillPolicy,
     consumed_at,
@@ -240,12 +242,24 @@ _EVENT_TYPES: dict[str, type] = {
     "BusLoad": BusLoad,
     "Cancel": Cancel,
     "Change": Change,
+    "EmergencyStop": EmergencyStop,
 }
 # a change is answered in every state (a refusal names why), so that whoever asked always learns the result
 _CHANGE_HANDLERS: dict[JobState, str] = {
     **{st: "_change_refused" for st in JobState},
     _J.STARTING: "_change_in_motion",
     _J.RUNNING: "_change_in_motion",
+}
+
+
+_EMERGENCY_HANDLERS: dict[JobState, str] = {
+    _J.CONFIGURING: "_emergency_before_start",
+    _J.PRIMING: "_emergency_before_start",
+    _J.STARTING: "_emergency_in_motion",
+    _J.RUNNING: "_emergency_in_motion",
+    _J.FINISHING: "_emergency_in_motion",
+    _J.CANCELLING: "_emergency_in_motion",
+    _J.HALTING: "_emergency_in_motion",
 }
 
 
@@ -259,6 +273,8 @@ def dispatch_table() -> dict[tuple[JobState, type], str]:
                 table[(state, etype)] = "_ignore"
             elif name == "Cancel":
                 table[(state, etype)] = _CANCEL_HANDLERS[state]
+            elif name == "EmergencyStop":
+                table[(state, etype)] = _EMERGENCY_HANDLERS[state]
             else:
                 table[(state, etype)] = _EVENT_HANDLERS[name]
     return table
@@ -307,6 +323,8 @@ class JobReport:
     duration_ms: int
     cancel: dict[str, Any] = field(default_factory=dict)
     axes: tuple[AxisTelemetry, ...] = ()
+    positioning: dict[int, str] = field(default_factory=dict)  # node -> PositioningState name, at the end
+    warnings: tuple[NotInTarget, ...] = ()
 
 
 class Coordinator:
@@ -441,6 +459,8 @@ class Coordinator:
         # state at a time comes from the piece that covers it)
         self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]
         self._change_results: list[ChangeResult] = []
+        self._emergency: dict[str, Any] | None = None  # what an EmergencyStop did (see `emergency`)
+        self._positioning = PositioningTracker(self._plan, s.target_window_counts, s.in_target_timeout_ms)
         self._check_feasible()
 
     # ---- public surface ---------------------------------------------------------------------------
@@ -508,6 +528,31 @@ class Coordinator:
         """The stream as (start ms from the job's start, plan): the job's plan, then each change."""
         return tuple(self._pieces)
 
+    def positioning(self) -> dict[int, PositioningState]:
+        """Each axis' positioning state now (seed 002's 9020:03; streamer/core/positioning.py), by node id."""
+        return self._positioning.states()
+
+    @property
+    def positioning_changes(self) -> tuple[PositioningChange, ...]:
+        """Every positioning state change of the job so far, in order (node, state, ms from the start SYNC)."""
+        return tuple(self._positioning.changes)
+
+    @property
+    def emergency(self) -> dict[str, Any] | None:
+        """What an `EmergencyStop` did: None (none fed), {"method": "emergency_trajectory", "knot", "time_ms",
+        "stop_duration_ms"} (spliced after what is queued), or {"method": "quick_stop", "reason"}."""
+        return None if self._emergency is None else dict(self._emergency)
+
+    @property
+    def positioning_change_count(self) -> int:
+        """How many positioning changes so far (cheap: a runtime polls it to publish the states when they move)."""
+        return len(self._positioning.changes)
+
+    @property
+    def warnings(self) -> tuple[NotInTarget, ...]:
+        """Warnings of the job so far (`not_in_target`: an axis outside its window after its in-target timeout)."""
+        return tuple(self._positioning.warnings)
+
     def fifo_fills(self) -> dict[int, int | None]:
         """Last reported fill per node (for live displays; None for a cyclic axis: it has no FIFO)."""
         return {f.node_id: f.last_fill if isinstance(f, FifoFeeder) else None for f in self._axes}
@@ -542,6 +587,8 @@ class Coordinator:
             duration_ms=self._job_end_ms,
             cancel=dict(self._cancel_info),
             axes=self.telemetry(),
+            positioning={n: st.name for n, st in self._positioning.states().items()},
+            warnings=tuple(self._positioning.warnings),
         )
 
     # ---- construction-time feasibility --------------------------------------------------------------
@@ -723,6 +770,8 @@ class Coordinator:
 
     def _finish(self, result: JobResult, message: str, detail: dict[str, Any] | None = None) -> None:
         state = JobState.DONE if result is JobResult.DONE else JobState.CANCELLED
+        if state is JobState.CANCELLED:
+            self._positioning.stopped(self._elapsed_now())
         self._set_state(state, JobOutcome(result, None, None, message, self._sync, self._t, detail or {}))
 
     def _fail(self, code: str, message: str, node: int | None, detail: dict[str, Any] | None = None) -> None:
@@ -736,6 +785,7 @@ class Coordinator:
                 f.fire(FeederInput.FAULT)
         if node is not None and node in self._by_node:
             self._by_node[node].errors.append(code)
+        self._positioning.failed(self._elapsed_now())
         self._set_state(
             JobState.FAILED,
             JobOutcome(JobResult.FAILED, code, node, message, self._sync, self._t, detail or {}),
@@ -827,7 +877,9 @@ class Coordinator:
             self._update_safe_prefix(m)
         if self._cyclic and self._state not in TERMINAL:
             self._send_setpoints(m)
-        if st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms:
+        self._track_time(m)
+        if (st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms
+                and not self._all_feeders(_ALL_FINISHED)):  # all finished: the in-target timeout bounds the wait
             late = next(f for f in self._axes if f.state is not FeederState.FINISHED)
             self._fail(
                 oc.FINISH_TIMEOUT,
@@ -1200,6 +1252,7 @@ class Coordinator:
                 if f.spec.starts_with_bit4:
                     self._emit_cw(f, CW_START_IP)
         self._set_state(JobState.PRIMING)
+        self._positioning.start()
         if self._cyclic and self._sync is not None:
             self._send_setpoints(self._sync)
         # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
@@ -1217,7 +1270,9 @@ class Coordinator:
             _ALL_FINISHED
         ):
             if st is JobState.FINISHING:
-                self._finish(JobResult.DONE, f"all {len(self._axes)} axes finished the plan")
+                if not self._positioning.settled():
+                    return  # PRE_TARGET: waiting for the target windows (or their in-target timeouts)
+                self._finish_done()
             elif st is JobState.CANCELLING:
                 self._finish(
                     JobResult.CANCELLED,
@@ -1249,6 +1304,7 @@ class Coordinator:
             f.first_demand = ev.position_demand
             self._try_configure()
             return
+        self._track_actual(f.node_id, ev.position_actual, m)
         if self._state is JobState.HALTING or f.state is FeederState.FAULTED:
             return  # under halt each drive ramps down on its own: there is no plan to check against
         s = self._start_sync
@@ -1299,6 +1355,7 @@ class Coordinator:
             f.first_demand = ev.position_demand
             self._try_configure()
             return
+        self._track_actual(f.node_id, ev.position_actual, m)
         if f.state in (FeederState.HALTING, FeederState.FAULTED, FeederState.FINISHED):
             return
         s = self._start_sync
@@ -1463,9 +1520,11 @@ class Coordinator:
                               f"{short.elapsed_ms} ms)")
         return plan, ""
 
-    def _splice(self, k: int, t0: int, plan: StreamPlan) -> None:
+    def _splice(self, k: int, t0: int, plan: StreamPlan, kind: str = "change",
+                start_rpm: Sequence[int] | None = None) -> None:
         """Put `plan` after knot k (time t0) of every axis: FIFO axes get its records after record k, cyclic
-        axes its set points from t0 on; nothing already sent is taken back."""
+        axes its set points from t0 on; nothing already sent is taken back. `kind` ("change", "stop",
+        "emergency") and `start_rpm` (the velocities it starts from) are for the positioning state."""
         for f in self._axes:
             if isinstance(f, FifoFeeder):
                 rid = rpdo2_id(f.node_id)
@@ -1483,6 +1542,7 @@ class Coordinator:
         self._lock_prev = min(self._lock_prev, k)
         self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._pieces = [(o, pl) for o, pl in self._pieces if o < t0] + [(t0, plan)]
+        self._positioning.splice(t0, plan, kind, start_rpm if start_rpm is not None else [0] * plan.n_axes)
 
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
@@ -1508,7 +1568,7 @@ class Coordinator:
         if stop is None:
             self._halt(why.replace("the trajectory", "the stop trajectory", 1))
             return
-        self._splice(k, t0, stop)
+        self._splice(k, t0, stop, "stop", request.velocities_rpm)
         self._cancel_info = {
             "stop": "trajectory",
             "knot": k,
@@ -1518,6 +1578,43 @@ class Coordinator:
                        f"{stop.duration_ms} ms long",
         }
         self._set_state(JobState.CANCELLING)
+
+    # ---- positioning state (seed 002's 9020:03; streamer/core/positioning.py) ----------------------------
+    def _elapsed_now(self) -> int | None:
+        """Interpolation time at the last SYNC (None before the start SYNC: nothing moved yet)."""
+        s = self._start_sync
+        if s is None or self._sync is None or self._sync < s:
+            return None
+        return self._elapsed(self._sync)
+
+    def _track_time(self, m: int) -> None:
+        s = self._start_sync
+        if s is None or m < s or self._state in TERMINAL:
+            return
+        self._positioning.on_time(self._elapsed(m))
+        if self._state is JobState.FINISHING:
+            self._progress_job()
+
+    def _track_actual(self, node: int, actual: int, m: int) -> None:
+        s = self._start_sync
+        if s is None or m < s or self._state in TERMINAL:
+            return
+        self._positioning.on_actual(node, actual, self._elapsed(m))
+        if self._state is JobState.FINISHING:
+            self._progress_job()
+
+    def _finish_done(self) -> None:
+        warnings = self._positioning.warnings
+        message = f"all {len(self._axes)} axes finished the plan"
+        detail: dict[str, Any] = {}
+        if warnings:
+            message += "; " + "; ".join(
+                f"node {w.node} not in its target window ({w.window_counts} counts) {w.timeout_ms} ms after the "
+                f"plan's end: {w.error_counts:+d} counts from the target" for w in warnings)
+            detail["warnings"] = [
+                {"code": w.code, "node": w.node, "error_counts": w.error_counts, "window_counts": w.window_counts,
+                 "timeout_ms": w.timeout_ms} for w in warnings]
+        self._finish(JobResult.DONE, message, detail)
 
     # ---- change ------------------------------------------------------------------------------------
     def _change_refused(self, ev: Change) -> None:
@@ -1560,9 +1657,65 @@ class Coordinator:
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, knot=k, time_ms=t0,
                                                      sync=self._sync))
             return
-        self._splice(k, t0, plan)
+        self._splice(k, t0, plan, "change", request.velocities_rpm)
         self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
                                                  duration_ms=plan.duration_ms, sync=self._sync))
+
+    # ---- emergency stop ----------------------------------------------------------------------------
+    def _emergency_before_start(self, ev: EmergencyStop) -> None:
+        self._emergency = {"method": "before_start", "reason": "the job had not started moving"}
+        self._cancel_before_start(Cancel(ev.t))
+        self._cancel_info["emergency"] = True
+
+    def _emergency_in_motion(self, ev: EmergencyStop) -> None:
+        """Splice the emergency stop (the emergency deceleration) after what is queued, as the cancel's stop;
+        the drives' quick stop only when no plan is possible in time. A second emergency stop while the first
+        one's trajectory runs plans again from the end of the queue (its end may already be queued: that one
+        stands)."""
+        self._t = ev.t
+        if (self._emergency is not None and self._emergency.get("method") == "emergency_trajectory"
+                and self._queue_end()[2]):
+            return
+        why = self._emergency_splice(ev)
+        if why:
+            self._emergency_quick_stop(why)
+
+    def _emergency_splice(self, ev: EmergencyStop) -> str:
+        """Splice the planned emergency stop; "" when done, else why it could not be."""
+        if self._state is JobState.HALTING:
+            return "the job is halting (no plan to append to)"
+        if ev.planner is None:
+            return "no emergency stop planner was given"
+        k, t0, done = self._queue_end()
+        if done:
+            return "the plan's end is already queued (nothing can follow it)"
+        request = self._state_request(k, t0)
+        try:
+            planned = ev.planner(request)
+        except Exception as exc:
+            return f"the emergency stop planner failed: {type(exc).__name__}: {exc}"
+        stop, why = self._splice_problem(request, planned)
+        if stop is None:
+            return why.replace("the trajectory", "the emergency stop trajectory", 1)
+        self._splice(k, t0, stop, "emergency", request.velocities_rpm)
+        self._emergency = {"method": "emergency_trajectory", "knot": k, "time_ms": t0,
+                           "stop_duration_ms": stop.duration_ms, "sync": self._sync}
+        self._cancel_info = {
+            "stop": "emergency_trajectory", "knot": k, "time_ms": t0, "stop_duration_ms": stop.duration_ms,
+            "emergency": True,
+            "summary": f"emergency stop trajectory from {'knot ' + str(k) + ' ' if self._feeders else ''}{t0} ms, "
+                       f"{stop.duration_ms} ms long",
+        }
+        if self._state is not JobState.CANCELLING:
+            self._set_state(JobState.CANCELLING)
+        return ""
+
+    def _emergency_quick_stop(self, reason: str) -> None:
+        """No plan possible in time: quick stop (0x000B) on every axis now, and the job fails EMERGENCY_STOP."""
+        self._emergency = {"method": "quick_stop", "reason": reason, "sync": self._sync}
+        self._positioning.emergency(self._elapsed_now())
+        self._fail(oc.EMERGENCY_STOP, f"emergency stop: quick stop (controlword 0x000B) to every axis: {reason}",
+                   None, {"method": "quick_stop", "reason": reason})
 
     def _halt(self, reason: str) -> None:
         """Halt (bit 8) on the FIFO axes; a cyclic axis has no halt in its mode (XtrapulsPac: "only in PV,
@@ -1578,5 +1731,6 @@ class Coordinator:
                 cf.fire(FeederInput.HALT)
                 self._emit_cw(cf, CW_QUICK_STOP)
         self._halt_sync = (self._sync if self._sync is not None else 0) + 1
+        self._positioning.halted(self._elapsed_now())
         self._cancel_info = {"stop": "halt", "reason": reason, "summary": f"halt (bit 8): {reason}"}
         self._set_state(JobState.HALTING)

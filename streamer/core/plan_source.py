@@ -84,6 +84,19 @@ class Change:
 
 
 @dataclass(frozen=True)
+class EmergencyStop:
+    """Stop every axis at its emergency deceleration, fed to the core like `Cancel`: `planner` plans the stop
+    from the state at the end of what is queued (planner.stop.plan_emergency_stop_from_wire behind
+    streamer.stop.make_emergency_planner) and the core splices it as the cancel's stop; when no plan is
+    possible in time (none given, it raised, or it cannot be streamed in time) the core falls back to the
+    drives' quick stop (controlword 0x000B) and the job fails EMERGENCY_STOP. `Coordinator.emergency` says
+    which happened."""
+
+    t: float
+    planner: StopPlanner | None = None
+
+
+@dataclass(frozen=True)
 class ChangeResult:
     """What the core did with a `Change`: accepted (spliced at `knot`, `time_ms` from the job's start,
     the new part lasting `duration_ms`) or not (`reason`, the running motion untouched)."""

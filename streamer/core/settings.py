@@ -23,6 +23,10 @@ known: the runtime measures them at configuration (bus/probe.py) when the cell d
 `feedback`: TPDO2 every n-th SYNC (bus.profile.FeedbackSchedule; None = every SYNC). `time_stamp`: the
 runtime sends 0x1013 after every SYNC, so drives with their own clock follow the master's.
 
+`target_window_counts` / `in_target_timeout_ms`: seed 002's target window and in-target timeout per node
+(planner.config's `target_window`, `in_target_timeout_ms`): a job ends DONE only once every axis is in its
+window after the plan's end, or its timeout ran out (a `not_in_target` warning; positioning.py).
+
 `cyclic`: the nodes whose drives take one set point per SYNC (streamer/core/cyclic.py; bus/families.py),
 with their set point slot and interpolation; every other node is an EPOS FIFO. The FIFO settings
 (watermarks, lead, repair) apply to the FIFO nodes only.
@@ -74,6 +78,10 @@ class StreamerSettings:
     time_stamp: bool = False
     cyclic: Mapping[int, CyclicAxis] = field(default_factory=lambda: _EMPTY_CYCLIC)
     activate_timeout_ms: int = 1000  # a cyclic drive must report ip mode active this soon after bit 4
+    # per node id: the target window (counts) and in-target timeout (ms) of seed 002 (positioning.py); a node
+    # without a window is in its target when its plan ends (nothing to check the actual position against)
+    target_window_counts: Mapping[int, int] = field(default_factory=lambda: _EMPTY_CPR)
+    in_target_timeout_ms: Mapping[int, int] = field(default_factory=lambda: _EMPTY_CPR)
 
     def __post_init__(self) -> None:
         def bad(name: str, value: object, why: str) -> ValueError:
@@ -128,6 +136,12 @@ class StreamerSettings:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise bad(f"counts_per_rev[{node}]", value, "must be a positive integer")
         object.__setattr__(self, "counts_per_rev", MappingProxyType(cpr))
+        for name, low in (("target_window_counts", 0), ("in_target_timeout_ms", 1)):
+            values = dict(getattr(self, name))
+            for node, value in values.items():
+                if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                    raise bad(f"{name}[{node}]", value, f"must be an integer >= {low}")
+            object.__setattr__(self, name, MappingProxyType(values))
         readings = dict(self.readings)
         for node, r in readings.items():
             if not isinstance(r, DriveReadings):
@@ -169,6 +183,8 @@ class StreamerSettings:
             overflow_watermark=cell.drive.overflow_warning,
             heartbeat_ms=cell.drive.heartbeat_ms,
             counts_per_rev={a.node_id: int(a.counts_per_rev) for a in cell.axes},
+            target_window_counts={a.node_id: round(a.target_window_user * a.counts_per_unit) for a in cell.axes},
+            in_target_timeout_ms={a.node_id: int(a.in_target_timeout_ms) for a in cell.axes},
             time_stamp=bool(getattr(cell, "time_stamp", False)),
             cyclic=cyclic,
         )

@@ -25,11 +25,15 @@ fault nothing moves again without a deliberate act (STYLE.md rule 4).
 After a cancel the progress reported is the share of the job's own plan that was executed (up to the
 knot where the stop trajectory begins), not of the stop-spliced stream, which would run on to 1.0.
 
-`emergency_stop()` is the fastest stop the core has: a running job's core is failed at once (it sends
-controlword 0x000B, quick stop, to every axis in that reaction and nothing after), and the backend also
-sends 0x000B to every drive of the cell itself (idle ones included); each drive ramps down on its quick
-stop deceleration 0x6085 (synchronous RPDO1: at the next SYNC). The job ends failed EMERGENCY_STOP and
-the cell stays not ready until `reset()`. (A planned emergency deceleration comes with issue 15.)
+`emergency_stop()` stops a running job on its planned emergency stop: `streamer.core.EmergencyStop` with
+`make_emergency_planner` (each axis' `emergency_deceleration`), spliced after what is already queued like
+the cancel's stop; the job ends failed EMERGENCY_STOP (detail `method` "emergency_trajectory") with the
+drives still enabled. Only when no plan is possible in time (the core says why: the plan's end already
+queued, halting, the planner failed, it cannot be streamed in time) or nothing runs, it is the quick stop:
+the running core fails at once (controlword 0x000B to every axis in that reaction and nothing after), the
+backend also sends 0x000B to every drive of the cell itself (idle ones included), and each drive ramps down
+on its quick stop deceleration 0x6085 (synchronous RPDO1: at the next SYNC). Either way the cell stays not
+ready until `reset()` (the service's resume does it).
 
 Home jobs (kind "home") are not planned: `execute` runs them with streamer/runtime/homing.py over SDO while
 the periodic SYNC runs, and `referencing` (a `Referencing`) keeps which axes are referenced: with the cell's
@@ -58,12 +62,13 @@ from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
 from streamer.api.errors import MotionError
 from streamer.core.coordinator import Coordinator
-from streamer.core.plan_source import Change, ChangeResult
+from streamer.core.plan_source import Change, ChangeResult, EmergencyStop
+from streamer.core.positioning import NotInTarget
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
 from streamer.runtime.homing import Referencing, home_end_positions, run_homing
 from streamer.runtime.realtime import RealtimeRuntime
-from streamer.stop import ChangePlanner, make_stop_planner
+from streamer.stop import ChangePlanner, make_emergency_planner, make_stop_planner
 
 FIFO_SIZE = 64
 CHANGE_ANSWER_S = 2.0  # how long change() waits for the SYNC thread's answer (it comes within a period or two)
@@ -101,6 +106,11 @@ class RuntimeBackend:
         self.referencing = Referencing(self.cell)
         self._piece: _Piece | None = None  # the running stream's current owner (None: nothing streams)
         self._waiting: list[_Waiting] = []  # changes fed to the core, not answered yet (in order)
+        # each axis' positioning state (seed 002's 9020:03), as the running job's core last said (the SYNC thread
+        # replaces the dict, telemetry reads it): IDLE until a job ran, then what its last job left
+        self._positioning: dict[str, str] = {a.name: "IDLE" for a in cell.axes}
+        self._emergency_answer: threading.Event | None = None  # set by the SYNC thread when the core took it
+        self._emergency_info: dict[str, Any] | None = None
         if sim:
             from bus.sim.node import SimulatedCell
             from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
@@ -214,31 +224,48 @@ class RuntimeBackend:
             self._piece = piece
             self._waiting = []
         answered = [0]
+        seen_positioning = [-1]
+        info_stop = [""]
+        names = dict(zip(traj.node_ids, (str(n) for n in traj.axis_names), strict=True))
 
         def on_change(core: Coordinator) -> None:
             if len(core.change_results) > answered[0]:
                 self._answer_changes(core, answered)
+            waiter = self._emergency_answer
+            if waiter is not None and not waiter.is_set() and core.emergency is not None:
+                self._emergency_info = core.emergency
+                waiter.set()
             pc = self._piece or piece
             p = core.progress
-            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]):
+            moved = core.positioning_change_count != seen_positioning[0]
+            if moved:
+                seen_positioning[0] = core.positioning_change_count
+                self._positioning = {**self._positioning,
+                                     **{names[n]: st.name for n, st in core.positioning().items()}}
+            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]) and not moved:
                 return
             last[0] = p
             state = core.state.value
+            positioning = {names[n]: st.name for n, st in core.positioning().items()}
             elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
             planned_ms = pc.duration_ms
             if state not in ("cancelling", "halting"):
                 progress = 1.0 if p >= 1.0 else min(1.0, max(0.0, elapsed / planned_ms))
-                pc.emit("running", {"progress": round(progress, 4), "state": state})
+                pc.emit("running", {"progress": round(progress, 4), "state": state, "positioning": positioning})
                 return
             if not stopping:  # the first update after the cancel: how the stream ends now
                 rep = core.report()
                 info = rep.cancel
+                info_stop[0] = str(info.get("stop", ""))
                 stopping["end"] = (float(rep.duration_ms) or 1.0) - pc.t0_ms
                 cut = info.get("time_ms") - pc.t0_ms if info.get("stop") == "trajectory" else (
                     planned_ms if info.get("stop") == "plan_end" else None)
                 stopping["cut"] = float(cut) if cut is not None else min(planned_ms, elapsed)
             cut = stopping["cut"]
-            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state}
+            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state,
+                                      "positioning": positioning}
+            if rep_stop := info_stop[0]:
+                fields["stop"] = rep_stop  # trajectory, emergency_trajectory, halt, plan_end
             if stopping["end"] > cut:
                 fields["stop_progress"] = round(min(1.0, max(0.0, (elapsed - cut) / (stopping["end"] - cut))), 4)
             pc.emit("running", fields)
@@ -258,14 +285,27 @@ class RuntimeBackend:
                               readings=self.runtime.settings.readings, time_stamp=self.cell.time_stamp,
                               setpoints={n: core.setpoints(n) for n in traj.node_ids})
         outcome = core.outcome
+        final = core.report()
+        self._positioning = {**self._positioning, **{names[n]: st for n, st in final.positioning.items()}}
+        report["positioning"] = {names[n]: st for n, st in final.positioning.items()}
+        if final.warnings:
+            report["warnings"] = [self._warning(w, names[w.node]) for w in final.warnings]
         with self._lock:
             emergency = self._emergency
+        planned_stop = core.emergency
         if emergency and report["result"] != "done":
             report["result"] = "failed"
-            report["error"] = {"code": EMERGENCY_STOP, "node": None,
-                               "message": "emergency stop: quick stop (controlword 0x000B) to every drive; "
-                                          "each ramped down on its quick stop deceleration (0x6085)",
-                               "sync": outcome.sync if outcome is not None else None, "detail": {}}
+            if planned_stop is not None and planned_stop["method"] == "emergency_trajectory":
+                message = (f"emergency stop: every axis stopped on its emergency deceleration, a "
+                           f"{planned_stop['stop_duration_ms']} ms stop from {planned_stop['time_ms']} ms into the "
+                           "motion (after what was queued); the drives stay enabled")
+                detail = {"method": "emergency_trajectory", **planned_stop}
+            else:
+                message = ("emergency stop: quick stop (controlword 0x000B) to every drive; each ramped down on its "
+                           "quick stop deceleration (0x6085)")
+                detail = {"method": "quick_stop", **({"reason": planned_stop["reason"]} if planned_stop else {})}
+            report["error"] = {"code": EMERGENCY_STOP, "node": None, "message": message,
+                               "sync": outcome.sync if outcome is not None else None, "detail": detail}
         elif outcome is not None and report["result"] == "failed":
             report["error"] = {"code": outcome.code, "node": outcome.node, "message": outcome.message,
                                "sync": outcome.sync, "detail": dict(outcome.detail)}
@@ -282,6 +322,16 @@ class RuntimeBackend:
         with self._lock:
             self._recording = recording
         return report
+
+    def _warning(self, w: NotInTarget, name: str) -> dict[str, Any]:
+        """A core warning for the report: the axis by name, the error in counts and in the axis' user units."""
+        a = self._axes[name]
+        return {"code": w.code, "axis": name, "node": w.node, "error_counts": w.error_counts,
+                "error": w.error_counts / a.counts_per_unit, "window_counts": w.window_counts,
+                "window": w.window_counts / a.counts_per_unit, "timeout_ms": w.timeout_ms, "unit": a.unit,
+                "message": f"axis {name!r} is {w.error_counts:+d} counts ({w.error_counts / a.counts_per_unit:+.6g} "
+                           f"{a.unit}) from its target {w.timeout_ms} ms after the plan's end (target window "
+                           f"{w.window_counts} counts)"}
 
     # ---- changes of the running motion (the intake thread asks, the SYNC thread answers)
     def change(self, job: Job, mode: str, emit: Emit) -> tuple[Planned, dict[str, Any]]:
@@ -372,8 +422,40 @@ class RuntimeBackend:
             waiting.done.set()
         answered[0] = len(results)
 
-    def emergency_stop(self) -> str:
-        """Quick stop on every axis, now (see the module docstring); the cell is not ready until reset()."""
+    def emergency_stop(self) -> dict[str, Any]:
+        """Stop every axis at its emergency deceleration: a running job gets the planned emergency stop spliced
+        after what is queued (streamer.core.EmergencyStop); the quick stop on every drive only when no plan is
+        possible in time or nothing runs (see the module docstring). The cell is not ready until reset()
+        (resume). Returns {"method": "emergency_trajectory" | "quick_stop", "message", ...}."""
+        with self._lock:
+            self._emergency = True
+            piece = self._piece
+        if piece is not None:
+            answer = threading.Event()
+            self._emergency_info = None
+            self._emergency_answer = answer
+            try:
+                planner = make_emergency_planner(self.cell, piece.traj)
+                if self.runtime.submit(EmergencyStop(self.adapter.now(), planner)):
+                    answer.wait(CHANGE_ANSWER_S)
+            finally:
+                self._emergency_answer = None
+            info = self._emergency_info
+            if info is not None and info.get("method") == "emergency_trajectory":
+                with self._lock:
+                    self._fault = (f"{EMERGENCY_STOP}: the running job stopped on the emergency deceleration by the "
+                                   "operator; resume releases the cell")
+                return {"method": "emergency_trajectory", "time_ms": info["time_ms"],
+                        "stop_duration_ms": info["stop_duration_ms"],
+                        "message": f"emergency stop planned at each axis' emergency deceleration: "
+                                   f"{info['stop_duration_ms']} ms long, from {info['time_ms']} ms into the motion "
+                                   "(after what is queued)"}
+            why = (info or {}).get("reason") or "the running job did not take the emergency stop in time"
+            return {"method": "quick_stop", "message": self._quick_stop_all() + f" (no emergency stop plan: {why})"}
+        return {"method": "quick_stop", "message": self._quick_stop_all()}
+
+    def _quick_stop_all(self) -> str:
+        """Quick stop on every axis, now: today's emergency stop, and the fallback of the planned one."""
         with self._lock:
             self._emergency = True
             self._fault = (f"{EMERGENCY_STOP}: quick stop (0x000B) to every drive by the operator; "
@@ -462,6 +544,7 @@ class RuntimeBackend:
                 "velocity": s.velocity_counts_per_s / a.counts_per_unit,
                 "fifo_fill": None if s.free_size is None else FIFO_SIZE - s.free_size,
                 "state": state,
+                "positioning": self._positioning.get(a.name, "IDLE"),
             })
         return out
 

@@ -1,7 +1,8 @@
 """The same operations on the real motion runtime and the simulated drives (streamer.runtime.backend with
 sim=True), in real time: a cancel's `cancelling` events carry the true progress of the job's plan, the
 queue holds, a queued path planned from the cancelled job's end fails INFEASIBLE naming the axis and both
-positions (never INTERNAL), and the emergency stop quick-stops every drive until resume.
+positions (never INTERNAL), and the emergency stop (planned while a job runs, else the quick stop of every drive)
+holds the cell until resume.
 
 The requests go through the Python client here (the same API requests `pvt cancel/stop/resume` make,
 tested as subprocesses in test_operate.py): starting a Python process takes a CPU core for a second,
@@ -80,17 +81,19 @@ def test_cancel_hold_infeasible_and_emergency_stop_on_simulated_drives(serve: Se
             # a move starts where the axes stand: home again
             assert client.submit(HOME).wait(timeout=30).state == JobState.DONE
 
-            # emergency stop: quick stop on every drive, the job fails EMERGENCY_STOP, resume re-enables
+            # emergency stop: the running job stops on its planned emergency deceleration, fails EMERGENCY_STOP
             hit = client.submit(ROOT / "configs" / "jobs" / "demo-path.toml", job_id="hit")
             _progress_over(hit, 0.2)
             reply = client.stop(emergency=True)
-            assert reply["method"] == "quick_stop" and reply["job_id"] == "hit" and "0x000B" in reply["message"]
+            assert reply["method"] == "emergency_trajectory" and reply["job_id"] == "hit", reply
             with pytest.raises(JobFailedError) as stopped:
                 hit.wait(timeout=30)
             assert stopped.value.code == "EMERGENCY_STOP"
+            assert client.service_status()["ready"] is False
+            # with nothing running it is the quick stop on every drive; resume re-enables them
+            assert client.stop(emergency=True)["method"] == "quick_stop"
             wait_for(lambda: all(d["state"] == "switch on disabled" for d in client.service_status()["drives"]),
                      timeout=10, what="every drive quick-stopped (switch on disabled)")
-            assert client.service_status()["ready"] is False
             assert client.resume()["reset"] is True
             assert client.service_status()["ready"] is True
             wait_for(lambda: all(d["state"] == "operation enabled" for d in client.service_status()["drives"]),
