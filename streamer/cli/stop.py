@@ -1,8 +1,9 @@
 """`pvt stop`: stop all. The running job stops on its jerk-limited stop trajectory and ends `cancelled`;
-the queue holds (queued jobs stay queued) until `pvt resume`. `--emergency`: the fastest stop the motion
-runtime has, now, on every drive: quick stop (controlword 0x000B), each drive ramping down on its quick
-stop deceleration 0x6085; the running job ends `failed` EMERGENCY_STOP and `pvt resume` re-enables the
-drives. (The verb and the API stay; a planned emergency deceleration replaces the quick stop later.)
+the queue holds (queued jobs stay queued) until `pvt resume`. `--emergency`: the running job stops on a
+trajectory planned at each axis' emergency deceleration (`emergency_deceleration` in the cell), from the
+end of what is queued; where no such plan is possible in time, or nothing runs, quick stop (controlword
+0x000B) on every drive, each ramping down on its quick stop deceleration 0x6085. The running job ends
+`failed` EMERGENCY_STOP (`detail.method` says which) and `pvt resume` re-enables the drives.
 
     pvt stop --connect tcp/127.0.0.1:7447 --cell demo             # waits until the axes stand still
     pvt stop --emergency --cell demo
@@ -21,12 +22,14 @@ from streamer.cli import connect
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     p: argparse.ArgumentParser = sub.add_parser(
         "stop",
-        help="stop all and hold the queue (--emergency: quick stop on every drive)",
+        help="stop all and hold the queue (--emergency: at the emergency deceleration)",
         description="Stop all: the running job stops on its jerk-limited stop trajectory and the queue holds "
-        "until `pvt resume`. --emergency: quick stop (0x000B) on every drive, now.",
+        "until `pvt resume`. --emergency: the running job stops at each axis' emergency deceleration; quick stop "
+        "(0x000B) on every drive when that cannot be planned in time or nothing runs.",
     )
     p.add_argument("--emergency", action="store_true",
-                   help="emergency stop: quick stop on every drive (each ramps on 0x6085); resume re-enables them")
+                   help="emergency stop: the running job stops at the emergency deceleration (quick stop on every "
+                   "drive when that cannot be planned); resume re-enables them")
     p.add_argument("--no-wait", action="store_true", help="return at once, not when the stopped job has ended")
     connect.add_arguments(p)
     p.set_defaults(func=run)
