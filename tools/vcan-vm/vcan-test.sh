@@ -4,7 +4,7 @@
 # inside the vcan VM (tools/vcan-vm/run, which shares this repository writable with the guest and
 # calls this same script there). Exits non-zero when anything fails, and also when vcan0 is missing
 # where it must exist (PVT_REQUIRE_VCAN=1: a broken VM must not pass by skipping every test).
-# Environment: VCAN_VM_TIMEOUT (host seconds for the whole VM run, default 540), VCAN_VM_CLOCK (the
+# Environment: VCAN_VM_TIMEOUT (host seconds for the whole VM run, default 900), VCAN_VM_CLOCK (the
 # VM's clock, see tools/vcan-vm/run --help), PYTEST_ADDOPTS for
 # extra pytest options.
 set -euo pipefail
@@ -22,7 +22,7 @@ if ! has_vcan; then
   fi
   [ -x "$py" ] || { echo "vcan-test: no $py (run make test first)" >&2; exit 2; }
   echo "vcan-test: no $channel on this machine, running in the vcan VM"
-  exec "$here/run" --share "$repo" --timeout "${VCAN_VM_TIMEOUT:-540}" \
+  exec "$here/run" --share "$repo" --timeout "${VCAN_VM_TIMEOUT:-900}" \
     --env "PYTEST_ADDOPTS=${PYTEST_ADDOPTS:-}" \
     --env "PVT_VCAN_CHANNEL=$channel" -- "$here/vcan-test.sh"
 fi
