@@ -5,8 +5,11 @@ Run: `python -m benchmarks.bench_change`. In virtual time on configs/demo.toml's
 (10 ms SYNC): a 6-axis move, and at several moments of it a change to a new target (buffer "aborting").
 - reaction: from the SYNC at which the core takes the request to the first ms of the new plan (the change
   acts after what is already queued), in ms of motion, for leads of 200 (the default), 100, 50 and 30 ms;
-  printed with the ratio to the lead. The floor is the repair horizon: the feeders keep (repair_syncs +
-  underflow watermark) segments queued whatever the lead.
+  printed with the ratio to the lead. The feeders keep (repair_syncs + underflow watermark) segments
+  queued whatever the lead, so with the move planned as usual (segments up to 255 ms: the baseline) the
+  lead changes nothing; planned with its segments bounded for the lead
+  (`StreamerSettings.segment_cap_ms`, `plan_job(max_segment_ms=...)`) the reaction follows the lead, at
+  the cost of more PVT points per second (printed).
 - planning: wall time of `plan_change_from_wire` (ruckig to a target + the PVT encoding), against
   `plan_stop_from_wire` (the stop a cancel plans) from the same states, the baseline, measured in this run.
 """
@@ -28,6 +31,7 @@ from planner.stop import plan_change_from_wire, plan_stop_from_wire
 from streamer import demo
 from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change
+from streamer.core.settings import StreamerSettings
 from streamer.runtime.virtual import VirtualRuntime
 from streamer.stop import ChangePlanner, make_stop_planner
 
@@ -39,10 +43,14 @@ LEADS = (200, 100, 50, 30)
 AT_MS = (200, 400, 600)
 
 
-def reaction(lead_ms: int, at_ms: int) -> tuple[float, float]:
-    """(reaction ms, planning s) of one change at `at_ms` into the move, with the job's lead `lead_ms`."""
+def reaction(lead_ms: int, at_ms: int, bounded: bool) -> tuple[float, float, float]:
+    """(reaction ms, planning s, PVT points per s) of one change at `at_ms` into the move, with the job's
+    lead `lead_ms`; `bounded`: the move planned with segments bounded for that lead (segment_cap_ms)."""
     cell = load_cell(ROOT / "configs" / "demo.toml")
-    traj = plan_job(job_from_dict({"kind": "move", "axes": AXES, "target": FIRST}, cell), cell, start=[0.0] * 6)
+    settings = StreamerSettings.from_cell(cell, lead_ms=lead_ms)
+    cap = settings.segment_cap_ms() if bounded else None
+    traj = plan_job(job_from_dict({"kind": "move", "axes": AXES, "target": FIRST}, cell), cell, start=[0.0] * 6,
+                    max_segment_ms=cap)
     rt = VirtualRuntime(cell, vcell=VirtualCell(cell, initial_positions=demo.start_positions(cell, traj)))
     rt.ensure_readings()
     rt.settings = dataclasses.replace(rt.settings, lead_ms=lead_ms)
@@ -60,7 +68,7 @@ def reaction(lead_ms: int, at_ms: int) -> tuple[float, float]:
     (res,) = core.change_results
     assert res.accepted and res.time_ms is not None and res.sync is not None and core.start_sync is not None, res
     fed_ms = (res.sync - core.start_sync) * cell.sync_period_ms
-    return float(res.time_ms - fed_ms), planners[0].planning_s
+    return float(res.time_ms - fed_ms), planners[0].planning_s, traj.n_points / traj.duration_s
 
 
 def planning(repeats: int = 20) -> tuple[float, float]:
@@ -83,11 +91,16 @@ def planning(repeats: int = 20) -> tuple[float, float]:
 
 def main() -> int:
     print("change reaction (virtual time, 6 EPOS axes, 10 ms SYNC): request -> first ms of the new plan")
-    print(f"{'lead ms':>8} {'reaction ms (at ' + ', '.join(map(str, AT_MS)) + ' ms)':>34} {'mean':>7} {'/ lead':>7}")
+    print("  plan: the move as planned for any lead (the baseline), or with its segments bounded for the lead")
+    print(f"{'lead ms':>8} {'plan':>9} {'reaction ms (at ' + ', '.join(map(str, AT_MS)) + ' ms)':>34} {'mean':>7} "
+          f"{'/ lead':>7} {'points/s':>9}")
     for lead in LEADS:
-        values = [reaction(lead, at)[0] for at in AT_MS]
-        mean = statistics.mean(values)
-        print(f"{lead:>8} {', '.join(f'{v:.0f}' for v in values):>34} {mean:>7.1f} {mean / lead:>7.2f}")
+        for bounded in (False, True):
+            runs = [reaction(lead, at, bounded) for at in AT_MS]
+            values = [r[0] for r in runs]
+            mean = statistics.mean(values)
+            print(f"{lead:>8} {'bounded' if bounded else 'as is':>9} {', '.join(f'{v:.0f}' for v in values):>34} "
+                  f"{mean:>7.1f} {mean / lead:>7.2f} {runs[0][2]:>9.1f}")
     change_s, stop_s = planning()
     print(f"planning (median of 20 states, 6 axes): change {1000 * change_s:.2f} ms, stop (baseline) "
           f"{1000 * stop_s:.2f} ms, ratio {change_s / stop_s:.2f}")

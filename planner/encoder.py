@@ -108,6 +108,9 @@ class AxisScales:
     # axes whose drive truncates its position demand toward zero (the other reading seed 000 permits,
     # known from `pvt probe`): their deviation is checked as that drive rounds; None: all to nearest
     toward_zero: NDArray[np.bool_] | None = None
+    # the longest PVT segment this plan may use (ms; None: 255): a job with a short lead bounds it, so
+    # that what the feeders keep queued (a few segments) spans about the lead and a change acts sooner
+    max_segment_ms: int | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -267,7 +270,15 @@ def segment_bounds(scales: AxisScales, tolerance: float) -> tuple[int, int]:
     max_seg = int(np.clip(np.floor(tolerance * 27.0 / (2.0 * conv)), 16, SEGMENT_TIME_MAX_MS))
     # 0.6 rpm of velocity error moves an end acceleration by 4 * 0.6 * conv / T: keep that under 5 %
     min_seg = int(np.clip(np.ceil(2.4 * conv / (ACC_EXCESS_LIMIT * a_min)), 4, 40))
+    if scales.max_segment_ms is not None:  # a job's bound, never below what the acceleration budget allows
+        max_seg = min(max_seg, max(scales.max_segment_ms, min_seg))
     return min(min_seg, max_seg), max_seg
+
+
+def segment_cap(scales: AxisScales, tolerance: float) -> int | None:
+    """The longest segment the job's `max_segment_ms` allows these axes (None: no bound asked): the bound,
+    raised to the shortest segment the acceleration budget allows where it is below it."""
+    return None if scales.max_segment_ms is None else segment_bounds(scales, tolerance)[1]
 
 
 def _mandatory_knots(ref: Reference, scales: AxisScales, min_gap: int) -> IntArray:
@@ -744,6 +755,10 @@ def encode(
     elif variant >= 2:  # long: fewer short segments, where slow axes on the shared grid need them
         min_seg = min(int(1.6 * min_seg), max_seg)
         acc_share = 2.0 * ACC_PLACEMENT_SHARE
+    cap = segment_cap(scales, tol)
+    if cap is not None:  # the job's bound holds in every variant
+        max_seg = min(max_seg, cap)
+        min_seg = min(min_seg, max_seg)
     if times_ms is None:
         # the long variant also crosses close kinks: a few ms between two knots shake the acceleration
         # more than a segment across a small acceleration step
@@ -760,7 +775,8 @@ def encode(
     # grid may beat the greedy placement: try them too, keep the fewest knots that pass
     failure: EncodingNeedsTime | EncodingFailed | None = None
     found: tuple[Knots, Reconstruction] | None = None
-    for grid in (times, place_knots(ref, scales, share * tol, min_seg, SEGMENT_TIME_MAX_MS, acc_share)):
+    longest = segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS
+    for grid in (times, place_knots(ref, scales, share * tol, min_seg, longest, acc_share)):
         if found is not None and grid.size >= found[0].times_ms.size:
             continue
         try:
@@ -801,7 +817,7 @@ def _uniform_alternative(
     p_first, v_first, _p_last, v_last = ends
     want = planned_demand(ref, scales.toward_zero)
     conv = scales.counts_per_ms_per_rpm[:, None]
-    for dt in range(min(SEGMENT_TIME_MAX_MS, m), 0, -1):
+    for dt in range(min(segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS, m), 0, -1):
         points = -(-m // dt) + 1
         if points >= count:
             break

@@ -40,7 +40,7 @@ from planner.encoder import (
     planned_demand,
     segment_bounds,
 )
-from planner.errors import ENCODING_RANGE, INFEASIBLE, POSITION_LIMIT, TOO_LARGE, PlanningError
+from planner.errors import ENCODING_RANGE, INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
 from planner.job import (
     MAX_DURATION_S,
     Job,
@@ -71,7 +71,9 @@ def axis_configs(axes: Sequence[str], cell: CellConfig) -> list[AxisConfig]:
     return [cell.axis(a) for a in axes]
 
 
-def axis_scales(cfg: Sequence[AxisConfig], limits: dict[str, FloatArray]) -> AxisScales:
+def axis_scales(
+    cfg: Sequence[AxisConfig], limits: dict[str, FloatArray], max_segment_ms: int | None = None
+) -> AxisScales:
     cpu = np.array([c.counts_per_unit for c in cfg])
     return AxisScales(
         counts_per_ms_per_rpm=np.array([c.counts_per_rev / 60000.0 for c in cfg]),
@@ -82,6 +84,7 @@ def axis_scales(cfg: Sequence[AxisConfig], limits: dict[str, FloatArray]) -> Axi
         drive_acceleration=np.array([c.max_acceleration for c in cfg]) * cpu / 1.0e6,
         # the drive's rounding of its demand where `pvt probe` found it truncates (else to nearest)
         toward_zero=np.array([c.probed.rounding == "toward_zero" for c in cfg]),
+        max_segment_ms=max_segment_ms,
     )
 
 
@@ -98,6 +101,7 @@ def plan_job(
     start: Sequence[float] | None = None,
     last_target: Sequence[float | None] | None = None,
     last_direction: Sequence[int] | None = None,
+    max_segment_ms: int | None = None,
 ) -> PvtTrajectory:
     """Plan, encode and verify `job` on `cell`.
 
@@ -107,6 +111,7 @@ def plan_job(
     position). Without `start`, a move starts at its `start` field, else at 0. `last_target` and
     `last_direction` serve the additive and modulo_current modes (planner/travel.py). A velocity move is
     planned open-ended from rest there (`travel.plan_velocity`, which also takes a moving start).
+    `max_segment_ms` bounds the PVT segments (a job with a short lead: `StreamerSettings.segment_cap_ms`).
     """
     d0 = job.data
     if isinstance(d0, MoveData) and d0.mode == "velocity":
@@ -122,11 +127,16 @@ def plan_job(
     shape = ["spline"]  # spline path jobs: "pchip" for the one-axis fallback below
     limits = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
-    scales = axis_scales(cfg, limits)
+    if max_segment_ms is not None and not 1 <= max_segment_ms <= 255:
+        raise PlanningError(LIMITS, f"max_segment_ms is {max_segment_ms}; it must be a whole ms in 1..255",
+                            path="max_segment_ms")
+    scales = axis_scales(cfg, limits, max_segment_ms)
     tol = job.tolerance_counts
     here = None if start is None else _start_vector(start, job.axes)
     min_seg = segment_bounds(scales, float(tol))[0]
     info: dict[str, float] = {}
+    if max_segment_ms is not None:  # the bound in force (raised to what the acceleration budget allows)
+        info["max_segment_ms"] = float(segment_bounds(scales, float(tol))[1])
     d = job.data
 
     build: Callable[[float, bool], Reference]

@@ -161,6 +161,14 @@ class StreamerSettings:
         """What the core assumes of `node`: its entry in `readings`, else the reference drive's readings."""
         return self.readings.get(node, REFERENCE_READINGS)
 
+    def segment_cap_ms(self, lead_ms: int | None = None) -> int:
+        """The longest PVT segment for a job whose change or stop must act within about `lead_ms` (default
+        the settings' lead): the feeders keep at least `repair_syncs` + `underflow_watermark` records
+        queued whatever the lead, so a change acts after that many segments; planned with segments no
+        longer than this (`plan_job(max_segment_ms=...)`), that queue spans no more than the lead."""
+        lead = self.lead_ms if lead_ms is None else lead_ms
+        return int(max(1, min(255, lead // (self.repair_syncs + self.underflow_watermark))))
+
     @property
     def margin_ms(self) -> int:
         return self.sync_period_ms if self.repair_margin_ms is None else self.repair_margin_ms
