@@ -37,6 +37,7 @@ START_FAILED = "START_FAILED"  # a drive did not report ip mode active at the st
 FINISH_TIMEOUT = "FINISH_TIMEOUT"  # ip mode inactive + target reached (or halt standstill) never reported
 SETPOINT_LATE = "SETPOINT_LATE"  # a cyclic drive missed a set point (EMCY 0x8782: missing, or < 100 us before SYNC)
 SETPOINT_RANGE = "SETPOINT_RANGE"  # a cyclic axis' set points do not fit their frame (16-bit step, group)
+EXTENSION_FAILED = "EXTENSION_FAILED"  # an open-ended (velocity) stream got no next chunk in time: stopped, at rest
 
 FAILURE_CODES = frozenset(
     {
@@ -58,6 +59,7 @@ FAILURE_CODES = frozenset(
         FINISH_TIMEOUT,
         SETPOINT_LATE,
         SETPOINT_RANGE,
+        EXTENSION_FAILED,
     }
 )
 
