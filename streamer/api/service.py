@@ -502,6 +502,7 @@ class JobService:
             "queue_limit": self.options.queue_limit,
             "axes": [a.name for a in self.backend.cell.axes],
             "units": {a.name: a.unit for a in self.backend.cell.axes},
+            "velocity_limits": {a.name: a.velocity for a in self.backend.cell.axes},  # unit/s (pvt jog's default)
             "drives": self._drives(),
             "telemetry_hz": self.telemetry_hz,
             "started_t": self._started_t,
