@@ -12,6 +12,14 @@ from states near full speed in the middle of a move:
   makes the encoder retry on some states; also printed: its duration over the normal stop's);
 - an additive move planned with plan_job against the same move given as an absolute target: target
   <= 1.1 (resolving the target costs nothing next to planning).
+
+And a velocity job streamed (10 s in virtual time, 3 axes of the demo cell, the extender timed on the side):
+- the queue margin the extension keeps: the least the stream reached ahead of the drives, against the
+  `extend_need_ms` the core must keep (target >= 1), and the least FIFO fill against the underflow
+  watermark (target >= 1);
+- the core's own part of an extension (on the SYNC thread: validating, packing and appending the chunk, the
+  dry run) against planning the chunk (what the real-time runtime moves to a worker thread): target <= 1;
+  also printed against the 10 ms SYNC period.
 """
 
 from __future__ import annotations
@@ -111,7 +119,71 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                                     "duration_ratio": statistics.median(durations)}
     chunk = extend_velocity(endless)
     print(f"a 2 s cruise chunk: {chunk.n_points} PVT points per axis ({chunk.n_points / chunk.duration_s:.1f} per s)")
+    out.update(_velocity_stream())
     return out
+
+
+def _velocity_stream() -> dict[str, Any]:
+    """10 s of a velocity job on 3 axes in virtual time: the queue margin and the core's part of an extension."""
+    from bus.events import Cancel
+    from bus.sim.virtual import VirtualCell
+    from streamer import demo
+    from streamer.core.coordinator import Coordinator
+    from streamer.runtime.virtual import VirtualRuntime
+    from streamer.stop import make_stop_planner
+
+    cell = load_cell(ROOT / "configs" / "demo.toml")
+    axes = ["j1", "j2", "j3"]
+    job = job_from_dict({"kind": "move", "axes": axes, "mode": "velocity", "velocity": [0.1, -0.08, 0.09]}, cell)
+    traj = plan_job(job, cell, start=[0.0] * 3)
+    vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
+    rt = VirtualRuntime(cell, vcell=vcell)
+    plan_s: list[float] = []
+    keep_s: list[float] = []
+    ahead: list[float] = []
+
+    def extender(t: Any) -> Any:
+        t0 = time.perf_counter()
+        chunk = extend_velocity(t)
+        plan_s.append(time.perf_counter() - t0)
+        return chunk
+
+    def on_sync(core: Coordinator, sync: int) -> None:
+        if "_keep_open" not in core.__dict__:  # time the core's extension step (instance attribute wraps it)
+            inner = core._keep_open
+
+            def timed(m: int, t: float) -> None:
+                n, t0 = core.extensions, time.perf_counter()
+                inner(m, t)
+                if core.extensions > n:
+                    keep_s.append(time.perf_counter() - t0 - sum(plan_s[-(core.extensions - n):]))
+
+            core._keep_open = timed  # type: ignore[method-assign]
+        if core.start_sync is not None and core.open_ended and sync > core.start_sync:
+            ahead.append(core.stream_duration_ms - (sync - core.start_sync) * cell.sync_period_ms)
+
+    def feed(core: Coordinator, sync: int, t: float) -> list[object]:
+        s = core.start_sync
+        return [Cancel(t)] if s is not None and (sync - s) * cell.sync_period_ms == 10_000 else []
+
+    result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync, feed=feed, extender=extender)
+    core = result.coordinator
+    need = core.extend_need_ms
+    min_fill = min(a.min_fifo for a in core.telemetry() if a.min_fifo is not None)
+    u = rt.settings.underflow_watermark
+    keep_ms = statistics.median(keep_s) * 1000.0
+    plan_ms = statistics.median(plan_s) * 1000.0
+    print(f"velocity job, 10 s, 3 axes: {core.extensions} chunks appended")
+    print(f"{'least stream ahead / extend_need_ms':38} {min(ahead):8.0f} {need:11.0f} {min(ahead) / need:7.2f} "
+          f"{'>=1':>7} {_mark(min(ahead) >= need)}  (most {max(ahead):.0f} ms)")
+    print(f"{'least FIFO fill / underflow watermark':38} {min_fill:8d} {u:11d} {min_fill / u:7.2f} {'>=1':>7} "
+          f"{_mark(min_fill >= u)}")
+    print(f"{'core part of an extension / planning':38} {keep_ms:8.2f} {plan_ms:11.2f} {keep_ms / plan_ms:7.2f} "
+          f"{'<=1':>7} {_mark(keep_ms <= plan_ms)}  (planning = {plan_ms / cell.sync_period_ms:.0%} of a "
+          f"{cell.sync_period_ms} ms SYNC period, the core's part {keep_ms / cell.sync_period_ms:.0%})")
+    return {"velocity stream": {"chunks": core.extensions, "least_ahead_ms": min(ahead), "extend_need_ms": need,
+                                "least_fifo": min_fill, "underflow_watermark": u, "core_ms": keep_ms,
+                                "planning_ms": plan_ms}}
 
 
 if __name__ == "__main__":

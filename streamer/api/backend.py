@@ -8,7 +8,9 @@ without the service knowing about CAN.
     class MotionBackend(Protocol):
         cell: CellConfig
         def validate(self, body: Mapping[str, Any]) -> Any
-        def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned
+        def plan(self, job: Any, start: Mapping[str, float] | None, *,
+                 last_target: Mapping[str, float | None] | None = None,
+                 last_direction: Mapping[str, int] | None = None) -> Planned
         def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]
         def telemetry(self) -> Sequence[Mapping[str, Any]]
         def ready(self) -> tuple[bool, str]
@@ -27,7 +29,11 @@ Contract, method by method (which service thread calls it, what it may raise):
   while other jobs are still queued: `start` maps axis name -> user-unit position where the service
   expects that axis to stand when this job starts (the end of the last queued or running job that
   moves it); for axes not in `start` use the drives' current positions. So:
-  `plan_job(job, cell, start=[start.get(a, current[a]) for a in job.axes])`.
+  `plan_job(job, cell, start=[start.get(a, current[a]) for a in job.axes])`. `last_target` and
+  `last_direction` (axis name -> the last commanded target, None for none, and the sign of the last
+  commanded motion; the service keeps them from every job it accepted: `Planned.commanded_target` /
+  `commanded_direction`) serve the additive and modulo_current modes (planner/travel.py); a backend whose
+  `plan` does not take them is called without (additive then counts from the start position).
 - `execute(planned, emit, cancel)`: runs the motion and blocks until it has ended. Called on the
   service's executor thread, one job at a time, only when `ready()` said True just before. While it
   runs it calls `emit("running", {"progress": p, ...})` (p in 0..1, at any rate: the service
@@ -123,6 +129,11 @@ class Planned:
     start_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at knot 0
     record: Any = None  # the job's `record` section (a streamer.recording.drive.RecordRequest), or None
     lead_ms: int | None = None  # the job's own lead (`lead_ms`, checked by the service), None: the cell's
+    # what the job leaves as each axis' last commanded target and direction (planner/travel.py's contract: a
+    # move's resolved target, a path/timed/pvt job's last row, None after a velocity move; the sign of the
+    # last commanded motion, 0 none): the service keeps them for the next job's additive and modulo modes
+    commanded_target: Mapping[str, float | None] = field(default_factory=dict)
+    commanded_direction: Mapping[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.duration_s >= 0.0:
@@ -136,13 +147,21 @@ def planned_from_trajectory(job: Any, trajectory: Any, planning_s: float = 0.0) 
     positions from the first and last knot of `.positions` (counts) / `.counts_per_unit`)."""
     end: dict[str, float] = {}
     begin: dict[str, float] = {}
+    target: dict[str, float | None] = {}
+    direction: dict[str, int] = {}
     names = getattr(trajectory, "axis_names", None)
     positions = getattr(trajectory, "positions", None)
+    velocities = getattr(trajectory, "velocities", None)
     cpu = getattr(trajectory, "counts_per_unit", None)
+    endless = bool(getattr(trajectory, "open_ended", False))
     if names is not None and positions is not None and cpu is not None:
         for i, name in enumerate(names):
-            end[str(name)] = float(positions[i][-1]) / float(cpu[i])
             begin[str(name)] = float(positions[i][0]) / float(cpu[i])
+            if not endless:  # an open-ended (velocity) move has no end: nothing may be planned from it
+                end[str(name)] = float(positions[i][-1]) / float(cpu[i])
+            target[str(name)] = None if endless else end[str(name)]
+            moving = [int(v) for v in velocities[i] if v] if velocities is not None else []
+            direction[str(name)] = (1 if moving[-1] > 0 else -1) if moving else 0
     return Planned(
         job=job,
         trajectory=trajectory,
@@ -151,6 +170,8 @@ def planned_from_trajectory(job: Any, trajectory: Any, planning_s: float = 0.0) 
         planning_s=planning_s,
         end_positions=end,
         start_positions=begin,
+        commanded_target=target,
+        commanded_direction=direction,
     )
 
 
@@ -195,7 +216,7 @@ class MotionBackend(Protocol):
 
     def validate(self, body: Mapping[str, Any]) -> Any: ...
 
-    def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned: ...
+    def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned: ...  # (+ last_target, last_direction)
 
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]: ...
 

@@ -286,7 +286,8 @@ class Job:
         """A new target for this running job: a move submitted with `buffer` ("aborting": it replaces this
         job's remainder without stopping; this job then ends `aborted`). The new job's handle; MotionError
         COMMAND_REJECTED (with the reason) when the change cannot be made, and this job goes on untouched.
-        `target`: by axis name, or a list in the order of `axes` (default: this job's axes)."""
+        `target`: by axis name, or a list in the order of `axes` (default: this job's axes); with
+        `mode="velocity"` the velocities of a velocity move (then in the running job's axis order)."""
         if isinstance(target, Mapping):
             names = list(target)
             values = [float(target[n]) for n in names]
@@ -297,7 +298,9 @@ class Job:
                                   "does not know the job's axes)", path="axes")
             names = [str(a) for a in known]
             values = [float(x) for x in target]
-        body: dict[str, Any] = {"kind": "move", "axes": names, "target": values, "mode": mode, "buffer": buffer}
+        # a velocity move (mode "velocity") gives per axis a signed velocity instead of a target
+        body: dict[str, Any] = {"kind": "move", "axes": names, "velocity" if mode == "velocity" else "target": values,
+                                "mode": mode, "buffer": buffer}
         if lead_ms is not None:
             body["lead_ms"] = lead_ms
         return self.client.submit(body, job_id=job_id, timeout=timeout)

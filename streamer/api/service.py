@@ -37,6 +37,13 @@ Stop with `emergency=true` calls the backend's `emergency_stop()` when it has on
 running job's planned emergency stop at the emergency deceleration, or the quick stop on every drive when no
 plan is possible; the reply's `method` says which); `resume` then re-enables the drives.
 
+Travel memory (planner/travel.py's `last_target` contract): per axis the service keeps the last commanded
+target (a move's resolved target, a path/timed/pvt job's last row, None after a velocity move; also for a
+job later stopped, cancelled or replaced) and the sign of the last commanded motion, from every job it
+accepts (`Planned.commanded_target` / `commanded_direction`), and passes them to `backend.plan` and
+`backend.change` (when they take them), so `additive` and `modulo_current` moves work through the
+service; a queued job re-planned at its start keeps those it was accepted with.
+
 A cancel of the running job is journalled at once as a `cancelling` event (state CANCELLING); the
 backend's later progress updates are published as `cancelling` events too, with the progress of the
 job's own plan. A second cancel answers `cancel_requested: false`.
@@ -52,6 +59,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import inspect
 import logging
 import math
 import queue
@@ -122,6 +130,7 @@ class _Queued:
     emergency: bool = False  # an emergency stop hit it
     emitter: _Emitter | None = None
     replaced_by: _Queued | None = None  # a change took the running motion over (this job ended aborted)
+    travel: dict[str, Any] = field(default_factory=dict)  # the last target/direction it was planned with
 
     @property
     def kind(self) -> str:
@@ -323,6 +332,11 @@ class JobService:
         self._current: _Queued | None = None
         # where the axes moved by queued/running jobs stand when the queue has run (the next plan's start)
         self._queue_end: dict[str, float] = {}
+        # per axis the last commanded target (None: none, or a velocity move's) and the sign of the last commanded
+        # motion, from every job accepted (planner/travel.py's contract): the additive and modulo modes plan from
+        # them, so an additive move after a stop at an arbitrary position still counts from the last target
+        self._last_target: dict[str, float | None] = {}
+        self._last_direction: dict[str, int] = {}
         # the hold: no further job starts until resume (after a cancel of the running job, a stop, a hold)
         self._held = False
         self._hold_reason = ""
@@ -489,6 +503,7 @@ class JobService:
             "queue_limit": self.options.queue_limit,
             "axes": [a.name for a in self.backend.cell.axes],
             "units": {a.name: a.unit for a in self.backend.cell.axes},
+            "velocity_limits": {a.name: a.velocity for a in self.backend.cell.axes},  # unit/s (pvt jog's default)
             "drives": self._drives(),
             "telemetry_hz": self.telemetry_hz,
             "started_t": self._started_t,
@@ -649,7 +664,8 @@ class JobService:
             moved = self._with_start(sub.body, {**here, **(start or {})})
             if moved is not None:
                 job = self.backend.validate(moved)
-        planned = self.backend.plan(job, start)
+        travel = self._travel(self.backend.plan)
+        planned = self.backend.plan(job, start, **travel)
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.plan returned {type(planned).__name__}, not Planned")
         if record is not None:
@@ -683,7 +699,9 @@ class JobService:
             if not self._pending and self._current is None:
                 self._queue_end.clear()
             self._queue_end.update(planned.end_positions)
-            self._pending[job_id] = _Queued(job_id, planned, body=sub.body, start_current=sub.start_current)
+            self._remember(planned)
+            self._pending[job_id] = _Queued(job_id, planned, body=sub.body, start_current=sub.start_current,
+                                            travel=travel)
             self._cv.notify_all()
         if record is None:
             raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
@@ -705,7 +723,7 @@ class JobService:
                               f"{'stopping' if current.cancel_requested else 'not moving yet'}: nothing to change",
                               path="buffer")
         emitter = _Emitter(self, job_id, 1.0 / self.options.progress_hz, paused=True)
-        planned, info = change(job, "aborting", emitter)
+        planned, info = change(job, "aborting", emitter, **self._travel(change))
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.change returned {type(planned).__name__}, not Planned")
         planning_s = time.perf_counter() - t0
@@ -716,6 +734,7 @@ class JobService:
             self._current = item
             self._queue_end.clear()
             self._queue_end.update(planned.end_positions)
+            self._remember(planned)
         if old is not None:
             old.close()
         now = self._clock()
@@ -749,6 +768,30 @@ class JobService:
         log.info("job %s replaces job %s (aborting) at %s ms of the stream, reaction %s ms", job_id,
                  current.job_id, info.get("time_ms"), info.get("reaction_ms"))
         return record, False, planning_s
+
+    def _travel(self, fn: Callable[..., Any]) -> dict[str, Any]:
+        """The last commanded target and direction per axis, as keyword arguments of `fn` (the backend's plan
+        or change), or {} when it does not take them."""
+        try:
+            params = inspect.signature(fn).parameters
+        except (TypeError, ValueError):
+            return {}
+        if "last_target" not in params:
+            return {}
+        with self._cv:
+            return {"last_target": dict(self._last_target), "last_direction": dict(self._last_direction)}
+
+    def _remember(self, planned: Planned) -> None:
+        """(under the lock) The accepted job's target becomes the axes' last commanded target; a velocity move
+        leaves none, and where the queue ends is unknown for its axes until it is stopped."""
+        target = planned.commanded_target or planned.end_positions
+        for axis, x in target.items():
+            self._last_target[axis] = None if x is None else float(x)
+            if x is None:
+                self._queue_end.pop(axis, None)
+        for axis, d in planned.commanded_direction.items():
+            if d:
+                self._last_direction[axis] = 1 if d > 0 else -1
 
     def _answer_rejection(self, sub: _Submit, job_id: str | None, err: MotionError) -> None:
         if sub.query is not None:
@@ -909,7 +952,7 @@ class JobService:
                 moved = self._with_start(item.body, here)
                 if moved is not None:
                     job = self.backend.validate(moved)
-            replanned = self.backend.plan(job, None)  # from where the axes stand
+            replanned = self.backend.plan(job, None, **item.travel)  # from where the axes stand, same last target
             if not isinstance(replanned, Planned):
                 raise MotionError(E.INTERNAL, f"backend.plan returned {type(replanned).__name__}, not Planned")
             log.info("job %s re-planned from where the axes stand (%s)", item.job_id,

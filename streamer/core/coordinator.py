@@ -71,6 +71,25 @@ cancel before the start (CONFIGURING, PRIMING) cancels at once: nothing moved, n
 runtime clears the buffers before the next job). A cancel when the plan's end is already queued lets
 the plan finish (it ends at rest) and reports CANCELLED.
 
+Open-ended streams (a velocity move, planner/travel.py): the plan's last knot moves and it has no end
+record; the stream goes on in chunks. Every SYNC (from PRIMING on, while the job streams), when the stream
+ends less than `extend_ahead_ms` after the fastest drive's interpolation time, the core asks the `extender`
+(a callable given to the constructor) for the next chunk, given the chunk before it; the chunk must start
+exactly at that chunk's last knot (to the count and the rpm, as a splice) and is appended after it on every
+axis (FIFO records, cyclic set points sampled from it across the boundary) without an end record in
+between. The margin: `extend_need_ms` = one period + max(repair_syncs periods, lead_ms) + (U + 2) records
+of the longest segment (255 ms): while the stream reaches that far ahead, the top-up rule is never capped by
+the stream's end, so every FIFO stays >= U as in a closed plan; the core asks from `extend_need_ms` +
+EXTEND_EARLY_MS on, so an extender that plans on another thread (it answers None while it is not ready)
+has that long. No chunk by `extend_need_ms` (the extender failed, returned a chunk that does not start at the
+last knot, or none at all): the motion is stopped from the end of the queue (the stop planner, as cancel
+does; halt without one) and the job ends FAILED EXTENSION_FAILED once at rest. An open stream never
+finishes by itself: it ends by a change (a `Change`, "aborting" only: it has no end to buffer after), a
+cancel, a fault, or a closed chunk (the planner's chunk brakes by itself before the position limits; the
+job is then DONE at rest there). A chunk whose successor follows keeps only its records: the plan at every
+ms (`StreamPlan.reference`) of chunks wholly in the past is dropped, so an endless job holds no more than
+its records.
+
 Fault: any EMCY from a job node (except code 0x0000, "no error"), a lost heartbeat, a boot-up, a buffer
 error bit or the statusword fault bit in a TPDO, TPDO1/TPDO2 missing for `tpdo_timeout_syncs` SYNCs,
 SendFailed or AdapterError, and every accounting failure of a feeder -> controlword 0x000B (quick stop)
@@ -86,6 +105,7 @@ cannot see), or START_MISMATCH before the start. Off while halting (no plan to c
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -120,7 +140,7 @@ from bus.events import (
 )
 from planner import hermite
 from planner.cyclic import Setpoints
-from planner.record import pack
+from planner.record import PvtRecord, pack
 from streamer.core import outcome as oc
 from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder, pack_frame
 from streamer.core.drive_time import DriveTime
@@ -130,6 +150,7 @@ from streamer.core.plan_source import (
     Change,
     ChangeResult,
     EmergencyStop,
+    Extender,
     PvtTrajectoryLike,
     StopPlanner,
     StopRequest,
@@ -193,6 +214,10 @@ _ALL_PRIMED = frozenset({_F.PRIMED})
 _ALL_ACTIVE = frozenset({_F.STREAMING, _F.DRAINING, _F.FINISHED})
 _ALL_QUEUED = frozenset({_F.DRAINING, _F.FINISHED})
 _ALL_FINISHED = frozenset({_F.FINISHED})
+_EXTENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING})  # job states in which an open stream is extended
+EXTEND_EARLY_MS = 500  # ask the extender this long before the chunk is needed (it may plan on another thread)
+MAX_EXTENSIONS_PER_SYNC = 4  # short chunks: several may be needed at once; bounded so one SYNC stays short
+LONGEST_SEGMENT_MS = 255  # the PVT time field
 
 _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
     _J.CONFIGURING: frozenset({_J.PRIMING, _J.CANCELLED, _J.FAILED}),
@@ -261,6 +286,12 @@ _EMERGENCY_HANDLERS: dict[JobState, str] = {
     _J.CANCELLING: "_emergency_in_motion",
     _J.HALTING: "_emergency_in_motion",
 }
+
+
+def _stream_ends(plan: StreamPlan) -> list[int]:
+    """ends[i] of a plan's records (schedule.segment_ends), without the end record when it is open-ended."""
+    ends = segment_ends(plan.segment_ms)
+    return ends[:-1] if plan.open_end else ends
 
 
 def dispatch_table() -> dict[tuple[JobState, type], str]:
@@ -335,9 +366,19 @@ class Coordinator:
         plan: StreamPlan | PvtTrajectoryLike,
         settings: StreamerSettings,
         stop_planner: StopPlanner | None = None,
+        extender: Extender | None = None,
     ) -> None:
         self._wire_sync: int | None = None
         self._plan = plan if isinstance(plan, StreamPlan) else StreamPlan.from_trajectory(plan)
+        self._extender = extender
+        # the open stream's last chunk as given (what the extender extends) and as streamed; None: closed
+        self._open_source: PvtTrajectoryLike | None = None
+        self._open_plan: StreamPlan | None = None
+        if self._plan.open_end:
+            self._open_plan = self._plan
+            self._open_source = None if isinstance(plan, StreamPlan) else plan
+        self._extensions = 0
+        self._extend_failure: tuple[str, str] | None = None  # (code, message) once the stream could not go on
         self._settings = s = settings
         self._stop_planner = stop_planner
         self._period = s.sync_period_ms
@@ -354,8 +395,11 @@ class Coordinator:
             s.sync_period_ms, s.underflow_watermark + (1 if hide else 0), s.overflow_watermark, s.lead_ms,
             s.repair_syncs
         )
-        self._ends = segment_ends(self._plan.segment_ms)
+        self._ends = _stream_ends(self._plan)
         self._t_end = self._ends[-1]
+        self.extend_need_ms = s.sync_period_ms + max(s.repair_syncs * s.sync_period_ms, s.lead_ms) + (
+            self._policy.underflow_watermark + 2) * LONGEST_SEGMENT_MS
+        self.extend_ahead_ms = self.extend_need_ms + EXTEND_EARLY_MS
         self._prime_level = priming_level(self._ends, self._policy)
         n = self._plan.n_axes
         self._feedback = s.feedback
@@ -398,7 +442,9 @@ class Coordinator:
                 self._cyclic.append(feeder)
             else:
                 rid = rpdo2_id(node)
-                lead, tail = stream_framing(start, self._plan.records[axis][-1], r.first_record, r.fifo_count)
+                last = self._plan.records[axis][-1]
+                end = PvtRecord(last.position, 0, 0) if self._plan.open_end else last
+                lead, tail = stream_framing(start, end, r.first_record, r.fifo_count)
                 feeder = FifoFeeder(
                     axis,
                     node,
@@ -413,6 +459,7 @@ class Coordinator:
                     tail=Send(rid, pack(tail)) if tail is not None else None,
                     hides_target=r.fifo_count == "until_segment_start",
                     rounding=r.rounding,
+                    open_end=self._plan.open_end,
                 )
                 self._feeders.append(feeder)
             self._clocks[node] = DriveTime(s.sync_period_ms, own_clock=r.clock == "own" and node not in s.cyclic,
@@ -522,6 +569,16 @@ class Coordinator:
     def change_results(self) -> tuple[ChangeResult, ...]:
         """Every `Change` fed so far and what became of it, in order."""
         return tuple(self._change_results)
+
+    @property
+    def open_ended(self) -> bool:
+        """The stream goes on (an open-ended plan being extended chunk by chunk)."""
+        return self._open_plan is not None
+
+    @property
+    def extensions(self) -> int:
+        """Chunks appended to an open-ended stream so far."""
+        return self._extensions
 
     @property
     def pieces(self) -> tuple[tuple[int, StreamPlan], ...]:
@@ -856,6 +913,8 @@ class Coordinator:
         if m == self._start_sync:
             for clock in self._clocks.values():
                 clock.start(m, ev.t)
+        if self._open_plan is not None and self._state in _EXTENDING:
+            self._keep_open(m, ev.t)
         st = self._state
         if st is JobState.PRIMING:
             for cf in self._cyclic:
@@ -996,7 +1055,7 @@ class Coordinator:
             if f.state in _CYCLIC_SENDING:
                 sending.add(f.node_id)
                 f.sent(j)
-                if f.state is FeederState.STREAMING and j >= f.n:
+                if f.state is FeederState.STREAMING and j >= f.n and self._open_plan is None:
                     f.fire(FeederInput.END_QUEUED)
             if (f.state is FeederState.DRAINING and f.spec.starts_with_bit4 and f.bit4_off_sync is None
                     and s is not None and m >= s + f.n):
@@ -1192,7 +1251,7 @@ class Coordinator:
             if not f.pending and f.confirmed >= f.stream_prefix(self._prime_level):
                 f.fire(FeederInput.PRIMED)
                 fs = FeederState.PRIMED
-        elif fs is FeederState.STREAMING and not f.pending and f.confirmed >= len(f.sends):
+        elif fs is FeederState.STREAMING and not f.pending and f.confirmed >= len(f.sends) and not f.open_end:
             f.fire(FeederInput.END_QUEUED)
             fs = FeederState.DRAINING
         if fs is FeederState.DRAINING:
@@ -1273,6 +1332,13 @@ class Coordinator:
                 if not self._positioning.settled():
                     return  # PRE_TARGET: waiting for the target windows (or their in-target timeouts)
                 self._finish_done()
+            elif self._extend_failure is not None:
+                if st is JobState.HALTING:
+                    for f in self._feeders:  # halt released
+                        self._emit_cw(f, CW_ENABLE_OPERATION)
+                code, message = self._extend_failure  # stopped at rest, then failed
+                self._set_state(JobState.FAILED, JobOutcome(JobResult.FAILED, code, None, message, self._sync,
+                                                            self._t, dict(self._cancel_info)))
             elif st is JobState.CANCELLING:
                 self._finish(
                     JobResult.CANCELLED,
@@ -1448,14 +1514,15 @@ class Coordinator:
         """(k, t0, done): the plan records every axis has queued (k), the time of knot k from the job's start
         (t0), and whether the stream's last segment is already queued (nothing can follow it any more).
         `at_plan_end`: the knot before the end record instead (a buffered change is appended there)."""
-        n_segments = len(self._ends) - 1
+        open_stream = self._open_plan is not None  # no end record: nothing is "the last segment" yet
+        n_segments = len(self._ends) - (0 if open_stream else 1)
         if self._feeders:
             k = max(min(len(self._ends), f.max_sent - f.lead) for f in self._feeders)  # plan records queued
             if at_plan_end:  # done once the end record (time 0) went out: interpolation stops there
                 done = k > n_segments or any(f.sent_index >= f.n for f in self._cyclic)
                 k = n_segments
             else:
-                done = k >= n_segments
+                done = k >= n_segments and not open_stream
             t0 = self._ends[k - 1] if k > 0 else 0
         elif at_plan_end:  # after the last set point: done once it was sent (the holds that follow stay put)
             k = 0
@@ -1464,7 +1531,7 @@ class Coordinator:
         else:  # one set point per SYNC: the stop starts after the last set point sent
             k = 0
             sent = max(f.sent_index for f in self._cyclic)
-            done = all(f.sent_index >= f.n for f in self._cyclic)
+            done = all(f.sent_index >= f.n for f in self._cyclic) and not open_stream
             t0 = max(0, sent) * self._period
         return k, t0, done
 
@@ -1511,7 +1578,7 @@ class Coordinator:
                 f"(starts {list(plan.start_positions)}, queued {list(request.positions_counts)})"
             )
         if self._feeders:
-            new_ends = self._ends[:k] + [t0 + e for e in segment_ends(plan.segment_ms)]
+            new_ends = self._ends[:k] + [t0 + e for e in _stream_ends(plan)]
             assert self._sync is not None
             _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
             short = dry_run(new_ends, self._policy, self._step, k, now_hi)
@@ -1521,20 +1588,23 @@ class Coordinator:
         return plan, ""
 
     def _splice(self, k: int, t0: int, plan: StreamPlan, kind: str = "change",
-                start_rpm: Sequence[int] | None = None) -> None:
+                start_rpm: Sequence[int] | None = None, source: PvtTrajectoryLike | None = None) -> None:
         """Put `plan` after knot k (time t0) of every axis: FIFO axes get its records after record k, cyclic
         axes its set points from t0 on; nothing already sent is taken back. `kind` ("change", "stop",
-        "emergency") and `start_rpm` (the velocities it starts from) are for the positioning state."""
+        "emergency") and `start_rpm` (the velocities it starts from) are for the positioning state;
+        `source`: the trajectory `plan` was made from (an open-ended one is what the next extension
+        extends)."""
         for f in self._axes:
             if isinstance(f, FifoFeeder):
                 rid = rpdo2_id(f.node_id)
-                f.splice(k, list(plan.records[f.axis]), [Send(rid, frame) for frame in plan.frames[f.axis]])
+                f.splice(k, list(plan.records[f.axis]), [Send(rid, frame) for frame in plan.frames[f.axis]],
+                         open_end=plan.open_end)
             else:
                 pos, vel, _ = self._reference(plan, f.axis)
                 f.splice(t0, pos, vel)
                 if f.state is FeederState.DRAINING:  # it had sent its last set point: the new part has more
                     f.state = FeederState.STREAMING
-        new_ends = self._ends[:k] + [t0 + e for e in segment_ends(plan.segment_ms)]
+        new_ends = self._ends[:k] + [t0 + e for e in _stream_ends(plan)]
         self._ends = new_ends
         self._t_end = new_ends[-1]
         self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
@@ -1543,6 +1613,8 @@ class Coordinator:
         self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._pieces = [(o, pl) for o, pl in self._pieces if o < t0] + [(t0, plan)]
         self._positioning.splice(t0, plan, kind, start_rpm if start_rpm is not None else [0] * plan.n_axes)
+        self._open_plan = plan if plan.open_end else None
+        self._open_source = source if plan.open_end else None
 
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
@@ -1616,6 +1688,86 @@ class Coordinator:
                  "timeout_ms": w.timeout_ms} for w in warnings]
         self._finish(JobResult.DONE, message, detail)
 
+    # ---- open-ended streams (see the module docstring) ------------------------------------------------
+    def _keep_open(self, m: int, t: float) -> None:
+        """SYNC m: append the next chunk(s) while the stream ends less than `extend_ahead_ms` ahead of the
+        fastest drive; stop the motion when none comes by `extend_need_ms`."""
+        now_lo, now_hi = self._elapsed_bounds(m, t)
+        for _ in range(MAX_EXTENSIONS_PER_SYNC):
+            last, source = self._open_plan, self._open_source
+            if last is None:
+                return
+            ahead = self._t_end - now_hi
+            if ahead > self.extend_ahead_ms:
+                return
+            chunk: PvtTrajectoryLike | None = None
+            why = ""
+            if source is None or self._extender is None:
+                why = "no extender was given" if self._extender is None else "the stream's plan is not a trajectory"
+            else:
+                try:
+                    chunk = self._extender(source)
+                except Exception as exc:  # the planner's error is the job's; the motion stops from the queue's end
+                    why = f"the extender failed: {type(exc).__name__}: {exc}"
+            plan: StreamPlan | None = None
+            if chunk is not None:
+                plan, why = self._extension_problem(chunk, last, now_hi)
+            if plan is None:
+                if why or ahead <= self.extend_need_ms:
+                    self._end_open(why or f"no next chunk {ahead} ms before the stream's end (it must reach "
+                                          f"{self.extend_need_ms} ms ahead)")
+                return
+            start_rpm = [r[-1].velocity if r else 0 for r in last.records]  # the chunk goes on from there
+            self._splice(len(self._ends), self._t_end, plan, "change", start_rpm, source=chunk)
+            self._extensions += 1
+            self._drop_past_references(now_lo)
+
+    def _extension_problem(self, chunk: PvtTrajectoryLike, last: StreamPlan, now_hi: int) -> tuple[StreamPlan | None,
+                                                                                                  str]:
+        """(the chunk to append, "") or (None, why not): it starts exactly at the last knot (position and rpm)
+        and can be streamed in time after the stream (the dry run of the fill)."""
+        try:
+            plan = StreamPlan.from_trajectory(chunk)
+        except Exception as exc:
+            return None, f"the next chunk cannot be streamed: {type(exc).__name__}: {exc}"
+        knots = tuple(recs[-1] for recs in last.records)
+        positions = tuple(r.position for r in knots)
+        velocities = getattr(chunk, "velocities", None)
+        start_rpm = tuple(int(v[0]) for v in velocities) if velocities is not None else None
+        if (plan.node_ids != self._plan.node_ids or plan.start_positions != positions
+                or (start_rpm is not None and start_rpm != tuple(r.velocity for r in knots))):
+            return None, (f"the next chunk does not start at the last knot (starts {list(plan.start_positions)} "
+                          f"counts, {list(start_rpm or ())} rpm; the stream ends at {list(positions)} counts, "
+                          f"{[r.velocity for r in knots]} rpm)")
+        if self._feeders:
+            ends = self._ends + [self._t_end + e for e in _stream_ends(plan)]
+            short = dry_run(ends, self._policy, self._step, self._lockstep, now_hi)
+            if short is not None:
+                return None, (f"the next chunk cannot be streamed in time ({short.fill} records left at "
+                              f"{short.elapsed_ms} ms)")
+        return plan, ""
+
+    def _end_open(self, why: str) -> None:
+        """The open stream cannot go on: stop from the end of the queue (as a cancel does) and fail the job
+        EXTENSION_FAILED once the axes are at rest."""
+        self._extend_failure = (oc.EXTENSION_FAILED, f"the open-ended motion could not be extended: {why}; it was "
+                                "stopped from the end of what was queued")
+        if self._state is JobState.PRIMING:  # nothing moved yet
+            self._fail(*self._extend_failure, None)
+            return
+        self._cancel_in_motion(Cancel(self._t))
+        self._cancel_info["reason"] = why
+        self._open_plan = None
+        self._open_source = None
+
+    def _drop_past_references(self, now_ms: int) -> None:
+        """The plan at every ms of the pieces wholly interpolated already is not needed any more (an endless
+        job would otherwise keep every chunk's): their records stay."""
+        for i in range(len(self._pieces) - 1):
+            o, pl = self._pieces[i]
+            if self._pieces[i + 1][0] <= now_ms and pl.reference is not None:
+                self._pieces[i] = (o, dataclasses.replace(pl, reference=None))
+
     # ---- change ------------------------------------------------------------------------------------
     def _change_refused(self, ev: Change) -> None:
         st = self._state
@@ -1639,6 +1791,10 @@ class Coordinator:
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, f"unknown mode {ev.mode!r}",
                                                      sync=self._sync))
             return
+        if buffered and self._open_plan is not None:
+            self._change_results.append(ChangeResult(ev.tag, ev.mode, False, "a velocity move has no end to buffer "
+                                                     "after: change it with buffer aborting", sync=self._sync))
+            return
         k, t0, done = self._queue_end(at_plan_end=buffered)
         if done:
             self._change_results.append(ChangeResult(
@@ -1657,7 +1813,7 @@ class Coordinator:
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, knot=k, time_ms=t0,
                                                      sync=self._sync))
             return
-        self._splice(k, t0, plan, "change", request.velocities_rpm)
+        self._splice(k, t0, plan, "change", request.velocities_rpm, source=planned)
         self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
                                                  duration_ms=plan.duration_ms, sync=self._sync))
 

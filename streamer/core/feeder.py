@@ -185,6 +185,7 @@ class FifoFeeder:
         tail: Send | None = None,
         hides_target: bool = False,
         rounding: str | None = "nearest",
+        open_end: bool = False,
     ) -> None:
         self.axis = axis
         self.node_id = node_id
@@ -193,7 +194,8 @@ class FifoFeeder:
         self.lead = 1 if lead is not None else 0
         self._lead_send = lead
         self._tail_send = tail
-        self.tail = 1 if tail is not None else 0
+        self.open_end = open_end  # the stream goes on (an open-ended plan): no tail until a closed part follows
+        self.tail = 1 if tail is not None and not open_end else 0
         self.sends = self._stream(sends)  # lead + the plan's frames + tail
         self.hides_target = hides_target  # the reported fill leaves out the record being interpolated towards
         self._rounders = {"nearest": (round_counts,), "toward_zero": (truncate_counts,),
@@ -244,7 +246,7 @@ class FifoFeeder:
     def _stream(self, plan_sends: list[Send]) -> list[Send]:
         out = [self._lead_send] if self._lead_send is not None else []
         out += plan_sends
-        if self._tail_send is not None:
+        if self._tail_send is not None and not self.open_end:
             out.append(self._tail_send)
         return out
 
@@ -264,10 +266,16 @@ class FifoFeeder:
         """Stream records the drive has consumed when it consumed `plan_consumed` plan records."""
         return plan_consumed + self.lead if activated else 0
 
-    def splice(self, k: int, records: list[PvtRecord], sends: list[Send]) -> None:
-        """Replace the plan after record k (a stop trajectory); the stream keeps its lead and tail."""
+    def splice(self, k: int, records: list[PvtRecord], sends: list[Send], *, open_end: bool = False) -> None:
+        """Replace the plan after record k (a stop, a change, the next chunk of an open-ended plan); the stream
+        keeps its lead, and its tail (a second end record) repeats the new end record once the stream is
+        closed (`open_end` false)."""
         self.records = self.records[:k] + records
         plan_sends = self.sends[self.lead:self.lead + k] + sends
+        self.open_end = open_end
+        if self._tail_send is not None and not open_end:
+            self._tail_send = sends[-1]  # the new end record: the tail is a copy of it
+        self.tail = 1 if self._tail_send is not None and not open_end else 0
         self.sends = self._stream(plan_sends)
 
     @property

@@ -38,6 +38,7 @@ FINISH_TIMEOUT = "FINISH_TIMEOUT"  # ip mode inactive + target reached (or halt 
 SETPOINT_LATE = "SETPOINT_LATE"  # a cyclic drive missed a set point (EMCY 0x8782: missing, or < 100 us before SYNC)
 SETPOINT_RANGE = "SETPOINT_RANGE"  # a cyclic axis' set points do not fit their frame (16-bit step, group)
 EMERGENCY_STOP = "EMERGENCY_STOP"  # an emergency stop with no plan possible in time: quick stop on every axis
+EXTENSION_FAILED = "EXTENSION_FAILED"  # an open-ended (velocity) stream got no next chunk in time: stopped, at rest
 
 FAILURE_CODES = frozenset(
     {
@@ -60,6 +61,7 @@ FAILURE_CODES = frozenset(
         SETPOINT_LATE,
         SETPOINT_RANGE,
         EMERGENCY_STOP,
+        EXTENSION_FAILED,
     }
 )
 

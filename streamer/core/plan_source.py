@@ -15,6 +15,10 @@ grid and packed to its 8 wire bytes (so nothing can fail to encode on the SYNC t
 is any callable `StopRequest -> trajectory-like` (planner.stop.plan_stop behind a small adapter): it is
 asked, on cancel, for a trajectory from the state at the end of what is already queued to standstill,
 on one shared grid, whose knot 0 is exactly that state.
+
+An open-ended trajectory (a velocity move's chunk: `open_ended` true, no end record, its last knot moving)
+becomes an open `StreamPlan` (`open_end`): the core keeps the stream going by asking an `Extender` for the
+next chunk, whose knot 0 must be exactly the last knot (coordinator.py, "Open-ended streams").
 """
 
 from __future__ import annotations
@@ -65,6 +69,9 @@ class StopRequest:
 
 StopPlanner = Callable[[StopRequest], PvtTrajectoryLike]
 ChangePlanner = Callable[[StopRequest], PvtTrajectoryLike]
+# the next chunk of an open-ended trajectory (given the chunk before it); None: not ready yet, ask again at the
+# next SYNC (a runtime plans it on another thread); an exception: it cannot be extended (the core stops)
+Extender = Callable[[PvtTrajectoryLike], PvtTrajectoryLike | None]
 
 
 @dataclass(frozen=True)
@@ -134,6 +141,9 @@ class StreamPlan:
     # velocities counts/ms, accelerations counts/ms^2, each (n_axes, M+1)): what the set points of a cyclic
     # drive are sampled from (streamer/core/cyclic.py); None: sampled from the records' own Hermite curve
     reference: tuple[Any, Any, Any] | None = field(default=None, compare=False, repr=False)
+    # open-ended (a velocity move's chunk): no end record, the last knot moves; the stream goes on with the
+    # next chunk (per axis N records instead of N + 1)
+    open_end: bool = False
 
     def __post_init__(self) -> None:
         n = len(self.node_ids)
@@ -159,6 +169,15 @@ class StreamPlan:
             zip(self.node_ids, self.records, self.frames, strict=True)
         ):
             where = f"axis {axis} (node {node})"
+            if self.open_end:
+                if len(recs) != n_seg or len(frames) != n_seg:
+                    raise ValueError(f"{where} has {len(recs)} records for {n_seg} segments (an open-ended plan "
+                                     "has no end record)")
+                for k in range(n_seg):
+                    if recs[k].time_ms != self.segment_ms[k]:
+                        raise ValueError(f"{where} record {k} has time {recs[k].time_ms} ms but the shared grid "
+                                         f"says {self.segment_ms[k]} ms")
+                continue
             if len(recs) != n_seg + 1 or len(frames) != n_seg + 1:
                 raise ValueError(
                     f"{where} has {len(recs)} records for {n_seg} segments (need {n_seg + 1} "
@@ -200,8 +219,11 @@ class StreamPlan:
         node_ids: Sequence[int],
         start_positions: Sequence[int],
         records: Sequence[Sequence[PvtRecord | tuple[int, int, int]]],
+        *,
+        open_end: bool = False,
     ) -> StreamPlan:
-        """Build from per-axis record lists (end record optional; the grid is taken from axis 0)."""
+        """Build from per-axis record lists (end record optional, none when `open_end`; the grid is taken
+        from axis 0)."""
         recs: list[tuple[PvtRecord, ...]] = []
         for axis, rows in enumerate(records):
             out = [
@@ -214,12 +236,12 @@ class StreamPlan:
             ]
             if not out:
                 raise ValueError(f"axis {axis} has no records")
-            if out[-1].time_ms != 0:
+            if out[-1].time_ms != 0 and not open_end:
                 out.append(PvtRecord(out[-1].position, 0, 0))
             recs.append(tuple(out))
         if not recs:
             raise ValueError("a stream plan needs at least one axis")
-        grid = tuple(r.time_ms for r in recs[0][:-1])
+        grid = tuple(r.time_ms for r in (recs[0] if open_end else recs[0][:-1]))
         frames = tuple(tuple(pack(r) for r in axis_recs) for axis_recs in recs)  # raises EncodingRangeError
         return cls(
             node_ids=tuple(_as_int(n, "node id") for n in node_ids),
@@ -227,6 +249,7 @@ class StreamPlan:
             segment_ms=grid,
             records=tuple(recs),
             frames=frames,
+            open_end=open_end,
         )
 
     @classmethod
@@ -248,7 +271,7 @@ class StreamPlan:
                     f"must be indexed [axis][knot]"
                 )
             starts.append(_as_int(row[0], f"positions[{axis}][0]"))
-        plan = cls.from_records(node_ids, starts, records)
+        plan = cls.from_records(node_ids, starts, records, open_end=bool(getattr(traj, "open_ended", False)))
         if list(plan.segment_ms) != grid:
             raise ValueError("the records' times do not match the trajectory's dt_ms grid")
         ref = getattr(traj, "plan", None)

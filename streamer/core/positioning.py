@@ -95,7 +95,7 @@ class PositioningChange:
 
 def plan_phases(plan: StreamPlan, axis: int, start_rpm: int = 0) -> list[PositioningState]:
     """ACCEL / CONST / DECEL of every segment of one axis of `plan` (module docstring)."""
-    recs = plan.records[axis][:-1]
+    recs = plan.records[axis] if plan.open_end else plan.records[axis][:-1]  # an open-ended plan has no end record
     peak = max((abs(r.velocity) for r in recs), default=0)
     band = max(1, peak // 100)
     out: list[PositioningState] = []
@@ -281,7 +281,7 @@ class PositioningTracker:
 
     # ---- internals --------------------------------------------------------------------------------
     def _install(self, t0: int, plan: StreamPlan, start_rpm: Sequence[int]) -> None:
-        ends = segment_ends(plan.segment_ms)[:-1]  # the end record adds no time
+        ends = segment_ends(plan.segment_ms)[:-1]  # one per segment (the end record, if any, adds no time)
         for axis, n in enumerate(plan.node_ids):
             self._lines[n].extend(t0, ends, plan_phases(plan, axis, int(start_rpm[axis])))
             self._target[n] = plan.records[axis][-1].position

@@ -56,8 +56,10 @@ from bus.errors import BusError
 from bus.events import AdapterError, Bootup, Event
 from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
-from planner.job import Job, job_from_dict
+from planner.errors import PlanningError
+from planner.job import Job, MoveData, job_from_dict
 from planner.plan import plan_job
+from planner.travel import resolve_target
 from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
 from streamer.api.errors import MotionError
@@ -66,6 +68,7 @@ from streamer.core.plan_source import Change, ChangeResult, EmergencyStop
 from streamer.core.positioning import NotInTarget
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
+from streamer.runtime.extension import VelocityChangePlanner
 from streamer.runtime.homing import Referencing, home_end_positions, run_homing
 from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import ChangePlanner, make_emergency_planner, make_stop_planner
@@ -86,7 +89,7 @@ class _Piece:
 
 @dataclasses.dataclass
 class _Waiting:
-    planner: ChangePlanner
+    planner: ChangePlanner | VelocityChangePlanner
     emit: Emit
     done: threading.Event = dataclasses.field(default_factory=threading.Event)
     result: ChangeResult | None = None
@@ -152,16 +155,31 @@ class RuntimeBackend:
             out[a.name] = 0.0 if demand is None else demand / a.counts_per_unit
         return out
 
-    def plan(self, job: Job, start: Mapping[str, float] | None) -> Planned:
+    def plan(self, job: Job, start: Mapping[str, float] | None, *,
+             last_target: Mapping[str, float | None] | None = None,
+             last_direction: Mapping[str, int] | None = None) -> Planned:
+        """Plan `job` from `start` (else where the axes stand); `last_target`/`last_direction` by axis name
+        serve the additive and modulo modes (planner/travel.py). The Planned carries the move's resolved
+        target as the axes' new last commanded target."""
         if job.kind == "home":  # nothing to plan: the drives search; they end at their home positions
             self.referencing.planned(job)
-            return Planned(job=job, trajectory=None, duration_s=0.0, points=0,
-                           end_positions=home_end_positions(job))
+            ends = home_end_positions(job)
+            return Planned(job=job, trajectory=None, duration_s=0.0, points=0, end_positions=ends,
+                           commanded_target=dict(ends))
         here = self.current_positions()
         begin = [(start or {}).get(a, here[a]) for a in job.axes]
+        last = [(last_target or {}).get(a) for a in job.axes]
+        dirs = [int((last_direction or {}).get(a, 0)) for a in job.axes]
         t0 = time.perf_counter()
-        traj = plan_job(job, self.cell, start=begin)
-        return planned_from_trajectory(job, traj, time.perf_counter() - t0)
+        traj = plan_job(job, self.cell, start=begin, last_target=last, last_direction=dirs)
+        planned = planned_from_trajectory(job, traj, time.perf_counter() - t0)
+        data = job.data
+        if isinstance(data, MoveData) and data.mode != "velocity":
+            # the resolved target itself (not the knot it rounds to): additive moves do not add up rounding
+            target = resolve_target(job, self.cell, begin, last, last_direction=dirs)
+            planned = dataclasses.replace(planned, commanded_target={
+                **planned.commanded_target, **{a: float(x) for a, x in zip(job.axes, target, strict=True)}})
+        return planned
 
     # ---- motion (executor thread)
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]:
@@ -249,9 +267,13 @@ class RuntimeBackend:
             positioning = {names[n]: st.name for n, st in core.positioning().items()}
             elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
             planned_ms = pc.duration_ms
+            # a velocity move has no end to measure progress against: 0 until it has stopped, and how long it ran
+            endless = bool(getattr(pc.traj, "open_ended", False))
             if state not in ("cancelling", "halting"):
-                progress = 1.0 if p >= 1.0 else min(1.0, max(0.0, elapsed / planned_ms))
-                pc.emit("running", {"progress": round(progress, 4), "state": state, "positioning": positioning})
+                progress = 1.0 if p >= 1.0 else 0.0 if endless else min(1.0, max(0.0, elapsed / planned_ms))
+                extra = {"endless": True, "elapsed_s": round(max(0.0, elapsed) / 1000.0, 3)} if endless else {}
+                pc.emit("running", {"progress": round(progress, 4), "state": state, "positioning": positioning,
+                                    **extra})
                 return
             if not stopping:  # the first update after the cancel: how the stream ends now
                 rep = core.report()
@@ -262,8 +284,8 @@ class RuntimeBackend:
                     planned_ms if info.get("stop") == "plan_end" else None)
                 stopping["cut"] = float(cut) if cut is not None else min(planned_ms, elapsed)
             cut = stopping["cut"]
-            fields: dict[str, Any] = {"progress": round(min(elapsed, cut) / planned_ms, 4), "state": state,
-                                      "positioning": positioning}
+            fields: dict[str, Any] = {"progress": 0.0 if endless else round(min(elapsed, cut) / planned_ms, 4),
+                                      "state": state, "positioning": positioning}
             if rep_stop := info_stop[0]:
                 fields["stop"] = rep_stop  # trajectory, emergency_trajectory, halt, plan_end
             if stopping["end"] > cut:
@@ -334,10 +356,12 @@ class RuntimeBackend:
                            f"{w.window_counts} counts)"}
 
     # ---- changes of the running motion (the intake thread asks, the SYNC thread answers)
-    def change(self, job: Job, mode: str, emit: Emit) -> tuple[Planned, dict[str, Any]]:
+    def change(self, job: Job, mode: str, emit: Emit, *, last_target: Mapping[str, float | None] | None = None,
+               last_direction: Mapping[str, int] | None = None) -> tuple[Planned, dict[str, Any]]:
         """Replace the running job's remainder with `job` (a move; mode "aborting") or append it at the running
         plan's end ("buffered"), without stopping. Returns the new job's `Planned` and what the core did
         (`time_ms`, `reaction_ms`, `overrun_axes`, ...); progress of the new job goes to `emit` from then on.
+        A velocity move is planned open-ended from the end of the queue and extended as it runs.
         Raises MotionError COMMAND_REJECTED with the reason when it cannot be made (the running job goes on
         untouched)."""
         with self._lock:
@@ -348,11 +372,21 @@ class RuntimeBackend:
         if tuple(job.axes) != names and set(job.axes) != set(names):
             raise MotionError(E.COMMAND_REJECTED, f"the change moves axes {list(job.axes)} but the running job moves "
                               f"{list(names)}: a change replaces a motion of the same axes", path="axes")
-        target = self._change_target(job, piece)
-        try:
-            planner = ChangePlanner(self.cell, piece.traj, target, tolerance_counts=job.tolerance_counts)
-        except ValueError as exc:
-            raise MotionError(E.COMMAND_REJECTED, str(exc), path="target") from None
+        planner: ChangePlanner | VelocityChangePlanner
+        resolved: dict[str, float | None]
+        if getattr(job.data, "mode", None) == "velocity":
+            if tuple(job.axes) != names:
+                raise MotionError(E.COMMAND_REJECTED, f"a velocity change lists the running job's axes in its order "
+                                  f"{list(names)}, not {list(job.axes)}", path="axes")
+            planner = VelocityChangePlanner(self.cell, job, tuple(int(n) for n in piece.traj.node_ids))
+            resolved = {a: None for a in job.axes}
+        else:
+            target = self._change_target(job, piece, last_target, last_direction)
+            resolved = dict(target)
+            try:
+                planner = ChangePlanner(self.cell, piece.traj, target, tolerance_counts=job.tolerance_counts)
+            except ValueError as exc:
+                raise MotionError(E.COMMAND_REJECTED, str(exc), path="target") from None
         waiting = _Waiting(planner, emit)
         with self._lock:
             self._waiting.append(waiting)
@@ -376,6 +410,7 @@ class RuntimeBackend:
         assert plan is not None
         traj = plan.trajectory
         planned = planned_from_trajectory(job, traj, planner.planning_s)
+        planned = dataclasses.replace(planned, commanded_target={**planned.commanded_target, **resolved})
         info: dict[str, Any] = {
             "mode": mode, "time_ms": res.time_ms, "duration_ms": res.duration_ms, "knot": res.knot,
             "reaction_ms": None if waiting.fed_elapsed_ms is None or res.time_ms is None
@@ -386,22 +421,25 @@ class RuntimeBackend:
         }
         return planned, info
 
-    def _change_target(self, job: Job, piece: _Piece) -> dict[str, float]:
-        """The absolute target of a change, by axis name. The one place a move mode becomes a target (a relative
-        move: from where the running job's demand stands now; 15a's modes plug in here)."""
+    def _change_target(self, job: Job, piece: _Piece, last_target: Mapping[str, float | None] | None = None,
+                       last_direction: Mapping[str, int] | None = None) -> dict[str, float]:
+        """The absolute target of a change, by axis name. The one place a move mode becomes a target
+        (planner/travel.py's `resolve_target`): relative and modulo modes from where the running job's demand
+        stands now, additive from the last commanded target (the running job's, kept by the service)."""
         data = job.data
         target = [float(x) for x in getattr(data, "target", ())]
-        if len(target) != len(job.axes):
+        if not isinstance(data, MoveData) or len(target) != len(job.axes):
             raise MotionError(E.COMMAND_REJECTED, f"a {job.kind} job cannot change a running motion: only a move "
                               "with a target can", path="kind")
-        mode = getattr(data, "mode", "absolute")
-        if mode == "relative":
-            here = self.current_positions()
-            target = [here[a] + x for a, x in zip(job.axes, target, strict=True)]
-        elif mode != "absolute":
-            raise MotionError(E.COMMAND_REJECTED, f"mode {mode!r} cannot change a running motion (absolute or "
-                              "relative)", path="mode")
-        return dict(zip(job.axes, target, strict=True))
+        here = self.current_positions()
+        try:
+            resolved = resolve_target(job, self.cell, [here[a] for a in job.axes],
+                                      [(last_target or {}).get(a) for a in job.axes],
+                                      last_direction=[int((last_direction or {}).get(a, 0)) for a in job.axes])
+        except PlanningError as exc:
+            raise MotionError(E.COMMAND_REJECTED, f"the change's target cannot be resolved: {exc.message}",
+                              path=exc.path or "target", detail={"planner_code": exc.code}) from None
+        return {a: float(x) for a, x in zip(job.axes, resolved, strict=True)}
 
     def _answer_changes(self, core: Coordinator, answered: list[int]) -> None:
         """SYNC thread: hand each new ChangeResult to the change() waiting for it; an accepted change makes its

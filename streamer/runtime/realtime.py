@@ -37,8 +37,9 @@ from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, Standsti
 from planner.config import CellConfig
 from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState
-from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
+from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
+from streamer.runtime.extension import PrefetchExtender
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
@@ -254,18 +255,24 @@ class RealtimeRuntime:
         on_change: Callable[[Coordinator], None] | None = None,
         timeout_s: float | None = None,
         lead_ms: int | None = None,
+        extender: Extender | None = None,
     ) -> RealtimeResult:
         """Stream one trajectory: enable the drives, start SYNC if it is not running, run to the end.
 
         `lead_ms`: this job's lead (how much motion is kept queued: a change or a stop acts after it), else
         the settings'. Events given to `submit()` while it runs (a `Change`) are fed to the core in order
-        with the bus events, on this thread."""
+        with the bus events, on this thread. `extender`: the next chunk of an open-ended (velocity) stream;
+        default a `PrefetchExtender` (streamer/runtime/extension.py: planned on a worker thread, ahead)."""
         cell = self.cell
         self.ensure_readings()
         wall0 = time.monotonic()
         self.adapter.enable_drives()
         settings = self.settings if lead_ms is None else replace(self.settings, lead_ms=lead_ms)
-        core = Coordinator(trajectory, settings, stop_planner=stop_planner)
+        prefetch: PrefetchExtender | None = None
+        if extender is None:
+            extender = prefetch = PrefetchExtender()
+            prefetch.prefetch(trajectory)  # the first chunk's successor, while the drives are primed
+        core = Coordinator(trajectory, settings, stop_planner=stop_planner, extender=extender)
         nodes = set(core.node_ids)
         trace = JobTrace([(a.node_id, a.name) for a in cell.axes if a.node_id in nodes],
                          sync_period_s=cell.sync_period_s, bitrate=cell.bus.bitrate)
@@ -317,6 +324,8 @@ class RealtimeRuntime:
         finally:
             self._running = False
             self._tap.trace = None
+            if prefetch is not None:
+                prefetch.close()
         return RealtimeResult(core, trace, first_sync if first_sync is not None else 0, last_sync, settled,
                               time.monotonic() - wall0)
 

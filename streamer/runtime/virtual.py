@@ -68,7 +68,7 @@ from planner.config import CellConfig
 from planner.job import Job
 from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState, Reaction
-from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner
+from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.trace import JobTrace
 
@@ -597,17 +597,24 @@ class VirtualRuntime:
         settle_s: float = 3.0,
         on_sync: Callable[[Coordinator, int], None] | None = None,
         feed: Callable[[Coordinator, int, float], Sequence[object]] | None = None,
+        extender: Extender | None = None,
     ) -> VirtualResult:
         """Stream one trajectory to the drives. Returns when the job ended and the axes settled.
 
         `feed(core, sync, t)`, after each SYNC: events to feed the core at that moment (a `Change`, a
-        `Cancel`), as the real-time runtime feeds what another thread asked for."""
+        `Cancel`), as the real-time runtime feeds what another thread asked for. `extender`: the next chunk of
+        an open-ended (velocity) stream; default `planner.travel.extend_velocity`, called on the SYNC (virtual
+        time has no deadline to miss)."""
         self.ensure_readings()
         t_enable = self._cycle_time(self._cycle + 1) - self.period_s / 2
         self._core = None
         self._run_until(t_enable)  # frames still in flight from before belong to no job
         self.enable_drives(t_enable)
-        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner)
+        if extender is None:
+            from planner.travel import extend_velocity
+
+            extender = extend_velocity  # type: ignore[assignment]
+        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner, extender=extender)
         job_nodes = set(core.node_ids)
         self.trace = JobTrace(
             [(a.node_id, a.name) for a in self.cell.axes if a.node_id in job_nodes],
@@ -645,6 +652,8 @@ class VirtualRuntime:
                             settled_at = self._sync  # one more cycle: TPDOs held for their latency come in
                             continue
                         break
+                if max_s is None:  # an extended (open-ended) or changed stream runs longer
+                    limit_s = max(limit_s, core.stream_duration_ms / 1000.0 + 30.0)
                 if elapsed > limit_s:
                     raise TimeoutError(
                         f"job still {core.state.value} after {elapsed:.1f} s of virtual time (limit {limit_s:.1f} s)"
