@@ -105,12 +105,19 @@ def drives_table(status: dict[str, Any], width: int) -> Any:
     ]
     if same is None:
         columns.insert(3, Col("unit"))
+    # `referenced` (a home job attained on the axis: docs/api.md) when the runtime reports it
+    homing = any("referenced" in d for d in drives)
+    if homing:
+        columns.append(Col("homed"))
     rows = []
     for d in drives:
         row = [str(d.get("name")), number(d.get("node_id")), str(d.get("state") or "-"),
                number(d.get("position"), 6), number(d.get("velocity"), 4), number(d.get("fifo_fill"))]
         if same is None:
             row.insert(3, str(d.get("unit") or "-"))
+        if homing:
+            ref = d.get("referenced")
+            row.append("yes" if ref is True else "no" if ref is False else "-")
         rows.append(row)
     return fit_table(columns, rows, width, title="drives")
 

@@ -320,6 +320,7 @@ class RuntimeBackend:
     # ---- state (any thread)
     def telemetry(self) -> Sequence[Mapping[str, Any]]:
         snap = self.runtime.snapshot()
+        referenced = self.referencing.referenced  # a home job attained on the axis (streamer/runtime/homing.py)
         out = []
         for a in self.cell.axes:
             s = snap[a.node_id]
@@ -332,6 +333,7 @@ class RuntimeBackend:
                 "velocity": s.velocity_counts_per_s / a.counts_per_unit,
                 "fifo_fill": None if s.free_size is None else FIFO_SIZE - s.free_size,
                 "state": state,
+                "referenced": a.name in referenced,
             })
         return out
 
