@@ -1,19 +1,26 @@
 """Home jobs at the command line (issue 14), as a user runs `pvt` (a subprocess at 80 columns): `pvt plan` of a
 home job says what the drives will do (per axis the method, speeds, acceleration, home position), `--out` /
 `--plot` and `pvt demo --job` are refused with a message and status 2, never a traceback; `pvt status` shows
-per axis whether it is referenced (the runtime's `referenced`)."""
+per axis whether it is referenced (the runtime's `referenced`); `pvt serve --sim` runs the example home job."""
 
 from __future__ import annotations
 
 import json
+import signal
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import pytest
+
 from planner.config import CellConfig
-from tests.api.conftest import Served
+from streamer.api.client import MotionClient
+from streamer.api.errors import MotionError
+from streamer.api.model import JobState
+from tests.api.conftest import Served, free_port
 from tests.api.fakes import FakeBackend
-from tests.cli.conftest import assert_fits, flat, pvt
+from tests.cli.conftest import assert_fits, flat, pvt, start_pvt
 from tests.conftest import CONFIGS
 
 Serve = Callable[..., Served]
@@ -117,3 +124,42 @@ def test_status_shows_which_axes_are_referenced(serve: Serve, demo_cell: CellCon
     assert [rows[f"j{k}"][-1] for k in range(1, 7)] == ["yes", "yes", "no", "no", "no", "no"]
     raw = json.loads(pvt("status", "--connect", served.endpoint, "--cell", "demo", "--json").stdout)
     assert [d["referenced"] for d in raw["drives"]] == [True, True, False, False, False, False]
+
+
+@pytest.mark.slow
+def test_pvt_serve_sim_runs_the_example_home_job(tmp_path: Path) -> None:
+    """`pvt serve --sim` on the demo cell with `require_homing = true`: a move is refused NOT_HOMED, `pvt submit
+    --wait` of configs/homing/home-demo.toml ends done (exit 0), `pvt status` shows every axis homed, and the move
+    is then accepted and done."""
+    config = tmp_path / "demo.toml"
+    text = (CONFIGS / "demo.toml").read_text(encoding="utf-8")
+    config.write_text(text.replace('name = "demo"\n', 'name = "demo"\nrequire_homing = true\n', 1), encoding="utf-8")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = start_pvt("serve", "--config", str(config), "--sim", "--listen", endpoint, "--store", str(tmp_path / "s"),
+                     "--no-record", "--log-level", "WARNING")
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # "pvt serve: cell 'demo' ready on ..."
+        assert "ready" in line, (line, proc.stderr.read() if proc.poll() is not None and proc.stderr else "")
+        with MotionClient(connect=endpoint, cell="demo") as client:
+            with pytest.raises(MotionError) as refused:
+                client.submit({"kind": "move", "axes": ["j1"], "target": [0.1]})
+            assert refused.value.code == "NOT_HOMED"
+            out = pvt("submit", HOME_DEMO, "--connect", endpoint, "--cell", "demo", "--wait", "--timeout", "60")
+            assert out.returncode == 0, out.stdout + out.stderr
+            _no_traceback(out)
+            assert_fits(out.stderr)  # the progress and the outcome go to stderr
+            assert out.stderr.rstrip().endswith(": done"), out.stderr
+            status = json.loads(pvt("status", "--connect", endpoint, "--cell", "demo", "--json").stdout)
+            assert [d["referenced"] for d in status["drives"]] == [True] * 6
+            assert status["ready"] is True
+            assert client.submit({"kind": "move", "axes": ["j1"], "target": [0.1]}).wait(timeout=30).state == \
+                JobState.DONE
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
