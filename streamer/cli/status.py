@@ -86,8 +86,11 @@ def headline(status: dict[str, Any]) -> list[str]:
     running = status.get("running")
     if isinstance(running, dict):
         duration = running.get("planned_duration_s")
+        share = f"{100.0 * float(running.get('progress') or 0.0):.1f}%"
+        # a home job has no planned duration: its progress is the share of its axes that ended homing
+        of = " of its axes homed" if running.get("kind") == "home" else f" of {number(duration)} s"
         lines.append(f"running: job {running.get('job_id')} ({running.get('kind')}), {running.get('state')}, "
-                     f"{100.0 * float(running.get('progress') or 0.0):.1f}% of {number(duration)} s")
+                     f"{share}{of}")
     else:
         lines.append("running: no job")
     return lines

@@ -106,6 +106,17 @@ def test_plan_out_and_plot_and_demo_refuse_a_home_job(tmp_path: Path) -> None:
         assert not demo_out.exists()
 
 
+def test_status_headline_of_a_running_home_job() -> None:
+    from streamer.cli.status import headline
+
+    running = {"job_id": "h", "kind": "home", "state": "running", "progress": 0.5, "planned_duration_s": 0.0}
+    assert headline({"cell": "demo", "ready": True, "running": running})[-1] == (
+        "running: job h (home), running, 50.0% of its axes homed")  # not "of 0 s": it has no planned duration
+    move = {**running, "kind": "move", "planned_duration_s": 2.0}
+    assert headline({"cell": "demo", "ready": True, "running": move})[-1] == (
+        "running: job h (move), running, 50.0% of 2.000 s")
+
+
 class HomedFake(FakeBackend):
     """The fake backend with the motion runtime's `referenced` per axis (j1 and j2 homed)."""
 
@@ -150,6 +161,7 @@ def test_pvt_serve_sim_runs_the_example_home_job(tmp_path: Path) -> None:
             _no_traceback(out)
             assert_fits(out.stderr)  # the progress and the outcome go to stderr
             assert out.stderr.rstrip().endswith(": done"), out.stderr
+            assert "queued: a home job (nothing planned: the drives search their home positions)" in flat(out.stderr)
             status = json.loads(pvt("status", "--connect", endpoint, "--cell", "demo", "--json").stdout)
             assert [d["referenced"] for d in status["drives"]] == [True] * 6
             assert status["ready"] is True
