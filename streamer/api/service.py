@@ -599,6 +599,7 @@ class JobService:
             "job_id": record.job_id,
             "cell": self.cell,
             "state": record.state.value,
+            "kind": record.kind,
             "planned_duration_s": record.planned_duration_s,
             "points": record.points,
             "existing": existing,

@@ -4,7 +4,8 @@ With no arguments: python-can `virtual` bus, the cell's simulated EPOS-style dri
 real time at the cell's SYNC period (10 ms). A live progress bar shows every axis' FIFO fill. Writes
 report.json, motion.png, bus.log (candump -L) and job.mcap (the job's recording) to --out (default
 demo-out/). Exit status 0 when the job is done with every guarantee met, 1 when the job failed or a
-guarantee was missed, 2 when the job or config was rejected.
+guarantee was missed, 2 when the job or config was rejected. A home job (kind "home") is refused
+(status 2): it plans no motion to stream; `pvt serve --sim` and `pvt submit` run it.
 """
 
 from __future__ import annotations
@@ -58,6 +59,21 @@ def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
     return problems
 
 
+def job_kind(path: Path) -> str | None:
+    """The `kind` of a job file (TOML for .toml, else JSON, as planner.job.load_job reads it), or None when
+    the file cannot be read as one (the demo's own validation then says why)."""
+    import json
+    import tomllib
+
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    kind = data.get("kind") if isinstance(data, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
@@ -69,6 +85,12 @@ def run(args: argparse.Namespace) -> int:
         console.print("[red]error:[/red] --fast and --external-drives do not go together: --fast runs the "
                       "simulated drives here, in virtual time; drives in another process (`pvt sim`) run in real "
                       "time on a bus. Drop one of them.", highlight=False)
+        return 2
+    if args.job is not None and job_kind(args.job) == "home":
+        console.print(f"[red]error SCHEMA at kind:[/red] {escape(str(args.job))} is a home job: `pvt demo` streams a "
+                      "planned motion, and a home job plans none (the drives search their home positions in homing "
+                      "mode). `pvt plan JOB` shows what it will do; run it through the job service: `pvt serve --sim` "
+                      "and `pvt submit JOB --wait` (docs/api.md).", highlight=False)
         return 2
     try:
         cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,

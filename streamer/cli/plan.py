@@ -8,6 +8,10 @@ axis,node_id,index,time_s,dt_ms,position_counts,velocity_rpm; each axis' first r
 with dt_ms 0), `--plot` draws position, velocity, acceleration and deviation per axis, `--json` prints
 the summary as JSON instead of the table. A rejected job prints its error code, path and message and
 exits with status 2.
+
+A home job (kind "home") plans nothing: `pvt plan` prints what the drives will do instead (per axis the
+homing method and what it searches, the search and zero speeds, the acceleration and the home position);
+`--out` and `--plot` are refused for it (status 2).
 """
 
 from __future__ import annotations
@@ -49,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         cell = load_cell(args.config or default_config_path())
         job = load_job(args.job, cell)
+        if job.kind == "home":  # nothing to plan: say what the drives will do
+            return home_summary(args, job, cell)
         t0 = time.perf_counter()
         traj = plan_job(job, cell)
         planning_s = time.perf_counter() - t0
@@ -75,6 +81,63 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         _print_table(summary, units)
+    return 0
+
+
+def home_summary(args: argparse.Namespace, job: Any, cell: Any) -> int:
+    """A home job plans nothing (the drives search their home positions in homing mode): print what it will do,
+    per axis the method, speeds, acceleration and home position; exit 0. `--out`/`--plot` have no PVT points to
+    write: refused, exit 2."""
+    from rich.console import Console
+    from rich.text import Text
+
+    from streamer.cli.tables import Col, fit_table, number
+    from streamer.runtime.homing import method_note
+
+    if args.out is not None or args.plot is not None:
+        print(f"error SCHEMA at kind: {args.job} is a home job: it plans no PVT points, so there is nothing to "
+              "write with --out or draw with --plot; `pvt plan` without them shows what it will do", file=sys.stderr)
+        return 2
+    d = job.data
+    axes = [cell.axis(name) for name in job.axes]
+    summary: dict[str, Any] = {
+        "kind": "home", "job": str(args.job), "cell": cell.name, "timeout_s": d.timeout_s, "planned": False,
+        "note": "nothing is planned: the master switches the drives to homing mode (6), starts all of them at "
+                "once, waits for homing attained or a homing error (up to timeout_s), then returns them to their "
+                "streaming mode; each axis then stands at its home position",
+        "axes": [{"name": a.name, "node_id": a.node_id, "profile": a.profile, "unit": a.unit, "method": d.method[j],
+                  "method_note": method_note(d.method[j]), "search_speed": d.search_speed[j],
+                  "zero_speed": d.zero_speed[j], "acceleration": d.acceleration[j], "home_position": d.offset[j]}
+                 for j, a in enumerate(axes)],
+    }
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    console = Console()
+    console.print(Text(f"home job on cell {cell.name}: {len(axes)} axis(es), homing mode (6), at most "
+                       f"{d.timeout_s:g} s (timeout_s)"))
+    console.print(Text(f"job file {args.job}"))
+    console.print(Text(summary["note"]))
+    units = {a.unit for a in axes}
+    same = units.pop() if len(units) == 1 else None
+
+    def short(x: float, unit: str) -> str:  # 0.2, not 0.2000; the unit after the value when the axes differ
+        text = number(x)
+        text = text.rstrip("0").rstrip(".") if "." in text else text
+        return text + (f" {unit}" if same is None else "")
+
+    u = f" [{same}/s]" if same else ""
+    columns = [Col("axis"), Col("node", justify="right", drop=1), Col("method", justify="right"),
+               Col(f"search{u}", justify="right"), Col(f"zero{u}", justify="right"),
+               Col(f"acceleration [{same}/s²]" if same else "acceleration", justify="right"),
+               Col(f"home position [{same}]" if same else "home position", justify="right")]
+    rows = [[r["name"], str(r["node_id"]), str(r["method"]), short(r["search_speed"], f"{r['unit']}/s"),
+             short(r["zero_speed"], f"{r['unit']}/s"), short(r["acceleration"], f"{r['unit']}/s²"),
+             short(r["home_position"], r["unit"])] for r in summary["axes"]]
+    console.print(fit_table(columns, rows, console.width), highlight=False)
+    for m in sorted({r["method"] for r in summary["axes"]}):
+        names = ", ".join(r["name"] for r in summary["axes"] if r["method"] == m)
+        console.print(Text(f"method {m} ({names}): {method_note(m)}"))
     return 0
 
 

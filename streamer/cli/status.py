@@ -86,8 +86,11 @@ def headline(status: dict[str, Any]) -> list[str]:
     running = status.get("running")
     if isinstance(running, dict):
         duration = running.get("planned_duration_s")
+        share = f"{100.0 * float(running.get('progress') or 0.0):.1f}%"
+        # a home job has no planned duration: its progress is the share of its axes that ended homing
+        of = " of its axes homed" if running.get("kind") == "home" else f" of {number(duration)} s"
         lines.append(f"running: job {running.get('job_id')} ({running.get('kind')}), {running.get('state')}, "
-                     f"{100.0 * float(running.get('progress') or 0.0):.1f}% of {number(duration)} s")
+                     f"{share}{of}")
     else:
         lines.append("running: no job")
     return lines
@@ -105,12 +108,19 @@ def drives_table(status: dict[str, Any], width: int) -> Any:
     ]
     if same is None:
         columns.insert(3, Col("unit"))
+    # `referenced` (a home job attained on the axis: docs/api.md) when the runtime reports it
+    homing = any("referenced" in d for d in drives)
+    if homing:
+        columns.append(Col("homed"))
     rows = []
     for d in drives:
         row = [str(d.get("name")), number(d.get("node_id")), str(d.get("state") or "-"),
                number(d.get("position"), 6), number(d.get("velocity"), 4), number(d.get("fifo_fill"))]
         if same is None:
             row.insert(3, str(d.get("unit") or "-"))
+        if homing:
+            ref = d.get("referenced")
+            row.append("yes" if ref is True else "no" if ref is False else "-")
         rows.append(row)
     return fit_table(columns, rows, width, title="drives")
 

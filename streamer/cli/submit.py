@@ -120,8 +120,10 @@ def run(args: argparse.Namespace) -> int:
             else:
                 console.print(
                     f"job [bold]{escape(job.job_id)}[/bold] {acc.get('state')}"
-                    f"{' (existing)' if acc.get('existing') else ''}: planned "
-                    f"{acc.get('planned_duration_s', 0.0):.3f} s, {acc.get('points')} points"
+                    f"{' (existing)' if acc.get('existing') else ''}: "
+                    + ("a home job (nothing planned: the drives search their home positions)"
+                       if acc.get("kind") == "home" else
+                       f"planned {acc.get('planned_duration_s', 0.0):.3f} s, {acc.get('points')} points")
                     + (", the queue is held: it starts after `pvt resume`" if acc.get("held") else ""),
                     highlight=False,
                 )

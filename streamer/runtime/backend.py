@@ -570,6 +570,7 @@ class RuntimeBackend:
     # ---- state (any thread)
     def telemetry(self) -> Sequence[Mapping[str, Any]]:
         snap = self.runtime.snapshot()
+        referenced = self.referencing.referenced  # a home job attained on the axis (streamer/runtime/homing.py)
         out = []
         for a in self.cell.axes:
             s = snap[a.node_id]
@@ -583,6 +584,7 @@ class RuntimeBackend:
                 "fifo_fill": None if s.free_size is None else FIFO_SIZE - s.free_size,
                 "state": state,
                 "positioning": self._positioning.get(a.name, "IDLE"),
+                "referenced": a.name in referenced,
             })
         return out
 

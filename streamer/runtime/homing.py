@@ -44,6 +44,25 @@ SW_HOMING_ERROR = 1 << 13
 CW_ENABLE_OPERATION = 0x000F
 CW_START_HOMING = 0x001F
 
+# What each homing method (0x6098) does, in one line (`pvt plan` of a home job; docs/drive-model.md, "Homing")
+METHOD_NOTES: dict[int, str] = {
+    17: "negative limit switch: searched moving negative, its inner edge",
+    18: "positive limit switch: searched moving positive, its inner edge",
+    19: "home switch active above its edge: the edge, left moving negative",
+    20: "home switch active above its edge: the edge, entered moving positive",
+    21: "home switch active below its edge: the edge, left moving positive",
+    22: "home switch active below its edge: the edge, entered moving negative",
+    23: "cam (home switch): searched moving positive, left at the zero speed on the side met",
+    27: "cam (home switch): searched moving negative, left at the zero speed on the side met",
+    35: "current position: no motion",
+    37: "current position: no motion",
+}
+
+
+def method_note(method: int) -> str:
+    """One line on what homing `method` does (the method number for one without a note)."""
+    return METHOD_NOTES.get(method, f"method {method}")
+
 
 class HomingPort(Protocol):
     """What `run_homing` needs of a runtime: SDO access, the enable sequence and a clock that advances."""

@@ -170,9 +170,10 @@ def test_require_homing_refuses_then_accepts_after_homing() -> None:
 def test_example_home_job_runs_on_the_demo_cell() -> None:
     from planner.job import load_job
 
-    cell = load_cell("configs/demo.toml")
-    axes = tuple(dataclasses.replace(a, sim=dataclasses.replace(a.sim, home_switch=(0.05, INF))) if k == 0 else a
-                 for k, a in enumerate(cell.axes))
-    cell = dataclasses.replace(cell, axes=axes)
-    rep = VirtualRuntime(cell).home(load_job("configs/homing/home-demo.toml", cell))
+    cell = load_cell("configs/demo.toml")  # as shipped: j1's simulated drive has a home switch at 0.05 rad
+    assert cell.axes[0].sim.home_switch == (0.05, INF)
+    rt = VirtualRuntime(cell)
+    rep = rt.home(load_job("configs/homing/home-demo.toml", cell))
     assert rep["result"] == "done" and all(r["result"] == "attained" for r in rep["axes"])  # type: ignore[union-attr]
+    j1 = rt.vcell.models[cell.axes[0].node_id]
+    assert j1.machine_position / cell.axes[0].counts_per_unit == pytest.approx(0.05, abs=1e-3)  # the switch edge
