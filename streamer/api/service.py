@@ -1258,9 +1258,8 @@ class JobService:
             post.wait(timeout=60.0)
         if running is not None:
             started = running.started
-            requested = self._cancel_running(running, "cancel requested")
+            requested = self._cancel_running(running, "cancel requested", hold=f"job {job_id} was cancelled")
             if requested:
-                self._hold(f"job {job_id} was cancelled")
                 message = (
                     "the job stops on its jerk-limited stop trajectory; the queue is held until resume"
                     if started
@@ -1281,12 +1280,17 @@ class JobService:
         self.counters["cancel"] += 1
         self._reply(query, keys.job_cancel(self.cell, job_id), status)
 
-    def _cancel_running(self, item: _Queued, reason: str) -> bool:
-        """Cancel the job the executor holds; True if this request had an effect (the first one does)."""
+    def _cancel_running(self, item: _Queued, reason: str, hold: str | None = None) -> bool:
+        """Cancel the job the executor holds; True if this request had an effect (the first one does).
+        `hold`: also hold the queue, for this reason, in the same step (a job that ends at once must not let
+        the executor start the next one before the hold is in place)."""
         with self._cv:
             if item.cancel_requested:
                 return False
             item.cancel_requested = True
+            if hold is not None and not self._held:
+                self._held, self._hold_reason, self._hold_t = True, hold, self._clock()
+                log.info("queue of cell %r held: %s", self.cell, hold)
             emitter = item.emitter if item.started else None
         posted = emitter.mark_cancelling(reason) if emitter is not None else None
         if emitter is not None and posted is None:
