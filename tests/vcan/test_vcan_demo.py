@@ -57,12 +57,12 @@ def test_vcan_demo_meets_the_guarantees(vcan_demo: tuple[dict, Path]) -> None:
 
 
 def test_vcan_demo_sync_period_from_the_candump_log(vcan_demo: tuple[dict, Path]) -> None:
-    _report, out = vcan_demo
+    report, out = vcan_demo
     period_s = load_cell(ROOT / "configs" / "demo.toml").sync_period_s
-    with can.LogReader(str(out / "bus.log")) as reader:
-        stamps = [m.timestamp for m in reader if m.arbitration_id == 0x080]
+    with can.LogReader(str(out / "bus.log")) as reader:  # the job's SYNCs (the probe before it times its own)
+        stamps = [m.timestamp for m in reader if m.arbitration_id == 0x080 and m.timestamp >= report["job_start_s"]]
     intervals = [b - a for a, b in itertools.pairwise(stamps)]
-    assert len(intervals) > 300
+    assert len(intervals) > 250  # a 3.25 s job at 10 ms
     mean = statistics.fmean(intervals)
     jitter = sorted(abs(i - period_s) for i in intervals)
     p99 = jitter[int(0.99 * (len(jitter) - 1))]
