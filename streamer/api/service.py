@@ -666,6 +666,8 @@ class JobService:
             if moved is not None:
                 job = self.backend.validate(moved)
         travel = self._travel(self.backend.plan)
+        if lead_ms is not None and _takes(self.backend.plan, "lead_ms"):
+            travel["lead_ms"] = lead_ms  # a short lead bounds the plan's segments (so a change acts within it)
         planned = self.backend.plan(job, start, **travel)
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.plan returned {type(planned).__name__}, not Planned")
@@ -1522,3 +1524,11 @@ class JobService:
     def _drop(query: Any) -> None:
         with contextlib.suppress(Exception):
             query.drop()
+
+
+def _takes(fn: Callable[..., Any], name: str) -> bool:
+    """Does `fn` (a backend method) take the keyword `name`? (Backends written before it do not.)"""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False

@@ -157,10 +157,11 @@ class RuntimeBackend:
 
     def plan(self, job: Job, start: Mapping[str, float] | None, *,
              last_target: Mapping[str, float | None] | None = None,
-             last_direction: Mapping[str, int] | None = None) -> Planned:
+             last_direction: Mapping[str, int] | None = None, lead_ms: int | None = None) -> Planned:
         """Plan `job` from `start` (else where the axes stand); `last_target`/`last_direction` by axis name
         serve the additive and modulo modes (planner/travel.py). The Planned carries the move's resolved
-        target as the axes' new last commanded target."""
+        target as the axes' new last commanded target. `lead_ms` (the job's own, shorter than the cell's):
+        segments bounded so that a change or stop acts within about that lead (StreamerSettings.segment_cap_ms)."""
         if job.kind == "home":  # nothing to plan: the drives search; they end at their home positions
             self.referencing.planned(job)
             ends = home_end_positions(job)
@@ -171,7 +172,9 @@ class RuntimeBackend:
         last = [(last_target or {}).get(a) for a in job.axes]
         dirs = [int((last_direction or {}).get(a, 0)) for a in job.axes]
         t0 = time.perf_counter()
-        traj = plan_job(job, self.cell, start=begin, last_target=last, last_direction=dirs)
+        cap = (self.runtime.settings.segment_cap_ms(lead_ms)
+               if lead_ms is not None and lead_ms < self.runtime.settings.lead_ms else None)
+        traj = plan_job(job, self.cell, start=begin, last_target=last, last_direction=dirs, max_segment_ms=cap)
         planned = planned_from_trajectory(job, traj, time.perf_counter() - t0)
         data = job.data
         if isinstance(data, MoveData) and data.mode != "velocity":

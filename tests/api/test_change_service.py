@@ -107,3 +107,24 @@ def test_an_aborting_move_with_nothing_running_is_queued_like_any_job(serve: Cal
     with served.client() as client:
         job = client.submit({"kind": "move", "axes": ["j1"], "target": [0.1], "buffer": "aborting", "lead_ms": 50})
         assert job.wait(timeout=30).state.value == "done"
+
+
+def test_a_short_lead_bounds_the_segments_of_the_plan(demo_cell: CellConfig) -> None:
+    """`lead_ms` shorter than the cell's: the backend plans with segments bounded for it
+    (StreamerSettings.segment_cap_ms), so the few segments the feeders keep queued span about the lead."""
+    from planner.job import job_from_dict
+    from streamer.runtime.backend import RuntimeBackend
+
+    cell = demo_cell.with_axes(3)
+    backend = RuntimeBackend(cell, sim=True)
+    try:
+        job = job_from_dict({"kind": "move", "axes": AXES, "target": FIRST}, cell)
+        free = backend.plan(job, {a: 0.0 for a in AXES})
+        short = backend.plan(job, {a: 0.0 for a in AXES}, lead_ms=60)
+        cap = backend.runtime.settings.segment_cap_ms(60)
+        assert free.trajectory is not None and short.trajectory is not None
+        assert max(free.trajectory.dt_ms) > cap
+        assert max(short.trajectory.dt_ms) <= max(cap, short.trajectory.info["max_segment_ms"])
+        assert short.trajectory.duration_ms == free.trajectory.duration_ms
+    finally:
+        backend.close()
