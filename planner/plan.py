@@ -377,12 +377,17 @@ def encode_with_retries(
             factor *= max(e.factor, 1.05)
             ref = build(factor, True)
         except EncodingFailed as e:
-            if smooth_differs and variant == 2 and not smooth:
-                # the long placement on the first plan: whatever it misses, the smooth plan may not
-                smooth = True
-                ref = build(factor, True)
-                continue
             where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""
+            if smooth_differs and not smooth and "int32" not in e.message:
+                # a path's first plan: what one placement misses (a few knots too close together for
+                # the quantisation), the next one or the smooth plan may not
+                last = e.message + where
+                if variant < 2:
+                    variant += 1
+                else:
+                    smooth = True
+                    ref = build(factor, True)
+                continue
             code = ENCODING_RANGE if "int32" in e.message else INFEASIBLE
             raise PlanningError(code, f"{e.message}{where}", detail={"stage": "encode"}) from None
     raise PlanningError(
