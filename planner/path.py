@@ -31,8 +31,8 @@ Theory of operation.
    a small residual is removed by playing the motion that much slower (`RESCALE_SHARE`), from the best
    profile seen. A chain is fitted anew on every slower profile, and whether it passes is not monotone
    in the slow-down (its knots move): a few slightly different slow-downs are tried (`SLOWER_LADDER`).
-   The chain's own knots include the profile's real switches (`_switch_mask`), so that no chain segment
-   straddles an acceleration step.
+   A chain without short segments (the smooth retry) also has a knot on every big acceleration step
+   of a straight piece (`_switch_mask`), so that none of its long segments straddles one.
 
 Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw toppra's own duration
 (which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.5 %
@@ -347,6 +347,8 @@ class Profile:
         steps = _joint_steps(self.tau, self.v, geom, alim)
         self.switches: IntArray = self.tau[1:-1][steps > STEP_SHARE]
         self.real_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim)]
+        # with every big step on a straight piece (for a chain without short segments: `_switch_mask`)
+        self.long_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim, True)]
 
     def sample(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """s, s_dot, s_ddot (left), s_ddot (right) at every ms 0..M."""
@@ -370,23 +372,31 @@ def _joint_steps(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: Float
     return out
 
 
-def _switch_mask(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray) -> NDArray[np.bool_]:
+def _switch_mask(
+    tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray, straight_steps: bool = False
+) -> NDArray[np.bool_]:
     """The real switches among the interior breakpoints: a joint-acceleration step above `SWITCH_SHARE`
     that stands out from its neighbours (the path-acceleration step more than twice theirs). Steps of
     similar size in a row are toppra's gridpoint staircase along a smoothly changing bound (a steep one
-    in a tight blend), not a bang-bang change. Where the path is straight (q'' = 0) there is no such
-    staircase: every big step is a switch, also when the re-timing onto whole ms split one switch into
-    two steps with a piece of intermediate acceleration between them (a chain segment across either
-    step overshoots the limit by up to half the step)."""
+    in a tight blend), not a bang-bang change.
+
+    `straight_steps` (the smooth plan's chain, whose segments are at least the encoder's `min_seg`):
+    where the path is straight (q'' = 0) there is no such staircase, so every big step is a switch,
+    also when the re-timing onto whole ms split one switch into two steps with a piece of intermediate
+    acceleration between them (measured: 0.58 + 0.42 of the limit 24 ms apart; a long chain segment
+    across either overshoots by up to 18 %, depending on where its knots happen to fall). Not for the
+    first plan: there the knots it adds can be a few ms apart, too close for the encoder's quantisation.
+    """
     steps = _joint_steps(tau, vt, geom, alim)
     h = np.diff(tau).astype(np.float64)
     signed = np.diff(np.diff(vt) / h)
     dw = np.abs(signed)
     pad = np.concatenate([[0.0], dw, [0.0]])
-    s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (vt[:-1] + vt[1:]) * h)])
-    s_at = np.clip(s_lin[1:-1] * (geom.length / s_lin[-1]), 0.0, geom.length)
-    straight = ~np.any(geom(s_at, 2) != 0.0, axis=1)
-    alone = (dw > 2.0 * np.maximum(pad[:-2], pad[2:])) | straight
+    alone = dw > 2.0 * np.maximum(pad[:-2], pad[2:])
+    if straight_steps:
+        s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (vt[:-1] + vt[1:]) * h)])
+        s_at = np.clip(s_lin[1:-1] * (geom.length / s_lin[-1]), 0.0, geom.length)
+        alone = alone | ~np.any(geom(s_at, 2) != 0.0, axis=1)
     big = steps > SWITCH_SHARE
     # two big steps of opposite signs within `CHATTER_MS`: toppra chattering along a constraint (a dip
     # of a few ms), which the chain smooths over, not a switch
@@ -575,7 +585,7 @@ def plan_run(
             v,
             geom(s_ms, 1).T,
             ~geom.merge_safe(s_ms),
-            p.real_switches,
+            p.real_switches if allow_short else p.long_switches,
             chain.budget,
             vlim_ms,
             alim_ms,
