@@ -633,7 +633,8 @@ def plan_run(
             # and not monotonically in the slow-down: try a few, the fastest that passes wins; else
             # repair locally what is left (or, after the last round, slow down further below)
             passed = False
-            for extra in SLOWER_LADDER:
+            # before the last round only the smallest: a local repair usually costs less time
+            for extra in SLOWER_LADDER if attempt == REPAIR_ROUNDS else SLOWER_LADDER[:1]:
                 slower = Profile(grid, sd, geom, alim, time_scale * max(over, 1.0) * (1.0 + extra), min_piece_ms)
                 q2, v2, al2, ar2, fit2 = evaluate(slower)
                 acc2, vel2 = _ratios(q2, v2, al2, ar2, vlim_ms, alim_ms)
