@@ -40,8 +40,9 @@ both the tolerance and the acceleration budget below.)
    split. Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
    excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
    `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
-   segments) and a long one (`variant=2`: fewer short segments, on a path profile with its switch
-   pieces merged more widely), then plays planned motions slower (sub-count moves need it).
+   segments) and a long one (`variant=2`: fewer short segments; on the same plan first, then on a path
+   profile with its switch pieces merged more widely and a chain without short segments), then plays
+   planned motions slower (sub-count moves need it).
 
 Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
 the last knot is the plan's end rounded to counts with velocity 0 (or the given end velocity of an

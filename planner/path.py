@@ -29,7 +29,10 @@ Theory of operation.
    acceleration against the limits. Overshoots tighten the toppra rows of the intervals concerned
    (for a chain, of the whole segment that overshoots) and solve again (at most `REPAIR_ROUNDS` times);
    a small residual is removed by playing the motion that much slower (`RESCALE_SHARE`), from the best
-   profile seen.
+   profile seen. A chain is fitted anew on every slower profile, and whether it passes is not monotone
+   in the slow-down (its knots move): a few slightly different slow-downs are tried (`SLOWER_LADDER`).
+   A chain without short segments (the smooth retry) also has a knot on every big acceleration step
+   of a straight piece (`_switch_mask`), so that none of its long segments straddles one.
 
 Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw toppra's own duration
 (which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.5 %
@@ -58,6 +61,10 @@ CHATTER_MS = 8  # big steps closer than this are chattering, not switches (`_swi
 SWITCH_SHARE = 0.35  # a step above this share that stands alone is a real switch (a chain's knot)
 ACC_SLACK = 1.0e-3  # planned acceleration may exceed the limit by this share (numerical noise)
 VEL_SLACK = 1.0e-4
+# extra slow-downs tried for a chain's small residual overshoot (plan_run): a chain is fitted anew on
+# each, so whether it passes is not monotone in the slow-down (measured on a 17 s 6-axis path: 0.08 %
+# slower overshoots by 10.6 %, 0.1 % passes, 0.13 % overshoots by 6 %, 0.4 % passes)
+SLOWER_LADDER = (1e-4, 1e-3, 2.5e-3, 5e-3)
 _THETAS = (0.0, 0.25, 0.5, 0.75, 1.0)  # where inside each grid interval the constraints are imposed
 
 
@@ -340,6 +347,8 @@ class Profile:
         steps = _joint_steps(self.tau, self.v, geom, alim)
         self.switches: IntArray = self.tau[1:-1][steps > STEP_SHARE]
         self.real_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim)]
+        # with every big step on a straight piece (for a chain without short segments: `_switch_mask`)
+        self.long_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim, True)]
 
     def sample(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """s, s_dot, s_ddot (left), s_ddot (right) at every ms 0..M."""
@@ -363,16 +372,31 @@ def _joint_steps(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: Float
     return out
 
 
-def _switch_mask(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray) -> NDArray[np.bool_]:
+def _switch_mask(
+    tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray, straight_steps: bool = False
+) -> NDArray[np.bool_]:
     """The real switches among the interior breakpoints: a joint-acceleration step above `SWITCH_SHARE`
     that stands out from its neighbours (the path-acceleration step more than twice theirs). Steps of
     similar size in a row are toppra's gridpoint staircase along a smoothly changing bound (a steep one
-    in a tight blend), not a bang-bang change."""
+    in a tight blend), not a bang-bang change.
+
+    `straight_steps` (the smooth plan's chain, whose segments are at least the encoder's `min_seg`):
+    where the path is straight (q'' = 0) there is no such staircase, so every big step is a switch,
+    also when the re-timing onto whole ms split one switch into two steps with a piece of intermediate
+    acceleration between them (measured: 0.58 + 0.42 of the limit 24 ms apart; a long chain segment
+    across either overshoots by up to 18 %, depending on where its knots happen to fall). Not for the
+    first plan: there the knots it adds can be a few ms apart, too close for the encoder's quantisation.
+    """
     steps = _joint_steps(tau, vt, geom, alim)
-    signed = np.diff(np.diff(vt) / np.diff(tau).astype(np.float64))
+    h = np.diff(tau).astype(np.float64)
+    signed = np.diff(np.diff(vt) / h)
     dw = np.abs(signed)
     pad = np.concatenate([[0.0], dw, [0.0]])
     alone = dw > 2.0 * np.maximum(pad[:-2], pad[2:])
+    if straight_steps:
+        s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (vt[:-1] + vt[1:]) * h)])
+        s_at = np.clip(s_lin[1:-1] * (geom.length / s_lin[-1]), 0.0, geom.length)
+        alone = alone | ~np.any(geom(s_at, 2) != 0.0, axis=1)
     big = steps > SWITCH_SHARE
     # two big steps of opposite signs within `CHATTER_MS`: toppra chattering along a constraint (a dip
     # of a few ms), which the chain smooths over, not a switch
@@ -561,7 +585,7 @@ def plan_run(
             v,
             geom(s_ms, 1).T,
             ~geom.merge_safe(s_ms),
-            p.real_switches,
+            p.real_switches if allow_short else p.long_switches,
             chain.budget,
             vlim_ms,
             alim_ms,
@@ -603,17 +627,24 @@ def plan_run(
             # the repairs made it worse: slow down the best profile seen instead
             _e, sd, prof, q, v, acc_l, acc_r, fit, acc_ratio, vel_ratio = best
         small = max(float(np.sqrt(acc_ratio.max())), float(vel_ratio.max())) <= 1.0 + RESCALE_SHARE
-        if small and chain is not None and attempt < REPAIR_ROUNDS:
-            # a chain fitted anew on a slightly slower profile may overshoot elsewhere: try it once,
-            # and repair locally what is left
-            over = max(float(np.sqrt(acc_ratio.max() / (1.0 + ACC_SLACK))), float(vel_ratio.max()))
-            slower = Profile(grid, sd, geom, alim, time_scale * over * (1.0 + 1e-4), min_piece_ms)
-            q2, v2, al2, ar2, fit2 = evaluate(slower)
-            acc2, vel2 = _ratios(q2, v2, al2, ar2, vlim_ms, alim_ms)
-            if acc2.max() <= 1.0 + ACC_SLACK and vel2.max() <= 1.0 + VEL_SLACK:
-                prof, q, v, acc_l, acc_r, fit = slower, q2, v2, al2, ar2, fit2
+        over = max(float(np.sqrt(acc_ratio.max() / (1.0 + ACC_SLACK))), float(vel_ratio.max()))
+        if chain is not None and (small or attempt == REPAIR_ROUNDS):
+            # a chain fitted anew on a slightly slower profile may overshoot elsewhere (its knots move),
+            # and not monotonically in the slow-down: try a few, the fastest that passes wins; else
+            # repair locally what is left (or, after the last round, slow down further below)
+            passed = False
+            # before the last round only the smallest: a local repair usually costs less time
+            for extra in SLOWER_LADDER if attempt == REPAIR_ROUNDS else SLOWER_LADDER[:1]:
+                slower = Profile(grid, sd, geom, alim, time_scale * max(over, 1.0) * (1.0 + extra), min_piece_ms)
+                q2, v2, al2, ar2, fit2 = evaluate(slower)
+                acc2, vel2 = _ratios(q2, v2, al2, ar2, vlim_ms, alim_ms)
+                passed = bool(acc2.max() <= 1.0 + ACC_SLACK and vel2.max() <= 1.0 + VEL_SLACK)
+                if passed:
+                    prof, q, v, acc_l, acc_r, fit = slower, q2, v2, al2, ar2, fit2
+                    break
+            if passed:
                 break
-        elif attempt == REPAIR_ROUNDS or small:
+        if attempt == REPAIR_ROUNDS or (small and chain is None):
             # what is left is small: play the whole motion slower (acceleration ~ 1/f^2); a chain is
             # fitted again on the slower profile, so check again
             scale = time_scale

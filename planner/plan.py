@@ -138,6 +138,7 @@ def plan_job(
     if max_segment_ms is not None:  # the bound in force (raised to what the acceleration budget allows)
         info["max_segment_ms"] = float(segment_bounds(scales, float(tol))[1])
     d = job.data
+    smooth_differs = False  # build(f, True) is another plan (toppra paths; see encode_with_retries)
 
     build: Callable[[float, bool], Reference]
     if isinstance(d, PathData):
@@ -166,6 +167,7 @@ def plan_job(
                     max_duration_s=MAX_DURATION_S,
                 )
         else:
+            smooth_differs = True
             runs = None
             chain = None
             if d.geometry == "lines":
@@ -281,7 +283,14 @@ def plan_job(
 
     retime = isinstance(d, PathData | MoveData)
     ref, knots, rec = encode_with_retries(
-        build, scales, tol, retime=retime, axes=job.axes, info_out=info, uniform_fallback=True
+        build,
+        scales,
+        tol,
+        retime=retime,
+        axes=job.axes,
+        info_out=info,
+        uniform_fallback=True,
+        smooth_differs=smooth_differs,
     )
     try:
         _check_reference_positions(ref, cfg, job.axes)
@@ -293,7 +302,9 @@ def plan_job(
         # path cannot (it stays between consecutive waypoints); slower, but a plan instead of a refusal
         shape[0] = "pchip"
         info["path_shape_pchip"] = 1.0
-        ref, knots, rec = encode_with_retries(build, scales, tol, retime=retime, axes=job.axes, info_out=info)
+        ref, knots, rec = encode_with_retries(
+            build, scales, tol, retime=retime, axes=job.axes, info_out=info, smooth_differs=smooth_differs
+        )
         _check_reference_positions(ref, cfg, job.axes)
     if isinstance(d, MoveData):
         info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
@@ -315,19 +326,29 @@ def encode_with_retries(
     info_out: dict[str, float] | None = None,
     uniform_fallback: bool = False,
     end_velocities_rpm: IntArray | None = None,
+    smooth_differs: bool = False,
 ) -> tuple[Reference, Knots, Reconstruction]:
     """Build the reference and encode it; planned motions are slowed down when quantisation needs it.
 
-    `info_out` receives `time_scale` (1.0 unless the motion had to be played slower) and
-    `encode_variant` (1 or 2 when the encoder needed its conservative or long placement).
+    The order of the retries: the conservative and then the long placement (encoder `variant` 1, 2) on
+    the plan as built; with `smooth_differs` (path jobs, whose `build(f, True)` is another plan: a chain
+    without short segments on a profile with its switch pieces merged more widely, which its repairs
+    often make a few % slower), the long placement is tried on that smooth plan only after it failed on
+    the first one; then slower replays of the smooth plan.
+
+    `info_out` receives `time_scale` (1.0 unless the motion had to be played slower),
+    `encode_variant` (1 or 2 when the encoder needed its conservative or long placement) and
+    `smooth_plan` (1 when the smooth plan was needed).
     """
     if info_out is None:
         info_out = {}
     factor = 1.0
     last = ""
     variant = 0
+    smooth = False
     ref = build(factor, False)
-    for _attempt in range(MAX_SLOWDOWNS):
+    # the placements (3, or 4 with the smooth plan), then up to 3 slower replays
+    for _attempt in range(MAX_SLOWDOWNS + (1 if smooth_differs else 0)):
         try:
             knots, rec = encode(
                 ref,
@@ -342,16 +363,22 @@ def encode_with_retries(
             )
             info_out["time_scale"] = factor
             info_out["encode_variant"] = float(variant)
+            if smooth_differs:
+                info_out["smooth_plan"] = float(smooth)
             return ref, knots, rec
         except EncodingNeedsTime as e:
             where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""
             last = e.message + where
             if variant < 2:
-                # other placements first: conservative on the same plan, then long segments on a plan
-                # whose short switch pieces are merged more widely (path jobs)
+                # other placements first: conservative on the same plan, then long segments (on the
+                # same plan first where the smooth one differs: a path chain's few short segments are
+                # often only too short for the default placement), then on the smooth plan
                 variant += 1
-                if variant == 2:
-                    ref = build(factor, True)
+                if variant == 1 or smooth_differs:
+                    continue
+            if not smooth:
+                smooth = True
+                ref = build(factor, True)
                 continue
             if not retime:
                 raise PlanningError(
@@ -361,6 +388,16 @@ def encode_with_retries(
             ref = build(factor, True)
         except EncodingFailed as e:
             where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""
+            if smooth_differs and not smooth and "int32" not in e.message:
+                # a path's first plan: what one placement misses (a few knots too close together for
+                # the quantisation), the next one or the smooth plan may not
+                last = e.message + where
+                if variant < 2:
+                    variant += 1
+                else:
+                    smooth = True
+                    ref = build(factor, True)
+                continue
             code = ENCODING_RANGE if "int32" in e.message else INFEASIBLE
             raise PlanningError(code, f"{e.message}{where}", detail={"stage": "encode"}) from None
     raise PlanningError(
