@@ -17,7 +17,7 @@ planned by `planner.stop.plan_change_from_wire` to the new target; `ChangePlanne
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from planner.config import CellConfig
 from planner.stop import ChangePlan, plan_change_from_wire, plan_emergency_stop_from_wire, plan_stop_from_wire
@@ -25,12 +25,13 @@ from planner.trajectory import PvtTrajectory
 from streamer.core.plan_source import StopPlanner, StopRequest
 
 
-def make_stop_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
+def _wire_planner(cell: CellConfig, traj: PvtTrajectory, plan_from_wire: Callable[..., PvtTrajectory]) -> StopPlanner:
+    """A core StopPlanner calling `plan_from_wire` (planner/stop.py) with the request's state in drive units."""
     names_by_node = dict(zip(traj.node_ids, traj.axis_names, strict=True))
 
     def plan(request: StopRequest) -> PvtTrajectory:
         names = [names_by_node[n] for n in request.node_ids]
-        return plan_stop_from_wire(
+        return plan_from_wire(
             cell,
             names,
             request.positions_counts,
@@ -40,25 +41,17 @@ def make_stop_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
         )
 
     return plan
+
+
+def make_stop_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
+    """The planner of a cancel's stop: jerk-limited, at each axis' acceleration limit."""
+    return _wire_planner(cell, traj, plan_stop_from_wire)
 
 
 def make_emergency_planner(cell: CellConfig, traj: PvtTrajectory) -> StopPlanner:
     """The planner of a `streamer.core.EmergencyStop`: the stop at each axis' emergency deceleration (cell config
     `emergency_deceleration`), from the same state as the cancel's stop."""
-    names_by_node = dict(zip(traj.node_ids, traj.axis_names, strict=True))
-
-    def plan(request: StopRequest) -> PvtTrajectory:
-        names = [names_by_node[n] for n in request.node_ids]
-        return plan_emergency_stop_from_wire(
-            cell,
-            names,
-            request.positions_counts,
-            request.velocities_rpm,
-            request.accelerations_counts_per_ms2,
-            tolerance_counts=traj.tolerance_counts,
-        )
-
-    return plan
+    return _wire_planner(cell, traj, plan_emergency_stop_from_wire)
 
 
 class ChangePlanner:
