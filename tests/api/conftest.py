@@ -119,3 +119,16 @@ def identity(certs: CertSet, name: str, **kw: Any) -> ClientSecurity:
     return ClientSecurity(
         ca=certs.ca_certificate, certificate=certs[name].certificate, private_key=certs[name].private_key, **kw
     )
+
+
+@pytest.fixture
+def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
+    """A service on the real backend with 3 simulated axes of the demo cell in this process (real time)."""
+    from streamer.runtime.backend import RuntimeBackend
+
+    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
+    try:
+        return serve(backend=backend)
+    except BaseException:
+        backend.close()
+        raise

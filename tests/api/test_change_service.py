@@ -29,18 +29,6 @@ def wait_moving(job: Job, progress: float = 0.15, timeout: float = 30.0) -> None
     raise AssertionError(f"job {job.job_id} not moving after {timeout} s")
 
 
-@pytest.fixture
-def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
-    from streamer.runtime.backend import RuntimeBackend
-
-    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
-    try:
-        return serve(backend=backend)
-    except BaseException:
-        backend.close()
-        raise
-
-
 def test_an_aborting_move_replaces_the_running_job_and_runs_to_its_own_target(real: Served) -> None:
     target = [-0.5, 0.6, -0.8]
     try:

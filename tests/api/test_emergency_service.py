@@ -11,25 +11,12 @@ from typing import Any
 
 import pytest
 
-from planner.config import CellConfig
 from streamer.api.client import JobFailedError
 from tests.api.conftest import Served
 from tests.api.test_change_service import wait_moving
 
 AXES = ["j1", "j2", "j3"]
 FIRST = [2.5, -1.8, 2.2]
-
-
-@pytest.fixture
-def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
-    from streamer.runtime.backend import RuntimeBackend
-
-    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
-    try:
-        return serve(backend=backend)
-    except BaseException:
-        backend.close()
-        raise
 
 
 def _wait(what: str, check: Callable[[], bool], timeout: float = 10.0) -> None:

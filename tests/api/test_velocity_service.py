@@ -5,27 +5,11 @@ changed; an additive move after a stop at an arbitrary position ends at the last
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
-import pytest
-
-from planner.config import CellConfig
 from streamer.api.client import Job, MotionClient
 from tests.api.conftest import Served
 
 AXES = ["j1", "j2", "j3"]
-
-
-@pytest.fixture
-def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
-    from streamer.runtime.backend import RuntimeBackend
-
-    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
-    try:
-        return serve(backend=backend)
-    except BaseException:
-        backend.close()
-        raise
 
 
 def wait_running(job: Job, timeout: float = 30.0) -> None:
