@@ -279,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--jobs", type=int, default=200)
     parser.add_argument("--minutes", type=float, default=10.0)
     parser.add_argument("--max-axes", type=int, default=40)
+    parser.add_argument("--variant", action="append", default=None, choices=sorted(VARIANTS),
+                        help="false-faults: only these drive variants (default: all)")
     args = parser.parse_args(argv)
     if args.only in (None, "capacity"):
         capacity(args.max_axes)
@@ -286,7 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.only in (None, "clock"):
         clock(args.minutes)
     if args.only in (None, "false-faults"):
-        false_faults(args.jobs, VARIANTS)
+        false_faults(args.jobs, {k: v for k, v in VARIANTS.items() if not args.variant or k in args.variant})
 
 
 if __name__ == "__main__":
