@@ -113,6 +113,19 @@ class AxisScales:
     # that what the feeders keep queued (a few segments) spans about the lead and a change acts sooner
     max_segment_ms: int | None = None
 
+    def subset(self, axes: IntArray) -> AxisScales:
+        """These scales for some of the axes only (rows `axes`)."""
+        return AxisScales(
+            self.counts_per_ms_per_rpm[axes],
+            self.velocity_limit[axes],
+            self.acceleration_limit[axes],
+            self.acceleration_axis[axes],
+            self.drive_velocity[axes],
+            self.drive_acceleration[axes],
+            None if self.toward_zero is None else self.toward_zero[axes],
+            self.max_segment_ms,
+        )
+
 
 @dataclass(frozen=True, eq=False)
 class Knots:
@@ -566,17 +579,19 @@ def _segment_costs(
     pa, pb = cand_p[:, :-1, :], cand_p[:, 1:, :]
     va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
     if exact:
-        dev = np.empty((*pa.shape[:2], pa.shape[2], pb.shape[2]))
-        demand_plan = planned_demand(ref, scales.toward_zero)
-        for k in range(dt.size):
-            ln = int(dt[k])
-            off = np.arange(1, ln + 1, dtype=np.float64)
-            h00, h10, h01, h11 = _hermite_basis(off, np.full(ln, dt[k]))
-            ha = pa[:, k, :, None] * h00 + va[:, k, :, None] * h10
-            hb = pb[:, k, :, None] * h01 + vb[:, k, :, None] * h11
-            hh = ha[:, :, None, :] + hb[:, None, :, :]
-            want = demand_plan[:, times[k] + 1 : times[k] + ln + 1]
-            dev[:, k] = np.abs(drive_round(hh, scales.toward_zero) - want[:, None, None, :]).max(axis=3)
+        # every tick of every segment at once: (n, ticks, C, C), the maximum per segment by reduceat
+        lengths = np.diff(times)
+        seg = np.repeat(np.arange(dt.size), lengths)
+        first = np.cumsum(lengths) - lengths
+        off = (np.arange(int(lengths.sum())) - first[seg] + 1).astype(np.float64)
+        h00, h10, h01, h11 = _hermite_basis(off, dt[seg])
+        ticks = times[0] + 1 + np.arange(off.size)
+        ha = pa[:, seg, :] * h00[None, :, None] + va[:, seg, :] * h10[None, :, None]
+        hb = pb[:, seg, :] * h01[None, :, None] + vb[:, seg, :] * h11[None, :, None]
+        hh = ha[:, :, :, None] + hb[:, :, None, :]
+        want = drive_round(ref.positions[:, ticks], scales.toward_zero)
+        miss = np.abs(drive_round(hh, scales.toward_zero) - want[:, :, None, None])
+        dev = np.maximum.reduceat(miss, first, axis=1)
         dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
     else:
         off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0))
@@ -665,37 +680,44 @@ def _refine(
     knots: Knots,
     scales: AxisScales,
     tolerance: float,
-    bad_segments: IntArray,
+    bad: NDArray[np.bool_],
     fixed_knots: set[int],
 ) -> Knots:
-    """Choose the values again around failing segments, with more candidates and an exact check."""
+    """Choose the values again around failing segments, with more candidates and an exact check.
+
+    `bad` (n_axes, N) marks the failing segments of each axis; a window of two knots either side of
+    them is chosen again on the axes that fail inside it (the others keep their values, which pass).
+    """
     times = knots.times_ms
     pos = knots.positions.copy()
     vel = knots.velocities_rpm.copy()
     nk = times.size
     windows: list[tuple[int, int]] = []
-    for s in sorted(set(bad_segments.tolist())):
+    for s in np.nonzero(bad.any(axis=0))[0].tolist():
         lo, hi = max(0, s - 2), min(nk - 1, s + 3)
         if windows and lo <= windows[-1][1]:
             windows[-1] = (windows[-1][0], hi)
         else:
             windows.append((lo, hi))
     for lo, hi in windows:
+        axes = np.nonzero(bad[:, lo:hi].any(axis=1))[0]
         sub = times[lo : hi + 1]
         fixed: dict[int, tuple[IntArray, IntArray]] = {
-            0: (pos[:, lo], vel[:, lo]),
-            hi - lo: (pos[:, hi], vel[:, hi]),
+            0: (pos[axes, lo], vel[axes, lo]),
+            hi - lo: (pos[axes, hi], vel[axes, hi]),
         }
         for k in range(lo + 1, hi):
             if k in fixed_knots:
-                fixed[k - lo] = (pos[:, k], vel[:, k])
-        cand_p, cand_v = _candidates(ref, sub, scales, (-3, -2, -1, 0, 1, 2, 3), fixed)
-        cost = _segment_costs(ref, sub, scales, tolerance, cand_p, cand_v, exact=True)
+                fixed[k - lo] = (pos[axes, k], vel[axes, k])
+        part = ref.axes_subset(axes)
+        sc = scales.subset(axes)
+        cand_p, cand_v = _candidates(part, sub, sc, (-3, -2, -1, 0, 1, 2, 3), fixed)
+        cost = _segment_costs(part, sub, sc, tolerance, cand_p, cand_v, exact=True)
         # the window's last knot is pinned too: only its candidate 0 may be reached
         cost[:, -1, :, 1:] = np.inf
         choice = _viterbi(cost)[:, :, None]
-        pos[:, lo : hi + 1] = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
-        vel[:, lo : hi + 1] = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
+        pos[axes, lo : hi + 1] = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
+        vel[axes, lo : hi + 1] = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
     return Knots(times, pos, vel)
 
 
@@ -879,10 +901,11 @@ def _quantise(
         fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
         pos, vel = _choose_values(ref, times, scales, tol, fixed)
         knots = Knots(times, pos, vel)
-        bad = _bad_segments(ref, knots, scales, tol, want)
-        if bad.size:
-            knots = _refine(ref, knots, scales, tol, bad, {0, times.size - 1})
-            bad = _bad_segments(ref, knots, scales, tol, want)
+        mask = _bad_mask(ref, knots, scales, tol, want)
+        if mask.any():
+            knots = _refine(ref, knots, scales, tol, mask, {0, times.size - 1})
+            mask = _bad_mask(ref, knots, scales, tol, want)
+        bad = np.nonzero(mask.any(axis=0))[0]
         if bad.size == 0:
             rec = reconstruct(knots, scales)
             _check_dynamics(ref, knots, rec, scales)
@@ -929,19 +952,23 @@ def _split_long(times: IntArray, max_seg: int) -> IntArray:
 
 def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, want: IntArray) -> IntArray:
     """Segments that miss the tolerance, 0x60C5, 0x607F or the acceleration-excess budget."""
+    out: IntArray = np.nonzero(_bad_mask(ref, knots, scales, tol, want).any(axis=0))[0]
+    return out
+
+
+def _bad_mask(
+    ref: Reference, knots: Knots, scales: AxisScales, tol: float, want: IntArray
+) -> NDArray[np.bool_]:
+    """(n_axes, N): which axis misses on which segment (see `_bad_segments`)."""
     rec = reconstruct(knots, scales)
     times = knots.times_ms
-    dev = np.abs(rec.demand - want).max(axis=0)
-    bad_ticks = np.nonzero(dev > tol)[0]
-    seg_dev = np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2)
+    bad = np.zeros((ref.n_axes, times.size - 1), dtype=bool)
+    axis, bad_ticks = np.nonzero(np.abs(rec.demand - want) > tol)
+    bad[axis, np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2)] = True
     excess = acceleration_excess(ref, knots, rec)
     peak = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
-    acc_bad = (
-        (excess > ACC_EXCESS_LIMIT * scales.acceleration_axis[:, None])
-        | (peak > scales.drive_acceleration[:, None])
-    ).any(axis=0)
-    out: IntArray = np.unique(np.concatenate([seg_dev, np.nonzero(acc_bad)[0]])).astype(np.int64)
-    return out
+    bad |= (excess > ACC_EXCESS_LIMIT * scales.acceleration_axis[:, None]) | (peak > scales.drive_acceleration[:, None])
+    return bad
 
 
 def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:

@@ -74,7 +74,9 @@ def round_counts(x: float) -> int:
 
 
 def round_counts_array(x: NDArray[np.float64]) -> NDArray[np.int64]:
-    return (np.sign(x) * np.floor(np.abs(x) + 0.5)).astype(np.int64)
+    """`round_counts` of every element (half away from zero): trunc(x + 0.5) above zero, and the
+    mirror image below (x - 0.5 is exactly -(|x| + 0.5) there), in two passes instead of four."""
+    return np.trunc(x + np.copysign(0.5, x)).astype(np.int64)
 
 
 def truncate_counts(x: float) -> int:

@@ -69,6 +69,15 @@ class Reference:
     def duration_ms(self) -> int:
         return int(self.positions.shape[1] - 1)
 
+    def axes_subset(self, axes: IntArray) -> Reference:
+        """The same plan on some of its axes only (rows `axes`; already validated, so not again)."""
+        out = object.__new__(Reference)
+        for name in ("positions", "velocities", "acc_left", "acc_right"):
+            object.__setattr__(out, name, _readonly(getattr(self, name)[axes]))
+        object.__setattr__(out, "breaks", self.breaks)
+        object.__setattr__(out, "hints", self.hints)
+        return out
+
     def acc_envelope(self) -> FloatArray:
         """max(|acc_left|, |acc_right|) at every ms: the planned acceleration magnitude there."""
         return np.maximum(np.abs(self.acc_left), np.abs(self.acc_right))
