@@ -578,49 +578,41 @@ def _segment_costs(
     dt = np.diff(times).astype(np.float64)
     pa, pb = cand_p[:, :-1, :], cand_p[:, 1:, :]
     va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
+    # the ticks looked at, flattened (segment `seg`, `off` ms into it; each segment's run starts at
+    # `first`): every tick, or the sample ticks `_PROX` of each segment
     if exact:
-        # every tick of every segment at once: (n, ticks, C, C), the maximum per segment by reduceat
         lengths = np.diff(times)
         seg = np.repeat(np.arange(dt.size), lengths)
         first = np.cumsum(lengths) - lengths
         off = (np.arange(int(lengths.sum())) - first[seg] + 1).astype(np.float64)
-        h00, h10, h01, h11 = _hermite_basis(off, dt[seg])
-        ticks = times[0] + 1 + np.arange(off.size)
-        ha = pa[:, seg, :] * h00[None, :, None] + va[:, seg, :] * h10[None, :, None]
-        hb = pb[:, seg, :] * h01[None, :, None] + vb[:, seg, :] * h11[None, :, None]
-        hh = ha[:, :, :, None] + hb[:, :, None, :]
-        want = drive_round(ref.positions[:, ticks], scales.toward_zero)
-        miss = np.abs(drive_round(hh, scales.toward_zero) - want[:, :, None, None])
-        dev = np.maximum.reduceat(miss, first, axis=1)
+    else:
+        q = _PROX.size
+        seg = np.repeat(np.arange(dt.size), q)
+        first = np.arange(dt.size) * q
+        off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0)).ravel()
+    h00, h10, h01, h11 = _hermite_basis(off, dt[seg])
+    tick = times[seg] + off.astype(np.int64)
+    p_at = ref.positions[:, tick]  # (n, T)
+    base = np.floor(p_at)  # work relative to whole counts near the plan: small numbers, float32 will do
+    f32 = np.float32
+    ea = ((pa[:, seg, :] - base[:, :, None]) * h00[None, :, None] + va[:, seg, :] * h10[None, :, None]).astype(f32)
+    eb = ((pb[:, seg, :] - base[:, :, None]) * h01[None, :, None] + vb[:, seg, :] * h11[None, :, None]).astype(f32)
+    d = ea[:, :, :, None] + eb[:, :, None, :]  # Hermite - base, (n, T, C, C)
+    want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
+    miss = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None])
+    if scales.toward_zero is not None and scales.toward_zero.any():  # those drives truncate
+        z = np.nonzero(scales.toward_zero)[0]
+        bz = base[z][:, :, None, None]
+        miss[z] = np.abs(np.trunc(d[z].astype(np.float64) + bz) - np.trunc(p_at[z])[:, :, None, None])
+    # the drive's rounded demand against the planned demand (its float error too, at sample ticks: a
+    # tie-breaker, smaller is more robust at the ticks in between); the verification that follows
+    # rounds in float64 as the drive does
+    dev = np.maximum.reduceat(miss, first, axis=1)
+    if exact:
         dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
     else:
-        off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0))
-        h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
-        tick = (times[:-1, None] + off).astype(np.int64)
-        p_at = ref.positions[:, tick]  # (n, N, Q)
-        base = np.floor(p_at)  # work relative to whole counts near the plan: small numbers, float32 is exact
-        frac = (p_at - base).astype(np.float32)  # plan - base, in [0, 1)
-        f32 = np.float32
-        ea = (
-            (pa[:, :, :, None] - base[:, :, None, :]) * h00[None, :, None, :]
-            + va[:, :, :, None] * h10[None, :, None, :]
-        ).astype(f32)
-        eb = (
-            (pb[:, :, :, None] - base[:, :, None, :]) * h01[None, :, None, :]
-            + vb[:, :, :, None] * h11[None, :, None, :]
-        ).astype(f32)
-        d = ea[:, :, :, None, :] + eb[:, :, None, :, :]  # Hermite - base, (n, N, C, C, Q)
-        want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
-        dev = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None, :]).max(axis=4)
-        if scales.toward_zero is not None and scales.toward_zero.any():  # those drives truncate
-            z = np.nonzero(scales.toward_zero)[0]
-            bz = base[z][:, :, None, None, :]
-            dz = np.trunc(d[z].astype(np.float64) + bz) - bz
-            wz = (np.trunc(p_at[z]) - base[z])[:, :, None, None, :]
-            dev[z] = np.abs(dz - wz).max(axis=4)
-        err = np.abs(d - frac[:, :, None, None, :]).max(axis=4)
-        # the drive's rounded demand against the planned demand at the sample ticks, and the float
-        # error as a tie-breaker (smaller is more robust at the ticks in between)
+        frac = (p_at - base).astype(f32)
+        err = np.maximum.reduceat(np.abs(d - frac[:, :, None, None]), first, axis=1)
         dev_cost = _HARD * (dev > tolerance) + 0.5 * (err / tolerance) ** 2
     t1 = dt[None, :, None, None]
     dp = pb[:, :, None, :] - pa[:, :, :, None]
@@ -832,7 +824,7 @@ def _uniform_alternative(
     knots than `best`, the same number spread evenly (no short last segment, which the acceleration
     budget would not allow) and the uniform grid itself have their values chosen and verified like any
     other placement, and the one with the fewest knots replaces `best`. Only grids with fewer knots
-    than `best` are looked at, each first at three ticks per segment (`_quick_miss`), so this costs
+    than `best` are looked at, each first at three ticks per segment (`_quick_misses`, all grids at once), so this costs
     little where the adaptive placement is far below the uniform grid (paths).
     """
     m = ref.duration_ms
@@ -840,18 +832,23 @@ def _uniform_alternative(
     p_first, v_first, _p_last, v_last = ends
     want = planned_demand(ref, scales.toward_zero)
     conv = scales.counts_per_ms_per_rpm[:, None]
-    for dt in range(min(segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS, m), 0, -1):
-        points = -(-m // dt) + 1
-        if points >= count:
-            break
-        times = np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
+    longest = min(segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS, m)
+    lengths = np.arange(longest, 0, -1)
+    lengths = lengths[-(-m // lengths) + 1 < count]  # only grids with fewer knots than `best`
+    if lengths.size == 0:
+        return best
+    grids = [np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64) for dt in lengths.tolist()]
+    # the cheap check (three ticks per segment) of every grid in one pass, then the full one in order
+    missed = _quick_misses(ref, grids, want, tol, scales, (p_first, v_first, v_last))
+    for times, miss in zip(grids, missed, strict=True):
+        if miss:
+            continue
         pos = want[:, times].copy()
         vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
         pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, v_last
-        if _quick_miss(ref, times, pos.astype(np.float64), vel * conv, want, tol, scales.toward_zero):
-            continue
         if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():
             continue
+        points = times.size
         even = np.unique(np.round(np.linspace(0.0, m, points))).astype(np.int64)
         for grid in (even, times):
             with contextlib.suppress(EncodingNeedsTime, EncodingFailed):
@@ -862,28 +859,39 @@ def _uniform_alternative(
     return best
 
 
-def _quick_miss(
+def _quick_misses(
     ref: Reference,
-    times: IntArray,
-    pos: FloatArray,
-    vel: FloatArray,
+    grids: list[IntArray],
     want: IntArray,
     tol: float,
-    toward_zero: NDArray[np.bool_] | None = None,
-) -> bool:
-    """Does the drive's reconstruction of these knots miss the planned demand at a quarter, half or three
-    quarters of some segment? (A cheap necessary check before the one at every ms.)"""
-    dt = np.diff(times).astype(np.float64)
+    scales: AxisScales,
+    first_last: tuple[IntArray, IntArray, IntArray],
+) -> NDArray[np.bool_]:
+    """For each uniform grid (knot values: the planned demand and the rpm nearest the plan's velocity;
+    knot 0 and the last velocity fixed): does the drive's reconstruction miss the planned demand at a
+    quarter, half or three quarters of some segment? All grids in one vectorised pass."""
+    p_first, v_first, v_last = first_last
+    conv = scales.counts_per_ms_per_rpm[:, None]
+    starts = np.concatenate([g[:-1] for g in grids])
+    stops = np.concatenate([g[1:] for g in grids])
+    owner = np.repeat(np.arange(len(grids)), [g.size - 1 for g in grids])
+    is_first = np.concatenate([[True], owner[1:] != owner[:-1]])
+    is_last = np.concatenate([owner[1:] != owner[:-1], [True]])
+    pa = want[:, starts].astype(np.float64)
+    pb = want[:, stops].astype(np.float64)
+    va = np.round(ref.velocities[:, starts] / conv)
+    vb = np.round(ref.velocities[:, stops] / conv)
+    pa[:, is_first] = p_first[:, None]
+    va[:, is_first] = v_first[:, None]
+    vb[:, is_last] = v_last[:, None]
+    dt = (stops - starts).astype(np.float64)
     off = np.clip(np.round(np.array([0.25, 0.5, 0.75])[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
     h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
-    h = (
-        pos[:, :-1, None] * h00
-        + vel[:, :-1, None] * h10
-        + pos[:, 1:, None] * h01
-        + vel[:, 1:, None] * h11
-    )
-    tick = (times[:-1, None] + off).astype(np.int64)
-    return bool((np.abs(drive_round(h, toward_zero) - want[:, tick]) > tol).any())
+    h = pa[:, :, None] * h00 + (va * conv)[:, :, None] * h10 + pb[:, :, None] * h01 + (vb * conv)[:, :, None] * h11
+    tick = (starts[:, None] + off).astype(np.int64)
+    seg_miss = (np.abs(drive_round(h, scales.toward_zero) - want[:, tick]) > tol).any(axis=(0, 2))
+    out: NDArray[np.bool_] = np.bincount(owner, weights=seg_miss, minlength=len(grids)) > 0
+    return out
 
 
 def _quantise(
