@@ -791,7 +791,9 @@ def encode(
     failure: EncodingNeedsTime | EncodingFailed | None = None
     found: tuple[Knots, Reconstruction] | None = None
     longest = segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS
-    for grid in (times, place_knots(ref, scales, share * tol, min_seg, longest, acc_share)):
+    # fewest knots first: where that placement passes, the other (more knots) is not quantised at all
+    long_grid = place_knots(ref, scales, share * tol, min_seg, longest, acc_share)
+    for grid in sorted((times, long_grid), key=len):
         if found is not None and grid.size >= found[0].times_ms.size:
             continue
         try:
