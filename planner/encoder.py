@@ -922,13 +922,21 @@ def _quantise(
             return knots, rec
         rec = reconstruct(knots, scales)
         dev = np.abs(rec.demand - want)
-        if not (dev > tol).any():
-            break
-        # split every segment that still holds a failing tick
-        bad_ticks = np.nonzero((dev > tol).any(axis=0))[0]
-        seg = np.unique(np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2))
-        a, b = times[seg], times[seg + 1]
-        split = b - a >= 2
+        if (dev > tol).any():
+            # split every segment that still holds a failing tick
+            bad_ticks = np.nonzero((dev > tol).any(axis=0))[0]
+            seg = np.unique(np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2))
+            a, b = times[seg], times[seg + 1]
+            split = b - a >= 2
+        else:
+            # only the acceleration budget fails: typically a short segment between long ones, whose
+            # end values the long neighbours pin down (their middles must stay within the tolerance
+            # too). Splitting the failing segments and their neighbours, where both halves stay at
+            # least `min_segment` long, leaves the values at the failing ends more freedom.
+            seg = np.unique(np.concatenate([bad - 1, bad, bad + 1]))
+            seg = seg[(seg >= 0) & (seg < times.size - 1)]
+            a, b = times[seg], times[seg + 1]
+            split = b - a >= 2 * segment_bounds(scales, tol)[0]
         if not split.any():
             break
         times = np.unique(np.concatenate([times, (a[split] + b[split]) // 2]))
