@@ -36,8 +36,10 @@ both the tolerance and the acceleration budget below.)
    the tolerance at sample ticks and minimises the acceleration excess over the plan. Rounding each
    value on its own is not enough (docs/formats.md, section 3).
 3. Verification of the drive's reconstruction (planner.hermite, rounded as the drive rounds) at every
-   ms. Segments that fail are refined locally (7 velocity candidates, exact check at every tick), then
-   split. Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
+   ms. Segments that fail are refined locally, on the axes that fail there (7 velocity candidates,
+   every tick checked), then split: those that miss the tolerance in two; where only the acceleration
+   budget fails, the failing segments and their neighbours where both halves stay at least
+   `min_segment` long (a short segment between long ones has its end values pinned by them). Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
    excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
    `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
    segments) and a long one (`variant=2`: fewer short segments; on the same plan first, then on a path
