@@ -39,7 +39,8 @@ both the tolerance and the acceleration budget below.)
    ms. Segments that fail are refined locally, on the axes that fail there (7 velocity candidates,
    every tick checked), then split: those that miss the tolerance in two; where only the acceleration
    budget fails, the failing segments and their neighbours where both halves stay at least
-   `min_segment` long (a short segment between long ones has its end values pinned by them). Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
+   `min_segment` long (a short segment between long ones has its end values pinned by them).
+   Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
    excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
    `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
    segments) and a long one (`variant=2`: fewer short segments; on the same plan first, then on a path
@@ -821,7 +822,9 @@ def _uniform_alternative(
     placed: int,
 ) -> tuple[Knots, Reconstruction] | None:
     """The coarsest uniform grid's number of knots, if fewer than `best`'s (or, when no other placement
-    passed, than the `placed` knots of the greedy placement) and they pass everything `encode` checks.
+    passed, than the `placed` knots of the greedy placement) and they pass everything `encode` checks
+    (the grid's plain values, or values chosen jointly on it; a grid that meets the tolerance but not
+    the acceleration budget gives way to the next finer one).
 
     An encoding should never need more knots than the coarsest plain uniform grid that meets the
     tolerance (planner/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
@@ -850,16 +853,24 @@ def _uniform_alternative(
         pos = want[:, times].copy()
         vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
         pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, v_last
-        if (np.abs(reconstruct(Knots(times, pos, vel), scales).demand - want) > tol).any():
+        plain = Knots(times, pos, vel)
+        if (np.abs(reconstruct(plain, scales).demand - want) > tol).any():
             continue
         points = times.size
         even = np.unique(np.round(np.linspace(0.0, m, points))).astype(np.int64)
+        found = False
         for grid in (even, times):
             with contextlib.suppress(EncodingNeedsTime, EncodingFailed):
                 other = _quantise(ref, grid, scales, tol, ends)  # may split segments: count again
                 if best is None or other[0].times_ms.size < best[0].times_ms.size:
-                    best = other
-        break
+                    best, found = other, True
+        # the grid's own values (what uniform.py measures) where they keep every promise and the
+        # joint choice on the same grid did not (it may trade the acceleration budget differently)
+        if (best is None or points < best[0].times_ms.size) and within_contract(ref, plain, scales, tol):
+            best, found = (plain, reconstruct(plain, scales)), True
+        if found:
+            break
+        # this grid meets the tolerance but not the rest of the contract: a finer one still may
     return best
 
 

@@ -50,6 +50,8 @@ def test_hard_case(cell: CellConfig, case: dict[str, Any]) -> None:
         assert traj.duration_s <= case["max_duration_s"]
     if "min_points" in case:
         assert traj.n_points >= case["min_points"]
+    if "max_points" in case:
+        assert traj.n_points <= case["max_points"], (traj.n_points, traj.knot_times_ms)
     if "max_segment_ms" in case:
         assert int(traj.dt_ms.max()) <= case["max_segment_ms"]
     if "max_over_optimum" in case:
