@@ -250,7 +250,6 @@ def fit_chain(
             axis=1,
         )
         lens = np.clip(lens, short[:, None], hi[:, None]).astype(np.int64)
-        k = lens.shape[1]
         rem = room[:, None] - lens
         # preference: at least min_seg (the encoder's quantisation needs it); finish the section; else
         # the longest that leaves at least min_seg; else a half; shorter ones only when nothing else passes
@@ -258,20 +257,7 @@ def fit_chain(
         half = lens == np.ceil(room / 2.0)[:, None]
         long = lens >= lo[:, None]
         prefer = lens + 8192 * long + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half
-        prefer = np.where(cands.limits_ok(np.repeat(c, k), lens.ravel()).reshape(-1, k), prefer, 0)
-        # the most preferred candidate that passes: sample the best of every section, drop the lengths
-        # that fail, until each section has one or has none left
-        best = np.zeros(act.size, dtype=np.int64)
-        rows = np.arange(act.size)
-        while rows.size:
-            top = prefer[rows].max(axis=1)
-            rows, length = rows[top > 0], top[top > 0] % 1024
-            if rows.size == 0:
-                break
-            good = cands.samples_ok(c[rows], length)
-            best[rows[good]] = length[good]
-            rows, length = rows[~good], length[~good]
-            prefer[rows] = np.where(lens[rows] == length[:, None], 0, prefer[rows])
+        best = _first_passing(cands, c, lens, prefer)
         # nothing passes: the shortest allowed segment (its violation is reported to the caller)
         best = np.where(best > 0, best, short)
         cur[act] += best
@@ -295,6 +281,29 @@ def fit_chain(
         knots = np.unique(np.concatenate([knots, (knots[bad] + knots[bad + 1]) // 2]))
         every = None
     return _chain(q, v, knots, vlim, alim, every)
+
+
+def _first_passing(cands: _Candidates, starts: IntArray, lens: IntArray, prefer: IntArray) -> IntArray:
+    """Per section (row): the length of its most preferred candidate segment from `starts` that passes,
+    0 where none does; `lens`, `prefer` (sections, candidates), a preference determining its length.
+
+    Every candidate gets the cheap limit checks, and the samples of only the best that passed them:
+    where that fails, the next best, until each section has one or has none left. The same choice as
+    checking every candidate fully (tests/planner/test_planner_chain.py)."""
+    k = lens.shape[1]
+    prefer = np.where(cands.limits_ok(np.repeat(starts, k), lens.ravel()).reshape(-1, k), prefer, 0)
+    best = np.zeros(starts.size, dtype=np.int64)
+    rows = np.arange(starts.size)
+    while rows.size:
+        top = prefer[rows].max(axis=1)
+        rows, length = rows[top > 0], top[top > 0] % 1024
+        if rows.size == 0:
+            break
+        good = cands.samples_ok(starts[rows], length)
+        best[rows[good]] = length[good]
+        rows, length = rows[~good], length[~good]
+        prefer[rows] = np.where(lens[rows] == length[:, None], 0, prefer[rows])
+    return best
 
 
 def _lengthen(cands: _Candidates, knots: IntArray, mand: IntArray, min_seg: int, max_seg: int) -> IntArray:
