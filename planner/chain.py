@@ -21,6 +21,11 @@ the profile's bang-bang switches, which are knots of their own since a cubic can
 - limits: the segment's velocity at every ms and its acceleration (linear, so its peak is at an end)
   within the joint limits (`ACC_SLACK`, `VEL_SLACK`: numerical noise).
 
+The search is cheap where it can be: every candidate segment gets the per-segment limit checks (end
+accelerations, the vertex of the velocity parabola), and only the most preferred one that passes them
+is sampled (`_first_passing`; the geometry rarely fails); `_lengthen` checks all its candidates in one
+batch; the final every-ms check and the chain share their samples.
+
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
 there (tightening toppra's constraints) and fits again.
