@@ -21,6 +21,11 @@ the profile's bang-bang switches, which are knots of their own since a cubic can
 - limits: the segment's velocity at every ms and its acceleration (linear, so its peak is at an end)
   within the joint limits (`ACC_SLACK`, `VEL_SLACK`: numerical noise).
 
+The search is cheap where it can be: every candidate segment gets the per-segment limit checks (end
+accelerations, the vertex of the velocity parabola), and only the most preferred one that passes them
+is sampled (`_first_passing`; the geometry rarely fails); `_lengthen` checks all its candidates in one
+batch; the final every-ms check and the chain share their samples.
+
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
 there (tightening toppra's constraints) and fits again.
@@ -57,9 +62,10 @@ class ChainFit:
     vel_ratio: FloatArray  # (M+1,) largest |velocity| / limit over the axes
 
 
-def _segments(
-    q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray, sampled: bool = False
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray]:
+_Ticks = tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray]
+
+
+def _segments(q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray, sampled: bool = False) -> _Ticks:
     """Every tick 1..L of the given segments (or, `sampled`, the ticks at `_SAMPLES` of each): Hermite
     position and velocity (n, ticks), the two end accelerations (n, segs), the tick numbers and the
     segment of every tick."""
@@ -95,43 +101,74 @@ def _segments(
     return pos, vel, acc_s, acc_e, ticks, seg
 
 
-def _scores(
-    q: FloatArray,
-    v: FloatArray,
-    tangent: FloatArray,
-    curved: NDArray[np.bool_],
-    starts: IntArray,
-    lengths: IntArray,
-    budget: FloatArray,
-    vlim: FloatArray,
-    alim: FloatArray,
-    box: tuple[FloatArray, FloatArray],
-    sampled: bool = False,
-) -> tuple[FloatArray, FloatArray]:
-    """Per candidate segment: the geometric error over the budget (2 where it leaves the position
-    limits) and the larger limit ratio; at every tick, or (`sampled`, for the greedy search) at a few
-    ticks of each segment plus the exact velocity peak (the velocity of a cubic is a parabola)."""
-    pos, vel, acc_s, acc_e, ticks, _seg = _segments(q, v, starts, lengths, sampled)
-    first = np.arange(starts.size) * _SAMPLES.size if sampled else np.cumsum(lengths) - lengths
-    err = _deviation(pos, q, tangent, curved, ticks, budget)
-    outside = ((pos < box[0][:, None]) | (pos > box[1][:, None])).any(axis=0)
-    err = np.where(outside, np.maximum(err, 2.0), err)
-    vr = (np.abs(vel) / vlim[:, None]).max(axis=0)
-    geo = np.maximum.reduceat(err, first)
-    vel_r = np.maximum.reduceat(vr, first)
-    if sampled:
-        vel_r = np.maximum(vel_r, (_velocity_peak(q, v, starts, lengths) / vlim[:, None]).max(axis=0))
-    acc_r = (np.maximum(np.abs(acc_s), np.abs(acc_e)) / alim[:, None]).max(axis=0)
-    lim = np.maximum((acc_r - ACC_SLACK), (vel_r - VEL_SLACK))
-    return geo, lim
+class _Candidates:
+    """Checks candidate segments of one fit at `_SAMPLES` of each (the greedy search and `_lengthen`).
+
+    A segment passes when its end accelerations and the vertex of its velocity parabola are within the
+    limits (`limits_ok`: per segment, cheap) and, at the sample ticks, its velocity is within the limits
+    and its position within the budget of the path and inside the box (`samples_ok`: per sample). The
+    searches ask for the cheap check of all their candidates and for the samples of only the best
+    candidate that passed it, in their order of preference: the geometry rarely fails, so most
+    candidates are never sampled.
+    """
+
+    def __init__(
+        self,
+        q: FloatArray,
+        v: FloatArray,
+        tangent: FloatArray,
+        curved: NDArray[np.bool_],
+        budget: FloatArray,
+        vlim: FloatArray,
+        alim: FloatArray,
+        box: tuple[FloatArray, FloatArray],
+    ):
+        self.q, self.v, self.tangent, self.curved = q, v, tangent, curved
+        self.budget = budget[:, None]
+        self.vlim = vlim[:, None]
+        self.alim = alim[:, None]
+        self.lower = box[0][:, None]
+        self.upper = box[1][:, None]
+        self.cache: dict[tuple[int, int], bool] = {}
+
+    def limits_ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
+        """End accelerations (the acceleration is linear: its peak is at an end) and the velocity peak."""
+        q, v = self.q, self.v
+        t1 = lengths.astype(np.float64)
+        e = starts + lengths
+        qa, qb, va, vb = q[:, starts], q[:, e], v[:, starts], v[:, e]
+        dp = qb - qa
+        tt = t1 * t1
+        acc_s = (6.0 * dp - 2.0 * t1 * vb - 4.0 * t1 * va) / tt
+        acc_e = (-6.0 * dp + 4.0 * t1 * vb + 2.0 * t1 * va) / tt
+        acc_r = (np.maximum(np.abs(acc_s), np.abs(acc_e)) / self.alim).max(axis=0)
+        peak = (_peak(qa, qb, va, vb, t1) / self.vlim).max(axis=0)
+        out: NDArray[np.bool_] = (acc_r - ACC_SLACK <= 1.0) & (peak - VEL_SLACK <= 1.0)
+        return out
+
+    def samples_ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
+        """Velocity, geometry and the box at the sample ticks of each segment."""
+        pos, vel, _acc_s, _acc_e, ticks, _seg = _segments(self.q, self.v, starts, lengths, True)
+        k = _SAMPLES.size
+        vel_r = (np.abs(vel) / self.vlim).max(axis=0).reshape(-1, k).max(axis=1)
+        err = _deviation(pos, self.q, self.tangent, self.curved, ticks, self.budget[:, 0])
+        outside = ((pos < self.lower) | (pos > self.upper)).any(axis=0)
+        geo = np.where(outside, np.maximum(err, 2.0), err).reshape(-1, k).max(axis=1)
+        out: NDArray[np.bool_] = (geo <= 1.0) & (vel_r - VEL_SLACK <= 1.0)
+        return out
+
+    def ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
+        """Both checks (samples only where the limits pass), remembered for this fit."""
+        out = self.limits_ok(starts, lengths)
+        idx = np.nonzero(out)[0]
+        if idx.size:
+            out[idx] = self.samples_ok(starts[idx], lengths[idx])
+        return out
 
 
-def _velocity_peak(q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray) -> FloatArray:
+def _peak(qa: FloatArray, qb: FloatArray, va: FloatArray, vb: FloatArray, t1: FloatArray) -> FloatArray:
     """|velocity| at the vertex of each segment's velocity parabola, where it lies inside (n, segs)."""
-    t1 = lengths.astype(np.float64)
-    e = starts + lengths
-    dp = (q[:, starts] - q[:, e]) / t1  # velocity in x = t / T: A x^2 + B x + C
-    va, vb = v[:, starts], v[:, e]
+    dp = (qa - qb) / t1  # velocity in x = t / T: A x^2 + B x + C
     a2 = 6.0 * dp + 3.0 * va + 3.0 * vb
     b1 = -6.0 * dp - 4.0 * va - 2.0 * vb
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -192,6 +229,7 @@ def fit_chain(
         box = (np.full(q.shape[0], -np.inf), np.full(q.shape[0], np.inf))
     ty = direction / budget[:, None]
     tangent = ty / np.maximum(np.linalg.norm(ty, axis=0), 1e-300)[None, :]
+    cands = _Candidates(q, v, tangent, curved, budget, vlim, alim, box)
     sec_start, sec_end = mand[:-1].copy(), mand[1:].copy()
     cur = sec_start.copy()
     prev = np.minimum(sec_end - sec_start, max_seg).astype(np.int64)
@@ -217,18 +255,14 @@ def fit_chain(
             axis=1,
         )
         lens = np.clip(lens, short[:, None], hi[:, None]).astype(np.int64)
-        k = lens.shape[1]
-        geo, lim = _scores(q, v, tangent, curved, np.repeat(c, k), lens.ravel(), budget, vlim, alim, box, True)
-        ok = ((geo <= 1.0) & (lim <= 1.0)).reshape(-1, k)
         rem = room[:, None] - lens
         # preference: at least min_seg (the encoder's quantisation needs it); finish the section; else
         # the longest that leaves at least min_seg; else a half; shorter ones only when nothing else passes
+        # (a preference determines its length: lengths are below 1024)
         half = lens == np.ceil(room / 2.0)[:, None]
         long = lens >= lo[:, None]
-        score = np.where(
-            ok, lens + 8192 * long + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half, 0
-        )
-        best = score.max(axis=1) % 1024
+        prefer = lens + 8192 * long + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half
+        best = _first_passing(cands, c, lens, prefer)
         # nothing passes: the shortest allowed segment (its violation is reported to the caller)
         best = np.where(best > 0, best, short)
         cur[act] += best
@@ -236,81 +270,115 @@ def fit_chain(
         found.append(cur[act].copy())
     knots = np.unique(np.concatenate(found)).astype(np.int64)
     if allow_short:
-        knots = _lengthen(q, v, tangent, curved, knots, mand, budget, vlim, alim, min_seg, max_seg, box)
+        knots = _lengthen(cands, knots, mand, min_seg, max_seg)
     # the search looked at a few ticks per segment: check every tick, halve what fails the geometry
+    every: _Ticks | None = None
     for _round in range(4):
-        geo, _lim = _scores(q, v, tangent, curved, knots[:-1], np.diff(knots), budget, vlim, alim, box)
+        lengths = np.diff(knots)
+        every = _segments(q, v, knots[:-1], lengths)
+        pos, ticks = every[0], every[4]
+        err = _deviation(pos, q, tangent, curved, ticks, budget)
+        outside = ((pos < box[0][:, None]) | (pos > box[1][:, None])).any(axis=0)
+        geo = np.maximum.reduceat(np.where(outside, np.maximum(err, 2.0), err), np.cumsum(lengths) - lengths)
         bad = np.nonzero((geo > 1.0) & (np.diff(knots) >= 2))[0]
         if bad.size == 0:
             break
         knots = np.unique(np.concatenate([knots, (knots[bad] + knots[bad + 1]) // 2]))
-    return _chain(q, v, knots, vlim, alim)
+        every = None
+    return _chain(q, v, knots, vlim, alim, every)
 
 
-def _lengthen(
-    q: FloatArray,
-    v: FloatArray,
-    tangent: FloatArray,
-    curved: NDArray[np.bool_],
-    knots: IntArray,
-    mand: IntArray,
-    budget: FloatArray,
-    vlim: FloatArray,
-    alim: FloatArray,
-    min_seg: int,
-    max_seg: int,
-    box: tuple[FloatArray, FloatArray],
-) -> IntArray:
+def _first_passing(cands: _Candidates, starts: IntArray, lens: IntArray, prefer: IntArray) -> IntArray:
+    """Per section (row): the length of its most preferred candidate segment from `starts` that passes,
+    0 where none does; `lens`, `prefer` (sections, candidates), a preference determining its length.
+
+    Every candidate gets the cheap limit checks, and the samples of only the best that passed them:
+    where that fails, the next best, until each section has one or has none left. The same choice as
+    checking every candidate fully (tests/planner/test_planner_chain.py)."""
+    k = lens.shape[1]
+    prefer = np.where(cands.limits_ok(np.repeat(starts, k), lens.ravel()).reshape(-1, k), prefer, 0)
+    best = np.zeros(starts.size, dtype=np.int64)
+    rows = np.arange(starts.size)
+    while rows.size:
+        top = prefer[rows].max(axis=1)
+        rows, length = rows[top > 0], top[top > 0] % 1024
+        if rows.size == 0:
+            break
+        good = cands.samples_ok(starts[rows], length)
+        best[rows[good]] = length[good]
+        rows, length = rows[~good], length[~good]
+        prefer[rows] = np.where(lens[rows] == length[:, None], 0, prefer[rows])
+    return best
+
+
+def _lengthen(cands: _Candidates, knots: IntArray, mand: IntArray, min_seg: int, max_seg: int) -> IntArray:
     """Remove the short segments the greedy fit left, where a neighbouring knot can move (or go) so that
     every segment concerned is at least `min_seg` long and passes: the greedy only looks forward, and a
-    knot a few ms earlier often avoids the short segment after it."""
+    knot a few ms earlier often avoids the short segment after it.
+
+    The short segments are taken one after the other (a change moves the neighbours of the next one);
+    the candidate segments of all of them are checked at once first, and only those a change made new
+    are checked on the way."""
     t = knots.copy()
     fixed = np.isin(t, mand)
-    k = 0
-    while k + 1 < t.size:
+
+    def options(k: int) -> list[tuple[int, int, list[tuple[int, int]]]]:
+        """(knot index, new value or -1 to remove it, the segments that makes) for short segment k."""
         a, b = int(t[k]), int(t[k + 1])
-        k += 1
-        if b - a >= min_seg:
-            continue
-        k -= 1
-        options: list[tuple[int, int, list[tuple[int, int]]]] = []  # (knot index, new value or -1, segments)
+        out: list[tuple[int, int, list[tuple[int, int]]]] = []
         if k >= 1 and not fixed[k]:
             p = int(t[k - 1])
             if b - p <= max_seg:
-                options.append((k, -1, [(p, b)]))
+                out.append((k, -1, [(p, b)]))
             for x in range(b - min_seg, p + min_seg - 1, -1)[:8]:
-                options.append((k, x, [(p, x), (x, b)]))
+                out.append((k, x, [(p, x), (x, b)]))
         if k + 2 < t.size and not fixed[k + 1]:
             n = int(t[k + 2])
             if n - a <= max_seg:
-                options.append((k + 1, -1, [(a, n)]))
+                out.append((k + 1, -1, [(a, n)]))
             for x in range(a + min_seg, n - min_seg + 1)[:8]:
-                options.append((k + 1, x, [(a, x), (x, n)]))
-        k += 1
-        if not options:
+                out.append((k + 1, x, [(a, x), (x, n)]))
+        return out
+
+    def check(segs: list[tuple[int, int]]) -> None:
+        new = sorted({s for s in segs if s not in cands.cache})
+        if new:
+            st = np.array([s[0] for s in new], dtype=np.int64)
+            ok = cands.ok(st, np.array([s[1] for s in new], dtype=np.int64) - st)
+            cands.cache.update(zip(new, ok.tolist(), strict=True))
+
+    short = np.nonzero(np.diff(t) < min_seg)[0]
+    check([s for k in short.tolist() for opt in options(k) for s in opt[2]])
+    k = 0
+    while k + 1 < t.size:
+        if int(t[k + 1]) - int(t[k]) >= min_seg:
+            k += 1
             continue
-        segs = [seg for opt in options for seg in opt[2]]
-        st = np.array([x[0] for x in segs], dtype=np.int64)
-        ln = np.array([x[1] - x[0] for x in segs], dtype=np.int64)
-        geo, lim = _scores(q, v, tangent, curved, st, ln, budget, vlim, alim, box, True)
-        good = (geo <= 1.0) & (lim <= 1.0)
-        pos = 0
-        for idx, value, sg in options:
-            if good[pos : pos + len(sg)].all():
+        opts = options(k)
+        k += 1
+        check([s for opt in opts for s in opt[2]])
+        for idx, value, sg in opts:
+            if all(cands.cache[s] for s in sg):
                 if value < 0:
                     t = np.delete(t, idx)
                     fixed = np.delete(fixed, idx)
                 else:
                     t[idx] = value
                 break
-            pos += len(sg)
     return t
 
 
-def _chain(q: FloatArray, v: FloatArray, knots: IntArray, vlim: FloatArray, alim: FloatArray) -> ChainFit:
+def _chain(
+    q: FloatArray,
+    v: FloatArray,
+    knots: IntArray,
+    vlim: FloatArray,
+    alim: FloatArray,
+    every: _Ticks | None = None,
+) -> ChainFit:
     n, total = q.shape[0], q.shape[1]
     starts, lengths = knots[:-1], np.diff(knots)
-    pos, vel, acc_s, acc_e, ticks, seg = _segments(q, v, starts, lengths)
+    pos, vel, acc_s, acc_e, ticks, seg = every if every is not None else _segments(q, v, starts, lengths)
     positions = np.empty((n, total))
     velocities = np.empty((n, total))
     positions[:, 0], velocities[:, 0] = q[:, 0], v[:, 0]

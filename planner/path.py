@@ -575,15 +575,17 @@ def plan_run(
 
     def evaluate(
         p: Profile, allow_short: bool = chain is None or chain.short
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, ChainFit | None]:
-        q, v, acc_l, acc_r = joint_samples(geom, p)
+    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, ChainFit | None, FloatArray, FloatArray]:
+        """The plan on profile `p` at every ms, and its acceleration and velocity ratios."""
         if chain is None:
-            return q, v, acc_l, acc_r, None
-        s_ms = p.sample()[0]
+            q, v, acc_l, acc_r = joint_samples(geom, p)
+            return q, v, acc_l, acc_r, None, *_ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)
+        s_ms, sd = p.sample()[:2]
+        q1 = geom(s_ms, 1).T  # the path's direction, also the joint velocity per unit of path velocity
         f = fit_chain(
-            q,
-            v,
-            geom(s_ms, 1).T,
+            geom(s_ms, 0).T,
+            q1 * sd,
+            q1,
             ~geom.merge_safe(s_ms),
             p.real_switches if allow_short else p.long_switches,
             chain.budget,
@@ -594,7 +596,7 @@ def plan_run(
             allow_short,
             (chain.lower, chain.upper),
         )
-        return f.positions, f.velocities, f.acc_left, f.acc_right, f
+        return f.positions, f.velocities, f.acc_left, f.acc_right, f, f.acc_ratio, f.vel_ratio
 
     for attempt in range(REPAIR_ROUNDS + 1):
         try:
@@ -616,8 +618,7 @@ def plan_run(
                         f"limit of {MAX_DURATION_S:g} s",
                         path="waypoints",
                     )
-        q, v, acc_l, acc_r, fit = evaluate(prof)
-        acc_ratio, vel_ratio = _ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)
+        q, v, acc_l, acc_r, fit, acc_ratio, vel_ratio = evaluate(prof)
         if acc_ratio.max() <= 1.0 + ACC_SLACK and vel_ratio.max() <= 1.0 + VEL_SLACK:
             break
         excess = max(float(np.sqrt(acc_ratio.max())), float(vel_ratio.max()))
@@ -636,8 +637,7 @@ def plan_run(
             # before the last round only the smallest: a local repair usually costs less time
             for extra in SLOWER_LADDER if attempt == REPAIR_ROUNDS else SLOWER_LADDER[:1]:
                 slower = Profile(grid, sd, geom, alim, time_scale * max(over, 1.0) * (1.0 + extra), min_piece_ms)
-                q2, v2, al2, ar2, fit2 = evaluate(slower)
-                acc2, vel2 = _ratios(q2, v2, al2, ar2, vlim_ms, alim_ms)
+                q2, v2, al2, ar2, fit2, acc2, vel2 = evaluate(slower)
                 passed = bool(acc2.max() <= 1.0 + ACC_SLACK and vel2.max() <= 1.0 + VEL_SLACK)
                 if passed:
                     prof, q, v, acc_l, acc_r, fit = slower, q2, v2, al2, ar2, fit2
@@ -652,8 +652,7 @@ def plan_run(
                 over = max(float(np.sqrt(acc_ratio.max() / (1.0 + ACC_SLACK))), float(vel_ratio.max()))
                 scale *= max(over, 1.0) * (1.0 + 1e-4)
                 prof = Profile(grid, sd, geom, alim, scale, min_piece_ms)
-                q, v, acc_l, acc_r, fit = evaluate(prof)
-                acc_ratio, vel_ratio = _ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)
+                q, v, acc_l, acc_r, fit, acc_ratio, vel_ratio = evaluate(prof)
                 if acc_ratio.max() <= 1.0 + ACC_SLACK and vel_ratio.max() <= 1.0 + VEL_SLACK:
                     break
             break
