@@ -302,8 +302,20 @@ class DriveSettings:
     heartbeat_timeout_ms: int = 350  # consumer timeout on the master side
     following_error_counts: int = 20_000  # 0x6065
     profile_deceleration: float = 0.0  # 0x6084 in user units/s^2 for halt; 0 = use axis acceleration
+    # master side: a drive whose TPDO1/TPDO2 miss this many SYNCs in a row has failed (TPDO_TIMEOUT); a
+    # host that stalls longer than that (a busy laptop, drives simulated in the master's process) needs more
+    tpdo_timeout_syncs: int = 3
 
     def __post_init__(self) -> None:
+        if isinstance(self.tpdo_timeout_syncs, bool) or not isinstance(self.tpdo_timeout_syncs, int) or not (
+            1 <= self.tpdo_timeout_syncs <= 100
+        ):
+            raise PlanningError(
+                CONFIG,
+                f"drive.tpdo_timeout_syncs is {self.tpdo_timeout_syncs!r}; it must be a whole number of SYNCs "
+                "in 1..100",
+                path="drive.tpdo_timeout_syncs",
+            )
         if self.heartbeat_ms > 0 and self.heartbeat_timeout_ms < self.heartbeat_ms + 10 + 50:
             raise PlanningError(
                 CONFIG,

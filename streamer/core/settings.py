@@ -190,6 +190,7 @@ class StreamerSettings:
             underflow_watermark=cell.drive.underflow_warning,
             overflow_watermark=cell.drive.overflow_warning,
             heartbeat_ms=cell.drive.heartbeat_ms,
+            tpdo_timeout_syncs=cell.drive.tpdo_timeout_syncs,
             counts_per_rev={a.node_id: int(a.counts_per_rev) for a in cell.axes},
             target_window_counts={a.node_id: round(a.target_window_user * a.counts_per_unit) for a in cell.axes},
             in_target_timeout_ms={a.node_id: int(a.in_target_timeout_ms) for a in cell.axes},

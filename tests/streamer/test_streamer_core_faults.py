@@ -163,6 +163,23 @@ def test_tpdos_missing_for_three_syncs() -> None:
     assert_failed_and_poisoned(rig, oc.TPDO_TIMEOUT, 2, first)
 
 
+def test_a_wider_tpdo_timeout_waits_that_many_syncs() -> None:
+    # [drive] tpdo_timeout_syncs in the cell TOML (tests/streamer/test_streamer_core_units.py: it reaches
+    # StreamerSettings.from_cell); a host that stalls longer than three SYNCs needs it
+    plan = make_plan(3, 2000, seed=11)
+    rig = running_rig(plan, settings=StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR),
+                                                      tpdo_timeout_syncs=6))
+    gone = rig.count
+    rig.tpdo_filter = lambda ev: not (getattr(ev, "node", 0) == 2 and isinstance(ev, BufferStatus))
+    first = len(rig.sent)
+    for _ in range(6):
+        rig.sync()  # three more unanswered SYNCs than the default waits for
+    assert rig.core.state is JobState.RUNNING
+    rig.sync()
+    assert rig.core.outcome is not None and rig.core.outcome.sync == gone + 6
+    assert_failed_and_poisoned(rig, oc.TPDO_TIMEOUT, 2, first)
+
+
 def test_two_missing_tpdos_are_tolerated() -> None:
     rig = running_rig()
     gone = rig.count

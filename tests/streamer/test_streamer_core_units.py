@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 from hypothesis import given
@@ -181,6 +182,23 @@ def test_settings_from_the_demo_cell(demo_cell: object) -> None:
     assert s.sync_period_ms == 10 and s.bitrate == 1_000_000 and s.lead_ms == 150
     assert (s.underflow_watermark, s.overflow_watermark) == (4, 60)
     assert dict(s.counts_per_rev) == dict.fromkeys(range(1, 7), 8192)
+    assert s.tpdo_timeout_syncs == 3  # the default of [drive] tpdo_timeout_syncs
+
+
+def test_the_cells_tpdo_timeout_reaches_the_settings() -> None:
+    import tomllib
+
+    from planner.config import cell_from_dict
+    from planner.errors import PlanningError
+
+    data = tomllib.loads((Path(__file__).resolve().parents[2] / "configs" / "demo.toml").read_text(encoding="utf-8"))
+    data["drive"]["tpdo_timeout_syncs"] = 8
+    assert StreamerSettings.from_cell(cell_from_dict(data)).tpdo_timeout_syncs == 8
+    for bad in (0, 101, 2.5, True):
+        data["drive"]["tpdo_timeout_syncs"] = bad
+        with pytest.raises(PlanningError, match=r"drive\.tpdo_timeout_syncs") as e:
+            cell_from_dict(data)
+        assert e.value.path == "drive.tpdo_timeout_syncs"
 
 
 # ---- state machines ----------------------------------------------------------------------------------
