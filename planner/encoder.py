@@ -845,9 +845,15 @@ def _uniform_alternative(
     if lengths.size == 0:
         return best
     grids = [np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64) for dt in lengths.tolist()]
-    # the cheap check (three ticks per segment) of every grid in one pass, then the full one in order
-    missed = _quick_misses(ref, grids, want, tol, scales, (p_first, v_first, v_last))
-    for times, miss in zip(grids, missed, strict=True):
+    # the cheap checks of every grid in one pass (each segment's middle tick, then three ticks on the grids
+    # that pass it), then the full one in order
+    ends3 = (p_first, v_first, v_last)
+    survivors = [g for g, miss in zip(grids, _quick_misses(ref, grids, want, tol, scales, ends3, (0.5,)),
+                                      strict=True) if not miss]
+    if not survivors:
+        return best
+    missed = _quick_misses(ref, survivors, want, tol, scales, ends3, (0.25, 0.5, 0.75))
+    for times, miss in zip(survivors, missed, strict=True):
         if miss:
             continue
         pos = want[:, times].copy()
@@ -881,10 +887,11 @@ def _quick_misses(
     tol: float,
     scales: AxisScales,
     first_last: tuple[IntArray, IntArray, IntArray],
+    fractions: tuple[float, ...],
 ) -> NDArray[np.bool_]:
     """For each uniform grid (knot values: the planned demand and the rpm nearest the plan's velocity;
-    knot 0 and the last velocity fixed): does the drive's reconstruction miss the planned demand at a
-    quarter, half or three quarters of some segment? All grids in one vectorised pass."""
+    knot 0 and the last velocity fixed): does the drive's reconstruction miss the planned demand at these
+    `fractions` of some segment? All grids in one vectorised pass."""
     p_first, v_first, v_last = first_last
     conv = scales.counts_per_ms_per_rpm[:, None]
     starts = np.concatenate([g[:-1] for g in grids])
@@ -900,7 +907,7 @@ def _quick_misses(
     va[:, is_first] = v_first[:, None]
     vb[:, is_last] = v_last[:, None]
     dt = (stops - starts).astype(np.float64)
-    off = np.clip(np.round(np.array([0.25, 0.5, 0.75])[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
+    off = np.clip(np.round(np.array(fractions)[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
     h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
     h = pa[:, :, None] * h00 + (va * conv)[:, :, None] * h10 + pb[:, :, None] * h01 + (vb * conv)[:, :, None] * h11
     tick = (starts[:, None] + off).astype(np.int64)
