@@ -54,6 +54,7 @@ open-ended velocity move), exactly.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 from dataclasses import dataclass
 
@@ -406,14 +407,16 @@ def _structure(
     """
     if ref.hints.size == 0:
         return mand, SECTION_MS
-    kept = mand.tolist()
+    kept = sorted(mand.tolist())
     kinks = set(ref.breaks.tolist()) if keep_kinks else set()
     for h in ref.hints.tolist():
         # a hint where the acceleration may step (a chain's knot, a pvt row) is kept however close: a
         # segment across it cannot follow the plan
-        if h in kinks or min(abs(h - k) for k in kept) >= gap:
-            kept.append(h)
-    return np.array(sorted(kept), dtype=np.int64), max_seg
+        i = bisect.bisect_left(kept, h)
+        nearest = min(abs(h - kept[j]) for j in (i - 1, i) if 0 <= j < len(kept))
+        if h in kinks or nearest >= gap:
+            kept.insert(i, h)
+    return np.array(kept, dtype=np.int64), max_seg
 
 
 def _acc_misses(
