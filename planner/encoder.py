@@ -653,6 +653,23 @@ def _viterbi(cost: FloatArray, first: int = 0) -> IntArray:
     return choice
 
 
+def _alive(feasible: NDArray[np.bool_], fixed: list[int]) -> NDArray[np.bool_]:
+    """(n, K, C): candidates that lie on at least one path of feasible pairs through every knot
+    (`feasible` (n, K-1, C, C)), by forward and backward passes; at a `fixed` knot (all candidates the
+    same values) only the first. A knot where none would be left keeps all its candidates (then no path
+    passes, and the choice is the least bad one of all)."""
+    n, nseg, c, _ = feasible.shape
+    alive = np.ones((n, nseg + 1, c), dtype=bool)
+    alive[:, fixed, 1:] = False
+    for k in range(nseg):  # reachable from the start
+        alive[:, k + 1] &= (feasible[:, k] & alive[:, k, :, None]).any(axis=1)
+    for k in range(nseg - 1, -1, -1):  # and reaching the end
+        alive[:, k] &= (feasible[:, k] & alive[:, k + 1, None, :]).any(axis=2)
+    empty = ~alive.any(axis=2)
+    alive[empty] = True
+    return alive
+
+
 def _choose_values(
     ref: Reference,
     times: IntArray,
@@ -710,8 +727,15 @@ def _refine(
         part = ref.axes_subset(axes)
         sc = scales.subset(axes)
         cand_p, cand_v = _candidates(part, sub, sc, (-3, -2, -1, 0, 1, 2, 3), fixed)
+        # the check at every tick only for the candidates that can lie on a path passing the cheap check
+        # at the sample ticks (a pair that fails there fails at every tick too): typically a third
+        feasible = _segment_costs(part, sub, sc, tolerance, cand_p, cand_v, exact=False) < _HARD
+        alive = _alive(feasible, sorted(fixed))
+        order = np.argsort(~alive, axis=2, kind="stable")[:, :, : max(1, int(alive.sum(axis=2).max()))]
+        cand_p = np.take_along_axis(cand_p, order, axis=2)
+        cand_v = np.take_along_axis(cand_v, order, axis=2)
         cost = _segment_costs(part, sub, sc, tolerance, cand_p, cand_v, exact=True)
-        # the window's last knot is pinned too: only its candidate 0 may be reached
+        # the window's last knot is pinned too (all its candidates are the same values): reach one of them
         cost[:, -1, :, 1:] = np.inf
         choice = _viterbi(cost)[:, :, None]
         pos[axes, lo : hi + 1] = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
