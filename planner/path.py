@@ -45,13 +45,19 @@ import contextlib
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
 from planner.reference import FloatArray, IntArray, Reference
+
+if TYPE_CHECKING:
+    from planner.chain import ChainFit
+
+# one evaluation of a profile (plan_run): q, v, acc_left, acc_right, the chain (if any), acc and vel ratios
+_Evaluation = tuple[FloatArray, FloatArray, FloatArray, FloatArray, "ChainFit | None", FloatArray, FloatArray]
 
 REPAIR_ROUNDS = 3
 MAX_DURATION_S = 900.0
@@ -560,7 +566,7 @@ def plan_run(
     With `chain`, the plan is the Hermite chain fitted to the re-timed profile (planner/chain.py) and
     the verification and repairs apply to the chain.
     """
-    from planner.chain import ChainFit, fit_chain
+    from planner.chain import fit_chain
 
     grid = geom.gridpoints()
     vlim_ms = vlim / 1000.0
@@ -573,10 +579,21 @@ def plan_run(
     fit: ChainFit | None = None
     best: tuple[Any, ...] | None = None
 
-    def evaluate(
-        p: Profile, allow_short: bool = chain is None or chain.short
-    ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, ChainFit | None, FloatArray, FloatArray]:
-        """The plan on profile `p` at every ms, and its acceleration and velocity ratios."""
+    # a profile is determined by toppra's solution and its whole-ms duration (time_scale only rounds
+    # to it): a slow-down that rounds to a duration already evaluated on the same solution gives the
+    # same plan, so its evaluation (a chain fit) is reused, not repeated
+    seen: dict[int, tuple[FloatArray, _Evaluation]] = {}
+
+    def evaluate(p: Profile, allow_short: bool = chain is None or chain.short) -> _Evaluation:
+        """The plan on profile `p` (made from `sd`) at every ms, and its acceleration and velocity ratios."""
+        hit = seen.get(p.duration_ms)
+        if hit is not None and hit[0] is sd:
+            return hit[1]
+        out = _evaluate(p, allow_short)
+        seen[p.duration_ms] = (sd, out)
+        return out
+
+    def _evaluate(p: Profile, allow_short: bool) -> _Evaluation:
         if chain is None:
             q, v, acc_l, acc_r = joint_samples(geom, p)
             return q, v, acc_l, acc_r, None, *_ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)

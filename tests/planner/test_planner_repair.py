@@ -1,0 +1,52 @@
+"""The repair loop of path.plan_run: how many toppra solves and chain fits a plan costs.
+
+A chain is fitted on every profile the loop tries; a profile is determined by toppra's solution and its
+whole-ms duration, so a slow-down that rounds to a duration already tried gives the same chain and must
+not be fitted again.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from planner_checks import assert_invariants
+
+import planner.chain as chain_mod
+from planner import plan_job
+from planner.config import CellConfig
+from planner.job import job_from_dict
+
+# random path 12 of benchmarks.bench_planner's corpus (seed 13): its first chain overshoots by 0.1 %,
+# and the smallest slow-down of the ladder rounds to the same duration (3833 ms)
+SAME_DURATION = {
+    "kind": "path",
+    "job_id": "repair-same-duration",
+    "axes": ["j3", "j6", "j4", "j1", "j5"],
+    "waypoints": [
+        [-0.3204250628764327, -0.45676644743166994, -1.6902494527032708, 1.072857205802677, 0.3361518353753854],
+        [0.19594495672365309, -0.8173382074871429, 2.1597714718634573, 0.9764909225937606, 0.9292407228259139],
+        [0.20564885807804867, 0.5122800006152821, 0.829624080056186, -0.9173597982187305, -0.6853457544958315],
+        [0.9352012632385338, -0.8021037424621902, -2.049013302199026, -0.1619049425524115, 1.0117287666907884],
+    ],
+}
+
+
+def test_no_chain_is_fitted_twice_on_the_same_profile(cell: CellConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    fitted: list[tuple[Any, Any]] = []
+    fit = chain_mod.fit_chain
+
+    def recording(q: Any, v: Any, *args: Any, **kwargs: Any) -> Any:
+        fitted.append((q.copy(), v.copy()))
+        return fit(q, v, *args, **kwargs)
+
+    monkeypatch.setattr(chain_mod, "fit_chain", recording)
+    job = job_from_dict(SAME_DURATION, cell)
+    traj = plan_job(job, cell)
+    assert traj.info["toppra_solves"] >= 2  # the case needs a repair (else it tests nothing)
+    assert len(fitted) >= 2
+    for i, (qa, va) in enumerate(fitted):
+        for qb, vb in fitted[i + 1 :]:
+            assert not (qa.shape == qb.shape and np.array_equal(qa, qb) and np.array_equal(va, vb))
+    assert_invariants(traj, cell)
