@@ -951,12 +951,23 @@ def _quantise(
     ends: tuple[IntArray, IntArray, IntArray, IntArray],
 ) -> tuple[Knots, Reconstruction]:
     """Knot values for the knot times (joint choice, local refinement, verification), splitting the
-    segments that still fail the tolerance (see `encode`)."""
+    segments that still fail the tolerance (see `encode`).
+
+    After a split only the new knots need values: the other segments passed and keep theirs, the new
+    knots start at the plan (rounded) and the refinement fixes what fails around them."""
     p_first, v_first, p_last, v_last = ends
     want = planned_demand(ref, scales.toward_zero)
+    conv = scales.counts_per_ms_per_rpm[:, None]
+    knots: Knots | None = None
     for _round in range(MAX_ROUNDS):
-        fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
-        pos, vel = _choose_values(ref, times, scales, tol, fixed)
+        if knots is None:
+            fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
+            pos, vel = _choose_values(ref, times, scales, tol, fixed)
+        else:
+            old = np.isin(times, knots.times_ms)
+            pos = want[:, times].copy()
+            vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
+            pos[:, old], vel[:, old] = knots.positions, knots.velocities_rpm
         knots = Knots(times, pos, vel)
         mask = _bad_mask(ref, knots, scales, tol, want)
         if mask.any():
@@ -987,6 +998,7 @@ def _quantise(
         if not split.any():
             break
         times = np.unique(np.concatenate([times, (a[split] + b[split]) // 2]))
+    assert knots is not None  # MAX_ROUNDS >= 1
     rec = reconstruct(knots, scales)
     dev = np.abs(rec.demand - want)
     if (dev > tol).any():
