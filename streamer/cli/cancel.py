@@ -38,11 +38,9 @@ def run(args: argparse.Namespace) -> int:
 
     err = Console(stderr=True)
     out = Console()
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt cancel: {exc}", highlight=False, markup=False)
-        return exc.status
+    client = connect.client_or_status(args, "cancel")
+    if isinstance(client, int):
+        return client
     with client:
         try:
             job = client.job(args.job_id)

@@ -100,6 +100,18 @@ def find_service(client: Any, timeout: float) -> None:
         raise Unreachable(f"{err.message}; no cell is up there (is `pvt serve` running?)") from None
 
 
+def client_or_status(args: argparse.Namespace, verb: str) -> Any:
+    """`open_client(args)`, or, when the service cannot be reached, its exit status (an int) after
+    `pvt VERB: reason` on stderr."""
+    from rich.console import Console
+
+    try:
+        return open_client(args)
+    except Unreachable as exc:
+        Console(stderr=True).print(f"pvt {verb}: {exc}", highlight=False, markup=False)
+        return exc.status
+
+
 def request(args: argparse.Namespace, verb: str, call: Callable[[Any], dict[str, Any]]) -> dict[str, Any] | int:
     """One request to the cell's service: `call(client)`'s reply, or, when the service cannot be reached or
     refuses, the exit status after `pvt VERB: reason` on stderr (no service 5, refused 2)."""
@@ -108,11 +120,9 @@ def request(args: argparse.Namespace, verb: str, call: Callable[[Any], dict[str,
     from streamer.api.errors import MotionError
 
     err = Console(stderr=True)
-    try:
-        client = open_client(args)
-    except Unreachable as exc:
-        err.print(f"pvt {verb}: {exc}", highlight=False, markup=False)
-        return exc.status
+    client = client_or_status(args, verb)
+    if isinstance(client, int):
+        return client
     with client:
         try:
             reply: dict[str, Any] = call(client)

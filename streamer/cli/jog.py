@@ -59,11 +59,9 @@ def run(args: argparse.Namespace) -> int:
     if args.for_s is not None and not args.for_s > 0.0:
         say(f"pvt jog: --for must be a positive number of seconds, got {args.for_s:g}", to=err)
         return connect.EXIT_REJECTED
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        say(f"pvt jog: {exc}", to=err)
-        return exc.status
+    client = connect.client_or_status(args, "jog")
+    if isinstance(client, int):
+        return client
     with client:
         try:
             status = client.service_status()

@@ -38,11 +38,9 @@ def run(args: argparse.Namespace) -> int:
     from streamer.api.errors import MotionError
 
     err = Console(stderr=True)
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt status: {exc}", highlight=False, markup=False)
-        return exc.status
+    client = connect.client_or_status(args, "status")
+    if isinstance(client, int):
+        return client
     with client:
         try:
             status = client.service_status()

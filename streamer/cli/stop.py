@@ -43,11 +43,9 @@ def run(args: argparse.Namespace) -> int:
 
     err = Console(stderr=True)
     out = Console()
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt stop: {exc}", highlight=False, markup=False)
-        return exc.status
+    client = connect.client_or_status(args, "stop")
+    if isinstance(client, int):
+        return client
     with client:
         try:
             reply = client.stop(emergency=args.emergency)

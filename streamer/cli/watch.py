@@ -60,11 +60,9 @@ def run(args: argparse.Namespace) -> int:
     from streamer.api.payload import unpack
 
     err = Console(stderr=True)
-    try:
-        client = connect.open_client(args)
-    except connect.Unreachable as exc:
-        err.print(f"pvt watch: {exc}", highlight=False, markup=False)
-        return exc.status
+    client = connect.client_or_status(args, "watch")
+    if isinstance(client, int):
+        return client
     out = Console()
     samples: queue.Queue[bytes] = queue.Queue()
     with client:
