@@ -17,7 +17,8 @@ demo: $(STAMP)
 	$(VENV)/bin/pvt demo
 
 test: $(STAMP) lint chromium
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -m "not isolated"
+	$(PY) -m pytest -q -m isolated
 
 # Debian's chromium for the HTML report test (installed once when root and missing; else that test skips)
 chromium:

@@ -48,6 +48,7 @@ def _progress_over(job: Any, share: float) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.isolated
 def test_cancel_hold_infeasible_and_emergency_stop_on_simulated_drives(serve: Serve, demo_cell: CellConfig) -> None:
     backend = _runtime(demo_cell)
     try:

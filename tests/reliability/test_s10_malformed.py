@@ -97,13 +97,10 @@ def test_undecodable_feedback_of_a_job_drive_is_counted_and_fails_bus_error() ->
 
 
 @pytest.mark.slow
+@pytest.mark.isolated  # in the whole suite a drive fell silent from SYNC 378 on in 2 of 4 runs; alone it passes
 def test_garbage_on_the_real_time_virtual_bus() -> None:
     """python-can virtual bus, real time: 1500 garbage frames from a third bus during a job."""
-    # the drives are simulated in this process and parse the garbage too: a stall of theirs beyond three
-    # SYNCs is this machine's, not a drive's (the TPDO timeout itself: tests/streamer/test_streamer_core_faults.py)
-    base = cell3()
-    cell = dataclasses.replace(base, bus=dataclasses.replace(base.bus, channel=f"rel-garbage-{os.getpid()}"),
-                               drive=dataclasses.replace(base.drive, tpdo_timeout_syncs=10))
+    cell = dataclasses.replace(cell3(), bus=dataclasses.replace(cell3().bus, channel=f"rel-garbage-{os.getpid()}"))
     traj = demo_traj()
     sim = SimulatedCell(cell, initial_positions=start_positions(traj),
                         sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
