@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import socket
+import uuid
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -126,7 +128,11 @@ def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
     """A service on the real backend with 3 simulated axes of the demo cell in this process (real time)."""
     from streamer.runtime.backend import RuntimeBackend
 
-    backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
+    # a virtual channel of its own: the same-named channel of an earlier test in this process may still
+    # carry that test's simulated drives or their shutdown while this job runs
+    cell = demo_cell.with_axes(3)
+    cell = dataclasses.replace(cell, bus=dataclasses.replace(cell.bus, channel=f"real-{uuid.uuid4().hex[:12]}"))
+    backend = RuntimeBackend(cell, sim=True)
     try:
         return serve(backend=backend)
     except BaseException:
