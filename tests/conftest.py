@@ -6,6 +6,9 @@ becomes a pinned case in tests/planner/data/hard_cases.toml)."""
 from __future__ import annotations
 
 import os
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -37,3 +40,27 @@ def _private_state_dir(tmp_path_factory: pytest.TempPathFactory) -> None:
     import os
 
     os.environ["XDG_STATE_HOME"] = str(tmp_path_factory.mktemp("xdg-state"))
+
+
+# threads of a running bus: a master's SYNC producer and monitor, a python-can notifier, a simulated cell's
+# timers. One a test leaves running keeps its SYNC, drives and CPU load alive through every later test of the
+# process (a leaked real-time backend once made later in-process drives fall silent: TPDO_TIMEOUT)
+_BUS_THREAD_PREFIXES = ("Cyclic send task", "Notifier for bus", "pvt-master", "sim-cell")
+_LEAK_GRACE_S = 2.0
+
+
+def _bus_threads() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if t.is_alive() and t.name.startswith(_BUS_THREAD_PREFIXES)}
+
+
+@pytest.fixture(autouse=True)
+def _no_leaked_bus_threads() -> Iterator[None]:
+    """Every test stops the buses, masters and simulated drives it started (checked after its teardown)."""
+    before = _bus_threads()
+    yield
+    deadline = time.monotonic() + _LEAK_GRACE_S
+    while (left := _bus_threads() - before) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if left:
+        names = sorted(t.name for t in left)
+        pytest.fail(f"the test left bus threads running: {names}", pytrace=False)
