@@ -95,7 +95,7 @@ def raw_toppra(job: Job, cell: CellConfig, *, refine: bool = True) -> tuple[floa
     from toppra.algorithm import TOPPRA
     from toppra.constraint import JointAccelerationConstraint, JointVelocityConstraint
 
-    from planner.path import toppra_path
+    from planner.topp import toppra_path
 
     lim = effective_limits(job, cell)
     vlim, alim = lim["velocity"], lim["acceleration"]
@@ -110,7 +110,7 @@ def raw_toppra(job: Job, cell: CellConfig, *, refine: bool = True) -> tuple[floa
         ]
         t0 = time.thread_time()
         traj = TOPPRA(
-            constraints, toppra_path(geom), gridpoints=grid, solver_wrapper="seidel",
+            constraints, toppra_path(geom, geom.dof, geom.length), gridpoints=grid, solver_wrapper="seidel",
             parametrizer="ParametrizeConstAccel",
         ).compute_trajectory()
         elapsed += time.thread_time() - t0

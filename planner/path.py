@@ -1,4 +1,4 @@
-"""Time-optimal traversal of a geometric path (toppra), re-timed onto whole milliseconds.
+"""Time-optimal traversal of a geometric path (TOPP-RA), re-timed onto whole milliseconds.
 
 Theory of operation.
 
@@ -6,27 +6,29 @@ Theory of operation.
    the waypoints with C2 blends at the corners, cut into rest-to-rest runs at exact stops; on request
    (`geometry = "spline"`) a C2 cubic spline through the waypoints (scipy, not-a-knot). Both are
    parametrised by the time-normalised arc length (delta q / v_max per axis), squeezed into [0.01, 2]
-   (toppra's seidel solver reports spurious infeasibility on long parametrisations). Consecutive
-   waypoints closer than half a count are merged and the end points snapped to whole counts before
-   (plan.py). Every run is planned on its own and the runs are played one after the other.
-2. Time-optimal parametrisation: toppra (seidel solver). toppra only checks its constraints at the
-   gridpoints, and its constant-acceleration output overshoots between them (by 5-25 % on wiggly
-   20-waypoint paths with 100-400 gridpoints, measured here; the default spline parametrizer by up to
-   12 %). So the acceleration and velocity limits are also imposed at interior points of every grid
-   interval (`_interior_constraint`: inside an interval s-dot^2 is linear in s, so the joint
-   acceleration there is still linear in toppra's (u, x) variables, the canonical toppra form). The
-   gridpoints come from the geometry (`gridpoints()`): blends need more of them than straight pieces.
+   (toppra's seidel solver, the reference our solver is compared with, reports spurious infeasibility
+   on long parametrisations). Consecutive waypoints closer than half a count are merged and the end
+   points snapped to whole counts before (plan.py). Every run is planned on its own and the runs are
+   played one after the other.
+2. Time-optimal parametrisation: toppra's reachability algorithm, compiled (planner/topp.py). Checking
+   the constraints only at the gridpoints, as toppra does, lets the constant-acceleration profile
+   overshoot between them (by 5-25 % on wiggly 20-waypoint paths with 100-400 gridpoints, measured
+   with toppra). So the acceleration and velocity limits are also imposed at interior points of every
+   grid interval (`topp.THETAS`: inside an interval s-dot^2 is linear in s, so the joint acceleration
+   there is still linear in the (u, x) variables of the algorithm). The gridpoints come from the
+   geometry (`gridpoints()`): blends need more of them than straight pieces; the path is sampled once
+   per run (`topp.sample_path`), and each repair only tightens rows.
 3. Re-timing onto the drive's clock (`Profile`): a Hermite segment cannot follow an acceleration
    step inside it, so every breakpoint of the profile is put on a whole millisecond: total time
    rounded up, path velocity taken at the rounded gridpoint times and interpolated linearly in time
-   (each piece's acceleration is an average of toppra's, so it never exceeds them), short transitions
+   (each piece's acceleration is an average of the solver's, so it never exceeds them), short transitions
    between two switches merged where the path is straight, path position rescaled to end exactly at
    the end of the path.
 4. Blended paths: the plan is the Hermite chain through the re-timed profile (planner/chain.py), the
    motion the drive itself reproduces with segments long enough for its quantisation; a run that is
-   one straight segment is the closed-form trapezoid instead (`straight_run`: no toppra, no chain).
+   one straight segment is the closed-form trapezoid instead (`straight_run`: no solve, no chain).
 5. Verification at every ms of every joint (of the chain, for blended paths): velocity and
-   acceleration against the limits. Overshoots tighten the toppra rows of the intervals concerned
+   acceleration against the limits. Overshoots tighten the constraint rows of the intervals concerned
    (for a chain, of the whole segment that overshoots) and solve again (at most `REPAIR_ROUNDS` times);
    a small residual is removed by playing the motion that much slower (`RESCALE_SHARE`), from the best
    profile seen. A chain is fitted anew on every slower profile, and whether it passes is not monotone
@@ -35,23 +37,23 @@ Theory of operation.
    of a straight piece (`_switch_mask`), so that none of its long segments straddles one.
 
 Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw toppra's own duration
-(which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.5 %
-(median) and under 2 % over raw toppra on the same blended path with a fine grid.
+(which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.2 %
+(median) and under 1 % over raw toppra on the same blended path with a fine grid.
 """
 
 from __future__ import annotations
 
-import contextlib
-import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from planner import topp
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
 from planner.reference import FloatArray, IntArray, Reference
+from planner.topp import PathSamples
 
 if TYPE_CHECKING:
     from planner.chain import ChainFit
@@ -71,45 +73,15 @@ VEL_SLACK = 1.0e-4
 # each, so whether it passes is not monotone in the slow-down (measured on a 17 s 6-axis path: 0.08 %
 # slower overshoots by 10.6 %, 0.1 % passes, 0.13 % overshoots by 6 %, 0.4 % passes)
 SLOWER_LADDER = (1e-4, 1e-3, 2.5e-3, 5e-3)
-_THETAS = (0.0, 0.25, 0.5, 0.75, 1.0)  # where inside each grid interval the constraints are imposed
-
-
-@contextlib.contextmanager
-def _quiet_toppra() -> Iterator[None]:
-    """toppra logs warnings (and returns None) on failure; we raise PlanningError instead."""
-    logger = logging.getLogger("toppra")
-    old = logger.level
-    logger.setLevel(logging.CRITICAL)
-    try:
-        yield
-    finally:
-        logger.setLevel(old)
-
-
-def _toppra() -> Any:
-    import toppra
-    import toppra.solverwrapper as sw
-
-    # toppra asks importlib.util.find_spec("qpoases"/"cvxpy") on every TOPPRA() construction (about
-    # 10 ms each here); the answer cannot change inside a process, so cache it
-    if not getattr(sw.available_solvers, "_pvt_cached", False):
-        answer = sw.available_solvers(output_msg=False)
-
-        def available_solvers(output_msg: bool = True) -> Any:
-            return answer
-
-        available_solvers._pvt_cached = True  # type: ignore[attr-defined]
-        sw.available_solvers = available_solvers
-    return toppra
 
 
 def grid_size(n_waypoints: int) -> int:
-    """Gridpoints for toppra: ~20 per waypoint interval (duration within 0.5 % of a fine grid)."""
+    """Gridpoints for the solver: ~20 per waypoint interval (duration within 0.5 % of a fine grid)."""
     return int(min(1500, max(100, 20 * (n_waypoints - 1) + 40)))
 
 
 class GeometricPath(Protocol):
-    """What toppra and the re-timing evaluate: q(s) and its derivatives on [0, length]."""
+    """What the solver and the re-timing evaluate: q(s) and its derivatives on [0, length]."""
 
     @property
     def length(self) -> float: ...
@@ -133,9 +105,9 @@ class SplineGeometry:
 
         d = np.linalg.norm(np.diff(waypoints, axis=0) / velocity_limits[None, :], axis=1)
         ss = np.concatenate([[0.0], np.cumsum(d)])
-        # keep s well scaled for toppra: its seidel solver reports spurious "uncontrollable" failures on
-        # long parametrisations (measured here: erratic from a path length of 5, never from 1e-2 to 3),
-        # whatever the motion, so long paths are squeezed to a length of 2
+        # keep s well scaled: toppra's seidel solver (the reference of ours) reports spurious "uncontrollable"
+        # failures on long parametrisations (measured here: erratic from a path length of 5, never from
+        # 1e-2 to 3), whatever the motion, so long paths are squeezed to a length of 2
         if ss[-1] < 1e-2:
             ss = ss * (1e-2 / ss[-1])
         elif ss[-1] > 2.0:
@@ -147,7 +119,7 @@ class SplineGeometry:
             # (0.60 -> 0.62 -> 0.60 -> -0.20) swings far past them (to -3 on the demo's j1 column).
             # The shape-preserving cubic (PCHIP, C1) moves monotonically between waypoints and comes to
             # rest at every reversal, where a single axis has to stop anyway. Its acceleration steps
-            # at the waypoints make the re-timing slower than toppra's optimum (up to ~2x measured).
+            # at the waypoints make the re-timing slower than the time-optimal profile (up to ~2x measured).
             self.spline = PchipInterpolator(self.ss, waypoints, axis=0)
         else:
             self.spline = CubicSpline(self.ss, waypoints, bc_type="not-a-knot", axis=0)
@@ -177,139 +149,21 @@ class SplineGeometry:
         return np.ones(np.shape(s), dtype=bool)
 
 
-def _toppra_path_class() -> type:
-    from toppra.interpolator import AbstractGeometricPath
-
-    class ToppraPath(AbstractGeometricPath):  # type: ignore[misc]
-        def __init__(self, geom: GeometricPath):
-            self.geom = geom
-
-        def __call__(self, path_positions: Any, order: int = 0) -> FloatArray:
-            return self.geom(np.asarray(path_positions, dtype=np.float64), order)
-
-        @property
-        def dof(self) -> int:
-            return self.geom.dof
-
-        @property
-        def path_interval(self) -> FloatArray:
-            return np.array([0.0, self.geom.length])
-
-    return ToppraPath
-
-
-def toppra_path(geom: GeometricPath) -> Any:
-    """`geom` as a toppra geometric path (the class is built lazily, with toppra)."""
-    return _toppra_path_class()(geom)
-
-
-def _interior_constraint(vlim: FloatArray, alim: FloatArray, row_scale: FloatArray | None) -> Any:
-    """A toppra linear constraint imposing |q_dot| <= v and |q_ddot| <= a at interior points of each interval.
-
-    Inside grid interval i, with constant path acceleration u and x = s_dot^2 at s_i,
-    x(s) = x + 2 u (s - s_i), so q_ddot(s) = (q'(s) + 2 (s - s_i) q''(s)) u + q''(s) x and
-    q_dot(s)^2 = q'(s)^2 (x + 2 u (s - s_i)): both linear in (u, x), the canonical toppra form.
-    `row_scale` (per gridpoint: acceleration rows, velocity rows; >= 1) tightens the rows of intervals
-    that still overshoot.
-    """
-    from toppra.constraint import DiscretizationType
-    from toppra.constraint.linear_constraint import LinearConstraint
-
-    thetas = np.asarray(_THETAS)
-
-    class _InteriorConstraint(LinearConstraint):  # type: ignore[misc]
-        def __init__(self) -> None:
-            super().__init__()
-            self.dof = vlim.size
-            self.identical = True
-            self.discretization_type = DiscretizationType.Collocation
-
-        def compute_constraint_params(self, path: Any, gridpoints: Any, *args: Any, **kwargs: Any) -> Any:
-            g = np.asarray(gridpoints, dtype=np.float64)
-            n1 = g.size
-            d = self.dof
-            k = thetas.size
-            delta = np.append(np.diff(g), 0.0)
-            s = np.minimum(g[:, None] + thetas[None, :] * delta[:, None], g[-1])
-            q1 = np.asarray(path(s.ravel(), 1)).reshape(n1, k, d)
-            q2 = np.asarray(path(s.ravel(), 2)).reshape(n1, k, d)
-            th = (thetas[None, :] * delta[:, None])[:, :, None]
-            a_acc = (q1 + 2.0 * th * q2).reshape(n1, -1)
-            b_acc = q2.reshape(n1, -1)
-            a_vel = (2.0 * th * q1 * q1).reshape(n1, -1)
-            b_vel = (q1 * q1).reshape(n1, -1)
-            if row_scale is not None:
-                a_acc = a_acc * row_scale[:, :1]
-                b_acc = b_acc * row_scale[:, :1]
-                a_vel = a_vel * row_scale[:, 1:]
-                b_vel = b_vel * row_scale[:, 1:]
-            a = np.concatenate([a_acc, a_vel], axis=1)
-            b = np.concatenate([b_acc, b_vel], axis=1)
-            c = np.zeros_like(a)
-            nacc = k * d
-            f = np.zeros((3 * nacc, 2 * nacc))
-            eye = np.eye(nacc)
-            f[:nacc, :nacc] = eye
-            f[nacc : 2 * nacc, :nacc] = -eye
-            f[2 * nacc :, nacc:] = eye
-            gg = np.concatenate([np.tile(alim, k), np.tile(alim, k), np.tile(vlim * vlim, k)])
-            return a, b, c, f, gg, None, None
-
-    return _InteriorConstraint()
-
-
-def solve_toppra(
-    geom: GeometricPath,
-    vlim: FloatArray,
-    alim: FloatArray,
-    gridpoints: FloatArray,
-    row_scale: FloatArray | None = None,
+def solve_profile(
+    samples: PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: FloatArray | None = None
 ) -> FloatArray:
-    """toppra's optimal path velocities s_dot at the gridpoints (raises PlanningError(INFEASIBLE))."""
-    _toppra()  # imports toppra once, quietly, with its solver query cached
-    from toppra.algorithm import TOPPRA  # after _toppra(): the solver query is cached
-    from toppra.constraint import JointVelocityConstraint
-
-    path = toppra_path(geom)  # toppra evaluates exactly the geometry the rest of the planner uses
-    constraints = [
-        JointVelocityConstraint(np.vstack([-vlim, vlim]).T),
-        _interior_constraint(vlim, alim, row_scale),
-    ]
-    try:
-        with _quiet_toppra():
-            inst = TOPPRA(
-                constraints,
-                path,
-                gridpoints=gridpoints,
-                solver_wrapper="seidel",
-                parametrizer="ParametrizeConstAccel",
-            )
-            _sdd, sd, _v = inst.compute_parameterization(0.0, 0.0)
-        code = inst.problem_data.return_code
-    except Exception as e:  # toppra raises assorted ValueError/AssertionError on bad input
-        raise PlanningError(
-            INFEASIBLE,
-            f"toppra failed: {type(e).__name__}: {e}",
-            detail={"solver": "toppra", "return_code": type(e).__name__},
-        ) from None
-    if sd is None or not np.all(np.isfinite(sd)) or str(code.name) != "Ok":
-        raise PlanningError(
-            INFEASIBLE,
-            f"toppra found no feasible time parametrisation ({code.name})",
-            detail={"solver": "toppra", "return_code": str(code.name)},
-        )
-    out: FloatArray = np.maximum(np.asarray(sd, dtype=np.float64), 0.0)
-    return out
+    """The optimal path velocities s_dot at the gridpoints (planner/topp.py; raises PlanningError(INFEASIBLE))."""
+    return topp.solve(samples, vlim, alim, row_scale)
 
 
 class Profile:
     """A path-velocity profile on the drive's clock: constant path acceleration per piece, every
     breakpoint on a whole millisecond.
 
-    Built from toppra's gridpoint velocities: the total time is rounded up to whole ms (the motion is
+    Built from the solver's gridpoint velocities: the total time is rounded up to whole ms (the motion is
     played that little bit slower), the path velocity is taken at the gridpoint times rounded to whole
     ms and interpolated linearly in time between them. Each piece's path acceleration is then the
-    secant of toppra's profile over it, an average of toppra's own neighbouring accelerations, so it
+    secant of the solver's profile over it, an average of the solver's own neighbouring accelerations, so it
     never exceeds them. Pieces shorter than `min_piece_ms` between two switches are merged (see
     `_merge_switch_pieces`). `switches` lists the breakpoints where some joint's acceleration steps by
     more than `STEP_SHARE` of its limit: the encoder puts a knot on each.
@@ -329,8 +183,8 @@ class Profile:
         if np.any(vsum <= 0):
             raise PlanningError(
                 INFEASIBLE,
-                "toppra returned a profile that stops inside the path",
-                detail={"solver": "toppra", "return_code": "ZeroVelocity"},
+                "the time-optimal profile stops inside the path",
+                detail={"solver": "topp-ra", "return_code": "ZeroVelocity"},
             )
         t_ms = np.concatenate([[0.0], np.cumsum(2.0 * ds / vsum)]) * 1000.0
         self.optimal_ms = float(t_ms[-1])
@@ -383,7 +237,7 @@ def _switch_mask(
 ) -> NDArray[np.bool_]:
     """The real switches among the interior breakpoints: a joint-acceleration step above `SWITCH_SHARE`
     that stands out from its neighbours (the path-acceleration step more than twice theirs). Steps of
-    similar size in a row are toppra's gridpoint staircase along a smoothly changing bound (a steep one
+    similar size in a row are the solver's gridpoint staircase along a smoothly changing bound (a steep one
     in a tight blend), not a bang-bang change.
 
     `straight_steps` (the smooth plan's chain, whose segments are at least the encoder's `min_seg`):
@@ -404,7 +258,7 @@ def _switch_mask(
         s_at = np.clip(s_lin[1:-1] * (geom.length / s_lin[-1]), 0.0, geom.length)
         alone = alone | ~np.any(geom(s_at, 2) != 0.0, axis=1)
     big = steps > SWITCH_SHARE
-    # two big steps of opposite signs within `CHATTER_MS`: toppra chattering along a constraint (a dip
+    # two big steps of opposite signs within `CHATTER_MS`: the solver chattering along a constraint (a dip
     # of a few ms), which the chain smooths over, not a switch
     at = tau[1:-1][big]
     sign = np.sign(signed[big])
@@ -424,7 +278,7 @@ def _merge_switch_pieces(
 ) -> tuple[IntArray, FloatArray]:
     """Turn short transitions between two switches (acceleration steps) into a single switch.
 
-    A bang-bang switch rarely falls on a whole ms, and toppra chatters where the active constraint
+    A bang-bang switch rarely falls on a whole ms, and the solver chatters where the active constraint
     changes: the re-timed profile then has one or a few pieces shorter than `gap` ms between two steps,
     and the encoder would need knots a few ms apart (quantisation noise) or a segment across a step
     (deviation). The breakpoints of such a transition (at most 2 `gap` long) become one (at either
@@ -561,7 +415,7 @@ def plan_run(
     max_duration_ms: float = 900.0e3,
     chain: ChainSpec | None = None,
 ) -> RunPlan:
-    """A rest-to-rest traversal of one geometric path (toppra, re-timed, verified; module docstring).
+    """A rest-to-rest traversal of one geometric path (TOPP-RA, re-timed, verified; module docstring).
 
     With `chain`, the plan is the Hermite chain fitted to the re-timed profile (planner/chain.py) and
     the verification and repairs apply to the chain.
@@ -569,6 +423,7 @@ def plan_run(
     from planner.chain import fit_chain
 
     grid = geom.gridpoints()
+    samples = topp.sample_path(geom, grid)  # once: the repairs only tighten the rows
     vlim_ms = vlim / 1000.0
     alim_ms = alim / 1.0e6
     row_scale: FloatArray | None = None
@@ -579,7 +434,7 @@ def plan_run(
     fit: ChainFit | None = None
     best: tuple[Any, ...] | None = None
 
-    # a profile is determined by toppra's solution and its whole-ms duration (time_scale only rounds
+    # a profile is determined by the solver's solution and its whole-ms duration (time_scale only rounds
     # to it): a slow-down that rounds to a duration already evaluated on the same solution gives the
     # same plan, so its evaluation (a chain fit) is reused, not repeated
     seen: dict[int, tuple[FloatArray, _Evaluation]] = {}
@@ -617,7 +472,7 @@ def plan_run(
 
     for attempt in range(REPAIR_ROUNDS + 1):
         try:
-            sd_new = solve_toppra(geom, vlim, alim, grid, row_scale)
+            sd_new = solve_profile(samples, vlim, alim, row_scale)
         except PlanningError:
             if prof is None:
                 raise
@@ -710,7 +565,7 @@ def straight_run(geom: GeometricPath, vlim: FloatArray, alim: FloatArray, time_s
     joints' limits over their share of it, and the optimum is a trapezoid (or a triangle): accelerate,
     cruise, decelerate. Its phases are put on whole ms (each rounded up, the cruise velocity and the
     acceleration then lowered to cover the line exactly), so its two switches are steps on whole ms and
-    each phase is one polynomial: no toppra solve and no chain needed (within 2 ms of the continuous
+    each phase is one polynomial: no solve and no chain needed (within 2 ms of the continuous
     optimum). None when `geom` is not a single straight piece.
     """
     blends = getattr(geom, "blends", None)
@@ -779,8 +634,8 @@ def plan_path(
     """Reference (counts) for the runs played one after the other, each from rest to rest.
 
     `vlim`/`alim` in user units/s and /s^2; `time_scale` >= 1 plays the motion slower (the encoder asks
-    for it when quantisation needs longer segments). Returns the reference and info: toppra's own
-    duration for these grids (`optimal_s`, summed over the runs), the gridpoints and toppra solves used
+    for it when quantisation needs longer segments). Returns the reference and info: the solver's own
+    duration for these grids (`optimal_s`, summed over the runs), the gridpoints and solves used (`topp_solves`)
     and the number of runs (`runs`: exact stops + 1).
     """
     plans: list[RunPlan] = []
@@ -819,6 +674,6 @@ def plan_path(
     return ref, {
         "optimal_s": sum(p.optimal_ms for p in plans) / 1000.0,
         "gridpoints": float(sum(p.gridpoints for p in plans)),
-        "toppra_solves": float(sum(p.solves for p in plans)),
+        "topp_solves": float(sum(p.solves for p in plans)),
         "runs": float(len(plans)),
     }

@@ -611,11 +611,14 @@ def line_deviation_counts(positions: FloatArray, start: FloatArray, end: FloatAr
 
 
 def warm_up() -> None:
-    """Import the solvers now (toppra pulls in matplotlib: ~0.5 s once), e.g. when a service starts,
-    so the first job's planning time is the planning."""
+    """Load the compiled kernels (planner/jit.py: compiled once per machine, then loaded from the cache)
+    and import the solvers, e.g. when a service starts, so the first job's planning time is the planning."""
+    from planner import topp
     from planner.jerk import _ruckig
-    from planner.path import _toppra
 
-    _toppra()
     _ruckig()
     import scipy.interpolate  # noqa: F401
+
+    line = np.linspace(0.0, 1.0, 2 * topp.THETAS.size).reshape(2, topp.THETAS.size, 1)
+    topp.solve(topp.PathSamples(np.array([0.0, 1.0]), np.array([1.0, 0.0]), np.ones_like(line),
+                                np.zeros_like(line)), np.ones(1), np.ones(1))

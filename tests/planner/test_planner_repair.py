@@ -44,7 +44,7 @@ def test_no_chain_is_fitted_twice_on_the_same_profile(cell: CellConfig, monkeypa
     monkeypatch.setattr(chain_mod, "fit_chain", recording)
     job = job_from_dict(SAME_DURATION, cell)
     traj = plan_job(job, cell)
-    assert traj.info["toppra_solves"] >= 2  # the case needs a repair (else it tests nothing)
+    assert traj.info["topp_solves"] >= 2  # the case needs a repair (else it tests nothing)
     assert len(fitted) >= 2
     for i, (qa, va) in enumerate(fitted):
         for qb, vb in fitted[i + 1 :]:

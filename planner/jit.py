@@ -1,0 +1,32 @@
+"""Compiled kernels of the planner: numba's `njit` with the options every one of them uses.
+
+Why compiled code: the planner's inner loops are sequential searches and dynamic programs (the
+reachability passes of the time-optimal parametrisation, the greedy knot searches, the Viterbi pass over
+knot values) whose steps depend on the previous one. In NumPy each step costs a few microseconds of
+interpreter overhead whatever its size; compiled, the whole loop costs about what its arithmetic does
+(planning a 7 s 6-axis path went from ~100 ms to a few ms, benchmarks/bench_planner.py).
+
+- `cache=True`: the machine code is kept beside the module (`__pycache__`, or numba's cache directory
+  where that is not writable), so only the first process on a machine compiles (a few seconds, once;
+  `planner.plan.warm_up` does it when a service starts).
+- `nogil=True`: a kernel releases the GIL, so planning on one thread does not stall the streaming
+  thread's SYNC handling (DEVELOPERS.md: a busy Python thread in the same process raised its jitter
+  from 0.6 to 6 ms).
+- `error_model="numpy"`: a division by zero gives inf or nan as in NumPy, and no check per division.
+
+`NUMBA_DISABLE_JIT=1` runs every kernel as plain Python (slow, but debuggable and covered by tracing).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+from numba import njit
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def kernel(fn: F) -> F:
+    """`fn` compiled (see the module docstring)."""
+    return cast(F, njit(cache=True, nogil=True, error_model="numpy")(fn))
