@@ -62,6 +62,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner import hermite
+from planner.jit import kernel
 from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
 from planner.reference import FloatArray, IntArray, Reference
 
@@ -232,51 +233,67 @@ def _hermite_basis(
     return h00, h10, h01, h11
 
 
-def _placement_errors(
+def _segment_errors(
     ref: Reference,
     starts: IntArray,
     lengths: IntArray,
     acc_axis: FloatArray,
     min_seg: int = 0,
     acc_share: float = ACC_PLACEMENT_SHARE,
+    every_tick: bool = False,
 ) -> FloatArray:
-    """Candidate segments' error: max over axes of the position error (counts, at sample ticks) of the
-    Hermite through the exact knot values, or a large value where its end accelerations already miss
-    the plan's by more than `ACC_PLACEMENT_SHARE` of the axis limit (the linear Hermite acceleration
-    cannot follow a jerk kink inside a long segment; quantisation needs the rest of the budget)."""
-    tt = lengths.astype(np.float64)[:, None]
-    off = np.clip(np.round(_PROX[None, :] * tt), 1.0, np.maximum(tt - 1.0, 1.0))
-    h00, h10, h01, h11 = _hermite_basis(off, tt)
-    ends = starts + lengths
-    tick = starts[:, None] + off.astype(np.int64)
-    p, v = ref.positions, ref.velocities
-    pa, pb, va, vb = p[:, starts], p[:, ends], v[:, starts], v[:, ends]
-    h = pa[:, :, None] * h00 + va[:, :, None] * h10 + pb[:, :, None] * h01 + vb[:, :, None] * h11
-    err = np.abs(h - p[:, tick]).max(axis=(0, 2))
-    t1 = lengths.astype(np.float64)
-    dp = pb - pa
-    acc_s = (6.0 * dp - 2.0 * t1 * vb - 4.0 * t1 * va) / (t1 * t1)
-    acc_e = (-6.0 * dp + 4.0 * t1 * vb + 2.0 * t1 * va) / (t1 * t1)
-    miss = np.maximum(np.abs(acc_s - ref.acc_right[:, starts]), np.abs(acc_e - ref.acc_left[:, ends]))
-    # shorter segments only make the quantisation noise worse: the check applies above min_seg
-    acc_bad = (miss > acc_share * acc_axis[:, None]).any(axis=0) & (lengths > min_seg)
-    out: FloatArray = np.where(acc_bad, np.inf, err)
-    return out
+    """Candidate segments' error: max over axes of the position error (counts) of the Hermite through the
+    exact knot values, at the sample ticks `_PROX` (or at every tick), or inf where its end accelerations
+    already miss the plan's by more than `acc_share` of the axis limit (the linear Hermite acceleration
+    cannot follow a jerk kink inside a long segment; quantisation needs the rest of the budget). Shorter
+    segments than `min_seg` only make the quantisation noise worse: the acceleration check applies above."""
+    return _segment_errors_kernel(
+        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.ascontiguousarray(starts, dtype=np.int64),
+        np.ascontiguousarray(lengths, dtype=np.int64), acc_share * acc_axis, min_seg, every_tick, _PROX)
 
 
-def _exact_errors(ref: Reference, starts: IntArray, lengths: IntArray) -> FloatArray:
-    """As `_placement_errors`, at every tick (used for the few rebalancing checks)."""
-    total = int(lengths.sum())
-    seg = np.repeat(np.arange(starts.size), lengths)
-    first = np.cumsum(lengths) - lengths
-    off = (np.arange(total) - first[seg] + 1).astype(np.float64)
-    h00, h10, h01, h11 = _hermite_basis(off, lengths[seg].astype(np.float64))
-    ends = starts + lengths
-    p, v = ref.positions, ref.velocities
-    tick = starts[seg] + off.astype(np.int64)
-    h = p[:, starts[seg]] * h00 + v[:, starts[seg]] * h10 + p[:, ends[seg]] * h01 + v[:, ends[seg]] * h11
-    err = np.abs(h - p[:, tick]).max(axis=0)
-    out: FloatArray = np.maximum.reduceat(err, first)
+@kernel
+def _segment_error(
+    p: FloatArray, v: FloatArray, acc_left: FloatArray, acc_right: FloatArray, a: int, length: int,
+    acc_limit: FloatArray, min_seg: int, every_tick: bool, prox: FloatArray,
+) -> float:
+    """One segment of `_segment_errors` (the same arithmetic as the NumPy reconstruction, term by term)."""
+    b = a + length
+    t1 = float(length)
+    n = p.shape[0]
+    if length > min_seg:
+        for i in range(n):
+            dp = p[i, b] - p[i, a]
+            acc_s = (6.0 * dp - 2.0 * t1 * v[i, b] - 4.0 * t1 * v[i, a]) / (t1 * t1)
+            acc_e = (-6.0 * dp + 4.0 * t1 * v[i, b] + 2.0 * t1 * v[i, a]) / (t1 * t1)
+            if max(abs(acc_s - acc_right[i, a]), abs(acc_e - acc_left[i, b])) > acc_limit[i]:
+                return np.inf
+    count = length if every_tick else prox.size
+    err = 0.0
+    for j in range(count):
+        off = float(j + 1) if every_tick else min(max(np.rint(prox[j] * t1), 1.0), max(t1 - 1.0, 1.0))
+        x = off / t1
+        x2 = x * x
+        h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
+        h01 = 1.0 - h00
+        h10 = (x - 2.0 * x2 + x2 * x) * t1
+        h11 = (x2 * x - x2) * t1
+        tick = a + int(off)
+        for i in range(n):
+            h = p[i, a] * h00 + v[i, a] * h10 + p[i, b] * h01 + v[i, b] * h11
+            err = max(err, abs(h - p[i, tick]))
+    return err
+
+
+@kernel
+def _segment_errors_kernel(
+    p: FloatArray, v: FloatArray, acc_left: FloatArray, acc_right: FloatArray, starts: IntArray,
+    lengths: IntArray, acc_limit: FloatArray, min_seg: int, every_tick: bool, prox: FloatArray,
+) -> FloatArray:
+    out = np.empty(starts.size)
+    for k in range(starts.size):
+        out[k] = _segment_error(p, v, acc_left, acc_right, starts[k], lengths[k], acc_limit, min_seg, every_tick,
+                                prox)
     return out
 
 
@@ -348,49 +365,60 @@ def place_knots(
         parts = -(-(b - a) // piece)  # equal parts, none longer than `piece`
         cuts.extend(a + (j * (b - a)) // parts for j in range(parts))
     cuts.append(m)
-    sec_start = np.array(cuts[:-1], dtype=np.int64)
-    sec_end = np.array(cuts[1:], dtype=np.int64)
-    cur = sec_start.copy()
-    prev = np.minimum(sec_end - sec_start, min(max_seg, 2 * min_seg)).astype(np.int64)
-    found: list[IntArray] = [sec_start.copy()]
-    while True:
-        act = np.nonzero(cur < sec_end)[0]
-        if act.size == 0:
-            break
-        c = cur[act]
-        room = sec_end[act] - c
-        lim = np.minimum(room, max_seg)
-        lens = np.concatenate(
-            [
-                np.round(prev[act][:, None] * _LADDER[None, :]),
-                lim[:, None],
-                np.ceil(room / 2.0)[:, None],
-                np.ceil(room / 3.0)[:, None],
-            ],
-            axis=1,
-        )
-        lens = np.clip(lens, 1, lim[:, None]).astype(np.int64)
-        k = lens.shape[1]
-        err = _placement_errors(
-            ref, np.repeat(c, k), lens.ravel(), scales.acceleration_axis, min_seg, acc_share
-        ).reshape(-1, k)
-        ok = err <= budget
-        rem = room[:, None] - lens
-        half = lens == np.ceil(room / 2.0)[:, None]
-        # preference: finish the section; else the longest that leaves at least min_seg; else split
-        # the rest in two halves; else the longest that passes (a short remainder is the last resort)
-        score = np.where(ok, lens + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half, 0)
-        best = score.max(axis=1) % 1024
-        adv = best > 0
-        go = act[adv]
-        cur[go] += best[adv]
-        prev[go] = best[adv]
-        found.append(cur[go].copy())
-        stay = act[~adv]
-        prev[stay] = np.maximum(1, lens[~adv].min(axis=1) // 3)  # length 1 always passes, eventually
-    times = np.unique(np.concatenate([*found, np.array([m], dtype=np.int64)]))
+    found = _greedy_knots(
+        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.array(cuts, dtype=np.int64),
+        acc_share * scales.acceleration_axis, budget, min_seg, max_seg, _PROX, _LADDER)
+    times = np.unique(found)
     times = _rebalance(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
     return _coarsen(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
+
+
+@kernel
+def _greedy_knots(
+    p: FloatArray, v: FloatArray, acc_left: FloatArray, acc_right: FloatArray, cuts: IntArray,
+    acc_limit: FloatArray, budget: float, min_seg: int, max_seg: int, prox: FloatArray, ladder: FloatArray,
+) -> IntArray:
+    """The greedy placement of `place_knots` in every section [cuts[j], cuts[j+1]]: the knots it visits,
+    the cuts included (unsorted where sections interleave nothing: each section's knots in order)."""
+    out = np.empty(cuts[-1] + cuts.size + 1, dtype=np.int64)
+    count = 0
+    lens = np.empty(ladder.size + 3, dtype=np.int64)
+    for j in range(cuts.size - 1):
+        a, b = cuts[j], cuts[j + 1]
+        out[count] = a
+        count += 1
+        cur = a
+        prev = min(b - a, min(max_seg, 2 * min_seg))
+        while cur < b:
+            room = b - cur
+            lim = min(room, max_seg)
+            half = np.ceil(room / 2.0)
+            for k in range(ladder.size):
+                lens[k] = np.rint(prev * ladder[k])
+            lens[ladder.size] = lim
+            lens[ladder.size + 1] = half
+            lens[ladder.size + 2] = np.ceil(room / 3.0)
+            best_score = 0
+            shortest = lim
+            for k in range(lens.size):
+                length = min(max(lens[k], 1), lim)
+                lens[k] = length
+                shortest = min(shortest, length)
+                if _segment_error(p, v, acc_left, acc_right, cur, length, acc_limit, min_seg, False, prox) > budget:
+                    continue
+                rem = room - length
+                score = length + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * (length == half)
+                best_score = max(best_score, score)
+            best = best_score % 1024
+            if best > 0:
+                cur += best
+                prev = best
+                out[count] = cur
+                count += 1
+            else:
+                prev = max(1, shortest // 3)  # length 1 always passes, eventually
+    out[count] = cuts[-1]
+    return out[: count + 1]
 
 
 def _structure(
@@ -417,22 +445,6 @@ def _structure(
         if h in kinks or nearest >= gap:
             kept.insert(i, h)
     return np.array(kept, dtype=np.int64), max_seg
-
-
-def _acc_misses(
-    ref: Reference, starts: IntArray, lengths: IntArray, acc_axis: FloatArray, min_seg: int, acc_share: float
-) -> NDArray[np.bool_]:
-    """Segments (longer than `min_seg`) whose exact-value Hermite misses the plan's end accelerations by
-    more than `acc_share` of an axis limit (see `_placement_errors`)."""
-    ends = starts + lengths
-    t1 = lengths.astype(np.float64)
-    p, v = ref.positions, ref.velocities
-    dp = p[:, ends] - p[:, starts]
-    acc_s = (6.0 * dp - 2.0 * t1 * v[:, ends] - 4.0 * t1 * v[:, starts]) / (t1 * t1)
-    acc_e = (-6.0 * dp + 4.0 * t1 * v[:, ends] + 2.0 * t1 * v[:, starts]) / (t1 * t1)
-    miss = np.maximum(np.abs(acc_s - ref.acc_right[:, starts]), np.abs(acc_e - ref.acc_left[:, ends]))
-    out: NDArray[np.bool_] = (miss > acc_share * acc_axis[:, None]).any(axis=0) & (lengths > min_seg)
-    return out
 
 
 def _coarsen(
@@ -462,8 +474,7 @@ def _coarsen(
             k, starts, lengths = k[short], starts[short], lengths[short]
             if k.size == 0:
                 continue
-            err = _exact_errors(ref, starts, lengths)
-            ok = (err <= budget) & ~_acc_misses(ref, starts, lengths, acc_axis, min_seg, acc_share)
+            ok = _segment_errors(ref, starts, lengths, acc_axis, min_seg, acc_share, every_tick=True) <= budget
             if ok.any():
                 t = np.delete(t, k[ok])
                 dropped = True
@@ -513,7 +524,7 @@ def _rebalance(
     segs = [seg for opt in options for seg in opt[3]]
     st = np.array([x[0] for x in segs], dtype=np.int64)
     ln = np.array([x[1] for x in segs], dtype=np.int64)
-    errs = np.where(_acc_misses(ref, st, ln, acc_axis, min_seg, acc_share), np.inf, _exact_errors(ref, st, ln))
+    errs = _segment_errors(ref, st, ln, acc_axis, min_seg, acc_share, every_tick=True)
     ok: list[bool] = []
     pos = 0
     for opt in options:
@@ -858,7 +869,7 @@ def _uniform_alternative(
     knots than `best`, the same number spread evenly (no short last segment, which the acceleration
     budget would not allow) and the uniform grid itself have their values chosen and verified like any
     other placement, and the one with the fewest knots replaces `best`. Only grids with fewer knots
-    than `best` are looked at, each first at three ticks per segment (`_quick_misses`, all grids at once), so this costs
+    than `best` are looked at, each first at three ticks per segment (`_uniform_misses`), so this costs
     little where the adaptive placement is far below the uniform grid (paths).
     """
     m = ref.duration_ms
@@ -871,18 +882,14 @@ def _uniform_alternative(
     lengths = lengths[-(-m // lengths) + 1 < count]  # only grids with fewer knots than `best`
     if lengths.size == 0:
         return best
-    grids = [np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64) for dt in lengths.tolist()]
-    # the cheap checks of every grid in one pass (each segment's middle tick, then three ticks on the grids
-    # that pass it), then the full one in order
-    ends3 = (p_first, v_first, v_last)
-    survivors = [g for g, miss in zip(grids, _quick_misses(ref, grids, want, tol, scales, ends3, (0.5,)),
-                                      strict=True) if not miss]
-    if not survivors:
-        return best
-    missed = _quick_misses(ref, survivors, want, tol, scales, ends3, (0.25, 0.5, 0.75))
-    for times, miss in zip(survivors, missed, strict=True):
-        if miss:
-            continue
+    # the cheap check of every grid first (three ticks per segment, the middle one first), then the full one
+    # in order
+    tz = np.zeros(ref.n_axes, dtype=bool) if scales.toward_zero is None else scales.toward_zero
+    missed = _uniform_misses(want, ref.velocities, scales.counts_per_ms_per_rpm, tz, tol, p_first, v_first, v_last,
+                             lengths, np.array([0.5, 0.25, 0.75]))
+    survivors = [np.unique(np.concatenate([np.arange(0, m, dt), [m]])).astype(np.int64)
+                 for dt in lengths[~missed].tolist()]
+    for times in survivors:
         pos = want[:, times].copy()
         vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
         pos[:, 0], vel[:, 0], vel[:, -1] = p_first, v_first, v_last
@@ -907,39 +914,43 @@ def _uniform_alternative(
     return best
 
 
-def _quick_misses(
-    ref: Reference,
-    grids: list[IntArray],
-    want: IntArray,
-    tol: float,
-    scales: AxisScales,
-    first_last: tuple[IntArray, IntArray, IntArray],
-    fractions: tuple[float, ...],
+@kernel
+def _uniform_misses(
+    want: IntArray, vel: FloatArray, conv: FloatArray, toward_zero: NDArray[np.bool_], tol: float,
+    p_first: IntArray, v_first: IntArray, v_last: IntArray, lengths: IntArray, fractions: FloatArray,
 ) -> NDArray[np.bool_]:
-    """For each uniform grid (knot values: the planned demand and the rpm nearest the plan's velocity;
-    knot 0 and the last velocity fixed): does the drive's reconstruction miss the planned demand at these
-    `fractions` of some segment? All grids in one vectorised pass."""
-    p_first, v_first, v_last = first_last
-    conv = scales.counts_per_ms_per_rpm[:, None]
-    starts = np.concatenate([g[:-1] for g in grids])
-    stops = np.concatenate([g[1:] for g in grids])
-    owner = np.repeat(np.arange(len(grids)), [g.size - 1 for g in grids])
-    is_first = np.concatenate([[True], owner[1:] != owner[:-1]])
-    is_last = np.concatenate([owner[1:] != owner[:-1], [True]])
-    pa = want[:, starts].astype(np.float64)
-    pb = want[:, stops].astype(np.float64)
-    va = np.round(ref.velocities[:, starts] / conv)
-    vb = np.round(ref.velocities[:, stops] / conv)
-    pa[:, is_first] = p_first[:, None]
-    va[:, is_first] = v_first[:, None]
-    vb[:, is_last] = v_last[:, None]
-    dt = (stops - starts).astype(np.float64)
-    off = np.clip(np.round(np.array(fractions)[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1, 1))
-    h00, h10, h01, h11 = _hermite_basis(off, dt[:, None])
-    h = pa[:, :, None] * h00 + (va * conv)[:, :, None] * h10 + pb[:, :, None] * h01 + (vb * conv)[:, :, None] * h11
-    tick = (starts[:, None] + off).astype(np.int64)
-    seg_miss = (np.abs(drive_round(h, scales.toward_zero) - want[:, tick]) > tol).any(axis=(0, 2))
-    out: NDArray[np.bool_] = np.bincount(owner, weights=seg_miss, minlength=len(grids)) > 0
+    """For the uniform grid of each segment length (knots 0, dt, 2 dt, ... and the end; values: the planned
+    demand and the rpm nearest the plan's velocity; knot 0 and the last velocity fixed): does the drive's
+    reconstruction miss the planned demand at these `fractions` of some segment?"""
+    n, total = want.shape[0], want.shape[1] - 1
+    out = np.zeros(lengths.size, dtype=np.bool_)
+    for g in range(lengths.size):
+        dt = lengths[g]
+        a = 0
+        while a < total and not out[g]:
+            b = min(a + dt, total)
+            t1 = float(b - a)
+            for f in fractions:
+                off = min(max(np.rint(f * t1), 1.0), max(t1 - 1.0, 1.0))
+                x = off / t1
+                x2 = x * x
+                h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
+                h01 = 1.0 - h00
+                h10 = (x - 2.0 * x2 + x2 * x) * t1
+                h11 = (x2 * x - x2) * t1
+                tick = a + int(off)
+                for i in range(n):
+                    pa = float(p_first[i]) if a == 0 else float(want[i, a])
+                    va = float(v_first[i]) if a == 0 else np.rint(vel[i, a] / conv[i])
+                    vb = float(v_last[i]) if b == total else np.rint(vel[i, b] / conv[i])
+                    h = pa * h00 + va * conv[i] * h10 + float(want[i, b]) * h01 + vb * conv[i] * h11
+                    r = np.trunc(h) if toward_zero[i] else np.trunc(h + np.copysign(0.5, h))
+                    if abs(r - want[i, tick]) > tol:
+                        out[g] = True
+                        break
+                if out[g]:
+                    break
+            a = b
     return out
 
 
