@@ -43,6 +43,7 @@ Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw top
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
@@ -204,11 +205,28 @@ class Profile:
         self.v: FloatArray = vt * sig
         self.s: FloatArray = s_at * sig
         self.w: FloatArray = np.diff(self.v) / h  # path acceleration of each piece, per ms^2
-        steps = _joint_steps(self.tau, self.v, geom, alim)
-        self.switches: IntArray = self.tau[1:-1][steps > STEP_SHARE]
-        self.real_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim)]
-        # with every big step on a straight piece (for a chain without short segments: `_switch_mask`)
-        self.long_switches: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, geom, alim, True)]
+        self._geom, self._alim = geom, alim
+
+    # the switch lists, each computed when a plan asks for it (a chain needs one of the last two)
+    @functools.cached_property
+    def _steps(self) -> FloatArray:
+        return _joint_steps(self.tau, self.v, self._geom, self._alim)
+
+    @functools.cached_property
+    def switches(self) -> IntArray:
+        out: IntArray = self.tau[1:-1][self._steps > STEP_SHARE]
+        return out
+
+    @functools.cached_property
+    def real_switches(self) -> IntArray:
+        out: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, self._steps, self._geom)]
+        return out
+
+    @functools.cached_property
+    def long_switches(self) -> IntArray:
+        """With every big step on a straight piece (for a chain without short segments: `_switch_mask`)."""
+        out: IntArray = self.tau[1:-1][_switch_mask(self.tau, self.v, self._steps, self._geom, True)]
+        return out
 
     def sample(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """s, s_dot, s_ddot (left), s_ddot (right) at every ms 0..M."""
@@ -233,12 +251,12 @@ def _joint_steps(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: Float
 
 
 def _switch_mask(
-    tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray, straight_steps: bool = False
+    tau: IntArray, vt: FloatArray, steps: FloatArray, geom: GeometricPath, straight_steps: bool = False
 ) -> NDArray[np.bool_]:
-    """The real switches among the interior breakpoints: a joint-acceleration step above `SWITCH_SHARE`
-    that stands out from its neighbours (the path-acceleration step more than twice theirs). Steps of
-    similar size in a row are the solver's gridpoint staircase along a smoothly changing bound (a steep one
-    in a tight blend), not a bang-bang change.
+    """The real switches among the interior breakpoints (`steps`: their `_joint_steps`): a joint-acceleration
+    step above `SWITCH_SHARE` that stands out from its neighbours (the path-acceleration step more than twice
+    theirs). Steps of similar size in a row are the solver's gridpoint staircase along a smoothly changing
+    bound (a steep one in a tight blend), not a bang-bang change.
 
     `straight_steps` (the smooth plan's chain, whose segments are at least the encoder's `min_seg`):
     where the path is straight (q'' = 0) there is no such staircase, so every big step is a switch,
@@ -247,7 +265,6 @@ def _switch_mask(
     across either overshoots by up to 18 %, depending on where its knots happen to fall). Not for the
     first plan: there the knots it adds can be a few ms apart, too close for the encoder's quantisation.
     """
-    steps = _joint_steps(tau, vt, geom, alim)
     h = np.diff(tau).astype(np.float64)
     signed = np.diff(np.diff(vt) / h)
     dw = np.abs(signed)
@@ -542,10 +559,14 @@ def plan_run(
             worst = np.vstack([worst, worst[-1:]])
             power = 1.0
         s_ms = prof.sample()[0]
+        # each ms's worst ratio onto both gridpoints of its interval (s grows with time: the intervals of
+        # consecutive ms are sorted, so each interval's ms form one run)
         idx = np.clip(np.searchsorted(grid, s_ms, side="right") - 1, 0, grid.size - 2)
+        runs = np.concatenate([[0], np.nonzero(np.diff(idx))[0] + 1])
+        per_interval = np.maximum.reduceat(worst, runs, axis=0)
         ratio = np.ones((grid.size, 2))
-        np.maximum.at(ratio, idx, worst)
-        np.maximum.at(ratio, idx + 1, worst)
+        ratio[idx[runs]] = np.maximum(1.0, per_interval)
+        ratio[idx[runs] + 1] = np.maximum(ratio[idx[runs] + 1], per_interval)
         ratio[1:] = np.maximum(ratio[1:], ratio[:-1])
         ratio[:-1] = np.maximum(ratio[:-1], ratio[1:])
         ratio = np.where(ratio > 1.0, ratio**power * (1.0 + 3 * ACC_SLACK), 1.0)
