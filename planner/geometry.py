@@ -43,6 +43,7 @@ from math import comb
 import numpy as np
 from numpy.typing import NDArray
 
+from planner.jit import kernel
 from planner.reference import FloatArray, IntArray
 
 # candidate blend shapes d / l (module docstring, 2); 1/2 puts the two middle control points on c
@@ -130,9 +131,10 @@ class PiecewisePath:
         # unknown, or a blend): where the time-optimal profile accelerates, toppra needs its gridpoints
         self.ramps = ramps if ramps is not None else np.full(blends.size, np.inf)
         self._dof = n_axes
-        self.spline = PPoly(coefficients, breakpoints)  # coefficients (6, P, n_axes), user units
-        self.d1 = self.spline.derivative(1)
-        self.d2 = self.spline.derivative(2)
+        spline = PPoly(coefficients, breakpoints)  # coefficients (6, P, n_axes), user units
+        # the coefficients of q, q' and q'' (scipy's, highest order first), evaluated by `_evaluate`
+        self._coefficients = tuple(np.ascontiguousarray(f.c, dtype=np.float64)
+                                   for f in (spline, spline.derivative(1), spline.derivative(2)))
 
     @property
     def length(self) -> float:
@@ -144,13 +146,12 @@ class PiecewisePath:
 
     @property
     def waypoints(self) -> FloatArray:
-        out: FloatArray = np.asarray(self.spline(self.breakpoints), dtype=np.float64)
-        return out
+        return self(self.breakpoints)
 
     def __call__(self, s: FloatArray, order: int = 0) -> FloatArray:
-        f = (self.spline, self.d1, self.d2)[order]
-        out: FloatArray = np.asarray(f(np.clip(s, 0.0, self.length)), dtype=np.float64)
-        return out
+        """q(s) (order 0), q'(s) or q''(s) at the path positions `s` (clipped to the path): (len(s), n)."""
+        x = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
+        return _evaluate(self._coefficients[order], self.breakpoints, np.ascontiguousarray(x.ravel()))
 
     def merge_safe(self, s: FloatArray) -> NDArray[np.bool_]:
         """True on the straight pieces (path.Profile merges short switch pieces only there)."""
@@ -192,6 +193,27 @@ class PiecewisePath:
                 parts.append(b[k] + lengths[k] * np.arange(counts[k]) / counts[k])
         out: FloatArray = np.unique(np.concatenate([*parts, b[-1:]]))
         return out
+
+
+@kernel
+def _evaluate(c: FloatArray, x: FloatArray, s: FloatArray) -> FloatArray:
+    """A piecewise polynomial (coefficients c (K, P, n) of (s - x_j)^(K-1-k), breakpoints x) at `s`, each
+    point in the piece [x_j, x_j+1) that holds it (the end in the last one): scipy's PPoly, term by term
+    (the powers summed from the lowest), so the values are scipy's to the bit."""
+    k, pieces, n = c.shape
+    out = np.empty((s.size, n))
+    for i in range(s.size):
+        j = min(max(np.searchsorted(x, s[i], side="right") - 1, 0), pieces - 1)
+        d = s[i] - x[j]
+        for a in range(n):
+            res = 0.0
+            z = 1.0
+            for kp in range(k):
+                res = res + c[k - kp - 1, j, a] * z
+                if kp < k - 1:
+                    z *= d
+            out[i, a] = res
+    return out
 
 
 def corner_blends(
