@@ -332,14 +332,14 @@ def _mandatory_knots(ref: Reference, scales: AxisScales, min_gap: int) -> IntArr
     big = rel > STEP_SHARE
     cand = b[big]
     order = np.argsort(-rel[big], kind="stable")
-    kept: list[int] = []
-    for j in order:
-        t = int(cand[j])
+    kept: list[int] = []  # sorted
+    for t in cand[order].tolist():
         if t < min_gap or m - t < min_gap:
             continue
-        if all(abs(t - k) >= min_gap for k in kept):
-            kept.append(t)
-    return np.array(sorted([0, m, *kept]), dtype=np.int64)
+        i = bisect.bisect_left(kept, t)  # the nearest kept steps are its neighbours in the sorted list
+        if (i == 0 or t - kept[i - 1] >= min_gap) and (i == len(kept) or kept[i] - t >= min_gap):
+            kept.insert(i, t)
+    return np.array([0, *kept, m], dtype=np.int64)
 
 
 def place_knots(
@@ -461,22 +461,31 @@ def _coarsen(
     `budget`, end accelerations within `acc_share`, at most `max_seg` long). Dense user rows and the
     sections' cuts otherwise cost points that a uniform grid would not spend. Knots at even and odd
     positions alternate, so no two neighbours are dropped at once; rounds repeat while any is."""
-    t = times
+    fixed = np.zeros(ref.duration_ms + 1, dtype=np.bool_)
+    fixed[mand] = True
+    return _coarsen_kernel(ref.positions, ref.velocities, ref.acc_left, ref.acc_right, times, fixed, budget, min_seg,
+                           max_seg, acc_share * acc_axis, _PROX)
+
+
+@kernel
+def _coarsen_kernel(
+    p: FloatArray, v: FloatArray, acc_left: FloatArray, acc_right: FloatArray, times: IntArray,
+    fixed: NDArray[np.bool_], budget: float, min_seg: int, max_seg: int, acc_limit: FloatArray, prox: FloatArray,
+) -> IntArray:
+    t = times.copy()
     for _round in range(64):
         dropped = False
         for parity in (1, 2):
-            k = np.arange(parity, t.size - 1, 2)
-            k = k[~np.isin(t[k], mand)]
-            if k.size == 0:
-                continue
-            starts, lengths = t[k - 1], t[k + 1] - t[k - 1]
-            short = lengths <= max_seg
-            k, starts, lengths = k[short], starts[short], lengths[short]
-            if k.size == 0:
-                continue
-            ok = _segment_errors(ref, starts, lengths, acc_axis, min_seg, acc_share, every_tick=True) <= budget
-            if ok.any():
-                t = np.delete(t, k[ok])
+            keep = np.ones(t.size, dtype=np.bool_)
+            for k in range(parity, t.size - 1, 2):
+                length = t[k + 1] - t[k - 1]
+                if fixed[t[k]] or length > max_seg:
+                    continue
+                err = _segment_error(p, v, acc_left, acc_right, t[k - 1], length, acc_limit, min_seg, True, prox)
+                if err <= budget:
+                    keep[k] = False
+            if not keep.all():
+                t = t[keep]
                 dropped = True
         if not dropped:
             break
