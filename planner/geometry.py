@@ -30,7 +30,7 @@ geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
    (`blend_duration_ms`, planner.plan.MIN_BLEND_SEGMENTS): the path is cut there into runs, each
    traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
 
-`blended_runs` returns the runs as `PiecewisePath` objects (a scipy PPoly of degree 5 per axis) with
+`blended_runs` returns the runs as `PiecewisePath` objects (a piecewise polynomial of degree 5 per axis) with
 `__call__(s, order)`, `length`, `dof` and `gridpoints()`: what toppra and path.py evaluate.
 """
 
@@ -94,6 +94,8 @@ def _powers(t: FloatArray, order: int) -> FloatArray:
     return out
 
 
+_D1 = np.array([5.0, 4.0, 3.0, 2.0, 1.0])  # d/ds of the quintic's terms, highest order first
+_D2 = np.array([20.0, 12.0, 6.0, 2.0])  # d2/ds2
 _F, _G = _shape_coefficients(RHOS)
 _P0, _P1, _P2 = _powers(_T, 0), _powers(_T, 1), _powers(_T, 2)
 # samples of f, g and their t-derivatives: (n_rho, n_t)
@@ -123,18 +125,16 @@ class PiecewisePath:
         n_axes: int,
         ramps: FloatArray | None = None,
     ):
-        from scipy.interpolate import PPoly
-
         self.breakpoints = breakpoints  # (P+1,) s at the piece boundaries
         self.blends = blends  # (P,) 1 where the piece is a blend
         # (P,) on a straight piece, the path length over which it reaches its top speed from rest (inf:
         # unknown, or a blend): where the time-optimal profile accelerates, toppra needs its gridpoints
         self.ramps = ramps if ramps is not None else np.full(blends.size, np.inf)
         self._dof = n_axes
-        spline = PPoly(coefficients, breakpoints)  # coefficients (6, P, n_axes), user units
-        # the coefficients of q, q' and q'' (scipy's, highest order first), evaluated by `_evaluate`
-        self._coefficients = tuple(np.ascontiguousarray(f.c, dtype=np.float64)
-                                   for f in (spline, spline.derivative(1), spline.derivative(2)))
+        # the coefficients of q, q' and q'' (user units; of (s - s_j)^(5-k), highest order first, as scipy's
+        # PPoly and its derivatives have them), evaluated by `_evaluate`
+        c = np.ascontiguousarray(coefficients, dtype=np.float64)  # (6, P, n_axes)
+        self._coefficients = (c, c[:-1] * _D1[:, None, None], c[:-2] * _D2[:, None, None])
 
     @property
     def length(self) -> float:
