@@ -30,9 +30,9 @@ The loops are compiled (planner/jit.py). The search is sequential, each segment 
 before ended (and `_lengthen` moves one knot at a time), in small steps: a dozen candidates, 7 samples
 of n axes. In NumPy the interpreter's few microseconds per array operation were most of its cost, even
 with the sections searched in lockstep to batch them (30 ms per plan of the 20-waypoint benchmark path,
-4 fits); as kernels, each section is a plain loop (3.0 ms). The kernels evaluate the NumPy
-implementation's expressions in its order, its sums included (`_ticks`), so the knots,
-which depend on comparisons at the margin of the budget and the slacks, stayed the same.
+4 fits); as kernels, each section is a plain loop (2.3 ms). The kernels evaluate the NumPy
+implementation's expressions in its order, its sums included (`_tangent`, `_ticks`), so the knots, which
+depend on comparisons at the margin of the budget and the slacks, stayed the same.
 
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
@@ -108,12 +108,10 @@ def fit_chain(
     budget = np.maximum(budget, 1e-12)
     if box is None:
         box = (np.full(q.shape[0], -np.inf), np.full(q.shape[0], np.inf))
-    ty = direction / budget[:, None]
-    tangent = ty / np.maximum(np.linalg.norm(ty, axis=0), 1e-300)[None, :]
     path: _Path = (
         np.ascontiguousarray(q.T, dtype=np.float64),
         np.ascontiguousarray(v.T, dtype=np.float64),
-        np.ascontiguousarray(tangent.T, dtype=np.float64),
+        _tangent(np.ascontiguousarray(direction.T, dtype=np.float64), budget),
         np.ascontiguousarray(curved, dtype=np.bool_),
         np.ascontiguousarray(np.stack([budget, vlim, alim, box[0], box[1]]), dtype=np.float64),
     )
@@ -135,6 +133,39 @@ def fit_chain(
 def _nanmax(a: float, b: float) -> float:
     """The larger of `a` and `b`, nan if either is nan (np.maximum)."""
     return a if a >= b or a != a else b
+
+
+@kernel
+def _tangent(direction: FloatArray, budget: FloatArray) -> FloatArray:
+    """The path's unit tangent, scaled by the budget (M+1, n), from its `direction` (M+1, n)."""
+    total, n = direction.shape
+    out = np.empty((total, n))
+    r = np.empty(8)
+    for t in range(total):
+        for i in range(n):
+            out[t, i] = direction[t, i] / budget[i]
+        # the squares are summed as np.linalg.norm summed them on the path's arrays (axes contiguous) in
+        # the NumPy implementation: pairwise, in 8 partial sums from 8 axes on (up to 128 axes, one block)
+        if n < 8:
+            s = 0.0
+            for i in range(n):
+                s += out[t, i] * out[t, i]
+        else:
+            for j in range(8):
+                r[j] = out[t, j] * out[t, j]
+            i = 8
+            while i < n - n % 8:
+                for j in range(8):
+                    r[j] += out[t, i + j] * out[t, i + j]
+                i += 8
+            s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+            while i < n:
+                s += out[t, i] * out[t, i]
+                i += 1
+        norm = _nanmax(np.sqrt(s), 1e-300)
+        for i in range(n):
+            out[t, i] = out[t, i] / norm
+    return out
 
 
 @kernel
