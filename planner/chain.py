@@ -21,10 +21,18 @@ the profile's bang-bang switches, which are knots of their own since a cubic can
 - limits: the segment's velocity at every ms and its acceleration (linear, so its peak is at an end)
   within the joint limits (`ACC_SLACK`, `VEL_SLACK`: numerical noise).
 
-The search is cheap where it can be: every candidate segment gets the per-segment limit checks (end
-accelerations, the vertex of the velocity parabola), and only the most preferred one that passes them
-is sampled (`_first_passing`; the geometry rarely fails); `_lengthen` checks all its candidates in one
-batch; the final every-ms check and the chain share their samples.
+The search is cheap where it can be: the candidate segments are tried in their order of preference,
+each with the per-segment limit checks first (end accelerations, the vertex of the velocity parabola),
+and sampled only where it passes them (`_first_passing`; the geometry rarely fails); the final every-ms
+check and the chain share their samples.
+
+The loops are compiled (planner/jit.py). The search is sequential, each segment starting where the one
+before ended (and `_lengthen` moves one knot at a time), in small steps: a dozen candidates, 7 samples
+of n axes. In NumPy the interpreter's few microseconds per array operation were most of its cost, even
+with the sections searched in lockstep to batch them (30 ms per plan of the 20-waypoint benchmark path,
+4 fits); as kernels, each section is a plain loop (2.3 ms). The kernels evaluate the NumPy
+implementation's expressions in its order, its sums included (`_tangent`, `_ticks`), so the knots, which
+depend on comparisons at the margin of the budget and the slacks, stayed the same.
 
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
@@ -38,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from planner.jit import kernel
 from planner.reference import FloatArray, IntArray
 
 ACC_SLACK = 1.0e-3
@@ -46,7 +55,15 @@ _LADDER = np.array([0.6, 0.8, 1.0, 1.25, 1.6, 2.0, 3.0])
 _SHORT = np.array([0.75, 0.5, 0.35])  # of min_seg: shorter segments, when no longer one passes
 SHORT_MS = 4
 _SAMPLES = np.array([0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875])  # where the greedy search checks
+_CANDIDATES = _LADDER.size + 4 + _SHORT.size
 
+# rows of a fit's limits (n,) each: budget (user units), velocity and acceleration limits (per ms, per
+# ms^2), the box
+_BUDGET, _VLIM, _ALIM, _LOWER, _UPPER = range(5)
+
+# what the kernels take of a fit: positions, velocities, the unit tangent of the path (scaled by the
+# budget), each (M+1, n) (a tick's axes contiguous); whether each ms is in a blend (M+1,); the limits
+_Path = tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_], FloatArray]
 
 
 @dataclass(frozen=True)
@@ -60,142 +77,6 @@ class ChainFit:
     acc_right: FloatArray  # (n, M+1) on (m, m+1)
     acc_ratio: FloatArray  # (M+1,) largest |acceleration| / limit over the axes (both sides)
     vel_ratio: FloatArray  # (M+1,) largest |velocity| / limit over the axes
-
-
-_Ticks = tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray]
-
-
-def _segments(q: FloatArray, v: FloatArray, starts: IntArray, lengths: IntArray, sampled: bool = False) -> _Ticks:
-    """Every tick 1..L of the given segments (or, `sampled`, the ticks at `_SAMPLES` of each): Hermite
-    position and velocity (n, ticks), the two end accelerations (n, segs), the tick numbers and the
-    segment of every tick."""
-    if sampled:
-        k = _SAMPLES.size
-        seg = np.repeat(np.arange(starts.size), k)
-        ln = lengths[seg].astype(np.float64)
-        off = np.clip(np.round(np.tile(_SAMPLES, starts.size) * ln), 1.0, ln)
-    else:
-        total = int(lengths.sum())
-        seg = np.repeat(np.arange(starts.size), lengths)
-        first = np.cumsum(lengths) - lengths
-        off = (np.arange(total) - first[seg] + 1).astype(np.float64)
-    tt = lengths[seg].astype(np.float64)
-    x = off / tt
-    x2 = x * x
-    h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
-    h10 = (x - 2.0 * x2 + x2 * x) * tt
-    h11 = (x2 * x - x2) * tt
-    d00 = (6.0 * x2 - 6.0 * x) / tt
-    d10 = 1.0 - 4.0 * x + 3.0 * x2
-    d11 = 3.0 * x2 - 2.0 * x
-    a, b = starts[seg], starts[seg] + lengths[seg]
-    pa, pb, va, vb = q[:, a], q[:, b], v[:, a], v[:, b]
-    pos = pa * h00 + pb * (1.0 - h00) + va * h10 + vb * h11
-    vel = (pa - pb) * d00 + va * d10 + vb * d11
-    t1 = lengths.astype(np.float64)
-    e = starts + lengths
-    dp = q[:, e] - q[:, starts]
-    acc_s = (6.0 * dp - 2.0 * t1 * v[:, e] - 4.0 * t1 * v[:, starts]) / (t1 * t1)
-    acc_e = (-6.0 * dp + 4.0 * t1 * v[:, e] + 2.0 * t1 * v[:, starts]) / (t1 * t1)
-    ticks = (a + off.astype(np.int64)).astype(np.int64)
-    return pos, vel, acc_s, acc_e, ticks, seg
-
-
-class _Candidates:
-    """Checks candidate segments of one fit at `_SAMPLES` of each (the greedy search and `_lengthen`).
-
-    A segment passes when its end accelerations and the vertex of its velocity parabola are within the
-    limits (`limits_ok`: per segment, cheap) and, at the sample ticks, its velocity is within the limits
-    and its position within the budget of the path and inside the box (`samples_ok`: per sample). The
-    searches ask for the cheap check of all their candidates and for the samples of only the best
-    candidate that passed it, in their order of preference: the geometry rarely fails, so most
-    candidates are never sampled.
-    """
-
-    def __init__(
-        self,
-        q: FloatArray,
-        v: FloatArray,
-        tangent: FloatArray,
-        curved: NDArray[np.bool_],
-        budget: FloatArray,
-        vlim: FloatArray,
-        alim: FloatArray,
-        box: tuple[FloatArray, FloatArray],
-    ):
-        self.q, self.v, self.tangent, self.curved = q, v, tangent, curved
-        self.budget = budget[:, None]
-        self.vlim = vlim[:, None]
-        self.alim = alim[:, None]
-        self.lower = box[0][:, None]
-        self.upper = box[1][:, None]
-        self.cache: dict[tuple[int, int], bool] = {}
-
-    def limits_ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
-        """End accelerations (the acceleration is linear: its peak is at an end) and the velocity peak."""
-        q, v = self.q, self.v
-        t1 = lengths.astype(np.float64)
-        e = starts + lengths
-        qa, qb, va, vb = q[:, starts], q[:, e], v[:, starts], v[:, e]
-        dp = qb - qa
-        tt = t1 * t1
-        acc_s = (6.0 * dp - 2.0 * t1 * vb - 4.0 * t1 * va) / tt
-        acc_e = (-6.0 * dp + 4.0 * t1 * vb + 2.0 * t1 * va) / tt
-        acc_r = (np.maximum(np.abs(acc_s), np.abs(acc_e)) / self.alim).max(axis=0)
-        peak = (_peak(qa, qb, va, vb, t1) / self.vlim).max(axis=0)
-        out: NDArray[np.bool_] = (acc_r - ACC_SLACK <= 1.0) & (peak - VEL_SLACK <= 1.0)
-        return out
-
-    def samples_ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
-        """Velocity, geometry and the box at the sample ticks of each segment."""
-        pos, vel, _acc_s, _acc_e, ticks, _seg = _segments(self.q, self.v, starts, lengths, True)
-        k = _SAMPLES.size
-        vel_r = (np.abs(vel) / self.vlim).max(axis=0).reshape(-1, k).max(axis=1)
-        err = _deviation(pos, self.q, self.tangent, self.curved, ticks, self.budget[:, 0])
-        outside = ((pos < self.lower) | (pos > self.upper)).any(axis=0)
-        geo = np.where(outside, np.maximum(err, 2.0), err).reshape(-1, k).max(axis=1)
-        out: NDArray[np.bool_] = (geo <= 1.0) & (vel_r - VEL_SLACK <= 1.0)
-        return out
-
-    def ok(self, starts: IntArray, lengths: IntArray) -> NDArray[np.bool_]:
-        """Both checks (samples only where the limits pass), remembered for this fit."""
-        out = self.limits_ok(starts, lengths)
-        idx = np.nonzero(out)[0]
-        if idx.size:
-            out[idx] = self.samples_ok(starts[idx], lengths[idx])
-        return out
-
-
-def _peak(qa: FloatArray, qb: FloatArray, va: FloatArray, vb: FloatArray, t1: FloatArray) -> FloatArray:
-    """|velocity| at the vertex of each segment's velocity parabola, where it lies inside (n, segs)."""
-    dp = (qa - qb) / t1  # velocity in x = t / T: A x^2 + B x + C
-    a2 = 6.0 * dp + 3.0 * va + 3.0 * vb
-    b1 = -6.0 * dp - 4.0 * va - 2.0 * vb
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.where(a2 != 0.0, -b1 / (2.0 * a2), -1.0)
-    inside = (x > 0.0) & (x < 1.0)
-    peak = np.abs(a2 * x * x + b1 * x + va)
-    out: FloatArray = np.where(inside, peak, 0.0)
-    return out
-
-
-def _deviation(
-    pos: FloatArray,
-    q: FloatArray,
-    tangent: FloatArray,
-    curved: NDArray[np.bool_],
-    ticks: IntArray,
-    budget: FloatArray,
-) -> FloatArray:
-    """Largest per-axis deviation (share of the budget) of the chain at `ticks` from the path: on a
-    straight piece the distance from its line (being ahead or behind along it is no deviation), in a
-    blend the distance from where the profile is at that same ms (conservative)."""
-    d = (pos - q[:, ticks]) / budget[:, None]
-    t = tangent[:, ticks]
-    along = np.einsum("it,it->t", d, t)
-    perp = d - t * along[None, :]
-    out: FloatArray = np.where(curved[ticks], np.abs(d).max(axis=0), np.abs(perp).max(axis=0))
-    return out
 
 
 def fit_chain(
@@ -227,171 +108,390 @@ def fit_chain(
     budget = np.maximum(budget, 1e-12)
     if box is None:
         box = (np.full(q.shape[0], -np.inf), np.full(q.shape[0], np.inf))
-    ty = direction / budget[:, None]
-    tangent = ty / np.maximum(np.linalg.norm(ty, axis=0), 1e-300)[None, :]
-    cands = _Candidates(q, v, tangent, curved, budget, vlim, alim, box)
-    sec_start, sec_end = mand[:-1].copy(), mand[1:].copy()
-    cur = sec_start.copy()
-    prev = np.minimum(sec_end - sec_start, max_seg).astype(np.int64)
-    found: list[IntArray] = [mand]
-    while True:
-        act = np.nonzero(cur < sec_end)[0]
-        if act.size == 0:
-            break
-        c = cur[act]
-        room = sec_end[act] - c
-        hi = np.minimum(room, max_seg)
-        lo = np.minimum(room, min_seg)
-        short = np.minimum(room, SHORT_MS if allow_short else min_seg)
-        lens = np.concatenate(
-            [
-                np.round(prev[act][:, None] * _LADDER[None, :]),
-                hi[:, None],
-                np.ceil(room / 2.0)[:, None],
-                np.ceil(room / 3.0)[:, None],
-                lo[:, None],
-                np.round(lo[:, None] * _SHORT[None, :]),
-            ],
-            axis=1,
-        )
-        lens = np.clip(lens, short[:, None], hi[:, None]).astype(np.int64)
-        rem = room[:, None] - lens
-        # preference: at least min_seg (the encoder's quantisation needs it); finish the section; else
-        # the longest that leaves at least min_seg; else a half; shorter ones only when nothing else passes
-        # (a preference determines its length: lengths are below 1024)
-        half = lens == np.ceil(room / 2.0)[:, None]
-        long = lens >= lo[:, None]
-        prefer = lens + 8192 * long + 4096 * (rem == 0) + 2048 * (rem >= min_seg) + 1024 * half
-        best = _first_passing(cands, c, lens, prefer)
-        # nothing passes: the shortest allowed segment (its violation is reported to the caller)
-        best = np.where(best > 0, best, short)
-        cur[act] += best
-        prev[act] = np.maximum(best, lo)
-        found.append(cur[act].copy())
-    knots = np.unique(np.concatenate(found)).astype(np.int64)
+    path: _Path = (
+        np.ascontiguousarray(q.T, dtype=np.float64),
+        np.ascontiguousarray(v.T, dtype=np.float64),
+        _tangent(np.ascontiguousarray(direction.T, dtype=np.float64), budget),
+        np.ascontiguousarray(curved, dtype=np.bool_),
+        np.ascontiguousarray(np.stack([budget, vlim, alim, box[0], box[1]]), dtype=np.float64),
+    )
+    knots, _fallbacks = _greedy(path, mand, min_seg, max_seg, allow_short, True)
     if allow_short:
-        knots = _lengthen(cands, knots, mand, min_seg, max_seg)
-    # the search looked at a few ticks per segment: check every tick, halve what fails the geometry
-    every: _Ticks | None = None
-    for _round in range(4):
-        lengths = np.diff(knots)
-        every = _segments(q, v, knots[:-1], lengths)
-        pos, ticks = every[0], every[4]
-        err = _deviation(pos, q, tangent, curved, ticks, budget)
-        outside = ((pos < box[0][:, None]) | (pos > box[1][:, None])).any(axis=0)
-        geo = np.maximum.reduceat(np.where(outside, np.maximum(err, 2.0), err), np.cumsum(lengths) - lengths)
-        bad = np.nonzero((geo > 1.0) & (np.diff(knots) >= 2))[0]
-        if bad.size == 0:
-            break
-        knots = np.unique(np.concatenate([knots, (knots[bad] + knots[bad + 1]) // 2]))
-        every = None
-    return _chain(q, v, knots, vlim, alim, every)
+        knots = _lengthen(path, knots, mand, min_seg, max_seg)
+    return ChainFit(*_chain(path, knots))
 
 
-def _first_passing(cands: _Candidates, starts: IntArray, lens: IntArray, prefer: IntArray) -> IntArray:
-    """Per section (row): the length of its most preferred candidate segment from `starts` that passes,
-    0 where none does; `lens`, `prefer` (sections, candidates), a preference determining its length.
-
-    Every candidate gets the cheap limit checks, and the samples of only the best that passed them:
-    where that fails, the next best, until each section has one or has none left. The same choice as
-    checking every candidate fully (tests/planner/test_planner_chain.py)."""
-    k = lens.shape[1]
-    prefer = np.where(cands.limits_ok(np.repeat(starts, k), lens.ravel()).reshape(-1, k), prefer, 0)
-    best = np.zeros(starts.size, dtype=np.int64)
-    rows = np.arange(starts.size)
-    while rows.size:
-        top = prefer[rows].max(axis=1)
-        rows, length = rows[top > 0], top[top > 0] % 1024
-        if rows.size == 0:
-            break
-        good = cands.samples_ok(starts[rows], length)
-        best[rows[good]] = length[good]
-        rows, length = rows[~good], length[~good]
-        prefer[rows] = np.where(lens[rows] == length[:, None], 0, prefer[rows])
-    return best
+# ----------------------------------------------------------------------------------------------------
+# kernels (planner/jit.py). Every expression is the one the NumPy implementation (up to commit 60b5382)
+# evaluated, in the same order: the knots depend on comparisons against the budget and the slacks at
+# their margin. The Python-facing kernels take a fit's arrays as one `_Path`; the inner ones take them
+# one by one and work on whole segments, not ticks (a call with arrays for arguments costs about what a
+# tick does).
 
 
-def _lengthen(cands: _Candidates, knots: IntArray, mand: IntArray, min_seg: int, max_seg: int) -> IntArray:
+@kernel
+def _nanmax(a: float, b: float) -> float:
+    """The larger of `a` and `b`, nan if either is nan (np.maximum)."""
+    return a if a >= b or a != a else b
+
+
+@kernel
+def _tangent(direction: FloatArray, budget: FloatArray) -> FloatArray:
+    """The path's unit tangent, scaled by the budget (M+1, n), from its `direction` (M+1, n)."""
+    total, n = direction.shape
+    out = np.empty((total, n))
+    r = np.empty(8)
+    for t in range(total):
+        for i in range(n):
+            out[t, i] = direction[t, i] / budget[i]
+        # the squares are summed as np.linalg.norm summed them on the path's arrays (axes contiguous) in
+        # the NumPy implementation: pairwise, in 8 partial sums from 8 axes on (up to 128 axes, one block)
+        if n < 8:
+            s = 0.0
+            for i in range(n):
+                s += out[t, i] * out[t, i]
+        else:
+            for j in range(8):
+                r[j] = out[t, j] * out[t, j]
+            i = 8
+            while i < n - n % 8:
+                for j in range(8):
+                    r[j] += out[t, i + j] * out[t, i + j]
+                i += 8
+            s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+            while i < n:
+                s += out[t, i] * out[t, i]
+                i += 1
+        norm = _nanmax(np.sqrt(s), 1e-300)
+        for i in range(n):
+            out[t, i] = out[t, i] / norm
+    return out
+
+
+@kernel
+def _end_acc(qa: float, qb: float, va: float, vb: float, t1: float) -> tuple[float, float]:
+    """The acceleration at both ends of a segment of `t1` ms (it is linear in between)."""
+    dp = qb - qa
+    tt = t1 * t1
+    return (6.0 * dp - 2.0 * t1 * vb - 4.0 * t1 * va) / tt, (-6.0 * dp + 4.0 * t1 * vb + 2.0 * t1 * va) / tt
+
+
+@kernel
+def _ticks(
+    q: FloatArray, v: FloatArray, tangent: FloatArray, curved: NDArray[np.bool_], lim: FloatArray,
+    a: int, b: int, sampled: bool, pos: FloatArray, vel: FloatArray, col: int, d: FloatArray,
+) -> float:
+    """The segment a..b at its `_SAMPLES` (`sampled`) or at every tick a+1..b: its Hermite position and
+    velocity (into columns col, col+1, ... of `pos`, `vel`) and its largest deviation from the path
+    there (`d` (n,): scratch).
+
+    The deviation is per axis, as a share of the budget: on a straight piece the distance from its line
+    (being ahead or behind along it is no deviation), in a blend the distance from where the profile is
+    at that same ms (conservative); 2 (or more) where the chain leaves the box."""
+    n = q.shape[1]
+    tt = float(b - a)
+    geo = -np.inf
+    for j in range(_SAMPLES.size if sampled else b - a):
+        off = min(max(np.round(_SAMPLES[j] * tt), 1.0), tt) if sampled else float(j + 1)
+        x = off / tt
+        x2 = x * x
+        h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
+        h10 = (x - 2.0 * x2 + x2 * x) * tt
+        h11 = (x2 * x - x2) * tt
+        d00 = (6.0 * x2 - 6.0 * x) / tt
+        d10 = 1.0 - 4.0 * x + 3.0 * x2
+        d11 = 3.0 * x2 - 2.0 * x
+        tick = a + int(off)
+        outside = False
+        for i in range(n):
+            pa, pb, va, vb = q[a, i], q[b, i], v[a, i], v[b, i]
+            p = pa * h00 + pb * (1.0 - h00) + va * h10 + vb * h11
+            pos[i, col + j] = p
+            vel[i, col + j] = (pa - pb) * d00 + va * d10 + vb * d11
+            outside = outside or p < lim[_LOWER, i] or p > lim[_UPPER, i]
+            d[i] = (p - q[tick, i]) / lim[_BUDGET, i]
+        err = -np.inf
+        if curved[tick]:
+            for i in range(n):
+                err = _nanmax(err, abs(d[i]))
+        else:
+            # the projection is summed as np.einsum summed it on these arrays (axes contiguous) in the
+            # NumPy implementation: in two interleaved partial sums, over blocks of 8 axes from the
+            # block's last pair to its first
+            s0, s1 = 0.0, 0.0
+            k = 0
+            while n - k >= 8:
+                b0 = d[k + 6] * tangent[tick, k + 6] + s0
+                b1 = d[k + 7] * tangent[tick, k + 7] + s1
+                b0 = d[k + 4] * tangent[tick, k + 4] + b0
+                b1 = d[k + 5] * tangent[tick, k + 5] + b1
+                b0 = d[k + 2] * tangent[tick, k + 2] + b0
+                b1 = d[k + 3] * tangent[tick, k + 3] + b1
+                s0 = d[k] * tangent[tick, k] + b0
+                s1 = d[k + 1] * tangent[tick, k + 1] + b1
+                k += 8
+            while k < n:
+                s0 = d[k] * tangent[tick, k] + s0
+                if k + 1 < n:
+                    s1 = d[k + 1] * tangent[tick, k + 1] + s1
+                k += 2
+            along = s0 + s1
+            for i in range(n):
+                err = _nanmax(err, abs(d[i] - tangent[tick, i] * along))
+        geo = _nanmax(geo, _nanmax(err, 2.0) if outside else err)
+    return geo
+
+
+@kernel
+def _limits_ok(q: FloatArray, v: FloatArray, lim: FloatArray, a: int, length: int) -> bool:
+    """End accelerations (the acceleration is linear: its peak is at an end) and the velocity peak (the
+    vertex of the velocity parabola, where it lies inside) of the segment within the limits."""
+    b = a + length
+    t1 = float(length)
+    # per axis: the largest ratio over the axes passes exactly where every axis' ratio does
+    for i in range(q.shape[1]):
+        qa, qb, va, vb = q[a, i], q[b, i], v[a, i], v[b, i]
+        acc_s, acc_e = _end_acc(qa, qb, va, vb, t1)
+        if not (abs(acc_s) / lim[_ALIM, i] - ACC_SLACK <= 1.0 and abs(acc_e) / lim[_ALIM, i] - ACC_SLACK <= 1.0):
+            return False
+        dp = (qa - qb) / t1  # velocity in x = t / T: A x^2 + B x + C
+        a2 = 6.0 * dp + 3.0 * va + 3.0 * vb
+        b1 = -6.0 * dp - 4.0 * va - 2.0 * vb
+        x = -b1 / (2.0 * a2) if a2 != 0.0 else -1.0
+        peak = abs(a2 * x * x + b1 * x + va) if 0.0 < x < 1.0 else 0.0
+        if not (peak / lim[_VLIM, i] - VEL_SLACK <= 1.0):
+            return False
+    return True
+
+
+@kernel
+def _samples_ok(
+    q: FloatArray, v: FloatArray, tangent: FloatArray, curved: NDArray[np.bool_], lim: FloatArray,
+    a: int, length: int, pos: FloatArray, vel: FloatArray, d: FloatArray,
+) -> bool:
+    """At the `_SAMPLES` ticks of the segment: the velocity within the limits, the position within the
+    budget of the path and inside the box (`pos`, `vel` (n, samples), `d` (n,): scratch)."""
+    if not (_ticks(q, v, tangent, curved, lim, a, a + length, True, pos, vel, 0, d) <= 1.0):
+        return False
+    for j in range(_SAMPLES.size):
+        for i in range(q.shape[1]):
+            if not (abs(vel[i, j]) / lim[_VLIM, i] - VEL_SLACK <= 1.0):
+                return False
+    return True
+
+
+@kernel
+def _segment_ok(
+    q: FloatArray, v: FloatArray, tangent: FloatArray, curved: NDArray[np.bool_], lim: FloatArray,
+    a: int, length: int, pos: FloatArray, vel: FloatArray, d: FloatArray,
+) -> bool:
+    """Both checks, the cheap one first."""
+    return _limits_ok(q, v, lim, a, length) and _samples_ok(q, v, tangent, curved, lim, a, length, pos, vel, d)
+
+
+@kernel
+def _first_passing(
+    path: _Path, a: int, lens: IntArray, prefer: IntArray, lazy: bool, pos: FloatArray, vel: FloatArray,
+    d: FloatArray,
+) -> tuple[int, int]:
+    """The length of the most preferred candidate segment from `a` that passes, 0 if none does;
+    `lens`, `prefer`: the candidates, a preference determining its length (`prefer` is used up).
+
+    `lazy`: the candidates in their order of preference, each checked until one passes (the samples only
+    where the cheap limit checks pass). Else every candidate is checked (the tests' reference). Also
+    returns how often the samples turned down a candidate that passed the limits (the case that makes
+    the lazy search go on to the next one)."""
+    q, v, tangent, curved, lim = path
+    if not lazy:
+        top = 0
+        for j in range(lens.size):
+            if _segment_ok(q, v, tangent, curved, lim, a, lens[j], pos, vel, d):
+                top = max(top, prefer[j])
+        return top % 1024, 0
+    fallbacks = 0
+    while True:
+        top = 0
+        for j in range(lens.size):
+            top = max(top, prefer[j])
+        if top == 0:
+            return 0, fallbacks
+        length = top % 1024
+        if _limits_ok(q, v, lim, a, length):
+            if _samples_ok(q, v, tangent, curved, lim, a, length, pos, vel, d):
+                return length, fallbacks
+            fallbacks += 1
+        for j in range(lens.size):
+            if lens[j] == length:
+                prefer[j] = 0
+
+
+@kernel
+def _greedy(
+    path: _Path, mand: IntArray, min_seg: int, max_seg: int, allow_short: bool, lazy: bool
+) -> tuple[IntArray, int]:
+    """The knots of the greedy search (module docstring), section after section; and how often the
+    samples turned down the preferred candidate (`_first_passing`)."""
+    total, n = path[0].shape
+    pos, vel, d = np.empty((n, _SAMPLES.size)), np.empty((n, _SAMPLES.size)), np.empty(n)
+    knots = np.empty(total, dtype=np.int64)
+    count = 0
+    fallbacks = 0
+    lens_f = np.empty(_CANDIDATES)
+    lens = np.empty(_CANDIDATES, dtype=np.int64)
+    prefer = np.empty(_CANDIDATES, dtype=np.int64)
+    for sec in range(mand.size - 1):
+        cur, end = mand[sec], mand[sec + 1]
+        knots[count] = cur
+        count += 1
+        prev = min(end - cur, max_seg)
+        while cur < end:
+            room = end - cur
+            hi = min(room, max_seg)
+            lo = min(room, min_seg)
+            short = min(room, SHORT_MS if allow_short else min_seg)
+            half = np.ceil(room / 2.0)
+            for j in range(_LADDER.size):
+                lens_f[j] = np.round(prev * _LADDER[j])
+            c = _LADDER.size
+            lens_f[c], lens_f[c + 1], lens_f[c + 2], lens_f[c + 3] = hi, half, np.ceil(room / 3.0), lo
+            for j in range(_SHORT.size):
+                lens_f[c + 4 + j] = np.round(lo * _SHORT[j])
+            # preference: at least min_seg (the encoder's quantisation needs it); finish the section;
+            # else the longest that leaves at least min_seg; else a half; shorter ones only when nothing
+            # else passes (a preference determines its length: lengths are below 1024)
+            for j in range(_CANDIDATES):
+                length = int(min(max(lens_f[j], short), hi))
+                rem = room - length
+                lens[j] = length
+                prefer[j] = (length + 8192 * (length >= lo) + 4096 * (rem == 0) + 2048 * (rem >= min_seg)
+                             + 1024 * (length == half))
+            best, fb = _first_passing(path, cur, lens, prefer, lazy, pos, vel, d)
+            fallbacks += fb
+            if best <= 0:
+                best = short  # nothing passes: the shortest allowed (its violation is reported to the caller)
+            cur += best
+            prev = max(best, lo)
+            if cur < end:
+                knots[count] = cur
+                count += 1
+    knots[count] = mand[-1]
+    return knots[: count + 1].copy(), fallbacks
+
+
+@kernel
+def _lengthen(path: _Path, knots: IntArray, mand: IntArray, min_seg: int, max_seg: int) -> IntArray:
     """Remove the short segments the greedy fit left, where a neighbouring knot can move (or go) so that
     every segment concerned is at least `min_seg` long and passes: the greedy only looks forward, and a
     knot a few ms earlier often avoids the short segment after it.
 
-    The short segments are taken one after the other (a change moves the neighbours of the next one);
-    the candidate segments of all of them are checked at once first, and only those a change made new
-    are checked on the way."""
+    The short segments are taken one after the other (a change moves the neighbours of the next one).
+    For each, the first that passes of: removing its first knot, moving it earlier (the latest position
+    first, 8 at most), removing its last knot, moving it later (the earliest first, 8 at most); the
+    knots in `mand` stay."""
+    q, v, tangent, curved, lim = path
+    n = q.shape[1]
+    pos, vel, d = np.empty((n, _SAMPLES.size)), np.empty((n, _SAMPLES.size)), np.empty(n)
     t = knots.copy()
-    fixed = np.isin(t, mand)
-
-    def options(k: int) -> list[tuple[int, int, list[tuple[int, int]]]]:
-        """(knot index, new value or -1 to remove it, the segments that makes) for short segment k."""
-        a, b = int(t[k]), int(t[k + 1])
-        out: list[tuple[int, int, list[tuple[int, int]]]] = []
-        if k >= 1 and not fixed[k]:
-            p = int(t[k - 1])
-            if b - p <= max_seg:
-                out.append((k, -1, [(p, b)]))
-            for x in range(b - min_seg, p + min_seg - 1, -1)[:8]:
-                out.append((k, x, [(p, x), (x, b)]))
-        if k + 2 < t.size and not fixed[k + 1]:
-            n = int(t[k + 2])
-            if n - a <= max_seg:
-                out.append((k + 1, -1, [(a, n)]))
-            for x in range(a + min_seg, n - min_seg + 1)[:8]:
-                out.append((k + 1, x, [(a, x), (x, n)]))
-        return out
-
-    def check(segs: list[tuple[int, int]]) -> None:
-        new = sorted({s for s in segs if s not in cands.cache})
-        if new:
-            st = np.array([s[0] for s in new], dtype=np.int64)
-            ok = cands.ok(st, np.array([s[1] for s in new], dtype=np.int64) - st)
-            cands.cache.update(zip(new, ok.tolist(), strict=True))
-
-    short = np.nonzero(np.diff(t) < min_seg)[0]
-    check([s for k in short.tolist() for opt in options(k) for s in opt[2]])
+    size = t.size
+    fixed = np.zeros(size, dtype=np.bool_)
+    j = 0
+    for i in range(size):  # both sorted
+        while j < mand.size and mand[j] < t[i]:
+            j += 1
+        fixed[i] = j < mand.size and mand[j] == t[i]
     k = 0
-    while k + 1 < t.size:
-        if int(t[k + 1]) - int(t[k]) >= min_seg:
+    while k + 1 < size:
+        if t[k + 1] - t[k] >= min_seg:
             k += 1
             continue
-        opts = options(k)
+        a, b = t[k], t[k + 1]
+        drop, move = -1, -1  # the knot to remove or to move to `value`
+        value = 0
+        if k >= 1 and not fixed[k]:
+            p = t[k - 1]
+            if b - p <= max_seg and _segment_ok(q, v, tangent, curved, lim, p, b - p, pos, vel, d):
+                drop = k
+            else:
+                for x in range(b - min_seg, max(p + min_seg - 1, b - min_seg - 8), -1):
+                    if (_segment_ok(q, v, tangent, curved, lim, p, x - p, pos, vel, d)
+                            and _segment_ok(q, v, tangent, curved, lim, x, b - x, pos, vel, d)):
+                        move, value = k, x
+                        break
+        if drop < 0 and move < 0 and k + 2 < size and not fixed[k + 1]:
+            nx = t[k + 2]
+            if nx - a <= max_seg and _segment_ok(q, v, tangent, curved, lim, a, nx - a, pos, vel, d):
+                drop = k + 1
+            else:
+                for x in range(a + min_seg, min(nx - min_seg + 1, a + min_seg + 8)):
+                    if (_segment_ok(q, v, tangent, curved, lim, a, x - a, pos, vel, d)
+                            and _segment_ok(q, v, tangent, curved, lim, x, nx - x, pos, vel, d)):
+                        move, value = k + 1, x
+                        break
+        if drop >= 0:
+            t[drop : size - 1] = t[drop + 1 : size]
+            fixed[drop : size - 1] = fixed[drop + 1 : size]
+            size -= 1
+        elif move >= 0:
+            t[move] = value
         k += 1
-        check([s for opt in opts for s in opt[2]])
-        for idx, value, sg in opts:
-            if all(cands.cache[s] for s in sg):
-                if value < 0:
-                    t = np.delete(t, idx)
-                    fixed = np.delete(fixed, idx)
-                else:
-                    t[idx] = value
-                break
-    return t
+    return t[:size].copy()
 
 
+@kernel
 def _chain(
-    q: FloatArray,
-    v: FloatArray,
-    knots: IntArray,
-    vlim: FloatArray,
-    alim: FloatArray,
-    every: _Ticks | None = None,
-) -> ChainFit:
-    n, total = q.shape[0], q.shape[1]
-    starts, lengths = knots[:-1], np.diff(knots)
-    pos, vel, acc_s, acc_e, ticks, seg = every if every is not None else _segments(q, v, starts, lengths)
+    path: _Path, knots: IntArray
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The search looked at a few ticks per segment: check every tick, halve what fails the geometry
+    (4 rounds at most); then the chain at every ms (the fields of `ChainFit`)."""
+    q, v, tangent, curved, lim = path
+    total, n = q.shape
     positions = np.empty((n, total))
     velocities = np.empty((n, total))
-    positions[:, 0], velocities[:, 0] = q[:, 0], v[:, 0]
-    positions[:, ticks], velocities[:, ticks] = pos, vel
-    positions[:, knots], velocities[:, knots] = q[:, knots], v[:, knots]
+    d = np.empty(n)
+    for rnd in range(5):
+        geo = np.empty(knots.size - 1)
+        for s in range(geo.size):
+            geo[s] = _ticks(q, v, tangent, curved, lim, knots[s], knots[s + 1], False, positions, velocities,
+                            knots[s] + 1, d)
+        bad = 0
+        for s in range(geo.size):
+            if geo[s] > 1.0 and knots[s + 1] - knots[s] >= 2:
+                bad += 1
+        if bad == 0 or rnd == 4:  # 4 rounds of halving at most: the 5th pass only samples their knots
+            break
+        halved = np.empty(knots.size + bad, dtype=np.int64)
+        c = 0
+        for s in range(geo.size):
+            halved[c] = knots[s]
+            c += 1
+            if geo[s] > 1.0 and knots[s + 1] - knots[s] >= 2:
+                halved[c] = (knots[s] + knots[s + 1]) // 2
+                c += 1
+        halved[c] = knots[-1]
+        knots = halved
+    positions[:, 0], velocities[:, 0] = q[0], v[0]
+    for s in range(knots.size):
+        positions[:, knots[s]], velocities[:, knots[s]] = q[knots[s]], v[knots[s]]
     # acceleration is linear inside a segment: interpolate its two ends
-    x = ((ticks - starts[seg]) / lengths[seg].astype(np.float64))[None, :]
     acc_left = np.empty((n, total))
-    acc_left[:, 0] = acc_s[:, 0]
-    acc_left[:, ticks] = acc_s[:, seg] * (1.0 - x) + acc_e[:, seg] * x
-    acc_right = acc_left.copy()
-    acc_right[:, knots[:-1]] = acc_s
-    acc_right[:, -1] = acc_left[:, -1]
-    acc_ratio = (np.maximum(np.abs(acc_left), np.abs(acc_right)) / alim[:, None]).max(axis=0)
-    vel_ratio = (np.abs(velocities) / vlim[:, None]).max(axis=0)
-    return ChainFit(knots, positions, velocities, acc_left, acc_right, acc_ratio, vel_ratio)
+    acc_right = np.empty((n, total))
+    x = np.empty(total)
+    for s in range(knots.size - 1):
+        a, b = knots[s], knots[s + 1]
+        length = float(b - a)
+        for off in range(1, b - a + 1):
+            x[off] = off / length
+        for i in range(n):
+            acc_s, acc_e = _end_acc(q[a, i], q[b, i], v[a, i], v[b, i], length)
+            left, right = acc_left[i], acc_right[i]
+            right[a] = acc_s  # the end of the segment before is on the left
+            for off in range(1, b - a + 1):
+                left[a + off] = right[a + off] = acc_s * (1.0 - x[off]) + acc_e * x[off]
+    acc_left[:, 0] = acc_right[:, 0]
+    acc_ratio = np.full(total, -np.inf)
+    vel_ratio = np.full(total, -np.inf)
+    for i in range(n):
+        for m in range(total):
+            acc_ratio[m] = _nanmax(acc_ratio[m], _nanmax(abs(acc_left[i, m]), abs(acc_right[i, m])) / lim[_ALIM, i])
+            vel_ratio[m] = _nanmax(vel_ratio[m], abs(velocities[i, m]) / lim[_VLIM, i])
+    return knots, positions, velocities, acc_left, acc_right, acc_ratio, vel_ratio
