@@ -31,8 +31,8 @@ before ended (and `_lengthen` moves one knot at a time), in small steps: a dozen
 of n axes. In NumPy the interpreter's few microseconds per array operation were most of its cost, even
 with the sections searched in lockstep to batch them (30 ms per plan of the 20-waypoint benchmark path,
 4 fits); as kernels, each section is a plain loop (2.3 ms). The kernels evaluate the NumPy
-implementation's expressions in its order, its sums included (`_tangent`, `_ticks`), so the knots, which
-depend on comparisons at the margin of the budget and the slacks, stayed the same.
+implementation's expressions term by term; the knots of 208 corpus jobs stayed the same
+(tools/plan_corpus.py).
 
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
@@ -122,11 +122,9 @@ def fit_chain(
 
 
 # ----------------------------------------------------------------------------------------------------
-# kernels (planner/jit.py). Every expression is the one the NumPy implementation (up to commit 60b5382)
-# evaluated, in the same order: the knots depend on comparisons against the budget and the slacks at
-# their margin. The Python-facing kernels take a fit's arrays as one `_Path`; the inner ones take them
-# one by one and work on whole segments, not ticks (a call with arrays for arguments costs about what a
-# tick does).
+# kernels (planner/jit.py). The Python-facing kernels take a fit's arrays as one `_Path`; the inner ones
+# take them one by one and work on whole segments, not ticks (a call with arrays for arguments costs about
+# what a tick does).
 
 
 @kernel
@@ -140,28 +138,12 @@ def _tangent(direction: FloatArray, budget: FloatArray) -> FloatArray:
     """The path's unit tangent, scaled by the budget (M+1, n), from its `direction` (M+1, n)."""
     total, n = direction.shape
     out = np.empty((total, n))
-    r = np.empty(8)
     for t in range(total):
         for i in range(n):
             out[t, i] = direction[t, i] / budget[i]
-        # the squares are summed as np.linalg.norm summed them on the path's arrays (axes contiguous) in
-        # the NumPy implementation: pairwise, in 8 partial sums from 8 axes on (up to 128 axes, one block)
-        if n < 8:
-            s = 0.0
-            for i in range(n):
-                s += out[t, i] * out[t, i]
-        else:
-            for j in range(8):
-                r[j] = out[t, j] * out[t, j]
-            i = 8
-            while i < n - n % 8:
-                for j in range(8):
-                    r[j] += out[t, i + j] * out[t, i + j]
-                i += 8
-            s = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
-            while i < n:
-                s += out[t, i] * out[t, i]
-                i += 1
+        s = 0.0
+        for i in range(n):
+            s += out[t, i] * out[t, i]
         norm = _nanmax(np.sqrt(s), 1e-300)
         for i in range(n):
             out[t, i] = out[t, i] / norm
@@ -215,27 +197,9 @@ def _ticks(
             for i in range(n):
                 err = _nanmax(err, abs(d[i]))
         else:
-            # the projection is summed as np.einsum summed it on these arrays (axes contiguous) in the
-            # NumPy implementation: in two interleaved partial sums, over blocks of 8 axes from the
-            # block's last pair to its first
-            s0, s1 = 0.0, 0.0
-            k = 0
-            while n - k >= 8:
-                b0 = d[k + 6] * tangent[tick, k + 6] + s0
-                b1 = d[k + 7] * tangent[tick, k + 7] + s1
-                b0 = d[k + 4] * tangent[tick, k + 4] + b0
-                b1 = d[k + 5] * tangent[tick, k + 5] + b1
-                b0 = d[k + 2] * tangent[tick, k + 2] + b0
-                b1 = d[k + 3] * tangent[tick, k + 3] + b1
-                s0 = d[k] * tangent[tick, k] + b0
-                s1 = d[k + 1] * tangent[tick, k + 1] + b1
-                k += 8
-            while k < n:
-                s0 = d[k] * tangent[tick, k] + s0
-                if k + 1 < n:
-                    s1 = d[k + 1] * tangent[tick, k + 1] + s1
-                k += 2
-            along = s0 + s1
+            along = 0.0
+            for i in range(n):
+                along += d[i] * tangent[tick, i]
             for i in range(n):
                 err = _nanmax(err, abs(d[i] - tangent[tick, i] * along))
         geo = _nanmax(geo, _nanmax(err, 2.0) if outside else err)
