@@ -153,6 +153,14 @@ class PiecewisePath:
         x = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
         return _evaluate(self._coefficients[order], self.breakpoints, np.ascontiguousarray(x.ravel()))
 
+    def trace(self, s: FloatArray, sd: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """Along a traversal (path position `s` and velocity `sd` at every ms): q, the joint velocities
+        q' sd and the direction q', each (len(s), n) (a tick's axes contiguous), and whether each ms is in
+        a blend. One pass for what `__call__` and `merge_safe` give, to the bit."""
+        x = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
+        return _trace(self._coefficients[0], self._coefficients[1], self.breakpoints, self.blends, x,
+                      np.asarray(sd, dtype=np.float64))
+
     def merge_safe(self, s: FloatArray) -> NDArray[np.bool_]:
         """True on the straight pieces (path.Profile merges short switch pieces only there)."""
         piece = np.clip(np.searchsorted(self.breakpoints, s, side="right") - 1, 0, self.blends.size - 1)
@@ -214,6 +222,43 @@ def _evaluate(c: FloatArray, x: FloatArray, s: FloatArray) -> FloatArray:
                     z *= d
             out[i, a] = res
     return out
+
+
+@kernel
+def _trace(
+    c0: FloatArray, c1: FloatArray, x: FloatArray, blends: IntArray, s: FloatArray, sd: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """`PiecewisePath.trace`: q and q' as `_evaluate` computes them, with the piece of each (sorted) s
+    followed instead of searched."""
+    k, pieces, n = c0.shape
+    total = s.size
+    q, v, q1 = np.empty((total, n)), np.empty((total, n)), np.empty((total, n))
+    curved = np.empty(total, dtype=np.bool_)
+    j = 0
+    for i in range(total):
+        if i == 0 or s[i] < s[i - 1]:
+            j = min(max(np.searchsorted(x, s[i], side="right") - 1, 0), pieces - 1)
+        while j + 1 < pieces and x[j + 1] <= s[i]:
+            j += 1
+        d = s[i] - x[j]
+        curved[i] = blends[j] != 0
+        for a in range(n):
+            res = 0.0
+            z = 1.0
+            for kp in range(k):
+                res = res + c0[k - kp - 1, j, a] * z
+                if kp < k - 1:
+                    z *= d
+            q[i, a] = res
+            res = 0.0
+            z = 1.0
+            for kp in range(k - 1):
+                res = res + c1[k - kp - 2, j, a] * z
+                if kp < k - 2:
+                    z *= d
+            q1[i, a] = res
+            v[i, a] = res * sd[i]
+    return q, v, q1, curved
 
 
 def corner_blends(

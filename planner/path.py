@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 
 from planner import topp
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
+from planner.jit import kernel
 from planner.reference import FloatArray, IntArray, Reference
 from planner.topp import PathSamples
 
@@ -95,6 +96,8 @@ class GeometricPath(Protocol):
     def gridpoints(self) -> FloatArray: ...
 
     def merge_safe(self, s: FloatArray) -> NDArray[np.bool_]: ...
+
+    def trace(self, s: FloatArray, sd: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]: ...
 
 
 class SplineGeometry:
@@ -148,6 +151,12 @@ class SplineGeometry:
         """Where short switch pieces may be merged (`_merge_switch_pieces`): everywhere on a spline, as
         measured on the spline paths it was made for."""
         return np.ones(np.shape(s), dtype=bool)
+
+    def trace(self, s: FloatArray, sd: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+        """q, q' sd, q' (len(s), n) and where the path curves for the chain (not where `merge_safe`) along a
+        traversal."""
+        q1 = self(s, 1)
+        return self(s, 0), q1 * np.asarray(sd)[:, None], q1, ~self.merge_safe(s)
 
 
 def solve_profile(
@@ -230,14 +239,27 @@ class Profile:
 
     def sample(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """s, s_dot, s_ddot (left), s_ddot (right) at every ms 0..M."""
-        m = np.arange(self.duration_ms + 1)
-        npc = self.w.size
-        j = np.minimum(np.searchsorted(self.tau, m, side="right") - 1, npc - 1)
-        x = (m - self.tau[j]).astype(np.float64)
-        s = np.clip(self.s[j] + (self.v[j] + 0.5 * self.w[j] * x) * x, 0.0, self.s[-1])
-        sd = np.maximum(self.v[j] + self.w[j] * x, 0.0)
-        jl = np.clip(np.searchsorted(self.tau, m, side="left") - 1, 0, npc - 1)
-        return s, sd, self.w[jl], self.w[j]
+        return _sample_profile(self.tau, self.s, self.v, self.w)
+
+
+@kernel
+def _sample_profile(
+    tau: IntArray, s: FloatArray, v: FloatArray, w: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """`Profile.sample`: every ms m in the piece j with tau_j <= m < tau_j+1 (the end in the last one)."""
+    total = tau[-1] + 1
+    pieces = w.size
+    s_ms, sd, acc_left, acc_right = np.empty(total), np.empty(total), np.empty(total), np.empty(total)
+    j = 0
+    for m in range(total):
+        while j + 1 < pieces and tau[j + 1] <= m:
+            j += 1
+        x = float(m - tau[j])
+        s_ms[m] = min(max(s[j] + (v[j] + 0.5 * w[j] * x) * x, 0.0), s[-1])
+        sd[m] = max(v[j] + w[j] * x, 0.0)
+        acc_right[m] = w[j]
+        acc_left[m] = w[j - 1] if m == tau[j] and j > 0 else w[j]
+    return s_ms, sd, acc_left, acc_right
 
 
 def _joint_steps(tau: IntArray, vt: FloatArray, geom: GeometricPath, alim: FloatArray) -> FloatArray:
@@ -470,12 +492,14 @@ def plan_run(
             q, v, acc_l, acc_r = joint_samples(geom, p)
             return q, v, acc_l, acc_r, None, *_ratios(q, v, acc_l, acc_r, vlim_ms, alim_ms)
         s_ms, sd = p.sample()[:2]
-        q1 = geom(s_ms, 1).T  # the path's direction, also the joint velocity per unit of path velocity
+        # q, q' sd and the direction q' at every ms, a tick's axes contiguous (as the chain's kernels want
+        # them: the transposed views are not copied)
+        q, v, direction, curved = geom.trace(s_ms, sd)
         f = fit_chain(
-            geom(s_ms, 0).T,
-            q1 * sd,
-            q1,
-            ~geom.merge_safe(s_ms),
+            q.T,
+            v.T,
+            direction.T,
+            curved,
             p.real_switches if allow_short else p.long_switches,
             chain.budget,
             vlim_ms,
