@@ -97,6 +97,8 @@ def _powers(t: FloatArray, order: int) -> FloatArray:
 _D1 = np.array([5.0, 4.0, 3.0, 2.0, 1.0])  # d/ds of the quintic's terms, highest order first
 _D2 = np.array([20.0, 12.0, 6.0, 2.0])  # d2/ds2
 _F, _G = _shape_coefficients(RHOS)
+# each shape on its own (a run's pieces: the product of one row is not always the bits of a row of the product)
+_ONE_SHAPE = [_shape_coefficients(RHOS[k : k + 1]) for k in range(RHOS.size)]
 _P0, _P1, _P2 = _powers(_T, 0), _powers(_T, 1), _powers(_T, 2)
 # samples of f, g and their t-derivatives: (n_rho, n_t)
 _FS, _GS = _F @ _P0.T, _G @ _P0.T
@@ -397,9 +399,8 @@ def blended_runs(
     for c in corners:
         if c.half_length > 0:
             hl[c.index], rho[c.index] = c.half_length, c.rho
-    runs = []
-    for a, b in itertools.pairwise(cut):
-        runs.append(_run(z, u, lengths, hl, rho, a, b, vlim, n, alim))
+    ramps = _ramps(u, vlim, alim)
+    runs = [_run(z, u, lengths, hl, rho, a, b, vlim, n, ramps) for a, b in itertools.pairwise(cut)]
     return runs, corners
 
 
@@ -413,9 +414,10 @@ def _run(
     last: int,
     vlim: FloatArray,
     n: int,
-    alim: FloatArray | None = None,
+    ramps: FloatArray,
 ) -> PiecewisePath:
-    """Pieces of the run from waypoint `first` to `last` as power-basis coefficients in s (z units)."""
+    """Pieces of the run from waypoint `first` to `last` as power-basis coefficients in s (z units);
+    `ramps`: each segment's `_ramps`."""
     coefs: list[FloatArray] = []  # each (6, n): coefficient of (s - s0)^m, m = 0..5
     plen: list[float] = []
     blend: list[int] = []
@@ -431,11 +433,11 @@ def _run(
             coefs.append(c)
             plen.append(float(line))
             blend.append(0)
-            ramp.append(_ramp(u[seg], vlim, alim))
+            ramp.append(float(ramps[seg]))
         if seg + 1 < last and hl[seg + 1] > 0.0:
             corner = seg + 1
             ell = hl[corner]
-            f, g = _shape_coefficients(np.array([rho[corner]]))
+            f, g = _ONE_SHAPE[int(np.argmin(np.abs(RHOS - rho[corner])))]  # rho is one of the shapes
             lb = 5.0 * rho[corner] * ell  # parameter length: q'(s) at the ends equals the lines'
             c = np.zeros((6, n))
             c[0] = z[corner]
@@ -464,19 +466,21 @@ def _run(
     return PiecewisePath(x, cc[::-1].copy(), np.array(blend, dtype=np.int64), n, np.array(ramp) * k)
 
 
-def _ramp(direction: FloatArray, vlim: FloatArray, alim: FloatArray | None) -> float:
-    """Path length (z units) a straight piece along unit `direction` (z) needs to reach its top speed
-    from rest: top speed 1 / max |u_j| (the first joint at its velocity limit), path acceleration the
-    tightest alim_j / (vlim_j |u_j|)."""
+def _ramps(directions: FloatArray, vlim: FloatArray, alim: FloatArray | None) -> FloatArray:
+    """For each segment, the path length (z units) a straight piece along its unit `directions` row (z)
+    needs to reach its top speed from rest: top speed 1 / max |u_j| (the first joint at its velocity
+    limit), path acceleration the tightest alim_j / (vlim_j |u_j|); inf where nothing moves."""
+    out = np.full(directions.shape[0], np.inf)
     if alim is None:
-        return float("inf")
-    share = np.abs(direction)
+        return out
+    share = np.abs(directions)
     moving = share > 0.0
-    if not moving.any():
-        return float("inf")
-    top = 1.0 / float(share.max())
-    acc = float(np.min(alim[moving] / (vlim[moving] * share[moving])))
-    return top * top / (2.0 * acc)
+    rows = moving.any(axis=1)
+    with np.errstate(divide="ignore"):
+        top = 1.0 / share.max(axis=1)
+        acc = np.where(moving, alim[None, :] / (vlim[None, :] * share), np.inf).min(axis=1)
+    out[rows] = (top * top / (2.0 * acc))[rows]
+    return out
 
 
 def polyline_deviation(points: FloatArray, waypoints: FloatArray, scale: FloatArray) -> FloatArray:
