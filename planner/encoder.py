@@ -297,6 +297,12 @@ def _segment_errors_kernel(
     return out
 
 
+def load_kernels(ref: Reference) -> None:
+    """Compile (or load) the kernels a small plan may not reach (planner.plan.warm_up): the error of
+    candidate segments at every tick (`_rebalance`, where the placement left short segments)."""
+    _segment_errors(ref, np.array([0]), np.array([ref.duration_ms]), np.ones(ref.n_axes), 0, every_tick=True)
+
+
 def segment_bounds(scales: AxisScales, tolerance: float) -> tuple[int, int]:
     """(min_segment, max_segment) in ms for these axes (see the module docstring)."""
     conv = float(np.max(scales.counts_per_ms_per_rpm))

@@ -37,6 +37,7 @@ from planner.encoder import (
     Reconstruction,
     acceleration_excess,
     encode,
+    load_kernels,
     planned_demand,
     segment_bounds,
 )
@@ -610,15 +611,27 @@ def line_deviation_counts(positions: FloatArray, start: FloatArray, end: FloatAr
     return float(np.abs(rel - d[:, None] * lam[None, :]).max())
 
 
+# a cell and jobs small enough to plan in milliseconds that take every compiled kernel (warm_up)
+_WARM_AXIS = {"node_id": 1, "counts_per_unit": 65189.86, "counts_per_rev": 8192, "velocity": 2.0,
+              "acceleration": 8.0, "jerk": 80.0, "position_min": -3.0, "position_max": 3.0,
+              "max_profile_velocity_rpm": 8000, "max_acceleration": 12.0}
+_WARM_JOBS = (
+    {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4], [0.0, 0.0]]},
+    {"kind": "path", "axes": ["a"], "waypoints": [[0.0], [0.2]]},
+    {"kind": "move", "axes": ["a", "b"], "start": [0.0, 0.0], "target": [0.3, -0.2]},
+    {"kind": "timed", "axes": ["a"], "times": [0.0, 0.4, 0.43, 0.8], "positions": [[0.0], [0.1], [0.104], [0.0]]},
+)
+
+
 def warm_up() -> None:
-    """Load the compiled kernels (planner/jit.py: compiled once per machine, then loaded from the cache)
-    and import the solvers, e.g. when a service starts, so the first job's planning time is the planning."""
-    from planner import topp
-    from planner.jerk import _ruckig
+    """Load the compiled kernels (planner/jit.py: compiled once per machine, a few seconds, then loaded from
+    the cache in about a second) and import the solvers, by planning a few small jobs: e.g. when a service
+    starts, so that the first job's planning time is the planning."""
+    from planner.config import cell_from_dict
+    from planner.job import job_from_dict
 
-    _ruckig()
-    import scipy.interpolate  # noqa: F401
-
-    line = np.linspace(0.0, 1.0, 2 * topp.THETAS.size).reshape(2, topp.THETAS.size, 1)
-    topp.solve(topp.PathSamples(np.array([0.0, 1.0]), np.array([1.0, 0.0]), np.ones_like(line),
-                                np.zeros_like(line)), np.ones(1), np.ones(1))
+    cell = cell_from_dict({"cell": {"name": "warm-up"},
+                           "axis": [{"name": "a", **_WARM_AXIS}, {"name": "b", **_WARM_AXIS, "node_id": 2}]})
+    for job in _WARM_JOBS:
+        traj = plan_job(job_from_dict(job, cell), cell)
+    load_kernels(traj.plan)
