@@ -1,5 +1,5 @@
 # The two commands of the README: `make demo` and `make test`. Both create .venv and install the
-# project (with its dev extra) when it is missing or pyproject.toml changed.
+# project (with its dev extra) when it is missing or pyproject.toml changed, and compile the planner's kernels.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -11,6 +11,8 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	@echo "compiling the planner's kernels (once per machine, about half a minute)"
+	$(PY) -c 'from planner.plan import warm_up; warm_up()'
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -193,6 +193,9 @@ def _serve(
         options = ServiceOptions(queue_limit=args.queue, telemetry_hz=args.telemetry_hz,
                                  record_jobs=not args.no_record, recordings=retention,
                                  recordings_dir=str(args.recordings) if args.recordings else None)
+        from planner.plan import warm_up  # here: every command's parser imports this module
+
+        warm_up()  # the planner's kernels loaded (compiled on a machine's first run) before the first job
         service = JobService(session, backend, store, options).start()
         listen = args.listen or list(cell.zenoh.listen)
         print(
