@@ -366,13 +366,14 @@ def place_knots(
         return np.array([0], dtype=np.int64)
     mand = _mandatory_knots(ref, scales, MANDATORY_GAP)
     bounds, piece = _structure(ref, mand, hint_gap or min_seg, max_seg, keep_kinks)
-    cuts: list[int] = []
-    for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
-        parts = -(-(b - a) // piece)  # equal parts, none longer than `piece`
-        cuts.extend(a + (j * (b - a)) // parts for j in range(parts))
-    cuts.append(m)
+    # each section in equal parts, none longer than `piece`
+    span = np.diff(bounds)
+    parts = -(-span // piece)
+    first = np.repeat(np.cumsum(parts) - parts, parts)
+    j = np.arange(int(parts.sum())) - first
+    cuts = np.append(np.repeat(bounds[:-1], parts) + (j * np.repeat(span, parts)) // np.repeat(parts, parts), m)
     found = _greedy_knots(
-        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.array(cuts, dtype=np.int64),
+        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, cuts.astype(np.int64),
         acc_share * scales.acceleration_axis, budget, min_seg, max_seg, _PROX, _LADDER)
     times = np.unique(found)
     times = _rebalance(ref, times, mand, budget, min_seg, max_seg, scales.acceleration_axis, acc_share)
@@ -441,16 +442,32 @@ def _structure(
     """
     if ref.hints.size == 0:
         return mand, SECTION_MS
-    kept = sorted(mand.tolist())
-    kinks = set(ref.breaks.tolist()) if keep_kinks else set()
-    for h in ref.hints.tolist():
-        # a hint where the acceleration may step (a chain's knot, a pvt row) is kept however close: a
-        # segment across it cannot follow the plan
-        i = bisect.bisect_left(kept, h)
-        nearest = min(abs(h - kept[j]) for j in (i - 1, i) if 0 <= j < len(kept))
-        if h in kinks or nearest >= gap:
-            kept.insert(i, h)
-    return np.array(kept, dtype=np.int64), max_seg
+    kinks = np.zeros(ref.duration_ms + 1, dtype=np.bool_)
+    if keep_kinks:
+        kinks[ref.breaks] = True
+    return _keep_hints(np.sort(mand), ref.hints, kinks, gap), max_seg
+
+
+@kernel
+def _keep_hints(mand: IntArray, hints: IntArray, kinks: NDArray[np.bool_], gap: int) -> IntArray:
+    """`_structure`'s boundaries: `mand` and the sorted `hints` at least `gap` from every boundary kept
+    before them, or where the acceleration may step (`kinks`: a chain's knot, a pvt row is kept however
+    close: a segment across it cannot follow the plan)."""
+    kept = np.empty(mand.size + hints.size, dtype=np.int64)
+    kept[: mand.size] = mand
+    size = mand.size
+    for h in hints:
+        i = np.searchsorted(kept[:size], h)  # bisect_left
+        nearest = np.iinfo(np.int64).max
+        if i > 0:
+            nearest = abs(h - kept[i - 1])
+        if i < size:
+            nearest = min(nearest, abs(h - kept[i]))
+        if kinks[h] or nearest >= gap:
+            kept[i + 1 : size + 1] = kept[i:size].copy()
+            kept[i] = h
+            size += 1
+    return kept[:size].copy()
 
 
 def _coarsen(
