@@ -556,9 +556,11 @@ def _choose_values(
     scales: AxisScales,
     tolerance: float,
     ends: tuple[IntArray, IntArray, IntArray, IntArray],
+    envelope: FloatArray,
 ) -> tuple[IntArray, IntArray]:
     """Quantised positions (counts) and velocities (rpm) for every knot, chosen jointly at the sample
-    ticks; knot 0 and the last knot are `ends` (first positions, velocities, last positions, velocities).
+    ticks; knot 0 and the last knot are `ends` (first positions, velocities, last positions, velocities);
+    `envelope`: `segment_envelope(ref, times)`.
 
     Candidates per knot: the planned demand and one count either side (all within the tolerance at the
     knot; the side counts let a slow axis keep its motion smooth on a grid set by faster ones), and the
@@ -566,9 +568,9 @@ def _choose_values(
     conv, budget, drive_acc, drive_vel, tz = _axis_terms(scales)
     p_first, v_first, p_last, v_last = (np.ascontiguousarray(e, dtype=np.int64) for e in ends)
     return quantise.choose_values(
-        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.ascontiguousarray(times, dtype=np.int64),
-        conv, budget, drive_acc, drive_vel, tz, tolerance, _PROX, np.array(_DP_POSITIONS),
-        np.array(DP_VELOCITIES, dtype=np.int64), DP_VELOCITIES == (0, 1), (p_first, v_first), (p_last, v_last),
+        ref.positions, ref.velocities, envelope, np.ascontiguousarray(times, dtype=np.int64), conv, budget,
+        drive_acc, drive_vel, tz, tolerance, _PROX, np.array(_DP_POSITIONS), np.array(DP_VELOCITIES, dtype=np.int64),
+        DP_VELOCITIES == (0, 1), (p_first, v_first), (p_last, v_last),
     )
 
 
@@ -579,19 +581,21 @@ def _refine(
     tolerance: float,
     bad: NDArray[np.bool_],
     fixed_knots: set[int],
+    envelope: FloatArray,
 ) -> Knots:
     """Choose the values again around failing segments, with more candidates and an exact check.
 
     `bad` (n_axes, N) marks the failing segments of each axis; a window of two knots either side of
     them is chosen again on the axes that fail inside it (the others keep their values, which pass),
-    with 7 velocity candidates and every tick checked (`quantise.refine`).
+    with 7 velocity candidates and every tick checked (`quantise.refine`). `envelope`:
+    `segment_envelope(ref, knots.times_ms)`.
     """
     times = knots.times_ms
     pinned = np.zeros(times.size, dtype=bool)
     pinned[sorted(fixed_knots)] = True
     conv, budget, drive_acc, drive_vel, tz = _axis_terms(scales)
     pos, vel = quantise.refine(
-        ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.ascontiguousarray(times, dtype=np.int64),
+        ref.positions, ref.velocities, envelope, np.ascontiguousarray(times, dtype=np.int64),
         np.ascontiguousarray(knots.positions, dtype=np.int64),
         np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64), np.ascontiguousarray(bad), pinned,
         conv, budget, drive_acc, drive_vel, tz, tolerance, _PROX, np.array(_DP_POSITIONS),
@@ -816,21 +820,21 @@ def _quantise(
     conv = scales.counts_per_ms_per_rpm[:, None]
     knots: Knots | None = None
     for _round in range(MAX_ROUNDS):
+        env = segment_envelope(ref, times)
         if knots is None:
-            pos, vel = _choose_values(ref, times, scales, tol, ends)
+            pos, vel = _choose_values(ref, times, scales, tol, ends, env)
         else:
             old = np.isin(times, knots.times_ms)
             pos = want[:, times].copy()
             vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
             pos[:, old], vel[:, old] = knots.positions, knots.velocities_rpm
         knots = Knots(times, pos, vel)
-        rec = reconstruct(knots, scales)
-        mask = _bad_mask(ref, knots, rec, scales, tol, want)
+        mask = _bad_mask(knots, scales, tol, want, env)
         if mask.any():
-            knots = _refine(ref, knots, scales, tol, mask, {0, times.size - 1})
-            rec = reconstruct(knots, scales)
-            mask = _bad_mask(ref, knots, rec, scales, tol, want)
+            knots = _refine(ref, knots, scales, tol, mask, {0, times.size - 1}, env)
+            mask = _bad_mask(knots, scales, tol, want, env)
         bad = np.nonzero(mask.any(axis=0))[0]
+        rec = reconstruct(knots, scales)
         if bad.size == 0:
             _check_dynamics(ref, knots, rec, scales)
             return knots, rec
@@ -882,14 +886,18 @@ def _split_long(times: IntArray, max_seg: int) -> IntArray:
 
 
 def _bad_mask(
-    ref: Reference, knots: Knots, rec: Reconstruction, scales: AxisScales, tol: float, want: IntArray
+    knots: Knots, scales: AxisScales, tol: float, want: IntArray, envelope: FloatArray
 ) -> NDArray[np.bool_]:
     """(n_axes, N): which axis misses the tolerance, 0x60C5 or the acceleration-excess budget on which
-    segment (`rec`: the drive's reconstruction of `knots`; 0x607F is `_check_dynamics`')."""
-    times = np.ascontiguousarray(knots.times_ms, dtype=np.int64)
+    segment (the drive's reconstruction checked as it is computed; 0x607F is `_check_dynamics`');
+    `envelope`: the plan's `segment_envelope` on the knots' times."""
     return quantise.failing_segments(
-        rec.demand, want, times, tol, rec.acc_start, rec.acc_end, segment_envelope(ref, times),
-        ACC_EXCESS_LIMIT * scales.acceleration_axis, np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64),
+        np.ascontiguousarray(knots.positions, dtype=np.int64),
+        np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64),
+        np.ascontiguousarray(knots.times_ms, dtype=np.int64),
+        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64),
+        _toward_zero(scales), want, tol, envelope, ACC_EXCESS_LIMIT * scales.acceleration_axis,
+        np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64),
     )
 
 
@@ -897,11 +905,10 @@ def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float
     """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
     acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
     want = planned_demand(ref, scales.toward_zero)
-    rec = reconstruct(knots, scales)
-    if _bad_mask(ref, knots, rec, scales, tol, want).any():
+    if _bad_mask(knots, scales, tol, want, segment_envelope(ref, knots.times_ms)).any():
         return False
     try:
-        _check_dynamics(ref, knots, rec, scales)
+        _check_dynamics(ref, knots, reconstruct(knots, scales), scales)
     except EncodingNeedsTime:
         return False
     return True

@@ -4,14 +4,19 @@ Theory of operation: encoder.py's module docstring; this module is its arithmeti
 numba (planner/jit.py). The value search scores every (start candidate, end candidate) pair of every
 segment, and the refinement checks every tick of every pair: as NumPy that took (n, N, C, C, ticks)
 temporaries and tens of array operations per window (15-90 ms per plan, most of the encoder's time).
-Here the Viterbi pass computes each segment's (C, C) costs where it needs them, and the verification
-reconstructs the drive's demand in one pass over the ticks.
+Here each segment's (C, C) costs are computed without temporaries, in loops that vectorise, and the
+verification checks the drive's demand as it computes it.
+
+The refinement's check at every tick is lazy (`_exact_path`): the costs at the sample ticks bound the
+costs at every tick from below (the sample ticks are some of them), and only the pairs on the best path
+are checked at every tick, until the best path has no bound left; that path is the one the full check
+gives, ties included. Most pairs (85 % miss the tolerance) are never checked at every tick.
 
 The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/
-test_planner_value_search.py keeps it as the reference): the drive's interpolation and rounding as
+encoder_reference.py keeps it as the reference): the drive's interpolation and rounding as
 planner/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
-counts subtracted first, so the numbers are small), cast where NumPy cast; ties to the first candidate,
-as numpy's argmin.
+counts subtracted first, so the numbers are small), cast where NumPy cast; maxima as np.maximum
+(nan propagates); ties to the first candidate, as numpy's argmin.
 """
 
 from __future__ import annotations
@@ -24,8 +29,11 @@ from planner.record import VELOCITY_MAX, VELOCITY_MIN
 from planner.reference import FloatArray, IntArray
 
 BoolArray = NDArray[np.bool_]
+Float32Array = NDArray[np.float32]
+Workspace = tuple[Float32Array, FloatArray, Float32Array, Float32Array]
 
 HARD = 1.0e6  # cost of a pair that misses the tolerance, 0x60C5 or 0x607F: only chosen where all do
+_ROUNDS = 32  # passes of the exact Viterbi over bounded costs before all costs are computed
 _VMIN = float(VELOCITY_MIN)
 _VMAX = float(VELOCITY_MAX)
 
@@ -44,12 +52,24 @@ def drive_round(x: float, toward_zero: bool) -> float:
 
 
 @kernel
+def _segment(p0: float, v0: float, p1: float, v1: float, t: float) -> tuple[float, float, float, float]:
+    """One segment's a and b (planner/hermite.py's polynomial, anchored at its end) and its start and
+    end accelerations; velocities in counts/ms, t in ms (t * t * t is t**3 exactly: whole ms)."""
+    dp = p1 - p0
+    a = (-2.0 * dp + t * (v1 + v0)) / (t * t * t)
+    b = (-3.0 * dp + t * (2.0 * v1 + v0)) / (t * t)
+    acc_s = (6.0 * dp - 2.0 * t * v1 - 4.0 * t * v0) / (t * t)
+    acc_e = (-6.0 * dp + 4.0 * t * v1 + 2.0 * t * v0) / (t * t)
+    return a, b, acc_s, acc_e
+
+
+@kernel
 def reconstruct(
     positions: IntArray, velocities_rpm: IntArray, times: IntArray, conv: FloatArray, toward_zero: BoolArray
 ) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The drive's rounded demand, unrounded position and velocity at every ms 0..times[-1], and every
-    segment's start and end acceleration, of every axis: planner.hermite.reconstruct's polynomial
-    (anchored at the segment's end, tau in [-T + 1, 0]), evaluated in the same order."""
+    segment's start and end acceleration, of every axis: planner.hermite.reconstruct, evaluated in the
+    same order (tau in [-T + 1, 0] from the segment's end)."""
     n, nk = positions.shape
     total = times[-1]
     demand = np.empty((n, total + 1), np.int64)
@@ -61,21 +81,15 @@ def reconstruct(
         pos[i, 0] = float(positions[i, 0])
         vel[i, 0] = float(velocities_rpm[i, 0]) * conv[i]
         for k in range(nk - 1):
-            p0 = float(positions[i, k])
-            p1 = float(positions[i, k + 1])
-            v0 = float(velocities_rpm[i, k]) * conv[i]
             v1 = float(velocities_rpm[i, k + 1]) * conv[i]
-            t = float(times[k + 1] - times[k])
-            dp = p1 - p0
-            # t * t * t is t**3 exactly: whole ms, far below 2**17
-            a = (-2.0 * dp + t * (v1 + v0)) / (t * t * t)
-            b = (-3.0 * dp + t * (2.0 * v1 + v0)) / (t * t)
+            p1 = float(positions[i, k + 1])
+            a, b, acc_s[i, k], acc_e[i, k] = _segment(
+                float(positions[i, k]), float(velocities_rpm[i, k]) * conv[i], p1, v1, float(times[k + 1] - times[k])
+            )
             for tick in range(times[k] + 1, times[k + 1] + 1):
                 tau = float(tick - times[k + 1])
                 pos[i, tick] = ((a * tau + b) * tau + v1) * tau + p1
                 vel[i, tick] = (3.0 * a * tau + 2.0 * b) * tau + v1
-            acc_s[i, k] = (6.0 * dp - 2.0 * t * v1 - 4.0 * t * v0) / (t * t)
-            acc_e[i, k] = (-6.0 * dp + 4.0 * t * v1 + 2.0 * t * v0) / (t * t)
         for tick in range(total + 1):
             demand[i, tick] = int(drive_round(pos[i, tick], toward_zero[i]))
     return demand, pos, vel, acc_s, acc_e
@@ -86,8 +100,7 @@ def segment_envelope(acc_left: FloatArray, acc_right: FloatArray, times: IntArra
     """max(|acc_left|, |acc_right|) over each segment's ticks, both ends included, (n_axes, N).
 
     The last segment's runs to the end of the plan, not to times[-1] (numpy's `maximum.reduceat`, which
-    the encoder used: the same where times end at the plan's end, as an encoding's do; the refinement's
-    windows inherit it, see `refine`)."""
+    the encoder used: the same where the times end at the plan's end, as an encoding's do)."""
     n, m1 = acc_left.shape
     nseg = times.size - 1
     out = np.empty((n, max(nseg, 0)))
@@ -105,31 +118,43 @@ def segment_envelope(acc_left: FloatArray, acc_right: FloatArray, times: IntArra
 
 @kernel
 def failing_segments(
-    demand: IntArray,
-    want: IntArray,
+    positions: IntArray,
+    velocities_rpm: IntArray,
     times: IntArray,
+    conv: FloatArray,
+    toward_zero: BoolArray,
+    want: IntArray,
     tol: float,
-    acc_start: FloatArray,
-    acc_end: FloatArray,
     envelope: FloatArray,
     excess_limit: FloatArray,
     drive_acc: FloatArray,
 ) -> BoolArray:
-    """(n_axes, N): the segments of each axis whose demand misses `want` by more than `tol` at a tick
-    (tick 0 counts to segment 0, a knot's tick to the segment it ends), or whose peak acceleration
-    exceeds the plan's `envelope` by more than `excess_limit` or is above `drive_acc`."""
-    n = demand.shape[0]
-    nseg = times.size - 1
-    bad = np.zeros((n, nseg), np.bool_)
+    """(n_axes, N): the segments of each axis whose drive demand (`reconstruct`'s, without keeping it)
+    misses `want` by more than `tol` at a tick (tick 0 counts to segment 0, a knot's tick to the segment
+    it ends), or whose peak acceleration exceeds the plan's `envelope` by more than `excess_limit` or is
+    above `drive_acc`."""
+    n, nk = positions.shape
+    bad = np.zeros((n, nk - 1), np.bool_)
     for i in range(n):
-        for k in range(nseg):
-            for tick in range(times[k] + 1 if k > 0 else 0, times[k + 1] + 1):
-                if abs(demand[i, tick] - want[i, tick]) > tol:
-                    bad[i, k] = True
-                    break
-            peak = np.maximum(abs(acc_start[i, k]), abs(acc_end[i, k]))
+        for k in range(nk - 1):
+            v1 = float(velocities_rpm[i, k + 1]) * conv[i]
+            p1 = float(positions[i, k + 1])
+            p0 = float(positions[i, k])
+            a, b, acc_s, acc_e = _segment(p0, float(velocities_rpm[i, k]) * conv[i], p1, v1,
+                                          float(times[k + 1] - times[k]))
+            peak = np.maximum(abs(acc_s), abs(acc_e))
             if peak - envelope[i, k] > excess_limit[i] or peak > drive_acc[i]:
                 bad[i, k] = True
+                continue
+            if k == 0 and abs(int(drive_round(p0, toward_zero[i])) - want[i, 0]) > tol:
+                bad[i, k] = True
+                continue
+            for tick in range(times[k] + 1, times[k + 1] + 1):
+                tau = float(tick - times[k + 1])
+                x = ((a * tau + b) * tau + v1) * tau + p1
+                if abs(int(drive_round(x, toward_zero[i])) - want[i, tick]) > tol:
+                    bad[i, k] = True
+                    break
     return bad
 
 
@@ -178,6 +203,32 @@ def axis_candidates(
 
 
 @kernel
+def workspace(c: int, ticks: int) -> Workspace:
+    """Scratch for `pair_costs` of up to `c` x `c` candidates on segments of up to `ticks` ms (allocated
+    once per pass, not per segment): float32, float64 per tick, and on their own the arrays a pair loop
+    writes (a loop whose stores may overlap its loads does not vectorise)."""
+    ticks = max(ticks, 8)
+    return (np.empty((2 * c + 2) * ticks, np.float32), np.empty(7 * ticks), np.empty(max(ticks + 1, c), np.float32),
+            np.empty(c, np.float32))
+
+
+@kernel
+def _limits(
+    pa: float, va: float, pb: float, vb: float, dt: float, envelope: float, excess_scale: float, drive_acc: float,
+    drive_vel: float,
+) -> tuple[float, float, float]:
+    """A pair's costs that do not depend on the ticks: HARD above 0x60C5 or (at the ends) 0x607F, 1e3 where
+    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square."""
+    dp = pb - pa
+    acc_s = (6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va) / (dt * dt)
+    acc_e = (-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va) / (dt * dt)
+    peak = np.maximum(abs(acc_s), abs(acc_e))
+    excess = np.maximum(peak - envelope, 0.0) / excess_scale
+    over = peak > drive_acc or np.maximum(abs(va), abs(vb)) > drive_vel
+    return HARD if over else 0.0, 1.0e3 if excess > 0.9 else 0.0, excess * excess
+
+
+@kernel
 def pair_costs(
     p_plan: FloatArray,
     t0: int,
@@ -196,35 +247,63 @@ def pair_costs(
     exact: bool,
     prox: FloatArray,
     out: FloatArray,
+    work: Workspace,
 ) -> None:
     """out[i, j]: the cost of the segment t0..t1 of one axis from candidate (pa[i], va_rpm[i]) to
-    (pb[j], vb_rpm[j]) (velocities in rpm, `conv` counts/ms per rpm).
+    (pb[j], vb_rpm[j]) (velocities in rpm, `conv` counts/ms per rpm); `work` from `workspace`.
 
     Deviation: the drive's rounded demand against the planned demand, at every tick (`exact`) or at the
     sample ticks `prox` (fractions of the segment, rounded, within 1..T-1); beyond `tol` it costs HARD,
     below it (dev / tol)^2 (exact) or half the squared float error (a tie-breaker: smaller is more robust
-    at the ticks in between). Plus HARD above 0x60C5 (`drive_acc`) or, at the ends, 0x607F
-    (`drive_vel`), and the squared excess of the end accelerations over the plan's `envelope` in units
-    of `excess_scale` (1e3 more above 0.9 of it).
+    at the ticks in between). Plus `_limits`.
     """
+    if exact:
+        _exact_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
+                     toward_zero, tol, out, work)
+    else:
+        _sample_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
+                      toward_zero, tol, prox, out, out[:0, :0], work)
+
+
+@kernel
+def _sample_costs(
+    p_plan: FloatArray,
+    t0: int,
+    t1: int,
+    pa: FloatArray,
+    va_rpm: FloatArray,
+    pb: FloatArray,
+    vb_rpm: FloatArray,
+    conv: float,
+    envelope: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    prox: FloatArray,
+    out: FloatArray,
+    bound: FloatArray,
+    work: Workspace,
+) -> None:
+    """`pair_costs` at the sample ticks into `out`, and into `bound` (unless it is empty) a lower bound of
+    each pair's cost at every tick where no cost is nan: the sample ticks are some of them (the same
+    misses), so their largest miss is at most the deviation."""
     ca = pa.size
     cb = pb.size
+    nq = prox.size
     dt = float(t1 - t0)
-    va = va_rpm * conv
-    vb = vb_rpm * conv
-    if exact:
-        offsets = np.arange(1, t1 - t0 + 1).astype(np.float64)
-    else:
-        offsets = np.empty(prox.size)
-        top = max(dt - 1.0, 1.0)
-        for q in range(prox.size):
-            offsets[q] = min(max(np.round(prox[q] * dt), 1.0), top)
-    dev = np.zeros((ca, cb), np.float32)
-    err = np.zeros((ca, cb), np.float32)
-    ea = np.empty(ca, np.float32)
-    eb = np.empty(cb, np.float32)
-    half = np.float32(0.5)
-    for off in offsets:
+    scratch = work[0]
+    ea = scratch[: nq * ca].reshape((nq, ca))
+    eb = scratch[nq * ca : nq * (ca + cb)].reshape((nq, cb))
+    want = scratch[nq * (ca + cb) : nq * (ca + cb + 1)]
+    frac = scratch[nq * (ca + cb + 1) : nq * (ca + cb + 2)]
+    terms = work[1][: 2 * nq].reshape((2, nq))  # the whole count below the plan, its truncation
+    dev = work[2][:cb]
+    err = work[3][:cb]
+    top = max(dt - 1.0, 1.0)
+    for q in range(nq):
+        off = min(max(np.round(prox[q] * dt), 1.0), top)
         s = off / dt
         s2 = s * s
         h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
@@ -235,49 +314,138 @@ def pair_costs(
         # relative to the whole count below the plan: small numbers, float32 will do
         base = np.floor(p)
         for i in range(ca):
-            ea[i] = np.float32((pa[i] - base) * h00 + va[i] * h10)
+            ea[q, i] = np.float32((pa[i] - base) * h00 + va_rpm[i] * conv * h10)
         for j in range(cb):
-            eb[j] = np.float32((pb[j] - base) * h01 + vb[j] * h11)
-        if toward_zero:
-            target = np.trunc(p)
-            for i in range(ca):
-                for j in range(cb):
-                    miss = np.float32(abs(np.trunc(np.float64(ea[i] + eb[j]) + base) - target))
-                    if miss > dev[i, j]:
-                        dev[i, j] = miss
-        else:
-            want = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
-            for i in range(ca):
-                a = ea[i]
-                for j in range(cb):
-                    miss = abs(np.floor(a + eb[j] + half) - want)
-                    if miss > dev[i, j]:
-                        dev[i, j] = miss
-        if not exact:
-            frac = np.float32(p - base)
-            for i in range(ca):
-                a = ea[i]
-                for j in range(cb):
-                    e = abs(a + eb[j] - frac)
-                    if e > err[i, j]:
-                        err[i, j] = e
+            eb[q, j] = np.float32((pb[j] - base) * h01 + vb_rpm[j] * conv * h11)
+        want[q] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+        frac[q] = np.float32(p - base)
+        terms[0, q] = base
+        terms[1, q] = np.trunc(p)
+    half = np.float32(0.5)
     tol32 = np.float32(tol)
     for i in range(ca):
-        for j in range(cb):
-            hard = HARD if dev[i, j] > tol32 else 0.0
-            if exact:
-                q = dev[i, j] / tol32
-                dev_cost = hard + np.float64(q * q)
+        # the largest miss and float error over the sample ticks, as np.maximum keeps them (a nan stays)
+        dev[:] = 0.0
+        err[:] = 0.0
+        for q in range(nq):
+            a = ea[q, i]
+            if toward_zero:
+                for j in range(cb):
+                    miss = np.float32(abs(np.trunc(np.float64(a + eb[q, j]) + terms[0, q]) - terms[1, q]))
+                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
             else:
-                q = err[i, j] / tol32
-                dev_cost = hard + np.float64(half * (q * q))
-            dp = pb[j] - pa[i]
-            acc_s = (6.0 * dp - 2.0 * dt * vb[j] - 4.0 * dt * va[i]) / (dt * dt)
-            acc_e = (-6.0 * dp + 4.0 * dt * vb[j] + 2.0 * dt * va[i]) / (dt * dt)
-            peak = np.maximum(abs(acc_s), abs(acc_e))
-            excess = np.maximum(peak - envelope, 0.0) / excess_scale
-            over = peak > drive_acc or np.maximum(abs(va[i]), abs(vb[j])) > drive_vel
-            out[i, j] = dev_cost + (HARD if over else 0.0) + (1.0e3 if excess > 0.9 else 0.0) + excess * excess
+                for j in range(cb):
+                    miss = abs(np.floor(a + eb[q, j] + half) - want[q])
+                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+            for j in range(cb):
+                e = abs(a + eb[q, j] - frac[q])
+                err[j] = e if e > err[j] or np.isnan(e) else err[j]
+        va = va_rpm[i] * conv
+        for j in range(cb):
+            hard, budget, excess2 = _limits(pa[i], va, pb[j], vb_rpm[j] * conv, dt, envelope, excess_scale,
+                                            drive_acc, drive_vel)
+            e32 = err[j] / tol32
+            out[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(half * (e32 * e32)) + hard + budget + excess2
+            if bound.size:
+                q32 = dev[j] / tol32
+                bound[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+
+
+@kernel
+def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, want: Float32Array) -> None:
+    """For the ticks 1..T of the segment t0..t1, terms[:, :T]: the Hermite basis h00, h01, h10, h11 (the
+    formulas of encoder._hermite_basis), the whole count below the plan, the plan, its truncation; and
+    want[:T]: the planned demand (rounded to nearest) relative to that whole count, float32."""
+    nt = t1 - t0
+    dt = float(nt)
+    for t in range(nt):
+        s = float(t + 1) / dt
+        s2 = s * s
+        h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
+        terms[0, t] = h00
+        terms[1, t] = 1.0 - h00
+        terms[2, t] = (s - 2.0 * s2 + s2 * s) * dt
+        terms[3, t] = (s2 * s - s2) * dt
+        p = p_plan[t0 + t + 1]
+        base = np.floor(p)
+        terms[4, t] = base
+        terms[5, t] = p
+        terms[6, t] = np.trunc(p)
+        want[t] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+
+
+@kernel
+def _exact_cost(
+    terms: FloatArray,
+    want: Float32Array,
+    nt: int,
+    pa: float,
+    va: float,
+    pb: float,
+    vb: float,
+    toward_zero: bool,
+    tol: float,
+    limits: tuple[float, float, float],
+    miss: Float32Array,
+) -> float:
+    """One pair's `pair_costs` at every tick of a segment (`_segment_ticks`: terms, want; `_limits`);
+    velocities in counts/ms; `miss`: scratch of nt + 1, not overlapping the others."""
+    half = np.float32(0.5)
+    # each share relative to the whole count below the plan: small numbers, float32 will do
+    if toward_zero:
+        for t in range(nt):
+            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
+            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
+            miss[t] = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, t]) - terms[6, t]))
+    else:
+        for t in range(nt):
+            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
+            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
+            miss[t] = abs(np.floor(a + b + half) - want[t])
+    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
+    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
+    bits = miss.view(np.int32)
+    top = np.int32(0)
+    for t in range(nt):
+        top = bits[t] if bits[t] > top else top
+    bits[nt] = top
+    dev = miss[nt]
+    tol32 = np.float32(tol)
+    q32 = dev / tol32
+    hard, budget, excess2 = limits
+    return (HARD if dev > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+
+
+@kernel
+def _exact_costs(
+    p_plan: FloatArray,
+    t0: int,
+    t1: int,
+    pa: FloatArray,
+    va_rpm: FloatArray,
+    pb: FloatArray,
+    vb_rpm: FloatArray,
+    conv: float,
+    envelope: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    out: FloatArray,
+    work: Workspace,
+) -> None:
+    """`pair_costs` at every tick."""
+    nt = t1 - t0
+    terms = work[1][: 7 * nt].reshape((7, nt))
+    want = work[0][:nt]
+    _segment_ticks(p_plan, t0, t1, terms, want)
+    for i in range(pa.size):
+        va = va_rpm[i] * conv
+        for j in range(pb.size):
+            vb = vb_rpm[j] * conv
+            limits = _limits(pa[i], va, pb[j], vb, float(nt), envelope, excess_scale, drive_acc, drive_vel)
+            out[i, j] = _exact_cost(terms, want, nt, pa[i], va, pb[j], vb, toward_zero, tol, limits, work[2])
 
 
 @kernel
@@ -293,9 +461,51 @@ def _first_min(x: FloatArray) -> int:
 
 
 @kernel
+def _forward(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: IntArray, start: int) -> None:
+    """NumPy's Viterbi pass over the pair costs (K-1, C, C) from segment `start` on: totals[k] the cheapest
+    path to each candidate of knot k (totals[0] set: candidate 0 at 0, the others inf), back[k] its
+    candidate at knot k (the first minimum, as argmin; a nan is a minimum). A pinned knot's columns are
+    all the same: the first stands for all."""
+    nseg, c, _ = costs.shape
+    for k in range(start, nseg):
+        for j in range(1 if pinned[k + 1] else c):
+            best = 0
+            low = totals[k, 0] + costs[k, 0, j]
+            for i in range(1, c):
+                if np.isnan(low):
+                    break
+                x = totals[k, i] + costs[k, i, j]
+                if x < low or np.isnan(x):
+                    best, low = i, x
+            back[k, j] = best
+            totals[k + 1, j] = low
+        if pinned[k + 1]:
+            back[k, 1:] = back[k, 0]
+            totals[k + 1, 1:] = totals[k + 1, 0]
+
+
+@kernel
+def _best_path(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: IntArray, start: int) -> IntArray:
+    """The minimum-cost path through the pair costs from candidate 0 of knot 0, as NumPy's Viterbi chose
+    it (`_forward` from segment `start`: totals and back before it are kept; the first minimum at the
+    last knot)."""
+    nseg = costs.shape[0]
+    if start == 0:
+        totals[0, :] = np.inf
+        totals[0, 0] = 0.0
+    _forward(costs, pinned, totals, back, start)
+    choice = np.empty(nseg + 1, np.int64)
+    choice[nseg] = _first_min(totals[nseg])
+    for k in range(nseg - 1, -1, -1):
+        choice[k] = back[k, choice[k + 1]]
+    return choice
+
+
+@kernel
 def viterbi(
     cand_p: FloatArray,
     cand_v: FloatArray,
+    pinned: BoolArray,
     p_plan: FloatArray,
     times: IntArray,
     envelope: FloatArray,
@@ -307,34 +517,95 @@ def viterbi(
     tol: float,
     exact: bool,
     prox: FloatArray,
-    pin_last: bool,
 ) -> IntArray:
-    """One axis' minimum-cost candidate path through the knots (`pair_costs` of each segment, computed
-    where the pass reaches it); knot 0 is candidate 0, and with `pin_last` the last knot too."""
+    """One axis' minimum-cost candidate path through the knots (`pair_costs` of every segment), from
+    candidate 0 of knot 0. A `pinned` knot's candidates are all the same values: their costs are computed
+    once, and the path takes the first, as numpy's argmin did."""
     nk, c = cand_p.shape
-    total = np.full(c, np.inf)
-    total[0] = 0.0
-    back = np.empty((nk - 1, c), np.int64)
-    cost = np.empty((c, c))
-    tot = np.empty(c)
-    nxt = np.empty(c)
+    costs = np.empty((nk - 1, c, c))
+    work = workspace(c, np.max(times[1:] - times[:-1]) if exact else 0)
     for k in range(nk - 1):
-        pair_costs(p_plan, times[k], times[k + 1], cand_p[k], cand_v[k], cand_p[k + 1], cand_v[k + 1], conv,
-                   envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol, exact, prox, cost)
-        if pin_last and k == nk - 2:
-            cost[:, 1:] = np.inf
-        for j in range(c):
-            for i in range(c):
-                tot[i] = total[i] + cost[i, j]
-            best = _first_min(tot)
-            back[k, j] = best
-            nxt[j] = tot[best]
-        total[:] = nxt
-    choice = np.empty(nk, np.int64)
-    choice[nk - 1] = _first_min(total)
-    for k in range(nk - 2, -1, -1):
-        choice[k] = back[k, choice[k + 1]]
-    return choice
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        pair_costs(p_plan, times[k], times[k + 1], cand_p[k, :ca], cand_v[k, :ca], cand_p[k + 1, :cb],
+                   cand_v[k + 1, :cb], conv, envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol, exact,
+                   prox, costs[k], work)
+        _replicate(costs[k], ca, cb)
+    return _best_path(costs, pinned, np.empty((nk, c)), np.empty((nk - 1, c), np.int64), 0)
+
+
+@kernel
+def _exact_path(
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    bounds: FloatArray,
+    p_plan: FloatArray,
+    times: IntArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+) -> IntArray:
+    """`viterbi` at every tick, from lower bounds of the costs (K-1, C, C: `_sample_costs`): while the
+    best path passes pairs whose cost is only bounded, their costs replace the bounds and the path is
+    found again (after `_ROUNDS`, all of them). A path without bounds is the one the costs give, ties
+    included: its cost is exact, no other path costs less (bounds are below costs), and at each of its
+    columns and at its end the candidates that tie for the minimum are the same with the bounds as with
+    the costs (a bound ties only where it is the cost). No cost is nan (the caller's conditions)."""
+    nk, c = cand_p.shape
+    costs = bounds.copy()
+    lower = np.ones((nk - 1, c, c), np.bool_)
+    longest = np.max(times[1:] - times[:-1])
+    terms = np.empty((nk - 1, 7, longest))  # `_segment_ticks` of each segment, where a pair needs them
+    want = np.empty((nk - 1, longest), np.float32)
+    ready = np.zeros(nk - 1, np.bool_)
+    miss = np.empty(longest + 1, np.float32)
+    totals = np.empty((nk, c))
+    back = np.empty((nk - 1, c), np.int64)
+    start = 0
+    for _round in range(_ROUNDS + 1):
+        choice = _best_path(costs, pinned, totals, back, start)
+        start = nk
+        for k in range(nk - 1):
+            # the pair on the path; after `_ROUNDS`, every one still bounded
+            everyone = _round == _ROUNDS
+            for i in range(c) if everyone else range(choice[k], choice[k] + 1):
+                for j in range(c) if everyone else range(choice[k + 1], choice[k + 1] + 1):
+                    if not lower[k, i, j]:
+                        continue
+                    start = min(start, k)
+                    t0, t1 = times[k], times[k + 1]
+                    if not ready[k]:
+                        _segment_ticks(p_plan, t0, t1, terms[k], want[k])
+                        ready[k] = True
+                    # a pinned knot's candidates are all the same values: its first stands for all
+                    ca = 1 if pinned[k] else c
+                    cb = 1 if pinned[k + 1] else c
+                    pi, pj = min(i, ca - 1), min(j, cb - 1)
+                    va, vb = cand_v[k, pi] * conv, cand_v[k + 1, pj] * conv
+                    limits = _limits(cand_p[k, pi], va, cand_p[k + 1, pj], vb, float(t1 - t0), envelope[k],
+                                     excess_scale, drive_acc, drive_vel)
+                    costs[k, pi, pj] = _exact_cost(terms[k], want[k], t1 - t0, cand_p[k, pi], va, cand_p[k + 1, pj],
+                                                   vb, toward_zero, tol, limits, miss)
+                    lower[k, pi, pj] = False
+                    _replicate(costs[k], ca, cb)
+                    _replicate(lower[k], ca, cb)
+        if start == nk:
+            return choice
+    return _best_path(costs, pinned, totals, back, start)
+
+
+@kernel
+def _replicate(values: NDArray[np.generic], ca: int, cb: int) -> None:
+    """Rows ca.. as row 0 and columns cb.. as column 0 (the candidates of a pinned knot)."""
+    for i in range(ca, values.shape[0]):
+        values[i, :cb] = values[0, :cb]
+    for j in range(cb, values.shape[1]):
+        values[:, j] = values[:, 0]
 
 
 @kernel
@@ -376,8 +647,7 @@ def alive_candidates(feasible: BoolArray, pinned: BoolArray) -> BoolArray:
 def choose_values(
     positions: FloatArray,
     velocities: FloatArray,
-    acc_left: FloatArray,
-    acc_right: FloatArray,
+    envelope: FloatArray,
     times: IntArray,
     conv: FloatArray,
     excess_scale: FloatArray,
@@ -393,10 +663,10 @@ def choose_values(
     last: tuple[IntArray, IntArray],
 ) -> tuple[IntArray, IntArray]:
     """Every axis' knot values (counts, rpm) chosen jointly at the sample ticks (`viterbi`), knot 0 at
-    `first` and the last knot at `last` (positions, velocities per axis)."""
+    `first` and the last knot at `last` (positions, velocities per axis); `envelope` the plan's
+    acceleration peak per segment (`segment_envelope`)."""
     n = positions.shape[0]
     nk = times.size
-    envelope = segment_envelope(acc_left, acc_right, times)
     pinned = np.zeros(nk, np.bool_)
     pinned[0] = True
     pinned[nk - 1] = True
@@ -412,8 +682,8 @@ def choose_values(
         if nk == 1:
             choice = np.zeros(1, np.int64)
         else:
-            choice = viterbi(cand_p, cand_v, positions[a], times, envelope[a], conv[a], excess_scale[a],
-                             drive_acc[a], drive_vel[a], toward_zero[a], tol, False, prox, False)
+            choice = viterbi(cand_p, cand_v, pinned, positions[a], times, envelope[a], conv[a], excess_scale[a],
+                             drive_acc[a], drive_vel[a], toward_zero[a], tol, False, prox)
         for k in range(nk):
             out_p[a, k] = int(cand_p[k, choice[k]])
             out_v[a, k] = int(cand_v[k, choice[k]])
@@ -424,8 +694,7 @@ def choose_values(
 def refine(
     positions: FloatArray,
     velocities: FloatArray,
-    acc_left: FloatArray,
-    acc_right: FloatArray,
+    envelope: FloatArray,
     times: IntArray,
     knot_p: IntArray,
     knot_v: IntArray,
@@ -447,20 +716,13 @@ def refine(
 
     Candidates: positions `dp`, velocities `dv` around the plan. Only those on a path of pairs that pass
     at the sample ticks get the check at every tick (a pair that fails there fails at every tick too),
-    padded with the first others up to the window's widest knot. The window's last segment is weighed
-    against the plan's acceleration up to the plan's end (`segment_envelope` on the window's times)."""
-    n, nk = knot_p.shape
-    m1 = positions.shape[1]
+    padded with the first others up to the window's widest knot. The check at every tick starts from
+    the costs at the sample ticks as lower bounds (`_exact_path`): most pairs are never checked at
+    every tick. A window's last segment is weighed against the plan's acceleration peak (`envelope`
+    per segment) from its start to the plan's end, as numpy's reduceat on the window's times had it."""
+    nk = knot_p.shape[1]
     out_p = knot_p.copy()
     out_v = knot_v.copy()
-    envelope = segment_envelope(acc_left, acc_right, times)
-    suffix = np.empty((n, m1))  # planned |acceleration| peak from each tick to the plan's end
-    for a in range(n):
-        run = np.maximum(abs(acc_left[a, m1 - 1]), abs(acc_right[a, m1 - 1]))
-        suffix[a, m1 - 1] = run
-        for t in range(m1 - 2, -1, -1):
-            run = np.maximum(np.maximum(abs(acc_left[a, t]), abs(acc_right[a, t])), run)
-            suffix[a, t] = run
     lows = np.empty(nk, np.int64)
     highs = np.empty(nk, np.int64)
     nw = 0
@@ -473,7 +735,10 @@ def refine(
                 lows[nw], highs[nw] = lo, hi
                 nw += 1
     c = dp.size * dv.size
-    cost = np.empty((c, c))
+    work = workspace(c, prox.size)
+    farthest = np.empty(positions.shape[0])  # the plan's largest |position| per axis
+    for a in range(positions.shape[0]):
+        farthest[a] = np.abs(positions[a]).max()
     for w in range(nw):
         lo, hi = lows[w], highs[w]
         kw = hi - lo + 1
@@ -488,35 +753,59 @@ def refine(
         alive = np.empty((na, kw, c), np.bool_)
         env = np.empty((na, kw - 1))
         feasible = np.empty((kw - 1, c, c), np.bool_)
+        cost = np.empty((c, c))
+        bounds = np.empty((na, kw - 1, c, c))
+        lazy = np.empty(na, np.bool_)
         for ai in range(na):
             a = axes[ai]
             env[ai, : kw - 2] = envelope[a, lo : hi - 1]
-            env[ai, kw - 2] = suffix[a, times[hi - 1]]
+            env[ai, kw - 2] = envelope[a, hi - 1 :].max()
             cands_p[ai], cands_v[ai] = axis_candidates(positions[a], velocities[a], sub, conv[a], dp, dv, False,
                                                        pin, out_p[a, lo : hi + 1], out_v[a, lo : hi + 1])
             for k in range(kw - 1):
-                pair_costs(positions[a], sub[k], sub[k + 1], cands_p[ai, k], cands_v[ai, k], cands_p[ai, k + 1],
-                           cands_v[ai, k + 1], conv[a], env[ai, k], excess_scale[a], drive_acc[a], drive_vel[a],
-                           toward_zero[a], tol, False, prox, cost)
+                ca = 1 if pin[k] else c
+                cb = 1 if pin[k + 1] else c
+                _sample_costs(positions[a], sub[k], sub[k + 1], cands_p[ai, k, :ca], cands_v[ai, k, :ca],
+                              cands_p[ai, k + 1, :cb], cands_v[ai, k + 1, :cb], conv[a], env[ai, k], excess_scale[a],
+                              drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, cost, bounds[ai, k], work)
+                _replicate(cost, ca, cb)
+                _replicate(bounds[ai, k], ca, cb)
                 feasible[k] = cost < HARD
             alive[ai] = alive_candidates(feasible, pin)
+            # bounds only where no cost can be nan: tol and the budget above 0, and every share far below
+            # float32's range (|share| <= |p| + |plan| + 1 + |v| T), so that no miss is nan
+            reach = np.abs(cands_p[ai]).max() + farthest[a] + np.abs(cands_v[ai]).max() * conv[a] * (sub[-1] - sub[0])
+            lazy[ai] = tol > 0.0 and excess_scale[a] > 0.0 and reach < 1.0e30
         width = 1
         for ai in range(na):
             for k in range(kw):
                 width = max(width, int(alive[ai, k].sum()))
         for ai in range(na):
             a = axes[ai]
-            cp = np.empty((kw, width))
-            cv = np.empty((kw, width))
+            order = np.empty((kw, width), np.int64)
             for k in range(kw):
                 j = 0
                 for keep in (True, False):  # the live candidates first, each group in its order
                     for i in range(c):
                         if alive[ai, k, i] == keep and j < width:
-                            cp[k, j], cv[k, j] = cands_p[ai, k, i], cands_v[ai, k, i]
+                            order[k, j] = i
                             j += 1
-            choice = viterbi(cp, cv, positions[a], sub, env[ai], conv[a], excess_scale[a], drive_acc[a],
-                             drive_vel[a], toward_zero[a], tol, True, prox, True)
+            cp = np.empty((kw, width))
+            cv = np.empty((kw, width))
+            for k in range(kw):
+                for j in range(width):
+                    cp[k, j], cv[k, j] = cands_p[ai, k, order[k, j]], cands_v[ai, k, order[k, j]]
+            if lazy[ai]:
+                sub_bounds = np.empty((kw - 1, width, width))
+                for k in range(kw - 1):
+                    for i in range(width):
+                        for j in range(width):
+                            sub_bounds[k, i, j] = bounds[ai, k, order[k, i], order[k + 1, j]]
+                choice = _exact_path(cp, cv, pin, sub_bounds, positions[a], sub, env[ai], conv[a], excess_scale[a],
+                                     drive_acc[a], drive_vel[a], toward_zero[a], tol)
+            else:
+                choice = viterbi(cp, cv, pin, positions[a], sub, env[ai], conv[a], excess_scale[a], drive_acc[a],
+                                 drive_vel[a], toward_zero[a], tol, True, prox)
             for k in range(kw):
                 out_p[a, lo + k] = int(cp[k, choice[k]])
                 out_v[a, lo + k] = int(cv[k, choice[k]])

@@ -146,12 +146,13 @@ def test_pair_costs_are_the_numpy_ones(seed: int, exact: bool, wide: bool) -> No
     env = numpy_ref.segment_envelope(p.ref, p.times)
     tz = encoder._toward_zero(p.scales)
     got = np.empty_like(want)
+    work = quantise.workspace(cand_p.shape[2], int(np.diff(p.times).max()))
     for a, k in itertools.product(range(p.ref.n_axes), range(p.times.size - 1)):
         quantise.pair_costs(
             p.ref.positions[a], p.times[k], p.times[k + 1], cand_p[a, k], cand_v[a, k], cand_p[a, k + 1],
             cand_v[a, k + 1], p.scales.counts_per_ms_per_rpm[a], env[a, k],
             ACC_EXCESS_LIMIT * p.scales.acceleration_axis[a], p.scales.drive_acceleration[a],
-            p.scales.drive_velocity[a], tz[a], p.tol, exact, encoder._PROX, got[a, k],
+            p.scales.drive_velocity[a], tz[a], p.tol, exact, encoder._PROX, got[a, k], work,
         )
     assert np.array_equal(got, want)
 
@@ -159,7 +160,8 @@ def test_pair_costs_are_the_numpy_ones(seed: int, exact: bool, wide: bool) -> No
 def _assert_refines_as_numpy(p: Problem, knots: Knots, bad: np.ndarray, fixed_knots: set[int]) -> None:
     if not bad.any():
         return
-    got = encoder._refine(p.ref, knots, p.scales, p.tol, bad, fixed_knots)
+    env = encoder.segment_envelope(p.ref, knots.times_ms)
+    got = encoder._refine(p.ref, knots, p.scales, p.tol, bad, fixed_knots, env)
     exp = numpy_ref._refine(p.ref, knots, p.scales, p.tol, bad, fixed_knots)
     assert np.array_equal(got.positions, exp.positions)
     assert np.array_equal(got.velocities_rpm, exp.velocities_rpm)
@@ -171,15 +173,15 @@ def test_choice_refinement_and_verification_are_the_numpy_ones(seed: int) -> Non
     p = _problem(seed)
     ends = _ends(p)
     fixed = {0: (ends[0], ends[1]), p.times.size - 1: (ends[2], ends[3])}
-    pos, vel = encoder._choose_values(p.ref, p.times, p.scales, p.tol, ends)
+    env = encoder.segment_envelope(p.ref, p.times)
+    pos, vel = encoder._choose_values(p.ref, p.times, p.scales, p.tol, ends, env)
     want_pos, want_vel = numpy_ref._choose_values(p.ref, p.times, p.scales, p.tol, fixed)
     assert np.array_equal(pos, want_pos) and np.array_equal(vel, want_vel)
     demand = encoder.planned_demand(p.ref, p.scales.toward_zero)
     ends_fixed = {0, p.times.size - 1}
     # as the encoder goes on: the segments the choice fails refined (then the window rules decide)
     chosen = Knots(p.times, pos, vel)
-    rec = encoder.reconstruct(chosen, p.scales)
-    _assert_refines_as_numpy(p, chosen, encoder._bad_mask(p.ref, chosen, rec, p.scales, p.tol, demand), ends_fixed)
+    _assert_refines_as_numpy(p, chosen, encoder._bad_mask(chosen, p.scales, p.tol, demand, env), ends_fixed)
 
     # and on other values: the reconstruction, the verification, more windows and pinned knots
     knots = _perturbed(p, chosen)
@@ -189,7 +191,7 @@ def test_choice_refinement_and_verification_are_the_numpy_ones(seed: int) -> Non
         assert np.array_equal(getattr(rec, f.name), getattr(rec_ref, f.name)), f.name
     for times in (p.times, p.times[: max(2, p.times.size - 1)]):  # the last segment's: up to the plan's end
         assert np.array_equal(encoder.segment_envelope(p.ref, times), numpy_ref.segment_envelope(p.ref, times))
-    mask = encoder._bad_mask(p.ref, knots, rec, p.scales, p.tol, demand)
+    mask = encoder._bad_mask(knots, p.scales, p.tol, demand, env)
     assert np.array_equal(mask, numpy_ref._bad_mask(p.ref, knots, p.scales, p.tol, demand))
     bad = mask | (p.rng.random(mask.shape) < p.rng.choice([0.05, 0.3]))
     _assert_refines_as_numpy(p, knots, bad, ends_fixed | set(p.rng.integers(0, p.times.size, 2).tolist()))
