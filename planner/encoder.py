@@ -829,20 +829,19 @@ def _quantise(
             vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
             pos[:, old], vel[:, old] = knots.positions, knots.velocities_rpm
         knots = Knots(times, pos, vel)
-        mask = _bad_mask(knots, scales, tol, want, env)
-        if mask.any():
-            knots = _refine(ref, knots, scales, tol, mask, {0, times.size - 1}, env)
-            mask = _bad_mask(knots, scales, tol, want, env)
-        bad = np.nonzero(mask.any(axis=0))[0]
-        rec = reconstruct(knots, scales)
+        off_tol, off_budget = _misses(knots, scales, tol, want, env)
+        if off_tol.any() or off_budget.any():
+            refined = _refine(ref, knots, scales, tol, off_tol | off_budget, {0, times.size - 1}, env)
+            off_tol, off_budget = _misses(refined, scales, tol, want, env, (knots, off_tol, off_budget))
+            knots = refined
+        bad = np.nonzero((off_tol | off_budget).any(axis=0))[0]
         if bad.size == 0:
+            rec = reconstruct(knots, scales)
             _check_dynamics(ref, knots, rec, scales)
             return knots, rec
-        dev = np.abs(rec.demand - want)
-        if (dev > tol).any():
+        if off_tol.any():
             # split every segment that still holds a failing tick
-            bad_ticks = np.nonzero((dev > tol).any(axis=0))[0]
-            seg = np.unique(np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2))
+            seg = np.nonzero(off_tol.any(axis=0))[0]
             a, b = times[seg], times[seg + 1]
             split = b - a >= 2
         else:
@@ -858,6 +857,7 @@ def _quantise(
             break
         times = np.unique(np.concatenate([times, (a[split] + b[split]) // 2]))
     assert knots is not None  # MAX_ROUNDS >= 1
+    rec = reconstruct(knots, scales)
     dev = np.abs(rec.demand - want)
     if (dev > tol).any():
         i, tick = (int(x) for x in np.unravel_index(int(np.argmax(dev)), dev.shape))
@@ -885,27 +885,44 @@ def _split_long(times: IntArray, max_seg: int) -> IntArray:
     return np.unique(np.concatenate([times, *extra]))
 
 
-def _bad_mask(
-    knots: Knots, scales: AxisScales, tol: float, want: IntArray, envelope: FloatArray
-) -> NDArray[np.bool_]:
-    """(n_axes, N): which axis misses the tolerance, 0x60C5 or the acceleration-excess budget on which
-    segment (the drive's reconstruction checked as it is computed; 0x607F is `_check_dynamics`');
-    `envelope`: the plan's `segment_envelope` on the knots' times."""
-    return quantise.failing_segments(
-        np.ascontiguousarray(knots.positions, dtype=np.int64),
-        np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64),
-        np.ascontiguousarray(knots.times_ms, dtype=np.int64),
-        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64),
-        _toward_zero(scales), want, tol, envelope, ACC_EXCESS_LIMIT * scales.acceleration_axis,
-        np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64),
+def _misses(
+    knots: Knots,
+    scales: AxisScales,
+    tol: float,
+    want: IntArray,
+    envelope: FloatArray,
+    before: tuple[Knots, NDArray[np.bool_], NDArray[np.bool_]] | None = None,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(n_axes, N) twice: which axis misses the tolerance on which segment (the drive's reconstruction
+    checked as it is computed), and which misses 0x60C5 or the acceleration-excess budget (0x607F is
+    `_check_dynamics`'); `envelope`: the plan's `segment_envelope` on the knots' times. With `before`
+    (other values on the same times and their misses) only the segments whose values changed are
+    checked again."""
+    pos = np.ascontiguousarray(knots.positions, dtype=np.int64)
+    vel = np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64)
+    if before is None:
+        check = np.ones((pos.shape[0], pos.shape[1] - 1), dtype=bool)
+    else:
+        changed = (pos != before[0].positions) | (vel != before[0].velocities_rpm)
+        check = changed[:, :-1] | changed[:, 1:]
+    off_tol, off_budget = quantise.failing_segments(
+        pos, vel, np.ascontiguousarray(knots.times_ms, dtype=np.int64),
+        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64), _toward_zero(scales), want, tol,
+        envelope, ACC_EXCESS_LIMIT * scales.acceleration_axis,
+        np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64), check,
     )
+    if before is not None:
+        off_tol = np.where(check, off_tol, before[1])
+        off_budget = np.where(check, off_budget, before[2])
+    return off_tol, off_budget
 
 
 def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
     """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
     acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
     want = planned_demand(ref, scales.toward_zero)
-    if _bad_mask(knots, scales, tol, want, segment_envelope(ref, knots.times_ms)).any():
+    off_tol, off_budget = _misses(knots, scales, tol, want, segment_envelope(ref, knots.times_ms))
+    if off_tol.any() or off_budget.any():
         return False
     try:
         _check_dynamics(ref, knots, reconstruct(knots, scales), scales)

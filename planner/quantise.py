@@ -104,15 +104,21 @@ def segment_envelope(acc_left: FloatArray, acc_right: FloatArray, times: IntArra
     n, m1 = acc_left.shape
     nseg = times.size - 1
     out = np.empty((n, max(nseg, 0)))
+    env = np.empty(m1 + 1)  # and one more, to read a peak back as float
+    # non-negative floats order as their bit patterns (nan above inf, as np.maximum propagates it), and
+    # an integer maximum vectorises where a nan-aware float one does not
+    bits = env.view(np.int64)
     for i in range(n):
+        for t in range(m1):
+            env[t] = np.maximum(abs(acc_left[i, t]), abs(acc_right[i, t]))
         for k in range(nseg):
             a = times[k]
-            stop = m1 if k == nseg - 1 else max(times[k + 1], a + 1)
-            peak = np.maximum(abs(acc_left[i, a]), abs(acc_right[i, a]))
-            for t in range(a + 1, stop):
-                peak = np.maximum(peak, np.maximum(abs(acc_left[i, t]), abs(acc_right[i, t])))
-            b = times[k + 1]
-            out[i, k] = np.maximum(peak, np.maximum(abs(acc_left[i, b]), abs(acc_right[i, b])))
+            run = bits[a : m1 if k == nseg - 1 else max(times[k + 1], a + 1)]
+            top = bits[times[k + 1]]
+            for t in range(run.size):
+                top = run[t] if run[t] > top else top
+            bits[m1] = top
+            out[i, k] = env[m1]
     return out
 
 
@@ -128,34 +134,40 @@ def failing_segments(
     envelope: FloatArray,
     excess_limit: FloatArray,
     drive_acc: FloatArray,
-) -> BoolArray:
-    """(n_axes, N): the segments of each axis whose drive demand (`reconstruct`'s, without keeping it)
-    misses `want` by more than `tol` at a tick (tick 0 counts to segment 0, a knot's tick to the segment
-    it ends), or whose peak acceleration exceeds the plan's `envelope` by more than `excess_limit` or is
-    above `drive_acc`."""
+    check: BoolArray,
+) -> tuple[BoolArray, BoolArray]:
+    """(n_axes, N) twice, for the segments `check` marks (the others False): does the drive demand
+    (`reconstruct`'s, checked as it is computed) miss `want` by more than `tol` at a tick of the segment
+    (tick 0 counts to segment 0, a knot's tick to the segment it ends); does its peak acceleration exceed
+    the plan's `envelope` by more than `excess_limit`, or `drive_acc`."""
     n, nk = positions.shape
-    bad = np.zeros((n, nk - 1), np.bool_)
+    off_tol = np.zeros((n, nk - 1), np.bool_)
+    off_budget = np.zeros((n, nk - 1), np.bool_)
     for i in range(n):
+        tz = toward_zero[i]
         for k in range(nk - 1):
+            if not check[i, k]:
+                continue
             v1 = float(velocities_rpm[i, k + 1]) * conv[i]
             p1 = float(positions[i, k + 1])
             p0 = float(positions[i, k])
-            a, b, acc_s, acc_e = _segment(p0, float(velocities_rpm[i, k]) * conv[i], p1, v1,
-                                          float(times[k + 1] - times[k]))
+            nt = times[k + 1] - times[k]
+            a, b, acc_s, acc_e = _segment(p0, float(velocities_rpm[i, k]) * conv[i], p1, v1, float(nt))
             peak = np.maximum(abs(acc_s), abs(acc_e))
-            if peak - envelope[i, k] > excess_limit[i] or peak > drive_acc[i]:
-                bad[i, k] = True
-                continue
-            if k == 0 and abs(int(drive_round(p0, toward_zero[i])) - want[i, 0]) > tol:
-                bad[i, k] = True
-                continue
-            for tick in range(times[k] + 1, times[k + 1] + 1):
-                tau = float(tick - times[k + 1])
-                x = ((a * tau + b) * tau + v1) * tau + p1
-                if abs(int(drive_round(x, toward_zero[i])) - want[i, tick]) > tol:
-                    bad[i, k] = True
-                    break
-    return bad
+            off_budget[i, k] = peak - envelope[i, k] > excess_limit[i] or peak > drive_acc[i]
+            w = want[i, times[k] + 1 : times[k + 1] + 1]
+            miss = k == 0 and abs(int(drive_round(p0, tz)) - want[i, 0]) > tol
+            # every tick, without stopping at the first miss: a loop that vectorises
+            if tz:
+                for u in range(nt):
+                    tau = float(u + 1 - nt)
+                    miss |= abs(int(drive_round(((a * tau + b) * tau + v1) * tau + p1, True)) - w[u]) > tol
+            else:
+                for u in range(nt):
+                    tau = float(u + 1 - nt)
+                    miss |= abs(int(drive_round(((a * tau + b) * tau + v1) * tau + p1, False)) - w[u]) > tol
+            off_tol[i, k] = miss
+    return off_tol, off_budget
 
 
 # ----------------------------------------------------------------------------------------------------

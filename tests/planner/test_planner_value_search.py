@@ -181,7 +181,8 @@ def test_choice_refinement_and_verification_are_the_numpy_ones(seed: int) -> Non
     ends_fixed = {0, p.times.size - 1}
     # as the encoder goes on: the segments the choice fails refined (then the window rules decide)
     chosen = Knots(p.times, pos, vel)
-    _assert_refines_as_numpy(p, chosen, encoder._bad_mask(chosen, p.scales, p.tol, demand, env), ends_fixed)
+    chosen_misses = encoder._misses(chosen, p.scales, p.tol, demand, env)
+    _assert_refines_as_numpy(p, chosen, chosen_misses[0] | chosen_misses[1], ends_fixed)
 
     # and on other values: the reconstruction, the verification, more windows and pinned knots
     knots = _perturbed(p, chosen)
@@ -191,7 +192,15 @@ def test_choice_refinement_and_verification_are_the_numpy_ones(seed: int) -> Non
         assert np.array_equal(getattr(rec, f.name), getattr(rec_ref, f.name)), f.name
     for times in (p.times, p.times[: max(2, p.times.size - 1)]):  # the last segment's: up to the plan's end
         assert np.array_equal(encoder.segment_envelope(p.ref, times), numpy_ref.segment_envelope(p.ref, times))
-    mask = encoder._bad_mask(knots, p.scales, p.tol, demand, env)
+    off_tol, off_budget = encoder._misses(knots, p.scales, p.tol, demand, env)
+    mask = off_tol | off_budget
     assert np.array_equal(mask, numpy_ref._bad_mask(p.ref, knots, p.scales, p.tol, demand))
+    axis, ticks = np.nonzero(np.abs(rec_ref.demand - demand) > p.tol)  # the ticks `_quantise` splits at
+    tol_ref = np.zeros_like(mask)
+    tol_ref[axis, np.clip(np.searchsorted(p.times, ticks, side="left") - 1, 0, p.times.size - 2)] = True
+    assert np.array_equal(off_tol, tol_ref)
+    # checked again only where values changed, from the misses of other values: the same
+    again = encoder._misses(knots, p.scales, p.tol, demand, env, (chosen, *chosen_misses))
+    assert np.array_equal(again[0], off_tol) and np.array_equal(again[1], off_budget)
     bad = mask | (p.rng.random(mask.shape) < p.rng.choice([0.05, 0.3]))
     _assert_refines_as_numpy(p, knots, bad, ends_fixed | set(p.rng.integers(0, p.times.size, 2).tolist()))
