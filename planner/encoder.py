@@ -52,11 +52,12 @@ the last knot is the plan's end rounded to counts with velocity 0 (or the given 
 open-ended velocity move), exactly.
 
 Compiled: steps 2 and 3 run in planner/quantise.py (numba, planner/jit.py). The Viterbi pass scores
-every pair of candidates of every segment and the refinement checks every tick of each; in NumPy that
+every pair of candidates of every segment and the refinement checks every tick of them; in NumPy that
 took (n, N, C, C) temporaries and tens of array operations per window (15-90 ms a plan, most of the
-encoder's time), compiled each segment's costs are computed where the pass reaches them. The results
-are bit for bit those of the NumPy formulation, which tests/planner/encoder_reference.py keeps as the
-reference (float32 near the plan, ties to the first candidate).
+encoder's time). Compiled, the costs need no temporaries, and the refinement checks at every tick only
+the pairs its best path passes (the costs at the sample ticks bound the others from below): 1-6 ms a
+plan. The results are bit for bit those of the NumPy formulation, which tests/planner/
+encoder_reference.py keeps as the reference (float32 near the plan, ties to the first candidate).
 """
 
 from __future__ import annotations

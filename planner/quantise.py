@@ -33,7 +33,7 @@ Float32Array = NDArray[np.float32]
 Workspace = tuple[Float32Array, FloatArray, Float32Array, Float32Array]
 
 HARD = 1.0e6  # cost of a pair that misses the tolerance, 0x60C5 or 0x607F: only chosen where all do
-_ROUNDS = 32  # passes of the exact Viterbi over bounded costs before all costs are computed
+_ROUNDS = 32  # passes of the lazy exact Viterbi before every bound left is replaced by its cost
 _VMIN = float(VELOCITY_MIN)
 _VMAX = float(VELOCITY_MAX)
 

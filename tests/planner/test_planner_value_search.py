@@ -3,7 +3,9 @@ compiled in planner/quantise.py: the pruning before the check at every tick keep
 that lie on a path of feasible pairs, so it never removes one the full search could have chosen; and the
 compiled kernels reproduce the NumPy formulation they replaced (encoder_reference.py) bit for bit: the
 pair costs (float32 near the plan, as NumPy computed them), the joint choice, the refinement, the drive's
-reconstruction and the verification, on random plans with axes that round and axes that truncate."""
+reconstruction and the verification, on random plans with axes that round and axes that truncate. The
+refinement's check at every tick starts from the costs at the sample ticks, which must bound the costs
+from below: checked too."""
 
 from __future__ import annotations
 
@@ -146,15 +148,20 @@ def test_pair_costs_are_the_numpy_ones(seed: int, exact: bool, wide: bool) -> No
     env = numpy_ref.segment_envelope(p.ref, p.times)
     tz = encoder._toward_zero(p.scales)
     got = np.empty_like(want)
+    bound = np.empty_like(want)
     work = quantise.workspace(cand_p.shape[2], int(np.diff(p.times).max()))
     for a, k in itertools.product(range(p.ref.n_axes), range(p.times.size - 1)):
-        quantise.pair_costs(
+        args = (
             p.ref.positions[a], p.times[k], p.times[k + 1], cand_p[a, k], cand_v[a, k], cand_p[a, k + 1],
             cand_v[a, k + 1], p.scales.counts_per_ms_per_rpm[a], env[a, k],
             ACC_EXCESS_LIMIT * p.scales.acceleration_axis[a], p.scales.drive_acceleration[a],
-            p.scales.drive_velocity[a], tz[a], p.tol, exact, encoder._PROX, got[a, k], work,
+            p.scales.drive_velocity[a], tz[a], p.tol,
         )
+        quantise.pair_costs(*args, exact, encoder._PROX, got[a, k], work)
+        quantise._sample_costs(*args, encoder._PROX, np.empty_like(bound[a, k]), bound[a, k], work)
     assert np.array_equal(got, want)
+    if exact:  # what the lazy check at every tick starts from: never above the cost
+        assert (bound <= got).all()
 
 
 def _assert_refines_as_numpy(p: Problem, knots: Knots, bad: np.ndarray, fixed_knots: set[int]) -> None:
