@@ -188,8 +188,8 @@ def _toward_zero(scales: AxisScales) -> NDArray[np.bool_]:
 def reconstruct(knots: Knots, scales: AxisScales) -> Reconstruction:
     """The drive's position demand at every ms of every axis, and the segments' end accelerations."""
     demand, pos, vel, acc_s, acc_e = quantise.reconstruct(
-        np.ascontiguousarray(knots.positions, dtype=np.int64),
-        np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64),
+        np.ascontiguousarray(knots.positions, dtype=np.float64),
+        np.ascontiguousarray(knots.velocities_rpm, dtype=np.float64),
         np.ascontiguousarray(knots.times_ms, dtype=np.int64),
         np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64),
         _toward_zero(scales),
@@ -899,8 +899,8 @@ def _misses(
     `_check_dynamics`'); `envelope`: the plan's `segment_envelope` on the knots' times. With `before`
     (other values on the same times and their misses) only the segments whose values changed are
     checked again."""
-    pos = np.ascontiguousarray(knots.positions, dtype=np.int64)
-    vel = np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64)
+    pos = np.ascontiguousarray(knots.positions, dtype=np.float64)
+    vel = np.ascontiguousarray(knots.velocities_rpm, dtype=np.float64)
     if before is None:
         check = np.ones((pos.shape[0], pos.shape[1] - 1), dtype=bool)
     else:

@@ -65,7 +65,7 @@ def _segment(p0: float, v0: float, p1: float, v1: float, t: float) -> tuple[floa
 
 @kernel
 def reconstruct(
-    positions: IntArray, velocities_rpm: IntArray, times: IntArray, conv: FloatArray, toward_zero: BoolArray
+    positions: FloatArray, velocities_rpm: FloatArray, times: IntArray, conv: FloatArray, toward_zero: BoolArray
 ) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The drive's rounded demand, unrounded position and velocity at every ms 0..times[-1], and every
     segment's start and end acceleration, of every axis: planner.hermite.reconstruct, evaluated in the
@@ -78,13 +78,13 @@ def reconstruct(
     acc_s = np.zeros((n, nk - 1))
     acc_e = np.zeros((n, nk - 1))
     for i in range(n):
-        pos[i, 0] = float(positions[i, 0])
-        vel[i, 0] = float(velocities_rpm[i, 0]) * conv[i]
+        pos[i, 0] = positions[i, 0]
+        vel[i, 0] = velocities_rpm[i, 0] * conv[i]
         for k in range(nk - 1):
-            v1 = float(velocities_rpm[i, k + 1]) * conv[i]
-            p1 = float(positions[i, k + 1])
+            v1 = velocities_rpm[i, k + 1] * conv[i]
+            p1 = positions[i, k + 1]
             a, b, acc_s[i, k], acc_e[i, k] = _segment(
-                float(positions[i, k]), float(velocities_rpm[i, k]) * conv[i], p1, v1, float(times[k + 1] - times[k])
+                positions[i, k], velocities_rpm[i, k] * conv[i], p1, v1, float(times[k + 1] - times[k])
             )
             for tick in range(times[k] + 1, times[k + 1] + 1):
                 tau = float(tick - times[k + 1])
@@ -124,8 +124,8 @@ def segment_envelope(acc_left: FloatArray, acc_right: FloatArray, times: IntArra
 
 @kernel
 def failing_segments(
-    positions: IntArray,
-    velocities_rpm: IntArray,
+    positions: FloatArray,
+    velocities_rpm: FloatArray,
     times: IntArray,
     conv: FloatArray,
     toward_zero: BoolArray,
@@ -148,11 +148,11 @@ def failing_segments(
         for k in range(nk - 1):
             if not check[i, k]:
                 continue
-            v1 = float(velocities_rpm[i, k + 1]) * conv[i]
-            p1 = float(positions[i, k + 1])
-            p0 = float(positions[i, k])
+            v1 = velocities_rpm[i, k + 1] * conv[i]
+            p1 = positions[i, k + 1]
+            p0 = positions[i, k]
             nt = times[k + 1] - times[k]
-            a, b, acc_s, acc_e = _segment(p0, float(velocities_rpm[i, k]) * conv[i], p1, v1, float(nt))
+            a, b, acc_s, acc_e = _segment(p0, velocities_rpm[i, k] * conv[i], p1, v1, float(nt))
             peak = np.maximum(abs(acc_s), abs(acc_e))
             off_budget[i, k] = peak - envelope[i, k] > excess_limit[i] or peak > drive_acc[i]
             w = want[i, times[k] + 1 : times[k + 1] + 1]
