@@ -32,7 +32,7 @@ both the tolerance and the acceleration budget below.)
 2. Knot values, jointly (`_choose_values`): each knot's position is the planned demand or one count
    either side (int32 counts), its velocity one of the two rpm values around the plan (int24). A
    Viterbi pass over the knots
-   (per axis, all axes vectorised) picks the combination that keeps the drive's rounded demand within
+   (per axis) picks the combination that keeps the drive's rounded demand within
    the tolerance at sample ticks and minimises the acceleration excess over the plan. Rounding each
    value on its own is not enough (docs/formats.md, section 3).
 3. Verification of the drive's reconstruction (planner.hermite, rounded as the drive rounds) at every
@@ -50,6 +50,14 @@ both the tolerance and the acceleration budget below.)
 Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
 the last knot is the plan's end rounded to counts with velocity 0 (or the given end velocity of an
 open-ended velocity move), exactly.
+
+Compiled: steps 2 and 3 run in planner/quantise.py (numba, planner/jit.py). The Viterbi pass scores
+every pair of candidates of every segment and the refinement checks every tick of them; in NumPy that
+took (n, N, C, C) temporaries and tens of array operations per window (15-90 ms a plan, most of the
+encoder's time). Compiled, the costs need no temporaries, and the refinement checks at every tick only
+the pairs its best path passes (the costs at the sample ticks bound the others from below): 1-6 ms a
+plan. The results are bit for bit those of the NumPy formulation, which tests/planner/
+encoder_reference.py keeps as the reference (float32 near the plan, ties to the first candidate).
 """
 
 from __future__ import annotations
@@ -61,9 +69,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import hermite
+from planner import hermite, quantise
 from planner.jit import kernel
-from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
+from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
 from planner.reference import FloatArray, IntArray, Reference
 
 PLACEMENT_SHARE = 0.7  # share of the tolerance the exact-value Hermite may use (the rest: quantisation)
@@ -74,7 +82,6 @@ MAX_ROUNDS = 6  # verify/refine/split rounds before giving up
 ACC_PLACEMENT_SHARE = 0.02  # end-acceleration miss of exact-value segments, share of the axis limit
 STEP_SHARE = 0.15  # acceleration steps above this share of the axis limit get a knot of their own
 MANDATORY_GAP = 4  # ms: acceleration steps closer than this share one knot
-_HARD = 1.0e6
 DP_VELOCITIES = (0, 1)  # first pass: the two rpm values around the plan (refinement: 7)
 _DP_POSITIONS = (-1.0, 0.0, 1.0)  # counts around the planned demand
 _PROX = np.array([1 / 6, 1 / 3, 1 / 2, 2 / 3, 5 / 6, 0.93])  # sample ticks (fractions of a segment)
@@ -168,42 +175,34 @@ def planned_demand(ref: Reference, toward_zero: NDArray[np.bool_] | None = None)
 
 
 # ----------------------------------------------------------------------------------------------------
-# reconstruction (through planner.hermite, the one definition of the drive's interpolation)
+# reconstruction (planner.hermite's interpolation and rounding, compiled: quantise.reconstruct)
+
+
+def _toward_zero(scales: AxisScales) -> NDArray[np.bool_]:
+    """Which axes' drives truncate their demand, one flag per axis (as the compiled kernels take it)."""
+    n = scales.counts_per_ms_per_rpm.size
+    if scales.toward_zero is None:
+        return np.zeros(n, dtype=bool)
+    return np.ascontiguousarray(scales.toward_zero, dtype=bool)
 
 
 def reconstruct(knots: Knots, scales: AxisScales) -> Reconstruction:
     """The drive's position demand at every ms of every axis, and the segments' end accelerations."""
-    t = knots.times_ms
-    dt = np.diff(t)
-    n = knots.positions.shape[0]
-    total = int(t[-1])
-    demand = np.empty((n, total + 1), dtype=np.int64)
-    pos = np.empty((n, total + 1))
-    vel = np.empty((n, total + 1))
-    acc_s = np.zeros((n, dt.size))
-    acc_e = np.zeros((n, dt.size))
-    tt = dt.astype(np.float64)
-    for i in range(n):
-        v = knots.velocities_rpm[i].astype(np.float64) * scales.counts_per_ms_per_rpm[i]
-        p = knots.positions[i].astype(np.float64)
-        pos[i], vel[i], _ = hermite.reconstruct(p, v, dt)
-        tz = scales.toward_zero is not None and bool(scales.toward_zero[i])
-        demand[i] = hermite.truncate_counts_array(pos[i]) if tz else hermite.round_counts_array(pos[i])
-        if dt.size:
-            dp = p[1:] - p[:-1]
-            acc_s[i] = (6.0 * dp - 2.0 * tt * v[1:] - 4.0 * tt * v[:-1]) / (tt * tt)
-            acc_e[i] = (-6.0 * dp + 4.0 * tt * v[1:] + 2.0 * tt * v[:-1]) / (tt * tt)
+    demand, pos, vel, acc_s, acc_e = quantise.reconstruct(
+        np.ascontiguousarray(knots.positions, dtype=np.float64),
+        np.ascontiguousarray(knots.velocities_rpm, dtype=np.float64),
+        np.ascontiguousarray(knots.times_ms, dtype=np.int64),
+        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64),
+        _toward_zero(scales),
+    )
     return Reconstruction(demand, pos, vel, acc_s, acc_e)
 
 
 def segment_envelope(ref: Reference, times: IntArray) -> FloatArray:
     """Planned |acceleration| peak over each segment (both end ticks included), (n_axes, N)."""
-    env = ref.acc_envelope()
     if times.size < 2:
         return np.zeros((ref.n_axes, 0))
-    left: FloatArray = np.maximum.reduceat(env, times[:-1], axis=1)
-    out: FloatArray = np.maximum(left, env[:, times[1:]])
-    return out
+    return quantise.segment_envelope(ref.acc_left, ref.acc_right, np.ascontiguousarray(times, dtype=np.int64))
 
 
 def acceleration_excess(ref: Reference, knots: Knots, rec: Reconstruction) -> FloatArray:
@@ -583,134 +582,16 @@ def _rebalance(
 # value choice (Viterbi over the knots, per axis)
 
 
-def _candidates(
-    ref: Reference,
-    times: IntArray,
-    scales: AxisScales,
-    dv: tuple[int, ...],
-    fixed: dict[int, tuple[IntArray, IntArray]],
-) -> tuple[FloatArray, FloatArray]:
-    """Candidate (position counts, velocity rpm) per axis and knot: (n, K, C) each.
-
-    Positions: the planned demand and one count either side (all within the tolerance at the knot;
-    the side counts let a slow axis keep its motion smooth on a grid set by faster ones). Velocities:
-    the offsets `dv` from the nearest rpm, or with `dv == (0, 1)` the two rpm values that bracket the
-    plan's velocity.
-    """
-    conv = scales.counts_per_ms_per_rpm[:, None]
-    rp = hermite.round_counts_array(ref.positions[:, times]).astype(np.float64)
-    v_rpm = ref.velocities[:, times] / conv
-    vr = np.floor(v_rpm) if dv == (0, 1) else np.round(v_rpm)
-    cand_p = np.stack([rp + jp for _jv in dv for jp in _DP_POSITIONS], axis=2)
-    cand_v = np.stack([vr + jv for jv in dv for _jp in _DP_POSITIONS], axis=2)
-    for k, (pf, vf) in fixed.items():
-        cand_p[:, k, :] = pf.astype(np.float64)[:, None]
-        cand_v[:, k, :] = vf.astype(np.float64)[:, None]
-    return cand_p, np.clip(cand_v, VELOCITY_MIN, VELOCITY_MAX)
-
-
-def _segment_costs(
-    ref: Reference,
-    times: IntArray,
-    scales: AxisScales,
-    tolerance: float,
-    cand_p: FloatArray,
-    cand_v: FloatArray,
-    exact: bool,
-) -> FloatArray:
-    """Cost of every (start candidate, end candidate) pair of every segment: (n, N, C, C).
-
-    exact=False scores the float error at sample ticks (fast); exact=True checks the drive's rounded
-    demand against the planned demand at every tick (used for the local refinement).
-    """
-    conv = scales.counts_per_ms_per_rpm[:, None, None]
-    dt = np.diff(times).astype(np.float64)
-    pa, pb = cand_p[:, :-1, :], cand_p[:, 1:, :]
-    va, vb = cand_v[:, :-1, :] * conv, cand_v[:, 1:, :] * conv
-    # the ticks looked at, flattened (segment `seg`, `off` ms into it; each segment's run starts at
-    # `first`): every tick, or the sample ticks `_PROX` of each segment
-    if exact:
-        lengths = np.diff(times)
-        seg = np.repeat(np.arange(dt.size), lengths)
-        first = np.cumsum(lengths) - lengths
-        off = (np.arange(int(lengths.sum())) - first[seg] + 1).astype(np.float64)
-    else:
-        q = _PROX.size
-        seg = np.repeat(np.arange(dt.size), q)
-        first = np.arange(dt.size) * q
-        off = np.clip(np.round(_PROX[None, :] * dt[:, None]), 1.0, np.maximum(dt[:, None] - 1.0, 1.0)).ravel()
-    h00, h10, h01, h11 = _hermite_basis(off, dt[seg])
-    tick = times[seg] + off.astype(np.int64)
-    p_at = ref.positions[:, tick]  # (n, T)
-    base = np.floor(p_at)  # work relative to whole counts near the plan: small numbers, float32 will do
-    f32 = np.float32
-    ea = ((pa[:, seg, :] - base[:, :, None]) * h00[None, :, None] + va[:, seg, :] * h10[None, :, None]).astype(f32)
-    eb = ((pb[:, seg, :] - base[:, :, None]) * h01[None, :, None] + vb[:, seg, :] * h11[None, :, None]).astype(f32)
-    d = ea[:, :, :, None] + eb[:, :, None, :]  # Hermite - base, (n, T, C, C)
-    want = (hermite.round_counts_array(p_at) - base).astype(f32)  # planned demand - base
-    miss = np.abs(np.floor(d + f32(0.5)) - want[:, :, None, None])
-    if scales.toward_zero is not None and scales.toward_zero.any():  # those drives truncate
-        z = np.nonzero(scales.toward_zero)[0]
-        bz = base[z][:, :, None, None]
-        miss[z] = np.abs(np.trunc(d[z].astype(np.float64) + bz) - np.trunc(p_at[z])[:, :, None, None])
-    # the drive's rounded demand against the planned demand (its float error too, at sample ticks: a
-    # tie-breaker, smaller is more robust at the ticks in between); the verification that follows
-    # rounds in float64 as the drive does
-    dev = np.maximum.reduceat(miss, first, axis=1)
-    if exact:
-        dev_cost = _HARD * (dev > tolerance) + (dev / tolerance) ** 2
-    else:
-        frac = (p_at - base).astype(f32)
-        err = np.maximum.reduceat(np.abs(d - frac[:, :, None, None]), first, axis=1)
-        dev_cost = _HARD * (dev > tolerance) + 0.5 * (err / tolerance) ** 2
-    t1 = dt[None, :, None, None]
-    dp = pb[:, :, None, :] - pa[:, :, :, None]
-    acc_s = (6.0 * dp - 2.0 * t1 * vb[:, :, None, :] - 4.0 * t1 * va[:, :, :, None]) / (t1 * t1)
-    acc_e = (-6.0 * dp + 4.0 * t1 * vb[:, :, None, :] + 2.0 * t1 * va[:, :, :, None]) / (t1 * t1)
-    peak = np.maximum(np.abs(acc_s), np.abs(acc_e))
-    env = segment_envelope(ref, times)[:, :, None, None]
-    excess = np.maximum(peak - env, 0.0) / (ACC_EXCESS_LIMIT * scales.acceleration_axis)[:, None, None, None]
-    over = peak > scales.drive_acceleration[:, None, None, None]
-    # velocity: the end velocities must respect 0x607F (the interior is checked on verification)
-    vmax = np.maximum(np.abs(va)[:, :, :, None], np.abs(vb)[:, :, None, :])
-    over_v = vmax > scales.drive_velocity[:, None, None, None]
-    cost: FloatArray = dev_cost + _HARD * (over | over_v) + 1.0e3 * (excess > 0.9) + excess**2
-    return cost
-
-
-def _viterbi(cost: FloatArray, first: int = 0) -> IntArray:
-    """Minimum-cost candidate path per axis; cost (n, N, C, C); knot 0 is pinned to `first`."""
-    n, nseg, c, _ = cost.shape
-    j = np.full((n, c), np.inf)
-    j[:, first] = 0.0
-    back = np.empty((nseg, n, c), dtype=np.int64)
-    for k in range(nseg):
-        tot = j[:, :, None] + cost[:, k]
-        back[k] = tot.argmin(axis=1)
-        j = tot.min(axis=1)
-    choice = np.empty((n, nseg + 1), dtype=np.int64)
-    choice[:, -1] = np.argmin(j, axis=1)
-    rows = np.arange(n)
-    for k in range(nseg - 1, -1, -1):
-        choice[:, k] = back[k][rows, choice[:, k + 1]]
-    return choice
-
-
-def _alive(feasible: NDArray[np.bool_], fixed: list[int]) -> NDArray[np.bool_]:
-    """(n, K, C): candidates that lie on at least one path of feasible pairs through every knot
-    (`feasible` (n, K-1, C, C)), by forward and backward passes; at a `fixed` knot (all candidates the
-    same values) only the first. A knot where none would be left keeps all its candidates (then no path
-    passes, and the choice is the least bad one of all)."""
-    n, nseg, c, _ = feasible.shape
-    alive = np.ones((n, nseg + 1, c), dtype=bool)
-    alive[:, fixed, 1:] = False
-    for k in range(nseg):  # reachable from the start
-        alive[:, k + 1] &= (feasible[:, k] & alive[:, k, :, None]).any(axis=1)
-    for k in range(nseg - 1, -1, -1):  # and reaching the end
-        alive[:, k] &= (feasible[:, k] & alive[:, k + 1, None, :]).any(axis=2)
-    empty = ~alive.any(axis=2)
-    alive[empty] = True
-    return alive
+def _axis_terms(scales: AxisScales) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Per axis, as the compiled value search takes them: counts/ms per rpm, the acceleration-excess
+    budget (counts/ms^2), 0x60C5, 0x607F, and which drives truncate."""
+    return (
+        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64),
+        np.ascontiguousarray(ACC_EXCESS_LIMIT * scales.acceleration_axis, dtype=np.float64),
+        np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64),
+        np.ascontiguousarray(scales.drive_velocity, dtype=np.float64),
+        _toward_zero(scales),
+    )
 
 
 def _choose_values(
@@ -718,19 +599,23 @@ def _choose_values(
     times: IntArray,
     scales: AxisScales,
     tolerance: float,
-    fixed: dict[int, tuple[IntArray, IntArray]],
-    dv: tuple[int, ...] | None = None,
-    exact: bool = False,
+    ends: tuple[IntArray, IntArray, IntArray, IntArray],
+    envelope: FloatArray,
 ) -> tuple[IntArray, IntArray]:
-    """Quantised positions (counts) and velocities (rpm) for every knot, chosen jointly."""
-    cand_p, cand_v = _candidates(ref, times, scales, DP_VELOCITIES if dv is None else dv, fixed)
-    if times.size == 1:
-        return cand_p[:, :, 0].astype(np.int64), cand_v[:, :, 0].astype(np.int64)
-    cost = _segment_costs(ref, times, scales, tolerance, cand_p, cand_v, exact)
-    choice = _viterbi(cost)[:, :, None]
-    pos = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
-    vel = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
-    return pos, vel
+    """Quantised positions (counts) and velocities (rpm) for every knot, chosen jointly at the sample
+    ticks; knot 0 and the last knot are `ends` (first positions, velocities, last positions, velocities);
+    `envelope`: `segment_envelope(ref, times)`.
+
+    Candidates per knot: the planned demand and one count either side (all within the tolerance at the
+    knot; the side counts let a slow axis keep its motion smooth on a grid set by faster ones), and the
+    two rpm values that bracket the plan's velocity (`DP_VELOCITIES`)."""
+    conv, budget, drive_acc, drive_vel, tz = _axis_terms(scales)
+    p_first, v_first, p_last, v_last = (np.ascontiguousarray(e, dtype=np.int64) for e in ends)
+    return quantise.choose_values(
+        ref.positions, ref.velocities, envelope, np.ascontiguousarray(times, dtype=np.int64), conv, budget,
+        drive_acc, drive_vel, tz, tolerance, _PROX, np.array(_DP_POSITIONS), np.array(DP_VELOCITIES, dtype=np.int64),
+        DP_VELOCITIES == (0, 1), (p_first, v_first), (p_last, v_last),
+    )
 
 
 def _refine(
@@ -740,49 +625,26 @@ def _refine(
     tolerance: float,
     bad: NDArray[np.bool_],
     fixed_knots: set[int],
+    envelope: FloatArray,
 ) -> Knots:
     """Choose the values again around failing segments, with more candidates and an exact check.
 
     `bad` (n_axes, N) marks the failing segments of each axis; a window of two knots either side of
-    them is chosen again on the axes that fail inside it (the others keep their values, which pass).
+    them is chosen again on the axes that fail inside it (the others keep their values, which pass),
+    with 7 velocity candidates and every tick checked (`quantise.refine`). `envelope`:
+    `segment_envelope(ref, knots.times_ms)`.
     """
     times = knots.times_ms
-    pos = knots.positions.copy()
-    vel = knots.velocities_rpm.copy()
-    nk = times.size
-    windows: list[tuple[int, int]] = []
-    for s in np.nonzero(bad.any(axis=0))[0].tolist():
-        lo, hi = max(0, s - 2), min(nk - 1, s + 3)
-        if windows and lo <= windows[-1][1]:
-            windows[-1] = (windows[-1][0], hi)
-        else:
-            windows.append((lo, hi))
-    for lo, hi in windows:
-        axes = np.nonzero(bad[:, lo:hi].any(axis=1))[0]
-        sub = times[lo : hi + 1]
-        fixed: dict[int, tuple[IntArray, IntArray]] = {
-            0: (pos[axes, lo], vel[axes, lo]),
-            hi - lo: (pos[axes, hi], vel[axes, hi]),
-        }
-        for k in range(lo + 1, hi):
-            if k in fixed_knots:
-                fixed[k - lo] = (pos[axes, k], vel[axes, k])
-        part = ref.axes_subset(axes)
-        sc = scales.subset(axes)
-        cand_p, cand_v = _candidates(part, sub, sc, (-3, -2, -1, 0, 1, 2, 3), fixed)
-        # the check at every tick only for the candidates that can lie on a path passing the cheap check
-        # at the sample ticks (a pair that fails there fails at every tick too): typically a third
-        feasible = _segment_costs(part, sub, sc, tolerance, cand_p, cand_v, exact=False) < _HARD
-        alive = _alive(feasible, sorted(fixed))
-        order = np.argsort(~alive, axis=2, kind="stable")[:, :, : max(1, int(alive.sum(axis=2).max()))]
-        cand_p = np.take_along_axis(cand_p, order, axis=2)
-        cand_v = np.take_along_axis(cand_v, order, axis=2)
-        cost = _segment_costs(part, sub, sc, tolerance, cand_p, cand_v, exact=True)
-        # the window's last knot is pinned too (all its candidates are the same values): reach one of them
-        cost[:, -1, :, 1:] = np.inf
-        choice = _viterbi(cost)[:, :, None]
-        pos[axes, lo : hi + 1] = np.take_along_axis(cand_p, choice, axis=2)[:, :, 0].astype(np.int64)
-        vel[axes, lo : hi + 1] = np.take_along_axis(cand_v, choice, axis=2)[:, :, 0].astype(np.int64)
+    pinned = np.zeros(times.size, dtype=bool)
+    pinned[sorted(fixed_knots)] = True
+    conv, budget, drive_acc, drive_vel, tz = _axis_terms(scales)
+    pos, vel = quantise.refine(
+        ref.positions, ref.velocities, envelope, np.ascontiguousarray(times, dtype=np.int64),
+        np.ascontiguousarray(knots.positions, dtype=np.int64),
+        np.ascontiguousarray(knots.velocities_rpm, dtype=np.int64), np.ascontiguousarray(bad), pinned,
+        conv, budget, drive_acc, drive_vel, tz, tolerance, _PROX, np.array(_DP_POSITIONS),
+        np.arange(-3, 4, dtype=np.int64),
+    )
     return Knots(times, pos, vel)
 
 
@@ -998,35 +860,32 @@ def _quantise(
 
     After a split only the new knots need values: the other segments passed and keep theirs, the new
     knots start at the plan (rounded) and the refinement fixes what fails around them."""
-    p_first, v_first, p_last, v_last = ends
     want = planned_demand(ref, scales.toward_zero)
     conv = scales.counts_per_ms_per_rpm[:, None]
     knots: Knots | None = None
     for _round in range(MAX_ROUNDS):
+        env = segment_envelope(ref, times)
         if knots is None:
-            fixed = {0: (p_first, v_first), times.size - 1: (p_last, v_last)}
-            pos, vel = _choose_values(ref, times, scales, tol, fixed)
+            pos, vel = _choose_values(ref, times, scales, tol, ends, env)
         else:
             old = np.isin(times, knots.times_ms)
             pos = want[:, times].copy()
             vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
             pos[:, old], vel[:, old] = knots.positions, knots.velocities_rpm
         knots = Knots(times, pos, vel)
-        mask = _bad_mask(ref, knots, scales, tol, want)
-        if mask.any():
-            knots = _refine(ref, knots, scales, tol, mask, {0, times.size - 1})
-            mask = _bad_mask(ref, knots, scales, tol, want)
-        bad = np.nonzero(mask.any(axis=0))[0]
+        off_tol, off_budget = _misses(knots, scales, tol, want, env)
+        if off_tol.any() or off_budget.any():
+            refined = _refine(ref, knots, scales, tol, off_tol | off_budget, {0, times.size - 1}, env)
+            off_tol, off_budget = _misses(refined, scales, tol, want, env, (knots, off_tol, off_budget))
+            knots = refined
+        bad = np.nonzero((off_tol | off_budget).any(axis=0))[0]
         if bad.size == 0:
             rec = reconstruct(knots, scales)
             _check_dynamics(ref, knots, rec, scales)
             return knots, rec
-        rec = reconstruct(knots, scales)
-        dev = np.abs(rec.demand - want)
-        if (dev > tol).any():
+        if off_tol.any():
             # split every segment that still holds a failing tick
-            bad_ticks = np.nonzero((dev > tol).any(axis=0))[0]
-            seg = np.unique(np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2))
+            seg = np.nonzero(off_tol.any(axis=0))[0]
             a, b = times[seg], times[seg + 1]
             split = b - a >= 2
         else:
@@ -1070,32 +929,44 @@ def _split_long(times: IntArray, max_seg: int) -> IntArray:
     return np.unique(np.concatenate([times, *extra]))
 
 
-def _bad_segments(ref: Reference, knots: Knots, scales: AxisScales, tol: float, want: IntArray) -> IntArray:
-    """Segments that miss the tolerance, 0x60C5, 0x607F or the acceleration-excess budget."""
-    out: IntArray = np.nonzero(_bad_mask(ref, knots, scales, tol, want).any(axis=0))[0]
-    return out
-
-
-def _bad_mask(
-    ref: Reference, knots: Knots, scales: AxisScales, tol: float, want: IntArray
-) -> NDArray[np.bool_]:
-    """(n_axes, N): which axis misses on which segment (see `_bad_segments`)."""
-    rec = reconstruct(knots, scales)
-    times = knots.times_ms
-    bad = np.zeros((ref.n_axes, times.size - 1), dtype=bool)
-    axis, bad_ticks = np.nonzero(np.abs(rec.demand - want) > tol)
-    bad[axis, np.clip(np.searchsorted(times, bad_ticks, side="left") - 1, 0, times.size - 2)] = True
-    excess = acceleration_excess(ref, knots, rec)
-    peak = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
-    bad |= (excess > ACC_EXCESS_LIMIT * scales.acceleration_axis[:, None]) | (peak > scales.drive_acceleration[:, None])
-    return bad
+def _misses(
+    knots: Knots,
+    scales: AxisScales,
+    tol: float,
+    want: IntArray,
+    envelope: FloatArray,
+    before: tuple[Knots, NDArray[np.bool_], NDArray[np.bool_]] | None = None,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(n_axes, N) twice: which axis misses the tolerance on which segment (the drive's reconstruction
+    checked as it is computed), and which misses 0x60C5 or the acceleration-excess budget (0x607F is
+    `_check_dynamics`'); `envelope`: the plan's `segment_envelope` on the knots' times. With `before`
+    (other values on the same times and their misses) only the segments whose values changed are
+    checked again."""
+    pos = np.ascontiguousarray(knots.positions, dtype=np.float64)
+    vel = np.ascontiguousarray(knots.velocities_rpm, dtype=np.float64)
+    if before is None:
+        check = np.ones((pos.shape[0], pos.shape[1] - 1), dtype=bool)
+    else:
+        changed = (pos != before[0].positions) | (vel != before[0].velocities_rpm)
+        check = changed[:, :-1] | changed[:, 1:]
+    off_tol, off_budget = quantise.failing_segments(
+        pos, vel, np.ascontiguousarray(knots.times_ms, dtype=np.int64),
+        np.ascontiguousarray(scales.counts_per_ms_per_rpm, dtype=np.float64), _toward_zero(scales), want, tol,
+        envelope, ACC_EXCESS_LIMIT * scales.acceleration_axis,
+        np.ascontiguousarray(scales.drive_acceleration, dtype=np.float64), check,
+    )
+    if before is not None:
+        off_tol = np.where(check, off_tol, before[1])
+        off_budget = np.where(check, off_budget, before[2])
+    return off_tol, off_budget
 
 
 def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
     """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
     acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
     want = planned_demand(ref, scales.toward_zero)
-    if _bad_segments(ref, knots, scales, tol, want).size:
+    off_tol, off_budget = _misses(knots, scales, tol, want, segment_envelope(ref, knots.times_ms))
+    if off_tol.any() or off_budget.any():
         return False
     try:
         _check_dynamics(ref, knots, reconstruct(knots, scales), scales)

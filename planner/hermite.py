@@ -24,6 +24,9 @@ Units on the drive: position in counts, time in ms, velocity in rpm of the motor
 polynomial works in counts/ms with v = rpm * counts_per_rev / 60000. The position demand is the
 polynomial rounded half away from zero to whole counts at every 1 ms tick tau = k - T, k = 1..T; at
 k = T it is exactly P[n].
+
+The encoder evaluates the same polynomial, operation for operation, in compiled loops
+(planner/quantise.py); tests/planner/test_planner_value_search.py holds the two equal bit for bit.
 """
 
 from __future__ import annotations

@@ -1,0 +1,824 @@
+"""The PVT encoder's value search and verification, compiled (planner/encoder.py, steps 2 and 3).
+
+Theory of operation: encoder.py's module docstring; this module is its arithmetic, in loops compiled with
+numba (planner/jit.py). The value search scores every (start candidate, end candidate) pair of every
+segment, and the refinement checks every tick of every pair: as NumPy that took (n, N, C, C, ticks)
+temporaries and tens of array operations per window (15-90 ms per plan, most of the encoder's time).
+Here each segment's (C, C) costs are computed without temporaries, in loops that vectorise, and the
+verification checks the drive's demand as it computes it.
+
+The refinement's check at every tick is lazy (`_exact_path`): the costs at the sample ticks bound the
+costs at every tick from below (the sample ticks are some of them), and only the pairs on the best path
+are checked at every tick, until the best path has no bound left; that path is the one the full check
+gives, ties included. Most pairs (85 % miss the tolerance) are never checked at every tick.
+
+The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/
+encoder_reference.py keeps it as the reference): the drive's interpolation and rounding as
+planner/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
+counts subtracted first, so the numbers are small), cast where NumPy cast; maxima as np.maximum
+(nan propagates); ties to the first candidate, as numpy's argmin.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planner.jit import kernel
+from planner.record import VELOCITY_MAX, VELOCITY_MIN
+from planner.reference import FloatArray, IntArray
+
+BoolArray = NDArray[np.bool_]
+Float32Array = NDArray[np.float32]
+Workspace = tuple[Float32Array, FloatArray, Float32Array, Float32Array]
+
+HARD = 1.0e6  # cost of a pair that misses the tolerance, 0x60C5 or 0x607F: only chosen where all do
+_ROUNDS = 32  # passes of the lazy exact Viterbi before every bound left is replaced by its cost
+_VMIN = float(VELOCITY_MIN)
+_VMAX = float(VELOCITY_MAX)
+
+
+@kernel
+def drive_round(x: float, toward_zero: bool) -> float:
+    """`x` rounded as the drive rounds its demand, as planner/hermite.py computes it: half away from zero
+    (`round_counts_array`: trunc(x +- 0.5)) or toward zero (`truncate_counts_array`)."""
+    if toward_zero:
+        return float(np.trunc(x))
+    return float(np.trunc(x + np.copysign(0.5, x)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# verification
+
+
+@kernel
+def _segment(p0: float, v0: float, p1: float, v1: float, t: float) -> tuple[float, float, float, float]:
+    """One segment's a and b (planner/hermite.py's polynomial, anchored at its end) and its start and
+    end accelerations; velocities in counts/ms, t in ms (t * t * t is t**3 exactly: whole ms)."""
+    dp = p1 - p0
+    a = (-2.0 * dp + t * (v1 + v0)) / (t * t * t)
+    b = (-3.0 * dp + t * (2.0 * v1 + v0)) / (t * t)
+    acc_s = (6.0 * dp - 2.0 * t * v1 - 4.0 * t * v0) / (t * t)
+    acc_e = (-6.0 * dp + 4.0 * t * v1 + 2.0 * t * v0) / (t * t)
+    return a, b, acc_s, acc_e
+
+
+@kernel
+def reconstruct(
+    positions: FloatArray, velocities_rpm: FloatArray, times: IntArray, conv: FloatArray, toward_zero: BoolArray
+) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """The drive's rounded demand, unrounded position and velocity at every ms 0..times[-1], and every
+    segment's start and end acceleration, of every axis: planner.hermite.reconstruct, evaluated in the
+    same order (tau in [-T + 1, 0] from the segment's end)."""
+    n, nk = positions.shape
+    total = times[-1]
+    demand = np.empty((n, total + 1), np.int64)
+    pos = np.empty((n, total + 1))
+    vel = np.empty((n, total + 1))
+    acc_s = np.zeros((n, nk - 1))
+    acc_e = np.zeros((n, nk - 1))
+    for i in range(n):
+        pos[i, 0] = positions[i, 0]
+        vel[i, 0] = velocities_rpm[i, 0] * conv[i]
+        for k in range(nk - 1):
+            v1 = velocities_rpm[i, k + 1] * conv[i]
+            p1 = positions[i, k + 1]
+            a, b, acc_s[i, k], acc_e[i, k] = _segment(
+                positions[i, k], velocities_rpm[i, k] * conv[i], p1, v1, float(times[k + 1] - times[k])
+            )
+            for tick in range(times[k] + 1, times[k + 1] + 1):
+                tau = float(tick - times[k + 1])
+                pos[i, tick] = ((a * tau + b) * tau + v1) * tau + p1
+                vel[i, tick] = (3.0 * a * tau + 2.0 * b) * tau + v1
+        for tick in range(total + 1):
+            demand[i, tick] = int(drive_round(pos[i, tick], toward_zero[i]))
+    return demand, pos, vel, acc_s, acc_e
+
+
+@kernel
+def segment_envelope(acc_left: FloatArray, acc_right: FloatArray, times: IntArray) -> FloatArray:
+    """max(|acc_left|, |acc_right|) over each segment's ticks, both ends included, (n_axes, N).
+
+    The last segment's runs to the end of the plan, not to times[-1] (numpy's `maximum.reduceat`, which
+    the encoder used: the same where the times end at the plan's end, as an encoding's do)."""
+    n, m1 = acc_left.shape
+    nseg = times.size - 1
+    out = np.empty((n, max(nseg, 0)))
+    env = np.empty(m1 + 1)  # and one more, to read a peak back as float
+    # non-negative floats order as their bit patterns (nan above inf, as np.maximum propagates it), and
+    # an integer maximum vectorises where a nan-aware float one does not
+    bits = env.view(np.int64)
+    for i in range(n):
+        for t in range(m1):
+            env[t] = np.maximum(abs(acc_left[i, t]), abs(acc_right[i, t]))
+        for k in range(nseg):
+            a = times[k]
+            run = bits[a : m1 if k == nseg - 1 else max(times[k + 1], a + 1)]
+            top = bits[times[k + 1]]
+            for t in range(run.size):
+                top = run[t] if run[t] > top else top
+            bits[m1] = top
+            out[i, k] = env[m1]
+    return out
+
+
+@kernel
+def failing_segments(
+    positions: FloatArray,
+    velocities_rpm: FloatArray,
+    times: IntArray,
+    conv: FloatArray,
+    toward_zero: BoolArray,
+    want: IntArray,
+    tol: float,
+    envelope: FloatArray,
+    excess_limit: FloatArray,
+    drive_acc: FloatArray,
+    check: BoolArray,
+) -> tuple[BoolArray, BoolArray]:
+    """(n_axes, N) twice, for the segments `check` marks (the others False): does the drive demand
+    (`reconstruct`'s, checked as it is computed) miss `want` by more than `tol` at a tick of the segment
+    (tick 0 counts to segment 0, a knot's tick to the segment it ends); does its peak acceleration exceed
+    the plan's `envelope` by more than `excess_limit`, or `drive_acc`."""
+    n, nk = positions.shape
+    off_tol = np.zeros((n, nk - 1), np.bool_)
+    off_budget = np.zeros((n, nk - 1), np.bool_)
+    for i in range(n):
+        tz = toward_zero[i]
+        for k in range(nk - 1):
+            if not check[i, k]:
+                continue
+            v1 = velocities_rpm[i, k + 1] * conv[i]
+            p1 = positions[i, k + 1]
+            p0 = positions[i, k]
+            nt = times[k + 1] - times[k]
+            a, b, acc_s, acc_e = _segment(p0, velocities_rpm[i, k] * conv[i], p1, v1, float(nt))
+            peak = np.maximum(abs(acc_s), abs(acc_e))
+            off_budget[i, k] = peak - envelope[i, k] > excess_limit[i] or peak > drive_acc[i]
+            w = want[i, times[k] + 1 : times[k + 1] + 1]
+            miss = k == 0 and abs(int(drive_round(p0, tz)) - want[i, 0]) > tol
+            # every tick, without stopping at the first miss: a loop that vectorises
+            if tz:
+                for u in range(nt):
+                    tau = float(u + 1 - nt)
+                    miss |= abs(int(drive_round(((a * tau + b) * tau + v1) * tau + p1, True)) - w[u]) > tol
+            else:
+                for u in range(nt):
+                    tau = float(u + 1 - nt)
+                    miss |= abs(int(drive_round(((a * tau + b) * tau + v1) * tau + p1, False)) - w[u]) > tol
+            off_tol[i, k] = miss
+    return off_tol, off_budget
+
+
+# ----------------------------------------------------------------------------------------------------
+# value search
+
+
+@kernel
+def axis_candidates(
+    p_plan: FloatArray,
+    v_plan: FloatArray,
+    times: IntArray,
+    conv: float,
+    dp: FloatArray,
+    dv: IntArray,
+    bracket: bool,
+    pinned: BoolArray,
+    pin_p: IntArray,
+    pin_v: IntArray,
+) -> tuple[FloatArray, FloatArray]:
+    """One axis' candidate (position counts, velocity rpm) at every knot, (K, C) each, C = dv x dp:
+    the planned demand (rounded to nearest) plus `dp`, the rpm nearest the plan's velocity plus `dv`
+    (`bracket`: the rpm below instead, so dv = (0, 1) brackets it); at a `pinned` knot all C are
+    (pin_p, pin_v). Velocities clipped to int24."""
+    nk = times.size
+    c = dp.size * dv.size
+    cand_p = np.empty((nk, c))
+    cand_v = np.empty((nk, c))
+    for k in range(nk):
+        if pinned[k]:
+            for j in range(c):
+                cand_p[k, j] = float(pin_p[k])
+                cand_v[k, j] = min(max(float(pin_v[k]), _VMIN), _VMAX)
+            continue
+        x = p_plan[times[k]]
+        rp = float(int(np.trunc(x + np.copysign(0.5, x))))
+        v_rpm = v_plan[times[k]] / conv
+        vr = np.floor(v_rpm) if bracket else np.round(v_rpm)
+        j = 0
+        for jv in dv:
+            for jp in dp:
+                cand_p[k, j] = rp + jp
+                cand_v[k, j] = min(max(vr + jv, _VMIN), _VMAX)
+                j += 1
+    return cand_p, cand_v
+
+
+@kernel
+def workspace(c: int, ticks: int) -> Workspace:
+    """Scratch for `pair_costs` of up to `c` x `c` candidates on segments of up to `ticks` ms (allocated
+    once per pass, not per segment): float32, float64 per tick, and on their own the arrays a pair loop
+    writes (a loop whose stores may overlap its loads does not vectorise)."""
+    ticks = max(ticks, 8)
+    return (np.empty((2 * c + 2) * ticks, np.float32), np.empty(7 * ticks), np.empty(max(ticks + 1, c), np.float32),
+            np.empty(c, np.float32))
+
+
+@kernel
+def _limits(
+    pa: float, va: float, pb: float, vb: float, dt: float, envelope: float, excess_scale: float, drive_acc: float,
+    drive_vel: float,
+) -> tuple[float, float, float]:
+    """A pair's costs that do not depend on the ticks: HARD above 0x60C5 or (at the ends) 0x607F, 1e3 where
+    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square."""
+    dp = pb - pa
+    acc_s = (6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va) / (dt * dt)
+    acc_e = (-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va) / (dt * dt)
+    peak = np.maximum(abs(acc_s), abs(acc_e))
+    excess = np.maximum(peak - envelope, 0.0) / excess_scale
+    over = peak > drive_acc or np.maximum(abs(va), abs(vb)) > drive_vel
+    return HARD if over else 0.0, 1.0e3 if excess > 0.9 else 0.0, excess * excess
+
+
+@kernel
+def pair_costs(
+    p_plan: FloatArray,
+    t0: int,
+    t1: int,
+    pa: FloatArray,
+    va_rpm: FloatArray,
+    pb: FloatArray,
+    vb_rpm: FloatArray,
+    conv: float,
+    envelope: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    exact: bool,
+    prox: FloatArray,
+    out: FloatArray,
+    work: Workspace,
+) -> None:
+    """out[i, j]: the cost of the segment t0..t1 of one axis from candidate (pa[i], va_rpm[i]) to
+    (pb[j], vb_rpm[j]) (velocities in rpm, `conv` counts/ms per rpm); `work` from `workspace`.
+
+    Deviation: the drive's rounded demand against the planned demand, at every tick (`exact`) or at the
+    sample ticks `prox` (fractions of the segment, rounded, within 1..T-1); beyond `tol` it costs HARD,
+    below it (dev / tol)^2 (exact) or half the squared float error (a tie-breaker: smaller is more robust
+    at the ticks in between). Plus `_limits`.
+    """
+    if exact:
+        _exact_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
+                     toward_zero, tol, out, work)
+    else:
+        _sample_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
+                      toward_zero, tol, prox, out, out[:0, :0], work)
+
+
+@kernel
+def _sample_costs(
+    p_plan: FloatArray,
+    t0: int,
+    t1: int,
+    pa: FloatArray,
+    va_rpm: FloatArray,
+    pb: FloatArray,
+    vb_rpm: FloatArray,
+    conv: float,
+    envelope: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    prox: FloatArray,
+    out: FloatArray,
+    bound: FloatArray,
+    work: Workspace,
+) -> None:
+    """`pair_costs` at the sample ticks into `out`, and into `bound` (unless it is empty) a lower bound of
+    each pair's cost at every tick where no cost is nan: the sample ticks are some of them (the same
+    misses), so their largest miss is at most the deviation."""
+    ca = pa.size
+    cb = pb.size
+    nq = prox.size
+    dt = float(t1 - t0)
+    scratch = work[0]
+    ea = scratch[: nq * ca].reshape((nq, ca))
+    eb = scratch[nq * ca : nq * (ca + cb)].reshape((nq, cb))
+    want = scratch[nq * (ca + cb) : nq * (ca + cb + 1)]
+    frac = scratch[nq * (ca + cb + 1) : nq * (ca + cb + 2)]
+    terms = work[1][: 2 * nq].reshape((2, nq))  # the whole count below the plan, its truncation
+    dev = work[2][:cb]
+    err = work[3][:cb]
+    top = max(dt - 1.0, 1.0)
+    for q in range(nq):
+        off = min(max(np.round(prox[q] * dt), 1.0), top)
+        s = off / dt
+        s2 = s * s
+        h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
+        h01 = 1.0 - h00
+        h10 = (s - 2.0 * s2 + s2 * s) * dt
+        h11 = (s2 * s - s2) * dt
+        p = p_plan[t0 + int(off)]
+        # relative to the whole count below the plan: small numbers, float32 will do
+        base = np.floor(p)
+        for i in range(ca):
+            ea[q, i] = np.float32((pa[i] - base) * h00 + va_rpm[i] * conv * h10)
+        for j in range(cb):
+            eb[q, j] = np.float32((pb[j] - base) * h01 + vb_rpm[j] * conv * h11)
+        want[q] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+        frac[q] = np.float32(p - base)
+        terms[0, q] = base
+        terms[1, q] = np.trunc(p)
+    half = np.float32(0.5)
+    tol32 = np.float32(tol)
+    for i in range(ca):
+        # the largest miss and float error over the sample ticks, as np.maximum keeps them (a nan stays)
+        dev[:] = 0.0
+        err[:] = 0.0
+        for q in range(nq):
+            a = ea[q, i]
+            if toward_zero:
+                for j in range(cb):
+                    miss = np.float32(abs(np.trunc(np.float64(a + eb[q, j]) + terms[0, q]) - terms[1, q]))
+                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+            else:
+                for j in range(cb):
+                    miss = abs(np.floor(a + eb[q, j] + half) - want[q])
+                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+            for j in range(cb):
+                e = abs(a + eb[q, j] - frac[q])
+                err[j] = e if e > err[j] or np.isnan(e) else err[j]
+        va = va_rpm[i] * conv
+        for j in range(cb):
+            hard, budget, excess2 = _limits(pa[i], va, pb[j], vb_rpm[j] * conv, dt, envelope, excess_scale,
+                                            drive_acc, drive_vel)
+            e32 = err[j] / tol32
+            out[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(half * (e32 * e32)) + hard + budget + excess2
+            if bound.size:
+                q32 = dev[j] / tol32
+                bound[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+
+
+@kernel
+def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, want: Float32Array) -> None:
+    """For the ticks 1..T of the segment t0..t1, terms[:, :T]: the Hermite basis h00, h01, h10, h11 (the
+    formulas of encoder._hermite_basis), the whole count below the plan, the plan, its truncation; and
+    want[:T]: the planned demand (rounded to nearest) relative to that whole count, float32."""
+    nt = t1 - t0
+    dt = float(nt)
+    for t in range(nt):
+        s = float(t + 1) / dt
+        s2 = s * s
+        h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
+        terms[0, t] = h00
+        terms[1, t] = 1.0 - h00
+        terms[2, t] = (s - 2.0 * s2 + s2 * s) * dt
+        terms[3, t] = (s2 * s - s2) * dt
+        p = p_plan[t0 + t + 1]
+        base = np.floor(p)
+        terms[4, t] = base
+        terms[5, t] = p
+        terms[6, t] = np.trunc(p)
+        want[t] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+
+
+@kernel
+def _exact_cost(
+    terms: FloatArray,
+    want: Float32Array,
+    nt: int,
+    pa: float,
+    va: float,
+    pb: float,
+    vb: float,
+    toward_zero: bool,
+    tol: float,
+    limits: tuple[float, float, float],
+    miss: Float32Array,
+) -> float:
+    """One pair's `pair_costs` at every tick of a segment (`_segment_ticks`: terms, want; `_limits`);
+    velocities in counts/ms; `miss`: scratch of nt + 1, not overlapping the others."""
+    half = np.float32(0.5)
+    # each share relative to the whole count below the plan: small numbers, float32 will do
+    if toward_zero:
+        for t in range(nt):
+            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
+            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
+            miss[t] = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, t]) - terms[6, t]))
+    else:
+        for t in range(nt):
+            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
+            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
+            miss[t] = abs(np.floor(a + b + half) - want[t])
+    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
+    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
+    bits = miss.view(np.int32)
+    top = np.int32(0)
+    for t in range(nt):
+        top = bits[t] if bits[t] > top else top
+    bits[nt] = top
+    dev = miss[nt]
+    tol32 = np.float32(tol)
+    q32 = dev / tol32
+    hard, budget, excess2 = limits
+    return (HARD if dev > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+
+
+@kernel
+def _exact_costs(
+    p_plan: FloatArray,
+    t0: int,
+    t1: int,
+    pa: FloatArray,
+    va_rpm: FloatArray,
+    pb: FloatArray,
+    vb_rpm: FloatArray,
+    conv: float,
+    envelope: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    out: FloatArray,
+    work: Workspace,
+) -> None:
+    """`pair_costs` at every tick."""
+    nt = t1 - t0
+    terms = work[1][: 7 * nt].reshape((7, nt))
+    want = work[0][:nt]
+    _segment_ticks(p_plan, t0, t1, terms, want)
+    for i in range(pa.size):
+        va = va_rpm[i] * conv
+        for j in range(pb.size):
+            vb = vb_rpm[j] * conv
+            limits = _limits(pa[i], va, pb[j], vb, float(nt), envelope, excess_scale, drive_acc, drive_vel)
+            out[i, j] = _exact_cost(terms, want, nt, pa[i], va, pb[j], vb, toward_zero, tol, limits, work[2])
+
+
+@kernel
+def _first_min(x: FloatArray) -> int:
+    """numpy's argmin: the first minimum, or the first nan."""
+    best = 0
+    for i in range(1, x.size):
+        if np.isnan(x[best]):
+            break
+        if x[i] < x[best] or np.isnan(x[i]):
+            best = i
+    return best
+
+
+@kernel
+def _forward(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: IntArray, start: int) -> None:
+    """NumPy's Viterbi pass over the pair costs (K-1, C, C) from segment `start` on: totals[k] the cheapest
+    path to each candidate of knot k (totals[0] set: candidate 0 at 0, the others inf), back[k] its
+    candidate at knot k (the first minimum, as argmin; a nan is a minimum). A pinned knot's columns are
+    all the same: the first stands for all."""
+    nseg, c, _ = costs.shape
+    for k in range(start, nseg):
+        for j in range(1 if pinned[k + 1] else c):
+            best = 0
+            low = totals[k, 0] + costs[k, 0, j]
+            for i in range(1, c):
+                if np.isnan(low):
+                    break
+                x = totals[k, i] + costs[k, i, j]
+                if x < low or np.isnan(x):
+                    best, low = i, x
+            back[k, j] = best
+            totals[k + 1, j] = low
+        if pinned[k + 1]:
+            back[k, 1:] = back[k, 0]
+            totals[k + 1, 1:] = totals[k + 1, 0]
+
+
+@kernel
+def _best_path(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: IntArray, start: int) -> IntArray:
+    """The minimum-cost path through the pair costs from candidate 0 of knot 0, as NumPy's Viterbi chose
+    it (`_forward` from segment `start`: totals and back before it are kept; the first minimum at the
+    last knot)."""
+    nseg = costs.shape[0]
+    if start == 0:
+        totals[0, :] = np.inf
+        totals[0, 0] = 0.0
+    _forward(costs, pinned, totals, back, start)
+    choice = np.empty(nseg + 1, np.int64)
+    choice[nseg] = _first_min(totals[nseg])
+    for k in range(nseg - 1, -1, -1):
+        choice[k] = back[k, choice[k + 1]]
+    return choice
+
+
+@kernel
+def viterbi(
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    p_plan: FloatArray,
+    times: IntArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    exact: bool,
+    prox: FloatArray,
+) -> IntArray:
+    """One axis' minimum-cost candidate path through the knots (`pair_costs` of every segment), from
+    candidate 0 of knot 0. A `pinned` knot's candidates are all the same values: their costs are computed
+    once, and the path takes the first, as numpy's argmin did."""
+    nk, c = cand_p.shape
+    costs = np.empty((nk - 1, c, c))
+    work = workspace(c, np.max(times[1:] - times[:-1]) if exact else 0)
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        pair_costs(p_plan, times[k], times[k + 1], cand_p[k, :ca], cand_v[k, :ca], cand_p[k + 1, :cb],
+                   cand_v[k + 1, :cb], conv, envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol, exact,
+                   prox, costs[k], work)
+        _replicate(costs[k], ca, cb)
+    return _best_path(costs, pinned, np.empty((nk, c)), np.empty((nk - 1, c), np.int64), 0)
+
+
+@kernel
+def _exact_path(
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    bounds: FloatArray,
+    p_plan: FloatArray,
+    times: IntArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+) -> IntArray:
+    """`viterbi` at every tick, from lower bounds of the costs (K-1, C, C: `_sample_costs`): while the
+    best path passes pairs whose cost is only bounded, their costs replace the bounds and the path is
+    found again (after `_ROUNDS`, all of them). A path without bounds is the one the costs give, ties
+    included: its cost is exact, no other path costs less (bounds are below costs), and at each of its
+    columns and at its end the candidates that tie for the minimum are the same with the bounds as with
+    the costs (a bound ties only where it is the cost). No cost is nan (the caller's conditions)."""
+    nk, c = cand_p.shape
+    costs = bounds.copy()
+    lower = np.ones((nk - 1, c, c), np.bool_)
+    longest = np.max(times[1:] - times[:-1])
+    terms = np.empty((nk - 1, 7, longest))  # `_segment_ticks` of each segment, where a pair needs them
+    want = np.empty((nk - 1, longest), np.float32)
+    ready = np.zeros(nk - 1, np.bool_)
+    miss = np.empty(longest + 1, np.float32)
+    totals = np.empty((nk, c))
+    back = np.empty((nk - 1, c), np.int64)
+    start = 0
+    for _round in range(_ROUNDS + 1):
+        choice = _best_path(costs, pinned, totals, back, start)
+        start = nk
+        for k in range(nk - 1):
+            # the pair on the path; after `_ROUNDS`, every one still bounded
+            everyone = _round == _ROUNDS
+            for i in range(c) if everyone else range(choice[k], choice[k] + 1):
+                for j in range(c) if everyone else range(choice[k + 1], choice[k + 1] + 1):
+                    if not lower[k, i, j]:
+                        continue
+                    start = min(start, k)
+                    t0, t1 = times[k], times[k + 1]
+                    if not ready[k]:
+                        _segment_ticks(p_plan, t0, t1, terms[k], want[k])
+                        ready[k] = True
+                    # a pinned knot's candidates are all the same values: its first stands for all
+                    ca = 1 if pinned[k] else c
+                    cb = 1 if pinned[k + 1] else c
+                    pi, pj = min(i, ca - 1), min(j, cb - 1)
+                    va, vb = cand_v[k, pi] * conv, cand_v[k + 1, pj] * conv
+                    limits = _limits(cand_p[k, pi], va, cand_p[k + 1, pj], vb, float(t1 - t0), envelope[k],
+                                     excess_scale, drive_acc, drive_vel)
+                    costs[k, pi, pj] = _exact_cost(terms[k], want[k], t1 - t0, cand_p[k, pi], va, cand_p[k + 1, pj],
+                                                   vb, toward_zero, tol, limits, miss)
+                    lower[k, pi, pj] = False
+                    _replicate(costs[k], ca, cb)
+                    _replicate(lower[k], ca, cb)
+        if start == nk:
+            return choice
+    return _best_path(costs, pinned, totals, back, start)
+
+
+@kernel
+def _replicate(values: NDArray[np.generic], ca: int, cb: int) -> None:
+    """Rows ca.. as row 0 and columns cb.. as column 0 (the candidates of a pinned knot)."""
+    for i in range(ca, values.shape[0]):
+        values[i, :cb] = values[0, :cb]
+    for j in range(cb, values.shape[1]):
+        values[:, j] = values[:, 0]
+
+
+@kernel
+def alive_candidates(feasible: BoolArray, pinned: BoolArray) -> BoolArray:
+    """(K, C): the candidates of one axis that lie on at least one path of feasible pairs through every
+    knot (`feasible` (K-1, C, C)), by forward and backward passes; at a `pinned` knot (all candidates the
+    same values) only the first. A knot where none would be left keeps all its candidates (then no path
+    passes, and the choice is the least bad one of all)."""
+    nseg, c, _ = feasible.shape
+    alive = np.ones((nseg + 1, c), np.bool_)
+    for k in range(nseg + 1):
+        if pinned[k]:
+            alive[k, 1:] = False
+    for k in range(nseg):  # reachable from the start
+        for j in range(c):
+            if alive[k + 1, j]:
+                reach = False
+                for i in range(c):
+                    if feasible[k, i, j] and alive[k, i]:
+                        reach = True
+                        break
+                alive[k + 1, j] = reach
+    for k in range(nseg - 1, -1, -1):  # and reaching the end
+        for i in range(c):
+            if alive[k, i]:
+                reach = False
+                for j in range(c):
+                    if feasible[k, i, j] and alive[k + 1, j]:
+                        reach = True
+                        break
+                alive[k, i] = reach
+    for k in range(nseg + 1):
+        if not alive[k].any():
+            alive[k, :] = True
+    return alive
+
+
+@kernel
+def choose_values(
+    positions: FloatArray,
+    velocities: FloatArray,
+    envelope: FloatArray,
+    times: IntArray,
+    conv: FloatArray,
+    excess_scale: FloatArray,
+    drive_acc: FloatArray,
+    drive_vel: FloatArray,
+    toward_zero: BoolArray,
+    tol: float,
+    prox: FloatArray,
+    dp: FloatArray,
+    dv: IntArray,
+    bracket: bool,
+    first: tuple[IntArray, IntArray],
+    last: tuple[IntArray, IntArray],
+) -> tuple[IntArray, IntArray]:
+    """Every axis' knot values (counts, rpm) chosen jointly at the sample ticks (`viterbi`), knot 0 at
+    `first` and the last knot at `last` (positions, velocities per axis); `envelope` the plan's
+    acceleration peak per segment (`segment_envelope`)."""
+    n = positions.shape[0]
+    nk = times.size
+    pinned = np.zeros(nk, np.bool_)
+    pinned[0] = True
+    pinned[nk - 1] = True
+    out_p = np.empty((n, nk), np.int64)
+    out_v = np.empty((n, nk), np.int64)
+    pin_p = np.zeros(nk, np.int64)
+    pin_v = np.zeros(nk, np.int64)
+    for a in range(n):
+        pin_p[0], pin_v[0] = first[0][a], first[1][a]
+        pin_p[nk - 1], pin_v[nk - 1] = last[0][a], last[1][a]
+        cand_p, cand_v = axis_candidates(positions[a], velocities[a], times, conv[a], dp, dv, bracket, pinned,
+                                         pin_p, pin_v)
+        if nk == 1:
+            choice = np.zeros(1, np.int64)
+        else:
+            choice = viterbi(cand_p, cand_v, pinned, positions[a], times, envelope[a], conv[a], excess_scale[a],
+                             drive_acc[a], drive_vel[a], toward_zero[a], tol, False, prox)
+        for k in range(nk):
+            out_p[a, k] = int(cand_p[k, choice[k]])
+            out_v[a, k] = int(cand_v[k, choice[k]])
+    return out_p, out_v
+
+
+@kernel
+def refine(
+    positions: FloatArray,
+    velocities: FloatArray,
+    envelope: FloatArray,
+    times: IntArray,
+    knot_p: IntArray,
+    knot_v: IntArray,
+    bad: BoolArray,
+    pinned: BoolArray,
+    conv: FloatArray,
+    excess_scale: FloatArray,
+    drive_acc: FloatArray,
+    drive_vel: FloatArray,
+    toward_zero: BoolArray,
+    tol: float,
+    prox: FloatArray,
+    dp: FloatArray,
+    dv: IntArray,
+) -> tuple[IntArray, IntArray]:
+    """The knot values (counts, rpm) chosen again, every tick checked, in a window of two knots either
+    side of the segments `bad` (n_axes, N) marks, on the axes that fail in the window (the others keep
+    theirs, which pass); the window's ends and the `pinned` knots keep their values.
+
+    Candidates: positions `dp`, velocities `dv` around the plan. Only those on a path of pairs that pass
+    at the sample ticks get the check at every tick (a pair that fails there fails at every tick too),
+    padded with the first others up to the window's widest knot. The check at every tick starts from
+    the costs at the sample ticks as lower bounds (`_exact_path`): most pairs are never checked at
+    every tick. A window's last segment is weighed against the plan's acceleration peak (`envelope`
+    per segment) from its start to the plan's end, as numpy's reduceat on the window's times had it."""
+    nk = knot_p.shape[1]
+    out_p = knot_p.copy()
+    out_v = knot_v.copy()
+    lows = np.empty(nk, np.int64)
+    highs = np.empty(nk, np.int64)
+    nw = 0
+    for s in range(nk - 1):
+        if bad[:, s].any():
+            lo, hi = max(0, s - 2), min(nk - 1, s + 3)
+            if nw > 0 and lo <= highs[nw - 1]:
+                highs[nw - 1] = hi
+            else:
+                lows[nw], highs[nw] = lo, hi
+                nw += 1
+    c = dp.size * dv.size
+    work = workspace(c, prox.size)
+    farthest = np.empty(positions.shape[0])  # the plan's largest |position| per axis
+    for a in range(positions.shape[0]):
+        farthest[a] = np.abs(positions[a]).max()
+    for w in range(nw):
+        lo, hi = lows[w], highs[w]
+        kw = hi - lo + 1
+        sub = times[lo : hi + 1]
+        pin = pinned[lo : hi + 1].copy()
+        pin[0] = True
+        pin[kw - 1] = True
+        axes = np.nonzero(bad[:, lo:hi].sum(axis=1) > 0)[0]
+        na = axes.size
+        cands_p = np.empty((na, kw, c))
+        cands_v = np.empty((na, kw, c))
+        alive = np.empty((na, kw, c), np.bool_)
+        env = np.empty((na, kw - 1))
+        feasible = np.empty((kw - 1, c, c), np.bool_)
+        cost = np.empty((c, c))
+        bounds = np.empty((na, kw - 1, c, c))
+        lazy = np.empty(na, np.bool_)
+        for ai in range(na):
+            a = axes[ai]
+            env[ai, : kw - 2] = envelope[a, lo : hi - 1]
+            env[ai, kw - 2] = envelope[a, hi - 1 :].max()
+            cands_p[ai], cands_v[ai] = axis_candidates(positions[a], velocities[a], sub, conv[a], dp, dv, False,
+                                                       pin, out_p[a, lo : hi + 1], out_v[a, lo : hi + 1])
+            for k in range(kw - 1):
+                ca = 1 if pin[k] else c
+                cb = 1 if pin[k + 1] else c
+                _sample_costs(positions[a], sub[k], sub[k + 1], cands_p[ai, k, :ca], cands_v[ai, k, :ca],
+                              cands_p[ai, k + 1, :cb], cands_v[ai, k + 1, :cb], conv[a], env[ai, k], excess_scale[a],
+                              drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, cost, bounds[ai, k], work)
+                _replicate(cost, ca, cb)
+                _replicate(bounds[ai, k], ca, cb)
+                feasible[k] = cost < HARD
+            alive[ai] = alive_candidates(feasible, pin)
+            # bounds only where no cost can be nan: tol and the budget above 0, and every share far below
+            # float32's range (|share| <= |p| + |plan| + 1 + |v| T), so that no miss is nan
+            reach = np.abs(cands_p[ai]).max() + farthest[a] + np.abs(cands_v[ai]).max() * conv[a] * (sub[-1] - sub[0])
+            lazy[ai] = tol > 0.0 and excess_scale[a] > 0.0 and reach < 1.0e30
+        width = 1
+        for ai in range(na):
+            for k in range(kw):
+                width = max(width, int(alive[ai, k].sum()))
+        for ai in range(na):
+            a = axes[ai]
+            order = np.empty((kw, width), np.int64)
+            for k in range(kw):
+                j = 0
+                for keep in (True, False):  # the live candidates first, each group in its order
+                    for i in range(c):
+                        if alive[ai, k, i] == keep and j < width:
+                            order[k, j] = i
+                            j += 1
+            cp = np.empty((kw, width))
+            cv = np.empty((kw, width))
+            for k in range(kw):
+                for j in range(width):
+                    cp[k, j], cv[k, j] = cands_p[ai, k, order[k, j]], cands_v[ai, k, order[k, j]]
+            if lazy[ai]:
+                sub_bounds = np.empty((kw - 1, width, width))
+                for k in range(kw - 1):
+                    for i in range(width):
+                        for j in range(width):
+                            sub_bounds[k, i, j] = bounds[ai, k, order[k, i], order[k + 1, j]]
+                choice = _exact_path(cp, cv, pin, sub_bounds, positions[a], sub, env[ai], conv[a], excess_scale[a],
+                                     drive_acc[a], drive_vel[a], toward_zero[a], tol)
+            else:
+                choice = viterbi(cp, cv, pin, positions[a], sub, env[ai], conv[a], excess_scale[a], drive_acc[a],
+                                 drive_vel[a], toward_zero[a], tol, True, prox)
+            for k in range(kw):
+                out_p[a, lo + k] = int(cp[k, choice[k]])
+                out_v[a, lo + k] = int(cv[k, choice[k]])
+    return out_p, out_v
