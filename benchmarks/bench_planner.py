@@ -15,7 +15,7 @@ jobs of each kind (`--jobs`, default 200 per kind: paths, paths with sharp corne
   up to 30 % too short). Moves against ruckig's continuous optimum along the line. Target <= 1.02.
 - planning time / raw toppra: plan + encode + verify (planner.plan_job) over raw toppra on the same
   path and gridpoints, CPU time of the thread (medians of interleaved runs for bench-20, with where
-  plan_job's time goes: toppra solves, chain fits, encodings, the rest). Target <= 1.5.
+  plan_job's time goes: time-optimal solves (planner/topp.py), chain fits, encodings, the rest). Target <= 1.5.
 - refused: the share of random jobs the planner rejects (every random job is feasible).
 """
 
@@ -236,15 +236,14 @@ def measure(job: Job, cell: CellConfig) -> dict[str, Any]:
 
 def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, float]:
     """Median plan_job time against raw toppra's (interleaved runs), and where plan_job's time goes: its
-    toppra solves, chain fits and encodings, timed by wrapping toppra's TOPPRA.compute_parameterization,
+    time-optimal solves, chain fits and encodings, timed by wrapping planner.topp.solve,
     planner.chain.fit_chain and planner.plan.encode during the measurement. CPU time of this thread
     (time.thread_time) throughout: on a shared machine, wall time also counts the other processes."""
-    import toppra.algorithm
-
     import planner.chain
     import planner.plan
+    import planner.topp
 
-    spent: dict[str, float] = {"toppra": 0.0, "chain": 0.0, "encode": 0.0}
+    spent: dict[str, float] = {"topp": 0.0, "chain": 0.0, "encode": 0.0}
 
     def timed(name: str, fn: Any) -> Any:
         def run(*args: Any, **kwargs: Any) -> Any:
@@ -257,7 +256,7 @@ def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, f
         return run
 
     patches = [
-        (toppra.algorithm.TOPPRA, "compute_parameterization", "toppra"),
+        (planner.topp, "solve", "topp"),
         (planner.chain, "fit_chain", "chain"),
         (planner.plan, "encode", "encode"),
     ]
@@ -345,8 +344,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     lat = latency(cell, bench)
     print(f"planning latency on bench-20: plan+encode median {lat['plan_ms']:.1f} ms, raw toppra median "
           f"{lat['toppra_ms']:.1f} ms, ratio {lat['ratio']:.2f} (target <= 1.5: {_mark(lat['ratio'] <= 1.5)})")
-    rest = lat["plan_ms"] - lat["stage_toppra_ms"] - lat["stage_chain_ms"] - lat["stage_encode_ms"]
-    print(f"  where plan+encode's time goes (CPU ms, medians): toppra solves {lat['stage_toppra_ms']:.1f}, "
+    rest = lat["plan_ms"] - lat["stage_topp_ms"] - lat["stage_chain_ms"] - lat["stage_encode_ms"]
+    print(f"  where plan+encode's time goes (CPU ms, medians): time-optimal solves {lat['stage_topp_ms']:.1f}, "
           f"chain fits {lat['stage_chain_ms']:.1f}, encodings (retries included) {lat['stage_encode_ms']:.1f}, "
           f"the rest (geometry, re-timing, checks, statistics) {rest:.1f}")
     print()
