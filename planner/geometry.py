@@ -348,37 +348,60 @@ def _size(
     cos: FloatArray, a11: FloatArray, a12: FloatArray, a22: FloatArray, half: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Half-length l, shape rho and scaled deviation of the blends of a chunk of corners."""
-    fs, gs = _FS[None], _GS[None]  # (1, R, T)
-    b11, b12, b22 = a11[:, None, None], a12[:, None, None], a22[:, None, None]
-    # y-offset of the blend point from c is p = f Y1 + g Y2 (l = 1)
-    pp = fs * fs * b11 + 2.0 * fs * gs * b12 + gs * gs * b22
-    dist_c = np.sqrt(np.maximum(pp, 0.0)).min(axis=2)  # closest approach to the corner
-    # distance to leg 1 {-lam Y1} and leg 2 {lam Y2}, lam in [0, 1]
-    p_y1 = fs * b11 + gs * b12
-    lam1 = np.clip(-p_y1 / np.maximum(b11, 1e-300), 0.0, 1.0)
-    d1 = pp + 2.0 * lam1 * p_y1 + lam1 * lam1 * b11
-    p_y2 = fs * b12 + gs * b22
-    lam2 = np.clip(p_y2 / np.maximum(b22, 1e-300), 0.0, 1.0)
-    d2 = pp - 2.0 * lam2 * p_y2 + lam2 * lam2 * b22
-    dist_legs = np.sqrt(np.maximum(np.minimum(d1, d2), 0.0)).max(axis=2)
-    dev1 = np.maximum(dist_c, dist_legs)  # (C, R) at l = 1
-    length = np.minimum(1.0 / np.maximum(dev1, 1e-300), half[:, None])
-    # curvature in z (u1, u2 unit, u1.u2 = cos): kappa = |f'g'' - g'f''| sin / |B'|^3
-    c = cos[:, None, None]
-    sin = np.sqrt(np.maximum(1.0 - cos * cos, 0.0))[:, None, None]
-    speed2 = _F1[None] ** 2 + 2.0 * _F1[None] * _G1[None] * c + _G1[None] ** 2
-    cross = np.abs(_F1 * _G2 - _G1 * _F2)[None] * sin
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kappa = np.where(speed2 > 1e-24, cross / np.maximum(speed2, 1e-300) ** 1.5, np.inf)
-    kmax = kappa.max(axis=2)  # at l = 1
-    radius = np.where(np.isfinite(kmax) & (kmax > 0), length / np.where(kmax > 0, kmax, 1.0), 0.0)
-    best = np.argmax(radius, axis=1)
-    reversal = cos <= REVERSAL_COS
-    # a reversal turns back along the same line whatever the shape: take the middle one
-    best = np.where(reversal, RHOS.size - 1, best)
-    rows = np.arange(cos.size)
-    hl = length[rows, best]
-    return hl, RHOS[best], dev1[rows, best] * hl
+    best, hl, dev = _size_kernel(cos, a11, a12, a22, half, _FS, _GS, _F1, _G1, _F2, _G2, REVERSAL_COS)
+    return hl, RHOS[best], dev
+
+
+@kernel
+def _size_kernel(
+    cos: FloatArray, a11: FloatArray, a12: FloatArray, a22: FloatArray, half: FloatArray, fs: FloatArray,
+    gs: FloatArray, f1: FloatArray, g1: FloatArray, f2: FloatArray, g2: FloatArray, reversal_cos: float,
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """For each corner, over the shapes (rows of the samples fs, gs: (R, T)): the blend's deviation at l = 1
+    (the larger of its closest approach to the corner and its largest distance from the legs, in the
+    y = q / tol norm: |p|^2 = f^2 |Y1|^2 + 2 f g Y1.Y2 + g^2 |Y2|^2), its length (deviation 1, at most
+    `half`) and its smallest radius of curvature in z (kappa = |f'g'' - g'f''| sin / |B'|^3); the shape
+    of the largest radius wins (the middle one for a reversal, which turns back whatever the shape)."""
+    corners = cos.size
+    shapes, samples = fs.shape
+    best = np.zeros(corners, dtype=np.int64)
+    hl = np.zeros(corners)
+    dev = np.zeros(corners)
+    length = np.empty(shapes)
+    dev1 = np.empty(shapes)
+    for c in range(corners):
+        b11, b12, b22 = a11[c], a12[c], a22[c]
+        sin = np.sqrt(max(1.0 - cos[c] * cos[c], 0.0))
+        top = -np.inf
+        for r in range(shapes):
+            dist_c = np.inf
+            dist_legs = -np.inf
+            kmax = -np.inf
+            for t in range(samples):
+                f, g = fs[r, t], gs[r, t]
+                pp = f * f * b11 + 2.0 * f * g * b12 + g * g * b22
+                dist_c = min(dist_c, np.sqrt(max(pp, 0.0)))
+                # distance to leg 1 {-lam Y1} and leg 2 {lam Y2}, lam in [0, 1]
+                p_y1 = f * b11 + g * b12
+                lam1 = min(max(-p_y1 / max(b11, 1e-300), 0.0), 1.0)
+                d1 = pp + 2.0 * lam1 * p_y1 + lam1 * lam1 * b11
+                p_y2 = f * b12 + g * b22
+                lam2 = min(max(p_y2 / max(b22, 1e-300), 0.0), 1.0)
+                d2 = pp - 2.0 * lam2 * p_y2 + lam2 * lam2 * b22
+                dist_legs = max(dist_legs, np.sqrt(max(min(d1, d2), 0.0)))
+                speed2 = f1[r, t] ** 2 + 2.0 * f1[r, t] * g1[r, t] * cos[c] + g1[r, t] ** 2
+                cross = abs(f1[r, t] * g2[r, t] - g1[r, t] * f2[r, t]) * sin
+                kmax = max(kmax, cross / max(speed2, 1e-300) ** 1.5 if speed2 > 1e-24 else np.inf)
+            dev1[r] = max(dist_c, dist_legs)
+            length[r] = min(1.0 / max(dev1[r], 1e-300), half[c])
+            radius = length[r] / kmax if np.isfinite(kmax) and kmax > 0 else 0.0
+            if radius > top:
+                top, best[c] = radius, r
+        if cos[c] <= reversal_cos:
+            best[c] = shapes - 1
+        hl[c] = length[best[c]]
+        dev[c] = dev1[best[c]] * hl[c]
+    return best, hl, dev
 
 
 def blended_runs(
