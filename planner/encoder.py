@@ -170,8 +170,15 @@ def drive_round(x: FloatArray, toward_zero: NDArray[np.bool_] | None) -> IntArra
 
 
 def planned_demand(ref: Reference, toward_zero: NDArray[np.bool_] | None = None) -> IntArray:
-    """The plan rounded to whole counts as the drive rounds: what a perfect encoding would command."""
-    return drive_round(ref.positions, toward_zero)
+    """The plan rounded to whole counts as the drive rounds: what a perfect encoding would command
+    (read-only: kept on `ref`, the encoding and the statistics ask for it several times)."""
+    key = None if toward_zero is None or not toward_zero.any() else toward_zero.tobytes()
+    memo: dict[bytes | None, IntArray] = ref.__dict__.setdefault("_planned_demand", {})
+    if key not in memo:
+        demand = drive_round(ref.positions, toward_zero)
+        demand.setflags(write=False)
+        memo[key] = demand
+    return memo[key]
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -20,6 +20,7 @@ starts its knot placement from them.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,8 +80,14 @@ class Reference:
         return out
 
     def acc_envelope(self) -> FloatArray:
-        """max(|acc_left|, |acc_right|) at every ms: the planned acceleration magnitude there."""
-        return np.maximum(np.abs(self.acc_left), np.abs(self.acc_right))
+        """max(|acc_left|, |acc_right|) at every ms: the planned acceleration magnitude there (read-only:
+        computed once, several stages ask for it)."""
+        return self._envelope
+
+    @functools.cached_property
+    def _envelope(self) -> FloatArray:
+        out: FloatArray = _readonly(np.maximum(np.abs(self.acc_left), np.abs(self.acc_right)))  # type: ignore[assignment]
+        return out
 
     def at(self, t_ms: FloatArray) -> FloatArray:
         """Positions (counts) at arbitrary times (ms), (n_axes, len(t)): cubic Hermite between samples.
