@@ -9,6 +9,8 @@ import gc
 import uuid
 from pathlib import Path
 
+import pytest
+
 from planner.config import load_cell
 from planner.job import job_from_dict
 from planner.plan import plan_job
@@ -31,6 +33,7 @@ def test_quiet_gc_freezes_the_heap_and_the_last_of_overlapping_holders_thaws_it(
     assert gc.get_freeze_count() == 0
 
 
+@pytest.mark.isolated  # real time with the drives in this process
 def test_the_heap_is_frozen_on_the_streaming_thread_while_a_job_runs_and_thawed_after(tmp_path: Path) -> None:
     cell = load_cell(CONFIGS / "demo.toml").with_axes(1)
     cell = dataclasses.replace(cell, bus=dataclasses.replace(cell.bus, channel=f"gc-{uuid.uuid4().hex[:12]}"))
