@@ -236,28 +236,26 @@ def _trace(
     total = s.size
     q, v, q1 = np.empty((total, n)), np.empty((total, n)), np.empty((total, n))
     curved = np.empty(total, dtype=np.bool_)
+    power = np.empty(k)
     j = 0
     for i in range(total):
         if i == 0 or s[i] < s[i - 1]:
             j = min(max(np.searchsorted(x, s[i], side="right") - 1, 0), pieces - 1)
         while j + 1 < pieces and x[j + 1] <= s[i]:
             j += 1
-        d = s[i] - x[j]
         curved[i] = blends[j] != 0
+        # the powers of s - x_j as `_evaluate` forms them (z *= d), shared by q and q'
+        power[0] = 1.0
+        for kp in range(1, k):
+            power[kp] = power[kp - 1] * (s[i] - x[j])
         for a in range(n):
             res = 0.0
-            z = 1.0
             for kp in range(k):
-                res = res + c0[k - kp - 1, j, a] * z
-                if kp < k - 1:
-                    z *= d
+                res = res + c0[k - kp - 1, j, a] * power[kp]
             q[i, a] = res
             res = 0.0
-            z = 1.0
             for kp in range(k - 1):
-                res = res + c1[k - kp - 2, j, a] * z
-                if kp < k - 2:
-                    z *= d
+                res = res + c1[k - kp - 2, j, a] * power[kp]
             q1[i, a] = res
             v[i, a] = res * sd[i]
     return q, v, q1, curved

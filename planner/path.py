@@ -329,65 +329,94 @@ def _merge_switch_pieces(
     if gap <= 1 or tau.size <= 4 or float(tau[-1]) <= 2 * gap:
         return tau, vt
     t = tau.astype(np.float64)
-    v = vt.copy()
-    keep = np.ones(t.size, dtype=bool)
-    steps = np.concatenate([[np.inf], _joint_steps(tau, vt, geom, alim), [np.inf]])
-    big = steps > STEP_SHARE
+    big = np.concatenate([[True], _joint_steps(tau, vt, geom, alim) > STEP_SHARE, [True]])
     h = np.diff(t)
-    w = np.diff(v) / h
-    s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (v[:-1] + v[1:]) * h)])
+    s_lin = np.concatenate([[0.0], np.cumsum(0.5 * (vt[:-1] + vt[1:]) * h)])
     safe = geom.merge_safe(np.clip(s_lin * (geom.length / s_lin[-1]), 0.0, geom.length))
+    keep, v = _merge_transitions(t, vt, big, safe, gap)
+    out_t: IntArray = tau[keep]
+    out_v: FloatArray = v[keep]
+    return out_t, out_v
+
+
+@kernel
+def _merge_transitions(
+    t: FloatArray, vt: FloatArray, big: NDArray[np.bool_], safe: NDArray[np.bool_], gap: int
+) -> tuple[NDArray[np.bool_], FloatArray]:
+    """`_merge_switch_pieces` on the breakpoints `t` (ms) with path velocities `vt`, where the joint
+    acceleration steps (`big`) and where a merge is safe: which breakpoints stay, and the velocities."""
+    n = t.size
+    v = vt.copy()
+    keep = np.ones(n, dtype=np.bool_)
+    w = np.empty(n - 1)
+    for i in range(n - 1):
+        w[i] = (v[i + 1] - v[i]) / (t[i + 1] - t[i])
     # transitions: clusters of big steps, each less than `gap` after the previous one, at most 2 gap long
-    big_at = np.nonzero(big[1:-1])[0] + 1
-    clusters: list[tuple[int, int]] = []
-    for i in big_at.tolist():
-        if clusters and t[i] - t[clusters[-1][1]] < gap and t[i] - t[clusters[-1][0]] < 2 * gap:
-            clusters[-1] = (clusters[-1][0], i)
-        else:
-            clusters.append((i, i))
-    at_ends = [(0, int(big_at[0]))] if big_at.size and t[big_at[0]] < gap else []
-    if big_at.size and t[-1] - t[big_at[-1]] < gap:
-        at_ends.append((int(big_at[-1]), t.size - 1))
-    for a, b in [c for c in clusters if c[1] > c[0]] + at_ends:
-        if not all(safe[a : b + 1]):
+    # (those of more than one step), then the transitions next to the start and the end
+    starts = np.empty(n + 2, dtype=np.int64)
+    ends = np.empty(n + 2, dtype=np.int64)
+    count = 0
+    first_big, last_big = -1, -1
+    for i in range(1, n - 1):
+        if not big[i]:
             continue
-        if a == 0 or b == t.size - 1:
+        if first_big < 0:
+            first_big = i
+        last_big = i
+        if count and t[i] - t[ends[count - 1]] < gap and t[i] - t[starts[count - 1]] < 2 * gap:
+            ends[count - 1] = i
+        else:
+            starts[count], ends[count] = i, i
+            count += 1
+    multi = 0
+    for c in range(count):
+        if ends[c] > starts[c]:
+            starts[multi], ends[multi] = starts[c], ends[c]
+            multi += 1
+    count = multi
+    if first_big >= 0 and t[first_big] < gap:
+        starts[count], ends[count] = 0, first_big
+        count += 1
+    if last_big >= 0 and t[n - 1] - t[last_big] < gap:
+        starts[count], ends[count] = last_big, n - 1
+        count += 1
+    for c in range(count):
+        a, b = starts[c], ends[c]
+        if not safe[a : b + 1].all():
+            continue
+        if a == 0 or b == n - 1:
             # at the start or the end (rest): the transition's inner breakpoint goes, if the one piece
             # that replaces it accelerates within the range of those it replaces
-            if a == 0 and b + 1 < t.size and safe[b + 1]:
-                (e0, e1), drop = (0, b + 1), slice(1, b + 1)
-            elif b == t.size - 1 and a >= 1 and keep[a - 1] and safe[a - 1]:
-                (e0, e1), drop = (a - 1, b), slice(a, b)
+            if a == 0 and b + 1 < n and safe[b + 1]:
+                e0, e1, d0, d1 = 0, b + 1, 1, b + 1
+            elif b == n - 1 and a >= 1 and keep[a - 1] and safe[a - 1]:
+                e0, e1, d0, d1 = a - 1, b, a, b
             else:
                 continue
             slope = (v[e1] - v[e0]) / (t[e1] - t[e0])
-            span = w[e0:e1]
-            if span.min() - 1e-15 <= slope <= span.max() + 1e-15:
-                keep[drop] = False
+            if w[e0:e1].min() - 1e-15 <= slope <= w[e0:e1].max() + 1e-15:
+                keep[d0:d1] = False
             continue
         if not (keep[a - 1] and safe[a - 1] and safe[b + 1]):
             continue
         wl, wr = w[a - 1], w[b]
-        wm_lo, wm_hi = float(w[a:b].min()), float(w[a:b].max())
-        best: tuple[float, int, float] | None = None
-        for c in (a, b):
-            dl, dr = t[c] - t[a - 1], t[b + 1] - t[c]
+        wm_lo, wm_hi = w[a:b].min(), w[a:b].max()
+        best_loss, best_c, best_v = np.inf, -1, 0.0
+        for cc in (a, b):
+            dl, dr = t[cc] - t[a - 1], t[b + 1] - t[cc]
             lo = max(v[a - 1] + min(wl, wm_lo) * dl, v[b + 1] - max(wm_hi, wr) * dr, 0.0)
-            hi = min(v[a - 1] + max(wl, wm_hi) * dl, v[b + 1] - min(wm_lo, wr) * dr, v[c])
+            hi = min(v[a - 1] + max(wl, wm_hi) * dl, v[b + 1] - min(wm_lo, wr) * dr, v[cc])
             if lo <= hi + 1e-15:
-                vc = max(min(hi, v[c]), lo)
-                loss = v[c] - vc
-                if best is None or loss < best[0]:
-                    best = (loss, c, vc)
-        if best is None:
+                vc = max(min(hi, v[cc]), lo)
+                loss = v[cc] - vc
+                if best_c < 0 or loss < best_loss:
+                    best_loss, best_c, best_v = loss, cc, vc
+        if best_c < 0:
             continue
-        _loss, c, vc = best
-        v[c] = vc
+        v[best_c] = best_v
         keep[a : b + 1] = False
-        keep[c] = True
-    out_t: IntArray = tau[keep]
-    out_v: FloatArray = v[keep]
-    return out_t, out_v
+        keep[best_c] = True
+    return keep, v
 
 
 def joint_samples(geom: GeometricPath, prof: Profile) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:

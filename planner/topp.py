@@ -59,22 +59,34 @@ def constraint_rows(
     derivatives at the `THETAS` of each interval: q1, q2 (N+1, k, d); `deltas` (N+1,) the interval
     lengths (0 after the last gridpoint). Rows: joint acceleration <= alim and >= -alim, joint velocity
     squared <= vlim^2. `row_scale` (N+1, 2) >= 1 tightens a gridpoint's acceleration and velocity rows."""
-    th = (THETAS[None, :] * deltas[:, None])[:, :, None]
-    n1 = q1.shape[0]
-    a_acc = (q1 + 2.0 * th * q2).reshape(n1, -1)
-    b_acc = q2.reshape(n1, -1)
-    a_vel = (2.0 * th * q1 * q1).reshape(n1, -1)
-    b_vel = (q1 * q1).reshape(n1, -1)
-    if row_scale is not None:
-        a_acc = a_acc * row_scale[:, :1]
-        b_acc = b_acc * row_scale[:, :1]
-        a_vel = a_vel * row_scale[:, 1:]
-        b_vel = b_vel * row_scale[:, 1:]
-    k = THETAS.size
-    a = np.concatenate([a_acc, -a_acc, a_vel], axis=1)
-    b = np.concatenate([b_acc, -b_acc, b_vel], axis=1)
-    g = np.concatenate([np.tile(alim, k), np.tile(alim, k), np.tile(vlim * vlim, k)])
-    return a, b, np.ascontiguousarray(np.broadcast_to(g, a.shape))
+    scale = np.ones((q1.shape[0], 2)) if row_scale is None else np.ascontiguousarray(row_scale, dtype=np.float64)
+    return _rows(np.ascontiguousarray(q1), np.ascontiguousarray(q2), deltas, vlim, alim, scale, THETAS)
+
+
+@kernel
+def _rows(
+    q1: FloatArray, q2: FloatArray, deltas: FloatArray, vlim: FloatArray, alim: FloatArray, scale: FloatArray,
+    thetas: FloatArray,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """`constraint_rows`: for theta k and axis j, column k d + j of the acceleration rows (<= alim, then
+    their negation, >= -alim) and of the squared-velocity rows."""
+    n1, k, d = q1.shape
+    m = k * d
+    a = np.empty((n1, 3 * m))
+    b = np.empty((n1, 3 * m))
+    g = np.empty((n1, 3 * m))
+    for i in range(n1):
+        for t in range(k):
+            th = thetas[t] * deltas[i]
+            for j in range(d):
+                col = t * d + j
+                p1, p2 = q1[i, t, j], q2[i, t, j]
+                a_acc = (p1 + 2.0 * th * p2) * scale[i, 0]
+                b_acc = p2 * scale[i, 0]
+                a[i, col], a[i, m + col], a[i, 2 * m + col] = a_acc, -a_acc, 2.0 * th * p1 * p1 * scale[i, 1]
+                b[i, col], b[i, m + col], b[i, 2 * m + col] = b_acc, -b_acc, p1 * p1 * scale[i, 1]
+                g[i, col], g[i, m + col], g[i, 2 * m + col] = alim[j], alim[j], vlim[j] * vlim[j]
+    return a, b, g
 
 
 def velocity_bound(q1_at_grid: FloatArray, vlim: FloatArray) -> FloatArray:
