@@ -534,55 +534,61 @@ def _rebalance(
     """Remove or move knots next to segments shorter than `min_seg` where the plan allows it: position
     within `budget` at every tick and end accelerations within `acc_share` (one pass, all candidate
     segments checked in one vectorised evaluation)."""
-    t = times
-    dt = np.diff(t)
-    short = np.nonzero(dt < min_seg)[0]
-    if short.size == 0:
-        return t
-    fixed = np.isin(t, mand)
+    if not (np.diff(times) < min_seg).any():
+        return times
+    fixed = np.zeros(ref.duration_ms + 1, dtype=np.bool_)
+    fixed[mand] = True
+    return _rebalance_kernel(ref.positions, ref.velocities, ref.acc_left, ref.acc_right, times, fixed, budget,
+                             min_seg, max_seg, acc_share * acc_axis, _PROX)
+
+
+@kernel
+def _rebalance_kernel(
+    p: FloatArray, v: FloatArray, acc_left: FloatArray, acc_right: FloatArray, t: IntArray,
+    fixed: NDArray[np.bool_], budget: float, min_seg: int, max_seg: int, acc_limit: FloatArray, prox: FloatArray,
+) -> IntArray:
+    """`_rebalance`: for each short segment k, in order, the options (drop the right knot, drop the left
+    one, move the right one to the middle of its two segments, move the left one there), each passing
+    when all the segments it makes do; the first passing option of each short segment whose knot is not
+    next to one already changed is taken."""
     last = t.size - 1
-    # options: (segment k, kind, new knot value or -1 to drop, knot index, [(start, length), ...])
-    options: list[tuple[int, int, int, list[tuple[int, int]]]] = []
-    for k in short.tolist():
-        a, b = int(t[k]), int(t[k + 1])
-        if k + 1 < last and not fixed[k + 1] and int(t[k + 2]) - a <= max_seg:  # drop the right knot
-            options.append((k, k + 1, -1, [(a, int(t[k + 2]) - a)]))
-        if k >= 1 and not fixed[k] and b - int(t[k - 1]) <= max_seg:  # drop the left knot
-            options.append((k, k, -1, [(int(t[k - 1]), b - int(t[k - 1]))]))
-        if k + 1 < last and not fixed[k + 1]:  # move the right knot to the middle
-            mid = (a + int(t[k + 2])) // 2
-            if mid - a >= min_seg and int(t[k + 2]) - mid >= min_seg:
-                options.append((k, k + 1, mid, [(a, mid - a), (mid, int(t[k + 2]) - mid)]))
-        if k >= 1 and not fixed[k]:  # move the left knot to the middle
-            mid = (int(t[k - 1]) + b) // 2
-            if mid - int(t[k - 1]) >= min_seg and b - mid >= min_seg:
-                options.append((k, k, mid, [(int(t[k - 1]), mid - int(t[k - 1])), (mid, b - mid)]))
-    if not options:
-        return t
-    segs = [seg for opt in options for seg in opt[3]]
-    st = np.array([x[0] for x in segs], dtype=np.int64)
-    ln = np.array([x[1] for x in segs], dtype=np.int64)
-    errs = _segment_errors(ref, st, ln, acc_axis, min_seg, acc_share, every_tick=True)
-    ok: list[bool] = []
-    pos = 0
-    for opt in options:
-        ok.append(bool(errs[pos : pos + len(opt[3])].max() <= budget))
-        pos += len(opt[3])
     new_t = t.copy()
-    keep = np.ones(t.size, dtype=bool)
-    touched: set[int] = set()
-    done: set[int] = set()
-    for (k, idx, value, _segs), good in zip(options, ok, strict=True):
-        if not good or k in done or touched & {idx - 1, idx, idx + 1}:
+    keep = np.ones(t.size, dtype=np.bool_)
+    touched = np.zeros(t.size + 1, dtype=np.bool_)
+    for k in range(t.size - 1):
+        a, b = t[k], t[k + 1]
+        if b - a >= min_seg:
             continue
-        if value < 0:
-            keep[idx] = False
-        else:
-            new_t[idx] = value
-        touched.add(idx)
-        done.add(k)
-    out: IntArray = np.unique(new_t[keep])
-    return out
+        for option in range(4):
+            right = option % 2 == 0
+            idx = k + 1 if right else k
+            if (right and not (k + 1 < last)) or (not right and k < 1) or fixed[t[idx]]:
+                continue
+            lo, hi = (a, t[k + 2]) if right else (t[k - 1], b)
+            if option < 2:  # drop the knot: one segment across both
+                if hi - lo > max_seg:
+                    continue
+                good = _segment_error(p, v, acc_left, acc_right, lo, hi - lo, acc_limit, min_seg, True,
+                                      prox) <= budget
+                value = -1
+            else:  # move it to the middle
+                value = (lo + hi) // 2
+                if value - lo < min_seg or hi - value < min_seg:
+                    continue
+                e1 = _segment_error(p, v, acc_left, acc_right, lo, value - lo, acc_limit, min_seg, True, prox)
+                e2 = _segment_error(p, v, acc_left, acc_right, value, hi - value, acc_limit, min_seg, True, prox)
+                good = max(e1, e2) <= budget
+            if not good:
+                continue
+            if (idx >= 1 and touched[idx - 1]) or touched[idx] or touched[idx + 1]:
+                continue  # next to a knot already changed
+            if value < 0:
+                keep[idx] = False
+            else:
+                new_t[idx] = value
+            touched[idx] = True
+            break
+    return np.unique(new_t[keep])
 
 
 # ----------------------------------------------------------------------------------------------------
