@@ -625,10 +625,14 @@ _WARM_JOBS = (
 
 def warm_up() -> None:
     """Load the compiled kernels (planner/jit.py: compiled once per machine, a few seconds, then loaded from
-    the cache in about a second) and import the solvers, by planning a few small jobs: e.g. when a service
-    starts, so that the first job's planning time is the planning."""
+    the cache in about a second) and import the solvers, by planning a few small jobs, and keep freed heap
+    memory for the next plans (`jit.keep_heap`): e.g. when a service starts, so that the first job's
+    planning time is the planning."""
     from planner.config import cell_from_dict
+    from planner.jit import keep_heap
     from planner.job import job_from_dict
+
+    keep_heap()
 
     cell = cell_from_dict({"cell": {"name": "warm-up"},
                            "axis": [{"name": "a", **_WARM_AXIS}, {"name": "b", **_WARM_AXIS, "node_id": 2}]})

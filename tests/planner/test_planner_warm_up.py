@@ -51,3 +51,15 @@ def test_after_warm_up_no_plan_compiles_a_kernel() -> None:
     before, after = seen["before"], seen["after"]
     assert any(n > 0 for n in before.values())  # the kernels are found at all
     assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}
+
+
+def test_the_freed_heap_is_kept_for_the_next_plan_on_glibc() -> None:
+    """planner.jit.keep_heap: glibc takes the setting (mallopt answers 1); other C libraries are left alone."""
+    import platform
+
+    from planner.jit import keep_heap
+
+    if platform.libc_ver()[0] == "glibc":
+        assert keep_heap() is True
+    else:
+        assert keep_heap() is False
