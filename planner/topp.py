@@ -89,11 +89,17 @@ def _rows(
     return a, b, g
 
 
-def velocity_bound(q1_at_grid: FloatArray, vlim: FloatArray) -> FloatArray:
-    """xmax at every gridpoint: the largest x = s_dot^2 with every |q1 s_dot| <= vlim; (N+1,)."""
-    with np.errstate(divide="ignore", over="ignore"):
-        per_axis = np.where(q1_at_grid != 0.0, (vlim[None, :] / np.abs(q1_at_grid)) ** 2, np.inf)
-    out: FloatArray = np.minimum(per_axis.min(axis=1), X_MAX)
+@kernel
+def _velocity_bound(q1: FloatArray, vlim: FloatArray) -> FloatArray:
+    """xmax at every gridpoint: the largest x = s_dot^2 with every |q1 s_dot| <= vlim (q1 (N+1, k, d) at
+    the intervals' starts: theta 0); at most `X_MAX`."""
+    out = np.empty(q1.shape[0])
+    for i in range(q1.shape[0]):
+        bound = np.inf
+        for j in range(q1.shape[2]):
+            if q1[i, 0, j] != 0.0:
+                bound = min(bound, (vlim[j] / abs(q1[i, 0, j])) ** 2)
+        out[i] = min(bound, X_MAX)
     return out
 
 
@@ -124,8 +130,27 @@ def solve(samples: PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: F
     """The time-optimal path velocities s_dot at the gridpoints, rest to rest, under the joint velocity
     `vlim` and acceleration `alim` limits (per axis; `row_scale` tightens them per gridpoint, see
     `constraint_rows`). Raises PlanningError(INFEASIBLE) when no admissible profile exists."""
-    a, b, g = constraint_rows(samples.q1, samples.q2, samples.deltas, vlim, alim, row_scale)
-    return parametrize(a, b, g, velocity_bound(samples.q1[:, 0, :], vlim), samples.gridpoints)
+    scale = _NO_SCALE if row_scale is None else np.ascontiguousarray(row_scale, dtype=np.float64)
+    sd, status, where = _solve(samples.q1, samples.q2, samples.deltas, vlim, alim, scale, row_scale is not None,
+                               THETAS)
+    _check(status, where, samples.gridpoints.size)
+    return sd
+
+
+_NO_SCALE = np.ones((1, 2))
+
+
+@kernel
+def _solve(
+    q1: FloatArray, q2: FloatArray, deltas: FloatArray, vlim: FloatArray, alim: FloatArray, scale: FloatArray,
+    scaled: bool, thetas: FloatArray,
+) -> tuple[FloatArray, int, int]:
+    """`solve` in one call: the rows, the velocity bound, the passes, s_dot."""
+    if not scaled:
+        scale = np.ones((q1.shape[0], 2))
+    a, b, g = _rows(q1, q2, deltas, vlim, alim, scale, thetas)
+    x, status, where = _passes(a, b, g, _velocity_bound(q1, vlim), deltas[:-1].copy())
+    return np.sqrt(np.maximum(x, 0.0)), status, where
 
 
 def parametrize(
@@ -138,16 +163,20 @@ def parametrize(
         np.ascontiguousarray(a, dtype=np.float64), np.ascontiguousarray(b, dtype=np.float64),
         np.ascontiguousarray(g, dtype=np.float64), np.ascontiguousarray(xmax, dtype=np.float64), deltas,
     )
+    _check(status, where, gridpoints.size)
+    out: FloatArray = np.sqrt(np.maximum(x, 0.0))
+    return out
+
+
+def _check(status: int, where: int, gridpoints: int) -> None:
     if status != OK:
         what = "no controllable set" if status == UNCONTROLLABLE else "the forward pass found no admissible step"
         raise PlanningError(
             INFEASIBLE,
-            f"no feasible time parametrisation: {what} at gridpoint {where} of {gridpoints.size}",
+            f"no feasible time parametrisation: {what} at gridpoint {where} of {gridpoints}",
             detail={"solver": "topp-ra", "return_code": "Uncontrollable" if status == UNCONTROLLABLE
                     else "ForwardFailed", "gridpoint": int(where)},
         )
-    out: FloatArray = np.sqrt(np.maximum(x, 0.0))
-    return out
 
 
 @kernel
