@@ -656,6 +656,44 @@ def alive_candidates(feasible: BoolArray, pinned: BoolArray) -> BoolArray:
 
 
 @kernel
+def _every_tick_path(
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    p_plan: FloatArray,
+    times: IntArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    toward_zero: bool,
+    tol: float,
+    prox: FloatArray,
+) -> IntArray:
+    """One axis' minimum-cost candidate path with the costs at every tick (`viterbi` with `exact`), found
+    lazily from the costs at the sample ticks as lower bounds (`_exact_path`) where no cost can be nan
+    (as the refinement decides it)."""
+    nk, c = cand_p.shape
+    reach = np.abs(cand_p).max() + np.abs(p_plan).max() + np.abs(cand_v).max() * conv * (times[-1] - times[0])
+    if not (tol > 0.0 and excess_scale > 0.0 and reach < 1.0e30):
+        return viterbi(cand_p, cand_v, pinned, p_plan, times, envelope, conv, excess_scale, drive_acc, drive_vel,
+                       toward_zero, tol, True, prox)
+    bounds = np.empty((nk - 1, c, c))
+    cost = np.empty((c, c))
+    work = workspace(c, prox.size)
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        _sample_costs(p_plan, times[k], times[k + 1], cand_p[k, :ca], cand_v[k, :ca], cand_p[k + 1, :cb],
+                      cand_v[k + 1, :cb], conv, envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol,
+                      prox, cost, bounds[k], work)
+        _replicate(bounds[k], ca, cb)
+    return _exact_path(cand_p, cand_v, pinned, bounds, p_plan, times, envelope, conv, excess_scale, drive_acc,
+                       drive_vel, toward_zero, tol)
+
+
+@kernel
 def choose_values(
     positions: FloatArray,
     velocities: FloatArray,
@@ -674,8 +712,8 @@ def choose_values(
     first: tuple[IntArray, IntArray],
     last: tuple[IntArray, IntArray],
 ) -> tuple[IntArray, IntArray]:
-    """Every axis' knot values (counts, rpm) chosen jointly at the sample ticks (`viterbi`), knot 0 at
-    `first` and the last knot at `last` (positions, velocities per axis); `envelope` the plan's
+    """Every axis' knot values (counts, rpm) chosen jointly, every tick checked (`_every_tick_path`), knot 0
+    at `first` and the last knot at `last` (positions, velocities per axis); `envelope` the plan's
     acceleration peak per segment (`segment_envelope`)."""
     n = positions.shape[0]
     nk = times.size
@@ -694,8 +732,8 @@ def choose_values(
         if nk == 1:
             choice = np.zeros(1, np.int64)
         else:
-            choice = viterbi(cand_p, cand_v, pinned, positions[a], times, envelope[a], conv[a], excess_scale[a],
-                             drive_acc[a], drive_vel[a], toward_zero[a], tol, False, prox)
+            choice = _every_tick_path(cand_p, cand_v, pinned, positions[a], times, envelope[a], conv[a],
+                                      excess_scale[a], drive_acc[a], drive_vel[a], toward_zero[a], tol, prox)
         for k in range(nk):
             out_p[a, k] = int(cand_p[k, choice[k]])
             out_v[a, k] = int(cand_v[k, choice[k]])
