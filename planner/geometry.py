@@ -324,21 +324,48 @@ def blend_duration_ms(
     faster than any sequence of drive segments can follow within one count; planner.plan makes those
     corners exact stops (`MIN_BLEND_SEGMENTS`).
     """
-    out = np.zeros(half_length.size)
-    for lo in range(0, half_length.size, _CHUNK):
-        sl = slice(lo, min(lo + _CHUNK, half_length.size))
-        f, g = _shape_coefficients(np.where(rho[sl] > 0, rho[sl], RHOS[-1]))
-        ell = half_length[sl][:, None, None]
-        b1 = ell * ((f @ _P1.T)[:, :, None] * u1[sl][:, None, :] + (g @ _P1.T)[:, :, None] * u2[sl][:, None, :])
-        b2 = ell * ((f @ _P2.T)[:, :, None] * u1[sl][:, None, :] + (g @ _P2.T)[:, :, None] * u2[sl][:, None, :])
-        speed = np.linalg.norm(b1, axis=2)  # |dz/dt| of the Bezier parameter
-        tangent = b1 / np.maximum(speed, 1e-300)[:, :, None]
-        normal = b2 - np.einsum("ctk,ctk->ct", b2, tangent)[:, :, None] * tangent
-        curv = normal / np.maximum(speed, 1e-150)[:, :, None] ** 2  # curvature vector in z (per z unit)
-        # joint j: vlim_j * curv_j * zeta^2 <= alim_j, zeta in z units per s (at most 1: full speed)
-        need = (np.abs(curv) * (vlim / alim)[None, None, :]).max(axis=2)
-        zeta = np.minimum(1.0, 1.0 / np.sqrt(np.maximum(need, 1e-300)))
-        out[sl] = 1000.0 * np.trapezoid(speed / zeta, _T, axis=1)
+    shape = np.where(rho > 0, np.abs(RHOS[None, :] - rho[:, None]).argmin(axis=1), RHOS.size - 1)
+    return _blend_duration(u1, u2, half_length, shape, vlim / alim, _F1, _G1, _F2, _G2, _T)
+
+
+@kernel
+def _blend_duration(
+    u1: FloatArray, u2: FloatArray, half_length: FloatArray, shape: IntArray, v_over_a: FloatArray,
+    f1: FloatArray, g1: FloatArray, f2: FloatArray, g2: FloatArray, t: FloatArray,
+) -> FloatArray:
+    """`blend_duration_ms`: along each blend (shape `shape`, half-length l, legs u1, u2), at the samples t of
+    its Bezier parameter, the speed |B'| and the curvature vector kappa = (B'' - (B''.T) T) / |B'|^2
+    (B' = l (f' u1 + g' u2), T = B' / |B'|); the joints allow a speed (z per s) of at most
+    1 / sqrt(max_j |kappa_j| vlim_j / alim_j), and never above 1; the time is the integral of |B'| / speed
+    over the parameter (trapezoids)."""
+    corners, n = u1.shape
+    out = np.zeros(corners)
+    b1 = np.empty(n)
+    b2 = np.empty(n)
+    for c in range(corners):
+        r = shape[c]
+        ell = half_length[c]
+        previous = 0.0
+        total = 0.0
+        for k in range(t.size):
+            speed2 = 0.0
+            for j in range(n):
+                b1[j] = ell * (f1[r, k] * u1[c, j] + g1[r, k] * u2[c, j])
+                b2[j] = ell * (f2[r, k] * u1[c, j] + g2[r, k] * u2[c, j])
+                speed2 += b1[j] * b1[j]
+            speed = np.sqrt(speed2)
+            along = 0.0
+            for j in range(n):
+                along += b2[j] * b1[j] / max(speed, 1e-300)
+            need = 0.0
+            for j in range(n):
+                curv = (b2[j] - along * b1[j] / max(speed, 1e-300)) / max(speed, 1e-150) ** 2
+                need = max(need, abs(curv) * v_over_a[j])
+            value = speed / min(1.0, 1.0 / np.sqrt(max(need, 1e-300)))
+            if k > 0:
+                total += (t[k] - t[k - 1]) * (value + previous) / 2.0
+            previous = value
+        out[c] = 1000.0 * total
     return out
 
 
