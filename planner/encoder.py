@@ -229,18 +229,6 @@ def acceleration_excess(ref: Reference, knots: Knots, rec: Reconstruction) -> Fl
 # knot placement
 
 
-def _hermite_basis(
-    offsets: FloatArray, lengths: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    s = offsets / lengths
-    s2 = s * s
-    h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
-    h01 = 1.0 - h00
-    h10 = (s - 2.0 * s2 + s2 * s) * lengths
-    h11 = (s2 * s - s2) * lengths
-    return h00, h10, h01, h11
-
-
 def _segment_errors(
     ref: Reference,
     starts: IntArray,
@@ -258,6 +246,15 @@ def _segment_errors(
     return _segment_errors_kernel(
         ref.positions, ref.velocities, ref.acc_left, ref.acc_right, np.ascontiguousarray(starts, dtype=np.int64),
         np.ascontiguousarray(lengths, dtype=np.int64), acc_share * acc_axis, min_seg, every_tick, _PROX)
+
+
+@kernel
+def _basis(x: float, t1: float) -> tuple[float, float, float, float]:
+    """The cubic Hermite's weights at x = tau / T of a segment of T = t1 ms: position = h00 p0 + h01 p1 +
+    h10 v0 + h11 v1 (velocities per ms)."""
+    x2 = x * x
+    h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
+    return h00, 1.0 - h00, (x - 2.0 * x2 + x2 * x) * t1, (x2 * x - x2) * t1
 
 
 @kernel
@@ -280,12 +277,7 @@ def _segment_error(
     err = 0.0
     for j in range(count):
         off = float(j + 1) if every_tick else min(max(np.rint(prox[j] * t1), 1.0), max(t1 - 1.0, 1.0))
-        x = off / t1
-        x2 = x * x
-        h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
-        h01 = 1.0 - h00
-        h10 = (x - 2.0 * x2 + x2 * x) * t1
-        h11 = (x2 * x - x2) * t1
+        h00, h01, h10, h11 = _basis(off / t1, t1)
         tick = a + int(off)
         for i in range(n):
             h = p[i, a] * h00 + v[i, a] * h10 + p[i, b] * h01 + v[i, b] * h11
@@ -841,12 +833,7 @@ def _uniform_misses(
             t1 = float(b - a)
             for f in fractions:
                 off = min(max(np.rint(f * t1), 1.0), max(t1 - 1.0, 1.0))
-                x = off / t1
-                x2 = x * x
-                h00 = 1.0 - 3.0 * x2 + 2.0 * x2 * x
-                h01 = 1.0 - h00
-                h10 = (x - 2.0 * x2 + x2 * x) * t1
-                h11 = (x2 * x - x2) * t1
+                h00, h01, h10, h11 = _basis(off / t1, t1)
                 tick = a + int(off)
                 for i in range(n):
                     pa = float(p_first[i]) if a == 0 else float(want[i, a])

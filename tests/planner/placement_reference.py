@@ -7,6 +7,7 @@ from __future__ import annotations
 import bisect
 
 import numpy as np
+from encoder_reference import _hermite_basis
 from numpy.typing import NDArray
 
 from planner.encoder import (
@@ -20,18 +21,6 @@ from planner.encoder import (
     drive_round,
 )
 from planner.reference import FloatArray, IntArray, Reference
-
-
-def _hermite_basis(
-    offsets: FloatArray, lengths: FloatArray
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    s = offsets / lengths
-    s2 = s * s
-    h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
-    h01 = 1.0 - h00
-    h10 = (s - 2.0 * s2 + s2 * s) * lengths
-    h11 = (s2 * s - s2) * lengths
-    return h00, h10, h01, h11
 
 
 def _placement_errors(
