@@ -15,8 +15,8 @@ both the tolerance and the acceleration budget below.)
 1. Knot times, shared by all axes (`place_knots`): greedy, the longest segment (from a ladder of
    lengths around the previous one) whose Hermite through the *exact* planned (position, velocity)
    stays within `PLACEMENT_SHARE` of the tolerance at sample ticks and whose end accelerations miss
-   the plan's by less than `ACC_PLACEMENT_SHARE` of the axis limit. It runs in lockstep over
-   independent sections, so every round is one vectorised evaluation for all sections and axes.
+   the plan's by less than `ACC_PLACEMENT_SHARE` of the axis limit, section after section (compiled:
+   `_greedy_knots`).
    Sections end at the plan's acceleration steps above `STEP_SHARE` (the planners put those on whole
    ms; a Hermite segment, whose acceleration is linear, cannot follow a step inside it), at the plan's
    own structure where it has one (`Reference.hints`: a move's phase boundaries, a user's rows, a
@@ -77,7 +77,7 @@ from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
 from planner.reference import FloatArray, IntArray, Reference
 
 PLACEMENT_SHARE = 0.7  # share of the tolerance the exact-value Hermite may use (the rest: quantisation)
-SECTION_MS = 250  # greedy placement runs in lockstep over sections of at most this length
+SECTION_MS = 250  # a plan without hints is placed in sections of at most this length
 ACC_EXCESS_LIMIT = 0.05  # reconstruction acceleration over the plan, as a share of the axis limit
 VELOCITY_SLACK = 0.005  # reconstruction velocity over the axis limit allowed (0.5 %)
 MAX_ROUNDS = 6  # verify/refine/split rounds before giving up
@@ -438,7 +438,7 @@ def _structure(
     dropped, a short phase is better crossed than isolated, unless the acceleration may step there or
     the conservative variant keeps them all) and sections are at most `max_seg` long, so a section that a
     single segment reproduces becomes exactly one. Without hints (toppra's profiles) sections are the
-    stretches between the mandatory knots, cut at `SECTION_MS` for the lockstep placement.
+    stretches between the mandatory knots, cut at `SECTION_MS`.
     """
     if ref.hints.size == 0:
         return mand, SECTION_MS
@@ -527,7 +527,7 @@ def _rebalance(
 ) -> IntArray:
     """Remove or move knots next to segments shorter than `min_seg` where the plan allows it: position
     within `budget` at every tick and end accelerations within `acc_share` (one pass, all candidate
-    segments checked in one vectorised evaluation)."""
+    segments checked at every tick)."""
     if not (np.diff(times) < min_seg).any():
         return times
     fixed = np.zeros(ref.duration_ms + 1, dtype=np.bool_)
