@@ -6,7 +6,7 @@ Public API (imported lazily, so `import planner.record` stays cheap for the bus 
     planner.PvtTrajectory, planner.AxisStats
     planner.Job, planner.job_from_dict, planner.job_to_dict, planner.load_job
     planner.plan_stop (also planner.stop.plan_stop), planner.plan_stop_from_wire
-    planner.warm_up() (import the solvers ahead of the first job)
+    planner.warm_up() (load the compiled kernels and the solvers ahead of the first job)
 """
 
 from __future__ import annotations

@@ -2,14 +2,14 @@
 
 Theory of operation. A drive interpolates PVT knots with cubic Hermite segments, and the encoder can
 only make segments of at least `min_seg` ms without the one-count and one-rpm quantisation of the knots
-shaking the drive's acceleration by more than its 5 % budget (encoder.segment_bounds). toppra's
+shaking the drive's acceleration by more than its 5 % budget (encoder.segment_bounds). The
 time-optimal profile along a blended path has acceleration features much shorter than that: a blend
 traversed in 40-60 ms swings the non-limiting joints' accelerations through most of their range within
 10 ms, and a short line between two blends accelerates and decelerates in a few tens of ms. To follow
 such a plan within one count the encoder would need segments of a few ms, and fails its budget.
 
 So for blended paths the *plan* is a chain of cubic Hermite segments (whole-ms knots, at least
-`min_seg` apart wherever the profile allows), through the exact positions and velocities of toppra's
+`min_seg` apart wherever the profile allows), through the exact positions and velocities of the time-optimal
 profile at its knots: the motion the drive itself produces, which the encoder then only has to
 quantise. `fit_chain` places the knots greedily (the longest segment that passes, per section between
 the profile's bang-bang switches, which are knots of their own since a cubic cannot follow a step):
@@ -36,7 +36,7 @@ implementation's expressions term by term; the knots of 208 corpus jobs stayed t
 
 Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
 reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
-there (tightening toppra's constraints) and fits again.
+there (tightening the time-optimal solve's constraints) and fits again.
 """
 
 from __future__ import annotations

@@ -437,7 +437,7 @@ def _structure(
     between two of them: they become section boundaries (those closer than `gap` to a kept one are
     dropped, a short phase is better crossed than isolated, unless the acceleration may step there or
     the conservative variant keeps them all) and sections are at most `max_seg` long, so a section that a
-    single segment reproduces becomes exactly one. Without hints (toppra's profiles) sections are the
+    single segment reproduces becomes exactly one. Without hints (time-optimal path profiles) sections are the
     stretches between the mandatory knots, cut at `SECTION_MS`.
     """
     if ref.hints.size == 0:

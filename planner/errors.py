@@ -8,7 +8,7 @@ field) is a `PlanningError` carrying:
   or "" when no single field is to blame;
 - a message that names the axis and the value.
 
-The planner never returns None for failure and never lets a raw toppra/ruckig/numpy exception escape.
+The planner never returns None for failure and never lets a raw ruckig/numpy/numba exception escape.
 """
 
 from __future__ import annotations

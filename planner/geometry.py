@@ -3,16 +3,16 @@
 Theory of operation. A machine builder expects a path job to go along the segments between its
 waypoints and to round the corners within a tolerance (G64 in CNC, the blends of MoveIt's TOTG), not
 to swing through them on a spline. This module turns waypoints and a per-axis tolerance into that
-geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
+geometry, as rest-to-rest *runs* that the time-optimal parametrisation traverses (planner/path.py):
 
 1. Parametrisation. Everything is built in time-normalised coordinates z = q / v_max (per axis), where
-   the arc length of a segment is the time it takes at full speed; toppra's path parameter s is that
+   the arc length of a segment is the time it takes at full speed; the path parameter s is that
    arc length (rescaled into [0.01, 2], see `S_MIN`). On a straight piece q'(s) is constant, q''(s) = 0.
 2. Blends. At a corner c between the unit directions u1 (in) and u2 (out), a quintic Bezier curve joins
    A = c - l u1 to B = c + l u2 through the control points A, A + d u1, A + 2d u1, B - 2d u2, B - d u2, B
    (d = rho l, 0 < rho <= 1/2). Equally spaced first (and last) three control points make q''(s) = 0 at
    both ends, and a parameter length of 5 d makes q'(s) there equal the line's: the path is C2, so its
-   curvature is bounded and continuous and the joint accelerations only step where toppra's path
+   curvature is bounded and continuous and the joint accelerations only step where the path
    acceleration switches (a circular blend would add a step at each of its ends). Every control point
    lies on one of the two legs, so the blend stays inside the triangle (A, c, B): inside the box of the
    position limits whenever the waypoints are (a spline can swing out, a blend cannot).
@@ -31,7 +31,7 @@ geometry, as rest-to-rest *runs* that toppra traverses (planner/path.py):
    traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
 
 `blended_runs` returns the runs as `PiecewisePath` objects (a piecewise polynomial of degree 5 per axis) with
-`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what toppra and path.py evaluate.
+`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what the solver (planner/topp.py) and path.py evaluate.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ _T = np.linspace(0.0, 1.0, 129)  # samples of a blend (odd: includes its middle)
 MIN_BLEND_SHARE = 1e-6  # a blend smaller than this share of its shorter segment is an exact stop
 COLLINEAR_COS = 1.0 - 1e-12  # corners straighter than this are no corners (the path goes straight on)
 REVERSAL_COS = -1.0 + 1e-9  # corners sharper than this are reversals (the path turns back on itself)
-S_MIN, S_MAX = 1e-2, 2.0  # toppra's seidel solver is reliable for path lengths in this range (path.py)
+S_MIN, S_MAX = 1e-2, 2.0  # toppra's seidel solver (our solver's reference) is reliable in this range (path.py)
 GRID_PER_BLEND = 12  # toppra gridpoint intervals per blend ...
 GRID_LINES = 100  # ... and at least this many over the straight pieces of a run, in proportion to length
 GRID_PER_LINE_MIN = 8
