@@ -477,20 +477,26 @@ def _forward(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: Int
     """NumPy's Viterbi pass over the pair costs (K-1, C, C) from segment `start` on: totals[k] the cheapest
     path to each candidate of knot k (totals[0] set: candidate 0 at 0, the others inf), back[k] its
     candidate at knot k (the first minimum, as argmin; a nan is a minimum). A pinned knot's columns are
-    all the same: the first stands for all."""
+    all the same: the first stands for all.
+
+    The minimum runs over the rows with the columns inner (totals[k + 1] and back[k] the running
+    minimum): a loop over the columns vectorises, one over the rows would not. Row by row it is argmin's
+    scan: a row replaces the minimum where it is lower or nan, unless the minimum is nan already."""
     nseg, c, _ = costs.shape
     for k in range(start, nseg):
-        for j in range(1 if pinned[k + 1] else c):
-            best = 0
-            low = totals[k, 0] + costs[k, 0, j]
-            for i in range(1, c):
-                if np.isnan(low):
-                    break
-                x = totals[k, i] + costs[k, i, j]
-                if x < low or np.isnan(x):
-                    best, low = i, x
-            back[k, j] = best
-            totals[k + 1, j] = low
+        cj = 1 if pinned[k + 1] else c
+        first = totals[k, 0]
+        for j in range(cj):
+            totals[k + 1, j] = first + costs[k, 0, j]
+            back[k, j] = 0
+        for i in range(1, c):
+            here = totals[k, i]
+            for j in range(cj):
+                x = here + costs[k, i, j]
+                low = totals[k + 1, j]
+                take = not np.isnan(low) and (x < low or np.isnan(x))
+                totals[k + 1, j] = x if take else low
+                back[k, j] = i if take else back[k, j]
         if pinned[k + 1]:
             back[k, 1:] = back[k, 0]
             totals[k + 1, 1:] = totals[k + 1, 0]

@@ -68,6 +68,23 @@ def test_pruning_keeps_exactly_the_candidates_on_feasible_paths(
 # the compiled kernels against the NumPy reference
 
 
+@given(st.integers(1, 5), st.integers(1, 8), st.integers(0, 2**32 - 1), st.booleans())
+def test_best_path_is_numpys_argmin_path(nseg: int, c: int, seed: int, odd: bool) -> None:
+    """The Viterbi pass (its minimum taken row by row, columns inner) against NumPy's argmin: ties to the
+    first candidate, a nan is a minimum, inf; a pinned knot's columns all alike."""
+    rng = np.random.default_rng(seed)
+    if odd:
+        costs = rng.choice([0.0, 0.5, 1.0, 2.0, 1.0e6, np.inf, np.nan], size=(nseg, c, c))
+    else:
+        costs = rng.integers(0, 4, (nseg, c, c)).astype(np.float64)
+    pinned = rng.random(nseg + 1) < 0.3
+    for k in range(nseg):
+        if pinned[k + 1]:
+            costs[k, :, 1:] = costs[k, :, :1]
+    got = quantise._best_path(costs, pinned, np.empty((nseg + 1, c)), np.empty((nseg, c), np.int64), 0)
+    assert np.array_equal(got, numpy_ref._viterbi(costs[None])[0])
+
+
 @dataclasses.dataclass
 class Problem:
     ref: Reference
