@@ -230,7 +230,13 @@ def _limits(
 
 
 @kernel
-def sample_bounds(
+def padded(c: int) -> int:
+    """`c` rounded up to whole vectors of 8 lanes (the widest numba's loops here use)."""
+    return (c + 7) // 8 * 8
+
+
+@kernel
+def sample_misses(
     p_plan: FloatArray,
     times: IntArray,
     cand_p: FloatArray,
@@ -244,31 +250,34 @@ def sample_bounds(
     toward_zero: bool,
     tol: float,
     prox: FloatArray,
-    bounds: FloatArray,
+    dev: Float32Array,
     feasible: BoolArray,
 ) -> None:
-    """One axis' pair costs (`exact_costs`) at the sample ticks `prox` only (fractions of each segment,
-    rounded, within 1..T-1), for every pair of its candidates (K, C: positions, velocities in rpm, `conv`
-    counts/ms per rpm) on every segment: bounds (K-1, C, C). Where no cost is nan they bound the costs
-    from below: the sample ticks are some of the ticks (the same misses), so their largest miss is at
-    most the deviation.
+    """dev (K-1, C, W): for every pair of one axis' candidates (K, C: positions, velocities in rpm, `conv`
+    counts/ms per rpm) on every segment, the largest miss of the drive's rounded demand at the sample
+    ticks `prox` (fractions of each segment, rounded, within 1..T-1), as `_exact_cost` computes a miss and
+    np.maximum keeps it (a nan stays; which nan does not matter, it only fails comparisons): what
+    `sample_bounds` makes lower bounds of. W: C rounded up to whole vectors (`padded`), scratch beyond C;
+    a loop over a few more lanes costs less than its scalar remainder would (C is 6 or 21).
 
     And into `feasible` (unless it is empty) whether the pair passes at the sample ticks: what NumPy's
     sample cost decided (below HARD; its deviation term was half the squared float error, a tie-breaker).
-    That cost is HARD plus non-negative terms (at least HARD, or nan) wherever the pair misses `tol` or
-    the drive's limits, so only the other pairs (few: most miss `tol`) need their float error.
+    That cost is HARD plus non-negative terms (at least HARD, or nan) wherever the pair misses `tol`, so
+    only the start candidates with a pair that meets it (few) need their float errors and limits.
 
     A pinned knot's candidates are all the same values: computed once, copied to the others."""
     nk, c = cand_p.shape
     nq = prox.size
+    wide = dev.shape[2]
     # each share relative to the whole count below the plan: small numbers, float32 will do
     ea = np.empty((nq, c), np.float32)
-    eb = np.empty((nq, c), np.float32)
+    eb = np.zeros((nq, wide), np.float32)
     want = np.empty(nq, np.float32)  # the planned demand
     frac = np.empty(nq, np.float32)  # the plan
     below = np.empty(nq)  # the whole count below the plan
     whole = np.empty(nq)  # the plan's truncation
-    dev = np.empty(c, np.float32)
+    row = np.empty(wide, np.float32)  # a start candidate's misses
+    row_bits = row.view(np.int32)
     half = np.float32(0.5)
     tol32 = np.float32(tol)
     checked = feasible.size > 0
@@ -297,45 +306,88 @@ def sample_bounds(
             below[q] = base
             whole[q] = np.trunc(p)
         for i in range(ca):
-            # the largest miss over the sample ticks, as np.maximum keeps it (a nan stays)
-            for j in range(cb):
-                dev[j] = 0.0
+            # the largest miss, as np.maximum keeps it: non-negative floats order as their bit patterns
+            # (nan above inf), and an integer maximum is stored whole, where a float one is a masked store
+            # that the next tick's load waits for
+            for j in range(wide):
+                row_bits[j] = 0
             for q in range(nq):
                 a = ea[q, i]
                 if toward_zero:
-                    for j in range(cb):
+                    for j in range(wide):
                         miss = np.float32(abs(np.trunc(np.float64(a + eb[q, j]) + below[q]) - whole[q]))
-                        dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+                        row_bits[j] = max(row_bits[j], miss.view(np.int32))
                 else:
-                    for j in range(cb):
-                        miss = abs(np.floor(a + eb[q, j] + half) - want[q])
-                        dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+                    for j in range(wide):
+                        miss = np.float32(abs(np.floor(a + eb[q, j] + half) - want[q]))
+                        row_bits[j] = max(row_bits[j], miss.view(np.int32))
+            for j in range(wide):
+                dev[k, i, j] = row[j]
+            if not checked:
+                continue
+            # a start candidate none of whose pairs meets `tol` (most) is settled; the others are scored
+            # whole (a branch per pair would go either way)
+            near = False
+            for j in range(cb):
+                near |= not dev[k, i, j] > tol32
+            if not near:
+                for j in range(cb):
+                    feasible[k, i, j] = False
+                continue
+            for j in range(wide):
+                row_bits[j] = 0
+            for q in range(nq):
+                a = ea[q, i]
+                for j in range(wide):
+                    e = np.float32(abs(a + eb[q, j] - frac[q]))  # the float error, kept as the misses are
+                    row_bits[j] = max(row_bits[j], e.view(np.int32))
+            va = cand_v[k, i] * conv
+            for j in range(cb):
+                hard, budget, excess2 = _limits(cand_p[k, i], va, cand_p[k + 1, j], cand_v[k + 1, j] * conv, dt,
+                                                envelope[k], excess_scale, drive_acc, drive_vel)
+                e32 = row[j] / tol32
+                cost = 0.0 + np.float64(half * (e32 * e32)) + hard + budget + excess2
+                feasible[k, i, j] = (not dev[k, i, j] > tol32) & (hard == 0.0) & (cost < HARD)
+        _replicate(dev, k, ca, cb)
+        if checked:
+            _replicate(feasible, k, ca, cb)
+
+
+@kernel
+def sample_bounds(
+    dev: Float32Array,
+    times: IntArray,
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    tol: float,
+    bounds: FloatArray,
+) -> None:
+    """bounds (K-1, C, C): one axis' pair costs (`exact_costs`) with the misses at the sample ticks `dev`
+    (`sample_misses`) in place of the deviation. Where no cost is nan they bound the costs from below:
+    the sample ticks are some of the ticks (the same misses), so their largest miss is at most the
+    deviation. Apart from the misses, only for the candidates the search keeps (the refinement prunes)."""
+    nk, c = cand_p.shape
+    tol32 = np.float32(tol)
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        dt = float(times[k + 1] - times[k])
+        for i in range(ca):
             pa = cand_p[k, i]
             va = cand_v[k, i] * conv
             for j in range(cb):
                 hard, budget, excess2 = _limits(pa, va, cand_p[k + 1, j], cand_v[k + 1, j] * conv, dt, envelope[k],
                                                 excess_scale, drive_acc, drive_vel)
-                q32 = dev[j] / tol32
-                bounds[k, i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
-            if not checked:
-                continue
-            for j in range(cb):
-                ok = not dev[j] > tol32
-                if ok:
-                    hard, budget, excess2 = _limits(pa, va, cand_p[k + 1, j], cand_v[k + 1, j] * conv, dt,
-                                                    envelope[k], excess_scale, drive_acc, drive_vel)
-                    ok = hard == 0.0
-                if ok:
-                    err = np.float32(0.0)  # the largest float error, as np.maximum keeps it
-                    for q in range(nq):
-                        e = abs(ea[q, i] + eb[q, j] - frac[q])
-                        err = e if e > err or np.isnan(e) else err
-                    e32 = err / tol32
-                    ok = bool(0.0 + np.float64(half * (e32 * e32)) + hard + budget + excess2 < HARD)
-                feasible[k, i, j] = ok
+                miss = dev[k, i, j]
+                q32 = miss / tol32
+                bounds[k, i, j] = (HARD if miss > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
         _replicate(bounds, k, ca, cb)
-        if checked:
-            _replicate(feasible, k, ca, cb)
 
 
 @kernel
@@ -628,10 +680,10 @@ def _largest(x: FloatArray) -> float:
     bits = chunk.view(np.int64)
     top = np.int64(0)
     for s in range(0, flat.size, chunk.size):
-        m = min(chunk.size, flat.size - s)
-        for t in range(m):
-            chunk[t] = abs(flat[s + t])
-        for t in range(m):
+        part = flat[s : s + chunk.size]
+        for t in range(part.size):
+            chunk[t] = abs(part[t])
+        for t in range(part.size):
             top = bits[t] if bits[t] > top else top
     bits[0] = top
     return float(chunk[0])
@@ -696,9 +748,11 @@ def _every_tick_path(
     if not (tol > 0.0 and excess_scale > 0.0 and reach < 1.0e30):
         return viterbi(cand_p, cand_v, pinned, p_plan, times, envelope, conv, excess_scale, drive_acc, drive_vel,
                        toward_zero, tol)
+    dev = np.empty((nk - 1, c, padded(c)), np.float32)
+    sample_misses(p_plan, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel,
+                  toward_zero, tol, prox, dev, np.empty((0, 0, 0), np.bool_))
     bounds = np.empty((nk - 1, c, c))
-    sample_bounds(p_plan, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel,
-                  toward_zero, tol, prox, bounds, np.empty((0, 0, 0), np.bool_))
+    sample_bounds(dev, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel, tol, bounds)
     return _exact_path(cand_p, cand_v, pinned, bounds, p_plan, times, envelope, conv, excess_scale, drive_acc,
                        drive_vel, toward_zero, tol)
 
@@ -811,7 +865,7 @@ def refine(
         alive = np.empty((na, kw, c), np.bool_)
         env = np.empty((na, kw - 1))
         feasible = np.empty((kw - 1, c, c), np.bool_)
-        bounds = np.empty((na, kw - 1, c, c))
+        dev = np.empty((na, kw - 1, c, padded(c)), np.float32)
         lazy = np.empty(na, np.bool_)
         for ai in range(na):
             a = axes[ai]
@@ -819,8 +873,8 @@ def refine(
             env[ai, kw - 2] = envelope[a, hi - 1 :].max()
             cands_p[ai], cands_v[ai] = axis_candidates(positions[a], velocities[a], sub, conv[a], dp, dv, False,
                                                        pin, out_p[a, lo : hi + 1], out_v[a, lo : hi + 1])
-            sample_bounds(positions[a], sub, cands_p[ai], cands_v[ai], pin, env[ai], conv[a], excess_scale[a],
-                          drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, bounds[ai], feasible)
+            sample_misses(positions[a], sub, cands_p[ai], cands_v[ai], pin, env[ai], conv[a], excess_scale[a],
+                          drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, dev[ai], feasible)
             alive[ai] = alive_candidates(feasible, pin)
             # bounds only where no cost can be nan: tol and the budget above 0, and every share far below
             # float32's range (|share| <= |p| + |plan| + 1 + |v| T), so that no miss is nan
@@ -849,11 +903,14 @@ def refine(
                 for j in range(width):
                     cp[k, j], cv[k, j] = cands_p[ai, k, order[k, j]], cands_v[ai, k, order[k, j]]
             if lazy[ai]:
-                sub_bounds = np.empty((kw - 1, width, width))
+                sub_dev = np.empty((kw - 1, width, width), np.float32)
                 for k in range(kw - 1):
                     for i in range(width):
                         for j in range(width):
-                            sub_bounds[k, i, j] = bounds[ai, k, order[k, i], order[k + 1, j]]
+                            sub_dev[k, i, j] = dev[ai, k, order[k, i], order[k + 1, j]]
+                sub_bounds = np.empty((kw - 1, width, width))
+                sample_bounds(sub_dev, sub, cp, cv, pin, env[ai], conv[a], excess_scale[a], drive_acc[a], drive_vel[a],
+                              tol, sub_bounds)
                 choice = _exact_path(cp, cv, pin, sub_bounds, positions[a], sub, env[ai], conv[a], excess_scale[a],
                                      drive_acc[a], drive_vel[a], toward_zero[a], tol)
             else:

@@ -179,7 +179,9 @@ def test_pair_costs_are_the_numpy_ones(seed: int, wide: bool, tiny: bool) -> Non
             p.scales.drive_velocity[a], tz[a], p.tol,
         )
         quantise.exact_costs(*args, got[a])
-        quantise.sample_bounds(*args, encoder._PROX, bound[a], feasible[a])
+        dev = np.empty((*want.shape[1:3], quantise.padded(want.shape[3])), dtype=np.float32)
+        quantise.sample_misses(*args, encoder._PROX, dev, feasible[a])
+        quantise.sample_bounds(dev, *args[1:-2], p.tol, bound[a])
     assert np.array_equal(got, want)
     assert np.array_equal(feasible, passes)
     # what the lazy check at every tick starts from: never above the cost
