@@ -430,33 +430,30 @@ def _exact_cost(
     toward_zero: bool,
     tol: float,
     limits: tuple[float, float, float],
-    miss: Float32Array,
-    bits: NDArray[np.int32],
 ) -> float:
     """One pair's cost at every tick of a segment (`_segment_ticks`: terms, want from column `at`;
-    `_limits`); velocities in counts/ms; `miss`: scratch of nt + 1, `bits` the same memory as int32."""
+    `_limits`); velocities in counts/ms."""
     half = np.float32(0.5)
     col = np.uint64(at)  # unsigned: see `_segment_ticks`
+    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
+    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
+    top = np.int32(0)
     # each share relative to the whole count below the plan: small numbers, float32 will do
     if toward_zero:
         for t in range(nt):
             u = col + np.uint64(t)
             a = np.float32((pa - terms[4, u]) * terms[0, u] + va * terms[2, u])
             b = np.float32((pb - terms[4, u]) * terms[1, u] + vb * terms[3, u])
-            miss[t] = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, u]) - terms[6, u]))
+            miss = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, u]) - terms[6, u]))
+            top = max(top, miss.view(np.int32))
     else:
         for t in range(nt):
             u = col + np.uint64(t)
             a = np.float32((pa - terms[4, u]) * terms[0, u] + va * terms[2, u])
             b = np.float32((pb - terms[4, u]) * terms[1, u] + vb * terms[3, u])
-            miss[t] = abs(np.floor(a + b + half) - want[u])
-    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
-    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
-    top = np.int32(0)
-    for t in range(nt):
-        top = bits[t] if bits[t] > top else top
-    bits[nt] = top
-    dev = miss[nt]
+            miss = np.float32(abs(np.floor(a + b + half) - want[u]))
+            top = max(top, miss.view(np.int32))
+    dev = np.int32(top).view(np.float32)
     tol32 = np.float32(tol)
     q32 = dev / tol32
     hard, budget, excess2 = limits
@@ -489,8 +486,6 @@ def exact_costs(
     span = times[-1] - times[0]
     terms = np.empty((7, span))
     want = np.empty(span, np.float32)
-    miss = np.empty(np.max(times[1:] - times[:-1]) + 1, np.float32)
-    bits = miss.view(np.int32)
     for k in range(nk - 1):
         ca = 1 if pinned[k] else c
         cb = 1 if pinned[k + 1] else c
@@ -504,7 +499,7 @@ def exact_costs(
                 limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k], excess_scale,
                                  drive_acc, drive_vel)
                 costs[k, i, j] = _exact_cost(terms, want, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb,
-                                             toward_zero, tol, limits, miss, bits)
+                                             toward_zero, tol, limits)
         _replicate(costs, k, ca, cb)
 
 
@@ -621,8 +616,6 @@ def _exact_path(
     terms = np.empty((7, span))  # `_segment_ticks` of each segment, where a pair needs them
     want = np.empty(span, np.float32)
     ready = np.zeros(nk - 1, np.bool_)
-    miss = np.empty(np.max(times[1:] - times[:-1]) + 1, np.float32)
-    bits = miss.view(np.int32)
     totals = np.empty((nk, c))
     back = np.empty((nk - 1, c), np.int64)
     start = 0
@@ -635,8 +628,10 @@ def _exact_path(
             # all the same values: its first stands for all, and its cost is every one's
             ca = 1 if pinned[k] else c
             cb = 1 if pinned[k + 1] else c
-            for i in range(ca) if everyone else range(min(choice[k], ca - 1), min(choice[k], ca - 1) + 1):
-                for j in range(cb) if everyone else range(min(choice[k + 1], cb - 1), min(choice[k + 1], cb - 1) + 1):
+            i0 = 0 if everyone else min(choice[k], ca - 1)
+            j0 = 0 if everyone else min(choice[k + 1], cb - 1)
+            for i in range(i0, ca if everyone else i0 + 1):
+                for j in range(j0, cb if everyone else j0 + 1):
                     if not lower[k, i, j]:
                         continue
                     start = min(start, k)
@@ -649,7 +644,7 @@ def _exact_path(
                     limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k],
                                      excess_scale, drive_acc, drive_vel)
                     cost = _exact_cost(terms, want, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero,
-                                       tol, limits, miss, bits)
+                                       tol, limits)
                     for r in range(c) if ca == 1 else range(i, i + 1):
                         for s in range(c) if cb == 1 else range(j, j + 1):
                             costs[k, r, s] = cost
