@@ -219,11 +219,13 @@ def _limits(
     drive_vel: float,
 ) -> tuple[float, float, float]:
     """A pair's costs that do not depend on the ticks: HARD above 0x60C5 or (at the ends) 0x607F, 1e3 where
-    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square."""
+    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square.
+
+    The larger end acceleration is divided once: a rounded quotient by dt * dt > 0 keeps the order of the
+    numerators and their sign, so max(|a| / d, |b| / d) is max(|a|, |b|) / d to the bit (nan too)."""
     dp = pb - pa
-    acc_s = (6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va) / (dt * dt)
-    acc_e = (-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va) / (dt * dt)
-    peak = np.maximum(abs(acc_s), abs(acc_e))
+    peak = np.maximum(abs(6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va), abs(-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va))
+    peak = peak / (dt * dt)
     excess = np.maximum(peak - envelope, 0.0) / excess_scale
     over = peak > drive_acc or np.maximum(abs(va), abs(vb)) > drive_vel
     return HARD if over else 0.0, 1.0e3 if excess > 0.9 else 0.0, excess * excess
@@ -689,30 +691,30 @@ def alive_candidates(feasible: BoolArray, pinned: BoolArray) -> BoolArray:
     """(K, C): the candidates of one axis that lie on at least one path of feasible pairs through every
     knot (`feasible` (K-1, C, C)), by forward and backward passes; at a `pinned` knot (all candidates the
     same values) only the first. A knot where none would be left keeps all its candidates (then no path
-    passes, and the choice is the least bad one of all)."""
+    passes, and the choice is the least bad one of all). Whole rows of `feasible` at a time, with no early
+    exit: loops that vectorise."""
     nseg, c, _ = feasible.shape
     alive = np.ones((nseg + 1, c), np.bool_)
     for k in range(nseg + 1):
         if pinned[k]:
             alive[k, 1:] = False
+    reach = np.empty(c, np.bool_)
     for k in range(nseg):  # reachable from the start
         for j in range(c):
-            if alive[k + 1, j]:
-                reach = False
-                for i in range(c):
-                    if feasible[k, i, j] and alive[k, i]:
-                        reach = True
-                        break
-                alive[k + 1, j] = reach
+            reach[j] = False
+        for i in range(c):
+            if alive[k, i]:
+                for j in range(c):
+                    reach[j] |= feasible[k, i, j]
+        for j in range(c):
+            alive[k + 1, j] &= reach[j]
     for k in range(nseg - 1, -1, -1):  # and reaching the end
         for i in range(c):
             if alive[k, i]:
-                reach = False
+                hit = False
                 for j in range(c):
-                    if feasible[k, i, j] and alive[k + 1, j]:
-                        reach = True
-                        break
-                alive[k, i] = reach
+                    hit |= feasible[k, i, j] & alive[k + 1, j]
+                alive[k, i] = hit
     for k in range(nseg + 1):
         if not alive[k].any():
             alive[k, :] = True
