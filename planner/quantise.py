@@ -636,7 +636,6 @@ def _exact_path(
                 for j in range(j0, cb if everyone else j0 + 1):
                     if not lower[k, i, j]:
                         continue
-                    start = min(start, k)
                     t0, t1 = times[k], times[k + 1]
                     at = t0 - times[0]
                     if not ready[k]:
@@ -647,6 +646,8 @@ def _exact_path(
                                      excess_scale, drive_acc, drive_vel)
                     cost = _exact_cost(terms, want, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero,
                                        tol, limits)
+                    if cost != costs[k, i, j]:  # a bound that is the cost changes no total: no pass again for it
+                        start = min(start, k)
                     for r in range(c) if ca == 1 else range(i, i + 1):
                         for s in range(c) if cb == 1 else range(j, j + 1):
                             costs[k, r, s] = cost
