@@ -393,10 +393,11 @@ def sample_bounds(
 
 
 @kernel
-def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, want: Float32Array, at: int) -> None:
+def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, at: int) -> None:
     """For the ticks 1..T of the segment t0..t1, columns at..at+T-1 of terms: the Hermite basis h00, h01,
-    h10, h11 (the formulas of encoder._hermite_basis), the whole count below the plan, the plan, its
-    truncation; and of want: the planned demand (rounded to nearest) relative to that whole count, float32."""
+    h10, h11 (the formulas of encoder._hermite_basis), the whole count below the plan, the planned demand
+    (rounded to nearest) relative to that whole count (a float32, exact as a float64), the plan's
+    truncation."""
     nt = t1 - t0
     dt = float(nt)
     # unsigned offsets: numba wraps negative indices around, and a wrapped index does not vectorise
@@ -414,15 +415,13 @@ def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, want
         p = p_plan[tick + np.uint64(t)]
         base = np.floor(p)
         terms[4, u] = base
-        terms[5, u] = p
+        terms[5, u] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
         terms[6, u] = np.trunc(p)
-        want[u] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
 
 
 @kernel
 def _exact_cost(
     terms: FloatArray,
-    want: Float32Array,
     at: int,
     nt: int,
     pa: float,
@@ -433,8 +432,8 @@ def _exact_cost(
     tol: float,
     limits: tuple[float, float, float],
 ) -> float:
-    """One pair's cost at every tick of a segment (`_segment_ticks`: terms, want from column `at`;
-    `_limits`); velocities in counts/ms."""
+    """One pair's cost at every tick of a segment (`_segment_ticks`' terms from column `at`; `_limits`);
+    velocities in counts/ms."""
     half = np.float32(0.5)
     col = np.uint64(at)  # unsigned: see `_segment_ticks`
     # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
@@ -453,7 +452,7 @@ def _exact_cost(
             u = col + np.uint64(t)
             a = np.float32((pa - terms[4, u]) * terms[0, u] + va * terms[2, u])
             b = np.float32((pb - terms[4, u]) * terms[1, u] + vb * terms[3, u])
-            miss = np.float32(abs(np.floor(a + b + half) - want[u]))
+            miss = np.float32(abs(np.floor(a + b + half) - np.float32(terms[5, u])))
             top = max(top, miss.view(np.int32))
     dev = np.int32(top).view(np.float32)
     tol32 = np.float32(tol)
@@ -487,21 +486,20 @@ def exact_costs(
     nk, c = cand_p.shape
     span = times[-1] - times[0]
     terms = np.empty((7, span))
-    want = np.empty(span, np.float32)
     for k in range(nk - 1):
         ca = 1 if pinned[k] else c
         cb = 1 if pinned[k + 1] else c
         t0, t1 = times[k], times[k + 1]
         at = t0 - times[0]
-        _segment_ticks(p_plan, t0, t1, terms, want, at)
+        _segment_ticks(p_plan, t0, t1, terms, at)
         for i in range(ca):
             va = cand_v[k, i] * conv
             for j in range(cb):
                 vb = cand_v[k + 1, j] * conv
                 limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k], excess_scale,
                                  drive_acc, drive_vel)
-                costs[k, i, j] = _exact_cost(terms, want, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb,
-                                             toward_zero, tol, limits)
+                costs[k, i, j] = _exact_cost(terms, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero,
+                                             tol, limits)
         _replicate(costs, k, ca, cb)
 
 
@@ -616,7 +614,6 @@ def _exact_path(
     lower = np.ones((nk - 1, c, c), np.bool_)
     span = times[-1] - times[0]
     terms = np.empty((7, span))  # `_segment_ticks` of each segment, where a pair needs them
-    want = np.empty(span, np.float32)
     ready = np.zeros(nk - 1, np.bool_)
     totals = np.empty((nk, c))
     back = np.empty((nk - 1, c), np.int64)
@@ -639,13 +636,13 @@ def _exact_path(
                     t0, t1 = times[k], times[k + 1]
                     at = t0 - times[0]
                     if not ready[k]:
-                        _segment_ticks(p_plan, t0, t1, terms, want, at)
+                        _segment_ticks(p_plan, t0, t1, terms, at)
                         ready[k] = True
                     va, vb = cand_v[k, i] * conv, cand_v[k + 1, j] * conv
                     limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k],
                                      excess_scale, drive_acc, drive_vel)
-                    cost = _exact_cost(terms, want, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero,
-                                       tol, limits)
+                    cost = _exact_cost(terms, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero, tol,
+                                       limits)
                     if cost != costs[k, i, j]:  # a bound that is the cost changes no total: no pass again for it
                         start = min(start, k)
                     for r in range(c) if ca == 1 else range(i, i + 1):
