@@ -870,7 +870,9 @@ def _quantise(
         if knots is None:
             pos, vel = _choose_values(ref, times, scales, tol, ends, env)
         else:
-            old = np.isin(times, knots.times_ms)
+            # the knots kept (both sorted): np.isin's answer, without its sorting (a sixth of the time)
+            at = np.minimum(np.searchsorted(knots.times_ms, times), knots.times_ms.size - 1)
+            old = knots.times_ms[at] == times
             pos = want[:, times].copy()
             vel = np.round(ref.velocities[:, times] / conv).astype(np.int64)
             pos[:, old], vel[:, old] = knots.positions, knots.velocities_rpm

@@ -30,7 +30,6 @@ from planner.reference import FloatArray, IntArray
 
 BoolArray = NDArray[np.bool_]
 Float32Array = NDArray[np.float32]
-Workspace = tuple[Float32Array, FloatArray, Float32Array, Float32Array]
 
 HARD = 1.0e6  # cost of a pair that misses the tolerance, 0x60C5 or 0x607F: only chosen where all do
 _ROUNDS = 32  # passes of the lazy exact Viterbi before every bound left is replaced by its cost
@@ -215,181 +214,215 @@ def axis_candidates(
 
 
 @kernel
-def workspace(c: int, ticks: int) -> Workspace:
-    """Scratch for `pair_costs` of up to `c` x `c` candidates on segments of up to `ticks` ms (allocated
-    once per pass, not per segment): float32, float64 per tick, and on their own the arrays a pair loop
-    writes (a loop whose stores may overlap its loads does not vectorise)."""
-    ticks = max(ticks, 8)
-    return (np.empty((2 * c + 2) * ticks, np.float32), np.empty(7 * ticks), np.empty(max(ticks + 1, c), np.float32),
-            np.empty(c, np.float32))
-
-
-@kernel
 def _limits(
     pa: float, va: float, pb: float, vb: float, dt: float, envelope: float, excess_scale: float, drive_acc: float,
     drive_vel: float,
 ) -> tuple[float, float, float]:
     """A pair's costs that do not depend on the ticks: HARD above 0x60C5 or (at the ends) 0x607F, 1e3 where
-    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square."""
+    the end accelerations' excess over the plan's `envelope` is above 0.9 of `excess_scale`, its square.
+
+    The larger end acceleration is divided once: a rounded quotient by dt * dt > 0 keeps the order of the
+    numerators and their sign, so max(|a| / d, |b| / d) is max(|a|, |b|) / d to the bit (nan too)."""
     dp = pb - pa
-    acc_s = (6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va) / (dt * dt)
-    acc_e = (-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va) / (dt * dt)
-    peak = np.maximum(abs(acc_s), abs(acc_e))
+    peak = np.maximum(abs(6.0 * dp - 2.0 * dt * vb - 4.0 * dt * va), abs(-6.0 * dp + 4.0 * dt * vb + 2.0 * dt * va))
+    peak = peak / (dt * dt)
     excess = np.maximum(peak - envelope, 0.0) / excess_scale
     over = peak > drive_acc or np.maximum(abs(va), abs(vb)) > drive_vel
     return HARD if over else 0.0, 1.0e3 if excess > 0.9 else 0.0, excess * excess
 
 
 @kernel
-def pair_costs(
-    p_plan: FloatArray,
-    t0: int,
-    t1: int,
-    pa: FloatArray,
-    va_rpm: FloatArray,
-    pb: FloatArray,
-    vb_rpm: FloatArray,
-    conv: float,
-    envelope: float,
-    excess_scale: float,
-    drive_acc: float,
-    drive_vel: float,
-    toward_zero: bool,
-    tol: float,
-    exact: bool,
-    prox: FloatArray,
-    out: FloatArray,
-    work: Workspace,
-) -> None:
-    """out[i, j]: the cost of the segment t0..t1 of one axis from candidate (pa[i], va_rpm[i]) to
-    (pb[j], vb_rpm[j]) (velocities in rpm, `conv` counts/ms per rpm); `work` from `workspace`.
-
-    Deviation: the drive's rounded demand against the planned demand, at every tick (`exact`) or at the
-    sample ticks `prox` (fractions of the segment, rounded, within 1..T-1); beyond `tol` it costs HARD,
-    below it (dev / tol)^2 (exact) or half the squared float error (a tie-breaker: smaller is more robust
-    at the ticks in between). Plus `_limits`.
-    """
-    if exact:
-        _exact_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
-                     toward_zero, tol, out, work)
-    else:
-        _sample_costs(p_plan, t0, t1, pa, va_rpm, pb, vb_rpm, conv, envelope, excess_scale, drive_acc, drive_vel,
-                      toward_zero, tol, prox, out, out[:0, :0], work)
+def padded(c: int) -> int:
+    """`c` rounded up to whole vectors of 8 lanes (the widest numba's loops here use)."""
+    return (c + 7) // 8 * 8
 
 
 @kernel
-def _sample_costs(
+def sample_misses(
     p_plan: FloatArray,
-    t0: int,
-    t1: int,
-    pa: FloatArray,
-    va_rpm: FloatArray,
-    pb: FloatArray,
-    vb_rpm: FloatArray,
+    times: IntArray,
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    envelope: FloatArray,
     conv: float,
-    envelope: float,
     excess_scale: float,
     drive_acc: float,
     drive_vel: float,
     toward_zero: bool,
     tol: float,
     prox: FloatArray,
-    out: FloatArray,
-    bound: FloatArray,
-    work: Workspace,
+    dev: Float32Array,
+    feasible: BoolArray,
 ) -> None:
-    """`pair_costs` at the sample ticks into `out`, and into `bound` (unless it is empty) a lower bound of
-    each pair's cost at every tick where no cost is nan: the sample ticks are some of them (the same
-    misses), so their largest miss is at most the deviation."""
-    ca = pa.size
-    cb = pb.size
+    """dev (K-1, C, W): for every pair of one axis' candidates (K, C: positions, velocities in rpm, `conv`
+    counts/ms per rpm) on every segment, the largest miss of the drive's rounded demand at the sample
+    ticks `prox` (fractions of each segment, rounded, within 1..T-1), as `_exact_cost` computes a miss and
+    np.maximum keeps it (a nan stays; which nan does not matter, it only fails comparisons): what
+    `sample_bounds` makes lower bounds of. W: C rounded up to whole vectors (`padded`), scratch beyond C;
+    a loop over a few more lanes costs less than its scalar remainder would (C is 6 or 21).
+
+    And into `feasible` (unless it is empty) whether the pair passes at the sample ticks: what NumPy's
+    sample cost decided (below HARD; its deviation term was half the squared float error, a tie-breaker).
+    That cost is HARD plus non-negative terms (at least HARD, or nan) wherever the pair misses `tol`, so
+    only the start candidates with a pair that meets it (few) need their float errors and limits.
+
+    A pinned knot's candidates are all the same values: computed once, copied to the others."""
+    nk, c = cand_p.shape
     nq = prox.size
-    dt = float(t1 - t0)
-    scratch = work[0]
-    ea = scratch[: nq * ca].reshape((nq, ca))
-    eb = scratch[nq * ca : nq * (ca + cb)].reshape((nq, cb))
-    want = scratch[nq * (ca + cb) : nq * (ca + cb + 1)]
-    frac = scratch[nq * (ca + cb + 1) : nq * (ca + cb + 2)]
-    terms = work[1][: 2 * nq].reshape((2, nq))  # the whole count below the plan, its truncation
-    dev = work[2][:cb]
-    err = work[3][:cb]
-    top = max(dt - 1.0, 1.0)
-    for q in range(nq):
-        off = min(max(np.round(prox[q] * dt), 1.0), top)
-        s = off / dt
-        s2 = s * s
-        h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
-        h01 = 1.0 - h00
-        h10 = (s - 2.0 * s2 + s2 * s) * dt
-        h11 = (s2 * s - s2) * dt
-        p = p_plan[t0 + int(off)]
-        # relative to the whole count below the plan: small numbers, float32 will do
-        base = np.floor(p)
-        for i in range(ca):
-            ea[q, i] = np.float32((pa[i] - base) * h00 + va_rpm[i] * conv * h10)
-        for j in range(cb):
-            eb[q, j] = np.float32((pb[j] - base) * h01 + vb_rpm[j] * conv * h11)
-        want[q] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
-        frac[q] = np.float32(p - base)
-        terms[0, q] = base
-        terms[1, q] = np.trunc(p)
+    wide = dev.shape[2]
+    # each share relative to the whole count below the plan: small numbers, float32 will do
+    ea = np.empty((nq, c), np.float32)
+    eb = np.zeros((nq, wide), np.float32)
+    want = np.empty(nq, np.float32)  # the planned demand
+    frac = np.empty(nq, np.float32)  # the plan
+    below = np.empty(nq)  # the whole count below the plan
+    whole = np.empty(nq)  # the plan's truncation
+    row = np.empty(wide, np.float32)  # a start candidate's misses
+    row_bits = row.view(np.int32)
     half = np.float32(0.5)
     tol32 = np.float32(tol)
-    for i in range(ca):
-        # the largest miss and float error over the sample ticks, as np.maximum keeps them (a nan stays)
-        dev[:] = 0.0
-        err[:] = 0.0
+    checked = feasible.size > 0
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        t0 = times[k]
+        dt = float(times[k + 1] - t0)
+        top = max(dt - 1.0, 1.0)
         for q in range(nq):
-            a = ea[q, i]
-            if toward_zero:
-                for j in range(cb):
-                    miss = np.float32(abs(np.trunc(np.float64(a + eb[q, j]) + terms[0, q]) - terms[1, q]))
-                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
-            else:
-                for j in range(cb):
-                    miss = abs(np.floor(a + eb[q, j] + half) - want[q])
-                    dev[j] = miss if miss > dev[j] or np.isnan(miss) else dev[j]
+            off = min(max(np.round(prox[q] * dt), 1.0), top)
+            s = off / dt
+            s2 = s * s
+            h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
+            h01 = 1.0 - h00
+            h10 = (s - 2.0 * s2 + s2 * s) * dt
+            h11 = (s2 * s - s2) * dt
+            p = p_plan[t0 + int(off)]
+            base = np.floor(p)
+            for i in range(ca):
+                ea[q, i] = np.float32((cand_p[k, i] - base) * h00 + cand_v[k, i] * conv * h10)
             for j in range(cb):
-                e = abs(a + eb[q, j] - frac[q])
-                err[j] = e if e > err[j] or np.isnan(e) else err[j]
-        va = va_rpm[i] * conv
-        for j in range(cb):
-            hard, budget, excess2 = _limits(pa[i], va, pb[j], vb_rpm[j] * conv, dt, envelope, excess_scale,
-                                            drive_acc, drive_vel)
-            e32 = err[j] / tol32
-            out[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(half * (e32 * e32)) + hard + budget + excess2
-            if bound.size:
-                q32 = dev[j] / tol32
-                bound[i, j] = (HARD if dev[j] > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+                eb[q, j] = np.float32((cand_p[k + 1, j] - base) * h01 + cand_v[k + 1, j] * conv * h11)
+            want[q] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+            frac[q] = np.float32(p - base)
+            below[q] = base
+            whole[q] = np.trunc(p)
+        for i in range(ca):
+            # the largest miss, as np.maximum keeps it: non-negative floats order as their bit patterns
+            # (nan above inf), and an integer maximum is stored whole, where a float one is a masked store
+            # that the next tick's load waits for
+            for j in range(wide):
+                row_bits[j] = 0
+            for q in range(nq):
+                a = ea[q, i]
+                if toward_zero:
+                    for j in range(wide):
+                        miss = np.float32(abs(np.trunc(np.float64(a + eb[q, j]) + below[q]) - whole[q]))
+                        row_bits[j] = max(row_bits[j], miss.view(np.int32))
+                else:
+                    for j in range(wide):
+                        miss = np.float32(abs(np.floor(a + eb[q, j] + half) - want[q]))
+                        row_bits[j] = max(row_bits[j], miss.view(np.int32))
+            for j in range(wide):
+                dev[k, i, j] = row[j]
+            if not checked:
+                continue
+            # a start candidate none of whose pairs meets `tol` (most) is settled; the others are scored
+            # whole (a branch per pair would go either way)
+            near = False
+            for j in range(cb):
+                near |= not dev[k, i, j] > tol32
+            if not near:
+                for j in range(cb):
+                    feasible[k, i, j] = False
+                continue
+            for j in range(wide):
+                row_bits[j] = 0
+            for q in range(nq):
+                a = ea[q, i]
+                for j in range(wide):
+                    e = np.float32(abs(a + eb[q, j] - frac[q]))  # the float error, kept as the misses are
+                    row_bits[j] = max(row_bits[j], e.view(np.int32))
+            va = cand_v[k, i] * conv
+            for j in range(cb):
+                hard, budget, excess2 = _limits(cand_p[k, i], va, cand_p[k + 1, j], cand_v[k + 1, j] * conv, dt,
+                                                envelope[k], excess_scale, drive_acc, drive_vel)
+                e32 = row[j] / tol32
+                cost = 0.0 + np.float64(half * (e32 * e32)) + hard + budget + excess2
+                feasible[k, i, j] = (not dev[k, i, j] > tol32) & (hard == 0.0) & (cost < HARD)
+        _replicate(dev, k, ca, cb)
+        if checked:
+            _replicate(feasible, k, ca, cb)
 
 
 @kernel
-def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, want: Float32Array) -> None:
-    """For the ticks 1..T of the segment t0..t1, terms[:, :T]: the Hermite basis h00, h01, h10, h11 (the
-    formulas of encoder._hermite_basis), the whole count below the plan, the plan, its truncation; and
-    want[:T]: the planned demand (rounded to nearest) relative to that whole count, float32."""
+def sample_bounds(
+    dev: Float32Array,
+    times: IntArray,
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    envelope: FloatArray,
+    conv: float,
+    excess_scale: float,
+    drive_acc: float,
+    drive_vel: float,
+    tol: float,
+    bounds: FloatArray,
+) -> None:
+    """bounds (K-1, C, C): one axis' pair costs (`exact_costs`) with the misses at the sample ticks `dev`
+    (`sample_misses`) in place of the deviation. Where no cost is nan they bound the costs from below:
+    the sample ticks are some of the ticks (the same misses), so their largest miss is at most the
+    deviation. Apart from the misses, only for the candidates the search keeps (the refinement prunes)."""
+    nk, c = cand_p.shape
+    tol32 = np.float32(tol)
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        dt = float(times[k + 1] - times[k])
+        for i in range(ca):
+            pa = cand_p[k, i]
+            va = cand_v[k, i] * conv
+            for j in range(cb):
+                hard, budget, excess2 = _limits(pa, va, cand_p[k + 1, j], cand_v[k + 1, j] * conv, dt, envelope[k],
+                                                excess_scale, drive_acc, drive_vel)
+                miss = dev[k, i, j]
+                q32 = miss / tol32
+                bounds[k, i, j] = (HARD if miss > tol32 else 0.0) + np.float64(q32 * q32) + hard + budget + excess2
+        _replicate(bounds, k, ca, cb)
+
+
+@kernel
+def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, at: int) -> None:
+    """For the ticks 1..T of the segment t0..t1, columns at..at+T-1 of terms: the Hermite basis h00, h01,
+    h10, h11 (the formulas of encoder._hermite_basis), the whole count below the plan, the planned demand
+    (rounded to nearest) relative to that whole count (a float32, exact as a float64), the plan's
+    truncation."""
     nt = t1 - t0
     dt = float(nt)
+    # unsigned offsets: numba wraps negative indices around, and a wrapped index does not vectorise
+    col = np.uint64(at)
+    tick = np.uint64(t0 + 1)
     for t in range(nt):
         s = float(t + 1) / dt
         s2 = s * s
         h00 = 1.0 - 3.0 * s2 + 2.0 * s2 * s
-        terms[0, t] = h00
-        terms[1, t] = 1.0 - h00
-        terms[2, t] = (s - 2.0 * s2 + s2 * s) * dt
-        terms[3, t] = (s2 * s - s2) * dt
-        p = p_plan[t0 + t + 1]
+        u = col + np.uint64(t)
+        terms[0, u] = h00
+        terms[1, u] = 1.0 - h00
+        terms[2, u] = (s - 2.0 * s2 + s2 * s) * dt
+        terms[3, u] = (s2 * s - s2) * dt
+        p = p_plan[tick + np.uint64(t)]
         base = np.floor(p)
-        terms[4, t] = base
-        terms[5, t] = p
-        terms[6, t] = np.trunc(p)
-        want[t] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+        terms[4, u] = base
+        terms[5, u] = np.float32(float(int(np.trunc(p + np.copysign(0.5, p)))) - base)
+        terms[6, u] = np.trunc(p)
 
 
 @kernel
 def _exact_cost(
     terms: FloatArray,
-    want: Float32Array,
+    at: int,
     nt: int,
     pa: float,
     va: float,
@@ -398,30 +431,30 @@ def _exact_cost(
     toward_zero: bool,
     tol: float,
     limits: tuple[float, float, float],
-    miss: Float32Array,
 ) -> float:
-    """One pair's `pair_costs` at every tick of a segment (`_segment_ticks`: terms, want; `_limits`);
-    velocities in counts/ms; `miss`: scratch of nt + 1, not overlapping the others."""
+    """One pair's cost at every tick of a segment (`_segment_ticks`' terms from column `at`; `_limits`);
+    velocities in counts/ms."""
     half = np.float32(0.5)
+    col = np.uint64(at)  # unsigned: see `_segment_ticks`
+    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
+    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
+    top = np.int32(0)
     # each share relative to the whole count below the plan: small numbers, float32 will do
     if toward_zero:
         for t in range(nt):
-            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
-            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
-            miss[t] = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, t]) - terms[6, t]))
+            u = col + np.uint64(t)
+            a = np.float32((pa - terms[4, u]) * terms[0, u] + va * terms[2, u])
+            b = np.float32((pb - terms[4, u]) * terms[1, u] + vb * terms[3, u])
+            miss = np.float32(abs(np.trunc(np.float64(a + b) + terms[4, u]) - terms[6, u]))
+            top = max(top, miss.view(np.int32))
     else:
         for t in range(nt):
-            a = np.float32((pa - terms[4, t]) * terms[0, t] + va * terms[2, t])
-            b = np.float32((pb - terms[4, t]) * terms[1, t] + vb * terms[3, t])
-            miss[t] = abs(np.floor(a + b + half) - want[t])
-    # the largest miss: non-negative floats order as their bit patterns (nan above inf, as np.maximum
-    # propagates it), and an integer maximum vectorises where a nan-aware float one does not
-    bits = miss.view(np.int32)
-    top = np.int32(0)
-    for t in range(nt):
-        top = bits[t] if bits[t] > top else top
-    bits[nt] = top
-    dev = miss[nt]
+            u = col + np.uint64(t)
+            a = np.float32((pa - terms[4, u]) * terms[0, u] + va * terms[2, u])
+            b = np.float32((pb - terms[4, u]) * terms[1, u] + vb * terms[3, u])
+            miss = np.float32(abs(np.floor(a + b + half) - np.float32(terms[5, u])))
+            top = max(top, miss.view(np.int32))
+    dev = np.int32(top).view(np.float32)
     tol32 = np.float32(tol)
     q32 = dev / tol32
     hard, budget, excess2 = limits
@@ -429,35 +462,45 @@ def _exact_cost(
 
 
 @kernel
-def _exact_costs(
+def exact_costs(
     p_plan: FloatArray,
-    t0: int,
-    t1: int,
-    pa: FloatArray,
-    va_rpm: FloatArray,
-    pb: FloatArray,
-    vb_rpm: FloatArray,
+    times: IntArray,
+    cand_p: FloatArray,
+    cand_v: FloatArray,
+    pinned: BoolArray,
+    envelope: FloatArray,
     conv: float,
-    envelope: float,
     excess_scale: float,
     drive_acc: float,
     drive_vel: float,
     toward_zero: bool,
     tol: float,
-    out: FloatArray,
-    work: Workspace,
+    costs: FloatArray,
 ) -> None:
-    """`pair_costs` at every tick."""
-    nt = t1 - t0
-    terms = work[1][: 7 * nt].reshape((7, nt))
-    want = work[0][:nt]
-    _segment_ticks(p_plan, t0, t1, terms, want)
-    for i in range(pa.size):
-        va = va_rpm[i] * conv
-        for j in range(pb.size):
-            vb = vb_rpm[j] * conv
-            limits = _limits(pa[i], va, pb[j], vb, float(nt), envelope, excess_scale, drive_acc, drive_vel)
-            out[i, j] = _exact_cost(terms, want, nt, pa[i], va, pb[j], vb, toward_zero, tol, limits, work[2])
+    """costs[k, i, j]: the cost of segment k of one axis from candidate i of knot k to candidate j of knot
+    k + 1 (cand_p, cand_v (K, C): positions, velocities in rpm, `conv` counts/ms per rpm).
+
+    Deviation: the drive's rounded demand against the planned demand at every tick; beyond `tol` it costs
+    HARD, below it (dev / tol)^2. Plus `_limits`. A pinned knot's candidates are all the same values:
+    computed once, copied to the others."""
+    nk, c = cand_p.shape
+    span = times[-1] - times[0]
+    terms = np.empty((7, span))
+    for k in range(nk - 1):
+        ca = 1 if pinned[k] else c
+        cb = 1 if pinned[k + 1] else c
+        t0, t1 = times[k], times[k + 1]
+        at = t0 - times[0]
+        _segment_ticks(p_plan, t0, t1, terms, at)
+        for i in range(ca):
+            va = cand_v[k, i] * conv
+            for j in range(cb):
+                vb = cand_v[k + 1, j] * conv
+                limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k], excess_scale,
+                                 drive_acc, drive_vel)
+                costs[k, i, j] = _exact_cost(terms, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero,
+                                             tol, limits)
+        _replicate(costs, k, ca, cb)
 
 
 @kernel
@@ -477,20 +520,26 @@ def _forward(costs: FloatArray, pinned: BoolArray, totals: FloatArray, back: Int
     """NumPy's Viterbi pass over the pair costs (K-1, C, C) from segment `start` on: totals[k] the cheapest
     path to each candidate of knot k (totals[0] set: candidate 0 at 0, the others inf), back[k] its
     candidate at knot k (the first minimum, as argmin; a nan is a minimum). A pinned knot's columns are
-    all the same: the first stands for all."""
+    all the same: the first stands for all.
+
+    The minimum runs over the rows with the columns inner (totals[k + 1] and back[k] the running
+    minimum): a loop over the columns vectorises, one over the rows would not. Row by row it is argmin's
+    scan: a row replaces the minimum where it is lower or nan, unless the minimum is nan already."""
     nseg, c, _ = costs.shape
     for k in range(start, nseg):
-        for j in range(1 if pinned[k + 1] else c):
-            best = 0
-            low = totals[k, 0] + costs[k, 0, j]
-            for i in range(1, c):
-                if np.isnan(low):
-                    break
-                x = totals[k, i] + costs[k, i, j]
-                if x < low or np.isnan(x):
-                    best, low = i, x
-            back[k, j] = best
-            totals[k + 1, j] = low
+        cj = 1 if pinned[k + 1] else c
+        first = totals[k, 0]
+        for j in range(cj):
+            totals[k + 1, j] = first + costs[k, 0, j]
+            back[k, j] = 0
+        for i in range(1, c):
+            here = totals[k, i]
+            for j in range(cj):
+                x = here + costs[k, i, j]
+                low = totals[k + 1, j]
+                take = not np.isnan(low) and (x < low or np.isnan(x))
+                totals[k + 1, j] = x if take else low
+                back[k, j] = i if take else back[k, j]
         if pinned[k + 1]:
             back[k, 1:] = back[k, 0]
             totals[k + 1, 1:] = totals[k + 1, 0]
@@ -527,22 +576,14 @@ def viterbi(
     drive_vel: float,
     toward_zero: bool,
     tol: float,
-    exact: bool,
-    prox: FloatArray,
 ) -> IntArray:
-    """One axis' minimum-cost candidate path through the knots (`pair_costs` of every segment), from
+    """One axis' minimum-cost candidate path through the knots (`exact_costs` of every segment), from
     candidate 0 of knot 0. A `pinned` knot's candidates are all the same values: their costs are computed
     once, and the path takes the first, as numpy's argmin did."""
     nk, c = cand_p.shape
     costs = np.empty((nk - 1, c, c))
-    work = workspace(c, np.max(times[1:] - times[:-1]) if exact else 0)
-    for k in range(nk - 1):
-        ca = 1 if pinned[k] else c
-        cb = 1 if pinned[k + 1] else c
-        pair_costs(p_plan, times[k], times[k + 1], cand_p[k, :ca], cand_v[k, :ca], cand_p[k + 1, :cb],
-                   cand_v[k + 1, :cb], conv, envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol, exact,
-                   prox, costs[k], work)
-        _replicate(costs[k], ca, cb)
+    exact_costs(p_plan, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel, toward_zero,
+                tol, costs)
     return _best_path(costs, pinned, np.empty((nk, c)), np.empty((nk - 1, c), np.int64), 0)
 
 
@@ -551,7 +592,7 @@ def _exact_path(
     cand_p: FloatArray,
     cand_v: FloatArray,
     pinned: BoolArray,
-    bounds: FloatArray,
+    costs: FloatArray,
     p_plan: FloatArray,
     times: IntArray,
     envelope: FloatArray,
@@ -562,62 +603,85 @@ def _exact_path(
     toward_zero: bool,
     tol: float,
 ) -> IntArray:
-    """`viterbi` at every tick, from lower bounds of the costs (K-1, C, C: `_sample_costs`): while the
-    best path passes pairs whose cost is only bounded, their costs replace the bounds and the path is
-    found again (after `_ROUNDS`, all of them). A path without bounds is the one the costs give, ties
-    included: its cost is exact, no other path costs less (bounds are below costs), and at each of its
-    columns and at its end the candidates that tie for the minimum are the same with the bounds as with
-    the costs (a bound ties only where it is the cost). No cost is nan (the caller's conditions)."""
+    """`viterbi`, from lower bounds of the costs (K-1, C, C: `sample_bounds`, replaced by the costs where
+    they are computed): while the best path passes pairs whose cost is only bounded, their costs replace
+    the bounds and the path is found again (after `_ROUNDS`, all of them). A path without bounds is the
+    one the costs give, ties included: its cost is exact, no other path costs less (bounds are below
+    costs), and at each of its columns and at its end the candidates that tie for the minimum are the
+    same with the bounds as with the costs (a bound ties only where it is the cost). No cost is nan (the
+    caller's conditions)."""
     nk, c = cand_p.shape
-    costs = bounds.copy()
     lower = np.ones((nk - 1, c, c), np.bool_)
-    longest = np.max(times[1:] - times[:-1])
-    terms = np.empty((nk - 1, 7, longest))  # `_segment_ticks` of each segment, where a pair needs them
-    want = np.empty((nk - 1, longest), np.float32)
+    span = times[-1] - times[0]
+    terms = np.empty((7, span))  # `_segment_ticks` of each segment, where a pair needs them
     ready = np.zeros(nk - 1, np.bool_)
-    miss = np.empty(longest + 1, np.float32)
     totals = np.empty((nk, c))
     back = np.empty((nk - 1, c), np.int64)
     start = 0
     for _round in range(_ROUNDS + 1):
         choice = _best_path(costs, pinned, totals, back, start)
         start = nk
+        everyone = _round == _ROUNDS
         for k in range(nk - 1):
-            # the pair on the path; after `_ROUNDS`, every one still bounded
-            everyone = _round == _ROUNDS
-            for i in range(c) if everyone else range(choice[k], choice[k] + 1):
-                for j in range(c) if everyone else range(choice[k + 1], choice[k + 1] + 1):
+            # the pair on the path; after `_ROUNDS`, every one still bounded. A pinned knot's candidates are
+            # all the same values: its first stands for all, and its cost is every one's
+            ca = 1 if pinned[k] else c
+            cb = 1 if pinned[k + 1] else c
+            i0 = 0 if everyone else min(choice[k], ca - 1)
+            j0 = 0 if everyone else min(choice[k + 1], cb - 1)
+            for i in range(i0, ca if everyone else i0 + 1):
+                for j in range(j0, cb if everyone else j0 + 1):
                     if not lower[k, i, j]:
                         continue
-                    start = min(start, k)
                     t0, t1 = times[k], times[k + 1]
+                    at = t0 - times[0]
                     if not ready[k]:
-                        _segment_ticks(p_plan, t0, t1, terms[k], want[k])
+                        _segment_ticks(p_plan, t0, t1, terms, at)
                         ready[k] = True
-                    # a pinned knot's candidates are all the same values: its first stands for all
-                    ca = 1 if pinned[k] else c
-                    cb = 1 if pinned[k + 1] else c
-                    pi, pj = min(i, ca - 1), min(j, cb - 1)
-                    va, vb = cand_v[k, pi] * conv, cand_v[k + 1, pj] * conv
-                    limits = _limits(cand_p[k, pi], va, cand_p[k + 1, pj], vb, float(t1 - t0), envelope[k],
+                    va, vb = cand_v[k, i] * conv, cand_v[k + 1, j] * conv
+                    limits = _limits(cand_p[k, i], va, cand_p[k + 1, j], vb, float(t1 - t0), envelope[k],
                                      excess_scale, drive_acc, drive_vel)
-                    costs[k, pi, pj] = _exact_cost(terms[k], want[k], t1 - t0, cand_p[k, pi], va, cand_p[k + 1, pj],
-                                                   vb, toward_zero, tol, limits, miss)
-                    lower[k, pi, pj] = False
-                    _replicate(costs[k], ca, cb)
-                    _replicate(lower[k], ca, cb)
+                    cost = _exact_cost(terms, at, t1 - t0, cand_p[k, i], va, cand_p[k + 1, j], vb, toward_zero, tol,
+                                       limits)
+                    if cost != costs[k, i, j]:  # a bound that is the cost changes no total: no pass again for it
+                        start = min(start, k)
+                    for r in range(c) if ca == 1 else range(i, i + 1):
+                        for s in range(c) if cb == 1 else range(j, j + 1):
+                            costs[k, r, s] = cost
+                            lower[k, r, s] = False
         if start == nk:
             return choice
     return _best_path(costs, pinned, totals, back, start)
 
 
 @kernel
-def _replicate(values: NDArray[np.generic], ca: int, cb: int) -> None:
-    """Rows ca.. as row 0 and columns cb.. as column 0 (the candidates of a pinned knot)."""
-    for i in range(ca, values.shape[0]):
-        values[i, :cb] = values[0, :cb]
-    for j in range(cb, values.shape[1]):
-        values[:, j] = values[:, 0]
+def _replicate(values: NDArray[np.generic], k: int, ca: int, cb: int) -> None:
+    """In values[k], rows ca.. as row 0 and columns cb.. as column 0 (the candidates of a pinned knot)."""
+    for i in range(ca, values.shape[1]):
+        for j in range(cb):
+            values[k, i, j] = values[k, 0, j]
+    for j in range(cb, values.shape[2]):
+        for i in range(values.shape[1]):
+            values[k, i, j] = values[k, i, 0]
+
+
+@kernel
+def _largest(x: FloatArray) -> float:
+    """np.abs(x).max(), or a nan where x holds one (which one does not matter: it only fails comparisons).
+    Non-negative floats order as their bit patterns (nan above inf), and an integer maximum vectorises
+    where a nan-aware float one does not: |x| is copied in chunks to be read as integers."""
+    flat = x.ravel()
+    chunk = np.empty(256)
+    bits = chunk.view(np.int64)
+    top = np.int64(0)
+    for s in range(0, flat.size, chunk.size):
+        part = flat[s : s + chunk.size]
+        for t in range(part.size):
+            chunk[t] = abs(part[t])
+        for t in range(part.size):
+            top = bits[t] if bits[t] > top else top
+    bits[0] = top
+    return float(chunk[0])
 
 
 @kernel
@@ -625,30 +689,30 @@ def alive_candidates(feasible: BoolArray, pinned: BoolArray) -> BoolArray:
     """(K, C): the candidates of one axis that lie on at least one path of feasible pairs through every
     knot (`feasible` (K-1, C, C)), by forward and backward passes; at a `pinned` knot (all candidates the
     same values) only the first. A knot where none would be left keeps all its candidates (then no path
-    passes, and the choice is the least bad one of all)."""
+    passes, and the choice is the least bad one of all). Whole rows of `feasible` at a time, with no early
+    exit: loops that vectorise."""
     nseg, c, _ = feasible.shape
     alive = np.ones((nseg + 1, c), np.bool_)
     for k in range(nseg + 1):
         if pinned[k]:
             alive[k, 1:] = False
+    reach = np.empty(c, np.bool_)
     for k in range(nseg):  # reachable from the start
         for j in range(c):
-            if alive[k + 1, j]:
-                reach = False
-                for i in range(c):
-                    if feasible[k, i, j] and alive[k, i]:
-                        reach = True
-                        break
-                alive[k + 1, j] = reach
+            reach[j] = False
+        for i in range(c):
+            if alive[k, i]:
+                for j in range(c):
+                    reach[j] |= feasible[k, i, j]
+        for j in range(c):
+            alive[k + 1, j] &= reach[j]
     for k in range(nseg - 1, -1, -1):  # and reaching the end
         for i in range(c):
             if alive[k, i]:
-                reach = False
+                hit = False
                 for j in range(c):
-                    if feasible[k, i, j] and alive[k + 1, j]:
-                        reach = True
-                        break
-                alive[k, i] = reach
+                    hit |= feasible[k, i, j] & alive[k + 1, j]
+                alive[k, i] = hit
     for k in range(nseg + 1):
         if not alive[k].any():
             alive[k, :] = True
@@ -671,24 +735,19 @@ def _every_tick_path(
     tol: float,
     prox: FloatArray,
 ) -> IntArray:
-    """One axis' minimum-cost candidate path with the costs at every tick (`viterbi` with `exact`), found
-    lazily from the costs at the sample ticks as lower bounds (`_exact_path`) where no cost can be nan
-    (as the refinement decides it)."""
+    """One axis' minimum-cost candidate path with the costs at every tick (`viterbi`), found lazily from the
+    costs at the sample ticks as lower bounds (`_exact_path`) where no cost can be nan (as the refinement
+    decides it)."""
     nk, c = cand_p.shape
-    reach = np.abs(cand_p).max() + np.abs(p_plan).max() + np.abs(cand_v).max() * conv * (times[-1] - times[0])
+    reach = _largest(cand_p) + _largest(p_plan) + _largest(cand_v) * conv * (times[-1] - times[0])
     if not (tol > 0.0 and excess_scale > 0.0 and reach < 1.0e30):
         return viterbi(cand_p, cand_v, pinned, p_plan, times, envelope, conv, excess_scale, drive_acc, drive_vel,
-                       toward_zero, tol, True, prox)
+                       toward_zero, tol)
+    dev = np.empty((nk - 1, c, padded(c)), np.float32)
+    sample_misses(p_plan, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel,
+                  toward_zero, tol, prox, dev, np.empty((0, 0, 0), np.bool_))
     bounds = np.empty((nk - 1, c, c))
-    cost = np.empty((c, c))
-    work = workspace(c, prox.size)
-    for k in range(nk - 1):
-        ca = 1 if pinned[k] else c
-        cb = 1 if pinned[k + 1] else c
-        _sample_costs(p_plan, times[k], times[k + 1], cand_p[k, :ca], cand_v[k, :ca], cand_p[k + 1, :cb],
-                      cand_v[k + 1, :cb], conv, envelope[k], excess_scale, drive_acc, drive_vel, toward_zero, tol,
-                      prox, cost, bounds[k], work)
-        _replicate(bounds[k], ca, cb)
+    sample_bounds(dev, times, cand_p, cand_v, pinned, envelope, conv, excess_scale, drive_acc, drive_vel, tol, bounds)
     return _exact_path(cand_p, cand_v, pinned, bounds, p_plan, times, envelope, conv, excess_scale, drive_acc,
                        drive_vel, toward_zero, tol)
 
@@ -785,10 +844,8 @@ def refine(
                 lows[nw], highs[nw] = lo, hi
                 nw += 1
     c = dp.size * dv.size
-    work = workspace(c, prox.size)
-    farthest = np.empty(positions.shape[0])  # the plan's largest |position| per axis
-    for a in range(positions.shape[0]):
-        farthest[a] = np.abs(positions[a]).max()
+    farthest = np.empty(positions.shape[0])  # the plan's largest |position| per axis, where one is needed
+    known = np.zeros(positions.shape[0], np.bool_)
     for w in range(nw):
         lo, hi = lows[w], highs[w]
         kw = hi - lo + 1
@@ -803,8 +860,7 @@ def refine(
         alive = np.empty((na, kw, c), np.bool_)
         env = np.empty((na, kw - 1))
         feasible = np.empty((kw - 1, c, c), np.bool_)
-        cost = np.empty((c, c))
-        bounds = np.empty((na, kw - 1, c, c))
+        dev = np.empty((na, kw - 1, c, padded(c)), np.float32)
         lazy = np.empty(na, np.bool_)
         for ai in range(na):
             a = axes[ai]
@@ -812,19 +868,15 @@ def refine(
             env[ai, kw - 2] = envelope[a, hi - 1 :].max()
             cands_p[ai], cands_v[ai] = axis_candidates(positions[a], velocities[a], sub, conv[a], dp, dv, False,
                                                        pin, out_p[a, lo : hi + 1], out_v[a, lo : hi + 1])
-            for k in range(kw - 1):
-                ca = 1 if pin[k] else c
-                cb = 1 if pin[k + 1] else c
-                _sample_costs(positions[a], sub[k], sub[k + 1], cands_p[ai, k, :ca], cands_v[ai, k, :ca],
-                              cands_p[ai, k + 1, :cb], cands_v[ai, k + 1, :cb], conv[a], env[ai, k], excess_scale[a],
-                              drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, cost, bounds[ai, k], work)
-                _replicate(cost, ca, cb)
-                _replicate(bounds[ai, k], ca, cb)
-                feasible[k] = cost < HARD
+            sample_misses(positions[a], sub, cands_p[ai], cands_v[ai], pin, env[ai], conv[a], excess_scale[a],
+                          drive_acc[a], drive_vel[a], toward_zero[a], tol, prox, dev[ai], feasible)
             alive[ai] = alive_candidates(feasible, pin)
             # bounds only where no cost can be nan: tol and the budget above 0, and every share far below
             # float32's range (|share| <= |p| + |plan| + 1 + |v| T), so that no miss is nan
-            reach = np.abs(cands_p[ai]).max() + farthest[a] + np.abs(cands_v[ai]).max() * conv[a] * (sub[-1] - sub[0])
+            if not known[a]:
+                farthest[a] = _largest(positions[a])
+                known[a] = True
+            reach = _largest(cands_p[ai]) + farthest[a] + _largest(cands_v[ai]) * conv[a] * (sub[-1] - sub[0])
             lazy[ai] = tol > 0.0 and excess_scale[a] > 0.0 and reach < 1.0e30
         width = 1
         for ai in range(na):
@@ -846,16 +898,19 @@ def refine(
                 for j in range(width):
                     cp[k, j], cv[k, j] = cands_p[ai, k, order[k, j]], cands_v[ai, k, order[k, j]]
             if lazy[ai]:
-                sub_bounds = np.empty((kw - 1, width, width))
+                sub_dev = np.empty((kw - 1, width, width), np.float32)
                 for k in range(kw - 1):
                     for i in range(width):
                         for j in range(width):
-                            sub_bounds[k, i, j] = bounds[ai, k, order[k, i], order[k + 1, j]]
+                            sub_dev[k, i, j] = dev[ai, k, order[k, i], order[k + 1, j]]
+                sub_bounds = np.empty((kw - 1, width, width))
+                sample_bounds(sub_dev, sub, cp, cv, pin, env[ai], conv[a], excess_scale[a], drive_acc[a], drive_vel[a],
+                              tol, sub_bounds)
                 choice = _exact_path(cp, cv, pin, sub_bounds, positions[a], sub, env[ai], conv[a], excess_scale[a],
                                      drive_acc[a], drive_vel[a], toward_zero[a], tol)
             else:
                 choice = viterbi(cp, cv, pin, positions[a], sub, env[ai], conv[a], excess_scale[a], drive_acc[a],
-                                 drive_vel[a], toward_zero[a], tol, True, prox)
+                                 drive_vel[a], toward_zero[a], tol)
             for k in range(kw):
                 out_p[a, lo + k] = int(cp[k, choice[k]])
                 out_v[a, lo + k] = int(cv[k, choice[k]])
