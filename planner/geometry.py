@@ -394,6 +394,15 @@ def _size_kernel(
     dev = np.zeros(corners)
     length = np.empty(shapes)
     dev1 = np.empty(shapes)
+    # the curvature's terms that do not depend on the corner
+    f1_2, f1g1_2, g1_2 = np.empty((shapes, samples)), np.empty((shapes, samples)), np.empty((shapes, samples))
+    cross1 = np.empty((shapes, samples))
+    for r in range(shapes):
+        for t in range(samples):
+            f1_2[r, t] = f1[r, t] ** 2
+            f1g1_2[r, t] = 2.0 * f1[r, t] * g1[r, t]
+            g1_2[r, t] = g1[r, t] ** 2
+            cross1[r, t] = abs(f1[r, t] * g2[r, t] - g1[r, t] * f2[r, t])
     for c in range(corners):
         b11, b12, b22 = a11[c], a12[c], a22[c]
         sin = np.sqrt(max(1.0 - cos[c] * cos[c], 0.0))
@@ -414,8 +423,8 @@ def _size_kernel(
                 lam2 = min(max(p_y2 / max(b22, 1e-300), 0.0), 1.0)
                 d2 = pp - 2.0 * lam2 * p_y2 + lam2 * lam2 * b22
                 dist_legs = max(dist_legs, np.sqrt(max(min(d1, d2), 0.0)))
-                speed2 = f1[r, t] ** 2 + 2.0 * f1[r, t] * g1[r, t] * cos[c] + g1[r, t] ** 2
-                cross = abs(f1[r, t] * g2[r, t] - g1[r, t] * f2[r, t]) * sin
+                speed2 = f1_2[r, t] + f1g1_2[r, t] * cos[c] + g1_2[r, t]
+                cross = cross1[r, t] * sin
                 kmax = max(kmax, cross / max(speed2, 1e-300) ** 1.5 if speed2 > 1e-24 else np.inf)
             dev1[r] = max(dist_c, dist_legs)
             length[r] = min(1.0 / max(dev1[r], 1e-300), half[c])
