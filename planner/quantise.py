@@ -406,7 +406,7 @@ def sample_bounds(
 @kernel
 def _segment_ticks(p_plan: FloatArray, t0: int, t1: int, terms: FloatArray, at: int) -> None:
     """For the ticks 1..T of the segment t0..t1, columns at..at+T-1 of terms: the Hermite basis h00, h01,
-    h10, h11 (the formulas of encoder._hermite_basis), the whole count below the plan, the planned demand
+    h10, h11 (the formulas of encoder._basis), the whole count below the plan, the planned demand
     (rounded to nearest) relative to that whole count (a float32, exact as a float64), the plan's
     truncation."""
     nt = t1 - t0
