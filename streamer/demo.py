@@ -197,13 +197,15 @@ def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any
 
 @contextlib.contextmanager
 def drive_process(cell: CellConfig, config: Path | None, axes: int | None) -> Iterator[subprocess.Popen[str]]:
-    """`pvt sim` on the cell's bus as a second process; stopped with SIGTERM (its clean shutdown)."""
+    """`pvt sim` on the cell's bus as a second process; stopped with SIGTERM (its clean shutdown). Its
+    standard input is a pipe from this process: if this process dies without stopping it (SIGKILL), the
+    pipe closes and the drives leave the bus (`--stop-on-stdin-eof`) rather than answer the next master."""
     cmd = [sys.executable, "-m", "streamer.cli", "sim", "--config", str(config or ROOT / "configs" / "demo.toml"),
            "--bus", f"{cell.bus.interface}:{cell.bus.channel}", "--bitrate", str(cell.bus.bitrate),
-           "--sync-ms", str(cell.sync_period_ms)]
+           "--sync-ms", str(cell.sync_period_ms), "--stop-on-stdin-eof"]
     if axes is not None:
         cmd += ["--axes", str(axes)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert proc.stdout is not None
         first = proc.stdout.readline()  # "pvt sim: cell ..." once the drives are on the bus
@@ -219,6 +221,8 @@ def drive_process(cell: CellConfig, config: Path | None, axes: int | None) -> It
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        if proc.stdin is not None:
+            proc.stdin.close()
 
 
 @contextlib.contextmanager

@@ -2,10 +2,14 @@
 
     pvt sim --config configs/demo.toml                       # the cell's [bus] (default: virtual)
     pvt sim --config CELL --bus socketcan:vcan0 --bitrate 1000000
+    pvt sim --config CELL --stop-on-stdin-eof < pipe          # leave the bus with the process feeding the pipe
 
 The drives (bus/sim: one canopen LocalNode + pure drive model per axis) boot (boot-up message), answer
 SDO, follow NMT, SYNC and RPDOs, and send TPDOs, EMCYs and heartbeats, until SIGINT or SIGTERM (or
-`--duration` seconds); then they leave the bus cleanly. A second process (`pvt serve`, any CANopen
+`--duration` seconds, or with `--stop-on-stdin-eof` until standard input closes); then they leave the bus
+cleanly. A parent that starts the drives (`pvt demo`) gives them a pipe for standard input: when the parent
+ends, however it ends (SIGKILL too), the pipe closes and the drives leave the bus with it, instead of
+answering the next master on it. A second process (`pvt serve`, any CANopen
 master) talks to them over the same bus. On the `virtual` interface only masters in this process can
 reach them; across processes use socketcan (vcan0).
 """
@@ -43,6 +47,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--sync-gap-factor", type=float, default=1.5,
                    help="SYNC loss when no SYNC comes within this many periods (0x1006) while ip mode "
                         "is active (default 1.5)")
+    p.add_argument("--stop-on-stdin-eof", action="store_true",
+                   help="stop when standard input closes (a parent process holds it open: the drives leave the "
+                        "bus when that process ends, even if it is killed)")
     p.set_defaults(func=run)
     return p
 
@@ -69,6 +76,8 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, on_signal)
+    if getattr(args, "stop_on_stdin_eof", False):
+        threading.Thread(target=_stop_at_eof, args=(sys.stdin, stop), name="pvt-sim-stdin", daemon=True).start()
     try:
         sim = SimulatedCell(cell, bus_config, motor=PRESETS[args.motor], sync_gap_factor=args.sync_gap_factor)
     except ValueError as e:
@@ -92,3 +101,13 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             signal.signal(signum, handler)
     print("pvt sim: stopped", flush=True)
     return 0
+
+
+def _stop_at_eof(stream: Any, stop: threading.Event) -> None:
+    """Read `stream` to its end (whatever is written to it is ignored), then stop the drives."""
+    try:
+        while stream.read(4096):
+            pass
+    except (OSError, ValueError):
+        pass  # closed under us: the same end
+    stop.set()

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
+import subprocess
+import sys
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -81,3 +85,57 @@ def test_benchmark_scenario_runs_a_short_stream() -> None:
     demo = load_cell(DEMO)
     out = bench_sim.run(replace(demo.with_axes(2), sync_period_ms=5), 0.3)
     assert out["ticks"] == 2 * 300 and out["ratio"] > 0
+
+
+def test_pvt_sim_stops_when_its_standard_input_closes() -> None:
+    """`--stop-on-stdin-eof`: the drives leave the bus when the pipe they read closes."""
+    stdin_r, stdin_w = os.pipe()
+    args = parse(["--config", str(DEMO), "--bus", f"virtual:{unique_channel('cli-sim-eof')}", "--stop-on-stdin-eof"])
+    stop = threading.Event()
+    result: list[int] = []
+    with os.fdopen(stdin_r, "rb") as stream:
+        saved, sys.stdin = sys.stdin, stream  # type: ignore[assignment]
+        try:
+            thread = threading.Thread(target=lambda: result.append(cli_sim.run(args, stop)))
+            thread.start()
+            assert not stop.wait(1.0)  # the pipe is open: the drives stay
+            os.close(stdin_w)
+            thread.join(timeout=20)
+        finally:
+            sys.stdin = saved
+            stop.set()
+    assert not thread.is_alive() and result == [0]
+
+
+def _gone(pid: int) -> bool:
+    """True once `pid` has exited (a zombie waiting for its reaper counts: it is off the bus)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
+def test_the_demo_drive_process_leaves_the_bus_when_the_demo_is_killed(tmp_path: Path) -> None:
+    """`pvt demo` killed with SIGKILL cannot stop its `pvt sim` child; the child's standard input, a pipe
+    from the demo, closes with it, and the drives leave the bus instead of answering the next master."""
+    script = tmp_path / "killed_demo.py"
+    script.write_text(
+        "import os, signal\n"
+        "from planner.config import load_cell\n"
+        "from streamer.demo import drive_process\n"
+        f"cell = load_cell({str(DEMO)!r})\n"
+        f"with drive_process(cell, {str(DEMO)!r}, None) as proc:\n"
+        "    print(proc.pid, flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    parent = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                            cwd=DEMO.parents[1])
+    assert parent.returncode == -signal.SIGKILL, parent.stderr
+    child = int(parent.stdout.split()[0])
+    try:
+        assert wait_until(lambda: _gone(child), timeout_s=20)
+    finally:
+        if not _gone(child):
+            os.kill(child, signal.SIGKILL)
