@@ -1081,8 +1081,9 @@ class JobService:
             finally:
                 post.done.set()
             for ev in post.result:
-                self._put(keys.job_events(self.cell, ev.job_id), ev.to_wire(self.cell), reliable=True)
+                # logged before it is published: whoever sees the event (a client's wait) finds its line logged
                 self._log_event(ev)
+                self._put(keys.job_events(self.cell, ev.job_id), ev.to_wire(self.cell), reliable=True)
 
     def _log_event(self, ev: Event) -> None:
         """One log line per job milestone: accepted, started, cancelling, done, failed, cancelled."""
