@@ -43,6 +43,7 @@ from planner.uniform import coarsest_uniform
 ROOT = Path(__file__).resolve().parent.parent
 LATENCY_RUNS = 11
 KINDS = ("path", "path-sharp", "move", "timed", "pvt")
+DURATION_BANDS = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 1.0e9))
 
 
 def benchmark_path(cell: CellConfig, n_waypoints: int = 20, seed: int = 7) -> Job:
@@ -309,6 +310,7 @@ def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]
         "time_median": statistics.median(tim) if tim else float("nan"),
         "time_p90": float(np.quantile(tim, 0.9)) if tim else float("nan"),
         "time_worst": max(tim, default=float("nan")),
+        "timed_rows": [(r["duration_s"], r["time_ratio"]) for r in rows if "time_ratio" in r],
         "slowed": sum(1 for r in rows if r["time_scale"] > 1.0),
     }
 
@@ -370,6 +372,17 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             for r in s["refusals"]:
                 print(f"    refused: {r}")
         print("slowed: jobs played slower than planned because the encoding needed it (encode_with_retries)")
+        timed = [x for s in stats for x in s["timed_rows"]]
+        if timed:
+            # every ms of the motion is verified, toppra's solve does not depend on the duration
+            parts = []
+            for lo, hi in DURATION_BANDS:
+                band = [ratio for d, ratio in timed if lo <= d < hi]
+                if band:
+                    label = f"{lo:g}-{hi:g} s" if hi < 1.0e9 else f"over {lo:g} s"
+                    parts.append(f"{label}: {statistics.median(band):.2f} (p90 "
+                                 f"{float(np.quantile(band, 0.9)):.2f}, {len(band)} paths)")
+            print("plan/toppra by the motion's duration, medians: " + "; ".join(parts))
     return {"rows": rows, "latency": lat, "corpus": stats}
 
 
