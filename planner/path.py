@@ -711,7 +711,7 @@ def straight_run(geom: GeometricPath, vlim: FloatArray, alim: FloatArray, time_s
         slope[:, None] * w_right[None, :],
         switches,
         switches,
-        optimal * time_scale,
+        optimal / time_scale,  # `optimal` is of the slowed-down motion (v and a above); the optimum is not
         0,
         0,
     )

@@ -107,3 +107,20 @@ def test_the_blend_margin_spares_a_repair(cell: CellConfig, monkeypatch: pytest.
     assert plan_job(job_from_dict(SAME_DURATION, cell), cell).info["topp_solves"] == 1
     monkeypatch.setattr(path_mod, "BLEND_MARGIN", 0.0)
     assert plan_job(job_from_dict(SAME_DURATION, cell), cell).info["topp_solves"] >= 2
+
+
+@pytest.mark.parametrize("waypoints", [[[0.0, 0.0], [0.6, 0.3]], [[0.0, 0.0], [0.6, 0.3], [0.1, 0.5]]],
+                         ids=["straight run", "blended run"])
+def test_the_reported_optimum_does_not_depend_on_the_slow_down(waypoints: list[list[float]]) -> None:
+    """`optimal_s` is the optimum on the path, whatever `time_scale` the encoder asks for: a straight run's
+    closed form computes it from the slowed-down limits, and once reported it times time_scale squared."""
+    from planner.geometry import blended_runs
+
+    vlim, alim = np.array([2.0, 1.5]), np.array([8.0, 6.0])
+    runs, _corners = blended_runs(np.array(waypoints), vlim, np.full(2, 0.01), alim, 10.0)
+    chain = path_mod.ChainSpec(np.full(2, 1e-3), 10, 200, np.full(2, -5.0), np.full(2, 5.0))
+    cpu = np.full(2, 65189.86)
+    plain = path_mod.plan_path(runs, cpu, vlim, alim, chain=chain)
+    slower = path_mod.plan_path(runs, cpu, vlim, alim, time_scale=2.0, chain=chain)
+    assert slower[0].duration_ms >= 1.9 * plain[0].duration_ms  # it is played slower
+    assert slower[1]["optimal_s"] == pytest.approx(plain[1]["optimal_s"], rel=1e-9)
