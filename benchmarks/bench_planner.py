@@ -2,7 +2,8 @@
 against baselines measured in the same run (`python -m benchmarks planner`, part of `make bench`).
 
 Two tables: every example job of configs/jobs/ plus a 20-waypoint 6-axis path, then a corpus of random
-jobs of each kind (`--jobs`, default 200 per kind: paths, paths with sharp corners, moves, timed, pvt).
+jobs of each kind (`--jobs`, default 200 per kind: paths, paths with sharp corners, moves, timed, pvt,
+and small paths: 2-200 counts between waypoints, as in fine positioning).
 
 - points / uniform: the encoding's PVT points over those of the coarsest uniform grid that meets the same
   tolerance on the same plan (planner/uniform.py: rounded values, checked at every ms). Target <= 1 for
@@ -42,7 +43,7 @@ from planner.uniform import coarsest_uniform
 
 ROOT = Path(__file__).resolve().parent.parent
 LATENCY_RUNS = 11
-KINDS = ("path", "path-sharp", "move", "timed", "pvt")
+KINDS = ("path", "path-sharp", "move", "timed", "pvt", "path-small")
 DURATION_BANDS = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 1.0e9))
 
 
@@ -161,6 +162,14 @@ def random_job(kind: str, rng: np.random.Generator, cell: CellConfig) -> dict[st
                 p[0] = edge[0]
                 wp.append(p)
         job: dict[str, Any] = {"kind": "path", "axes": axes, "waypoints": np.array(wp).tolist()}
+    elif kind == "path-small":  # fine positioning: 2-200 counts between waypoints, either way on each axis
+        axes = _axes(rng, cell, 3)
+        rows = int(rng.integers(3, 40))
+        cpu = np.array([cell.axis(a).counts_per_unit for a in axes])
+        counts = np.exp(rng.uniform(np.log(2.0), np.log(200.0))) * rng.uniform(0.3, 1.0, (rows - 1, len(axes)))
+        steps = rng.choice([-1.0, 1.0], size=(rows - 1, len(axes))) * counts / cpu
+        wp = _inside(rng, cell, axes, 0.4, 0.6) + np.vstack([np.zeros(len(axes)), np.cumsum(steps, axis=0)])
+        job = {"kind": "path", "axes": axes, "waypoints": wp.tolist()}
     elif kind == "move":
         axes = _axes(rng, cell)
         job = {

@@ -725,8 +725,23 @@ def encode(
     else:
         times = _split_long(np.asarray(times_ms, dtype=np.int64), max_seg)
     ends = (p_first, v_first, p_last, v_last)
-    if not (times_ms is None and variant == 0 and uniform_fallback):
+    if not (times_ms is None and uniform_fallback):
         return _quantise(ref, times, scales, tol, ends)
+    if variant != 0:
+        # a retry's placement, and the uniform grids with fewer knots: the coarsest uniform grid that
+        # keeps every promise bounds every encoding, retries included (a small path slowed down for its
+        # acceleration budget had 4 knots where 3 on a uniform grid passed)
+        placed: tuple[Knots, Reconstruction] | None = None
+        error: EncodingNeedsTime | EncodingFailed | None = None
+        try:
+            placed = _quantise(ref, times, scales, tol, ends)
+        except (EncodingNeedsTime, EncodingFailed) as e:
+            error = e
+        placed = _uniform_alternative(ref, scales, tol, ends, placed, times.size)
+        if placed is None:
+            assert error is not None
+            raise error
+        return placed
     # a plan made of whole cubics (a jerk-limited profile's phases, a user's rows, a path's chain)
     # often allows segments beyond `max_seg` (a worst case of the velocity quantisation), and a uniform
     # grid may beat the greedy placement: try them too, keep the fewest knots that pass

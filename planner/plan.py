@@ -61,7 +61,10 @@ if TYPE_CHECKING:
     from planner.path import ChainSpec
     from planner.travel import CruiseState
 
-MAX_SLOWDOWNS = 6  # attempts at playing a planned motion slower when the quantisation needs it
+# attempts at encoding a planned motion: the placements (3, or 4 with a path's smooth plan), then slower
+# replays (`encode_with_retries`). Measured on 2700 random paths of 2-200 counts between waypoints
+# (tools/small_paths.py): with 6, 5.5 % of them were refused (1.46x slower at most); with 15, none
+MAX_SLOWDOWNS = 15
 TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
 MIN_BLEND_SEGMENTS = 3.0  # a blend shorter than this many shortest segments is an exact stop (geometry)
 BLEND_SHARE = 0.8  # of the free path tolerance: the blends; the rest, the chain (lines_geometry)
@@ -335,7 +338,8 @@ def encode_with_retries(
     the plan as built; with `smooth_differs` (path jobs, whose `build(f, True)` is another plan: a chain
     without short segments on a profile with its switch pieces merged more widely, which its repairs
     often make a few % slower), the long placement is tried on that smooth plan only after it failed on
-    the first one; then slower replays of the smooth plan.
+    the first one; then slower replays of the smooth plan, each by the factor the encoder asks for
+    (at least 5 %), raised to the power 1, 2, 3, ... every third replay.
 
     `info_out` receives `time_scale` (1.0 unless the motion had to be played slower),
     `encode_variant` (1 or 2 when the encoder needed its conservative or long placement) and
@@ -347,6 +351,7 @@ def encode_with_retries(
     last = ""
     variant = 0
     smooth = False
+    slowdowns = 0
     ref = build(factor, False)
     # the placements (3, or 4 with the smooth plan), then up to 3 slower replays
     for _attempt in range(MAX_SLOWDOWNS + (1 if smooth_differs else 0)):
@@ -385,7 +390,11 @@ def encode_with_retries(
                 raise PlanningError(
                     INFEASIBLE, f"the drive cannot reproduce this timing: {last}", detail={"stage": "encode"}
                 ) from None
-            factor *= max(e.factor, 1.05)
+            # small steps first (the least slow-down that passes), longer ones after every third: the
+            # acceleration excess of a motion of a few counts is not monotone in the slow-down (measured:
+            # 5.7 % of the limit at 1.0x, 8.3 % at 1.2x, 18.9 % at 1.21x, 5.1 % at 1.6x, none at 2.36x)
+            slowdowns += 1
+            factor *= max(e.factor, 1.05) ** (1 + (slowdowns - 1) // 3)
             ref = build(factor, True)
         except EncodingFailed as e:
             where = f" on axis {axes[e.axis]!r}" if 0 <= e.axis < len(axes) else ""

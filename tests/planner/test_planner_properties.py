@@ -92,6 +92,24 @@ def path_jobs(draw: st.DrawFn, cell: CellConfig) -> dict[str, Any]:
 
 
 @st.composite
+def small_path_jobs(draw: st.DrawFn, cell: CellConfig) -> dict[str, Any]:
+    """Fine positioning: 2-200 counts between waypoints, either way on each of 1-3 axes, up to 40 waypoints
+    (moves of a few ms each, where the quantisation of positions and velocities weighs most)."""
+    axes = _axes(draw, cell, 3)
+    rows = draw(st.integers(3, 40))
+    size = draw(st.floats(2.0, 200.0))
+    cpu = np.array([cell.axis(a).counts_per_unit for a in axes])
+    steps = np.array([[draw(st.sampled_from([-1.0, 1.0])) * size * draw(st.floats(0.3, 1.0)) for _ in axes]
+                      for _ in range(rows - 1)]) / cpu
+    start = np.array([_position(draw, cell, a, 0.4, 0.6) for a in axes])
+    wp = start + np.vstack([np.zeros(len(axes)), np.cumsum(steps, axis=0)])
+    job: dict[str, Any] = {"kind": "path", "axes": axes, "waypoints": wp.tolist()}
+    if draw(st.integers(0, 3)) == 0:
+        job["tolerance_counts"] = draw(st.integers(1, 4))
+    return job
+
+
+@st.composite
 def move_jobs(draw: st.DrawFn, cell: CellConfig) -> dict[str, Any]:
     axes = _axes(draw, cell)
     start = [_position(draw, cell, a, 0.3, 0.7) for a in axes]
@@ -187,6 +205,26 @@ def test_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     if "optimal_s" in traj.info:
         runs = traj.info.get("runs", 1.0)
         assert traj.duration_s <= 1.02 * traj.info["time_scale"] * traj.info["optimal_s"] + 0.001 * runs
+
+
+@SETTINGS
+@given(st.data())
+def test_small_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
+    """Never refused (before: 5.5 % of such paths, where 1.46x slower was not enough for the acceleration
+    budget), and never more points than the uniform grid that keeps the same promises (before: a slowed
+    replay was not compared with it)."""
+    jd = data.draw(small_path_jobs(cell8))
+    job, traj = _plan(cell8, jd)
+    wp = np.array(jd["waypoints"])
+    assert_invariants(traj, cell8, target_counts=_counts(cell8, jd["axes"], wp[-1]))
+    assert_path_within(traj, job, cell8)
+    assert_not_more_than_uniform(traj, job, cell8)
+    # each rest-to-rest run of a few ms has its phases on whole ms, and a blended run of a few tens of ms
+    # its chain's repairs (measured on 1200 random small paths: at most 3.0 ms per run beyond 1.02 x the
+    # optimum, median 1.09 x); the quantisation may need the motion slower (at most 4.2x on 2700 of them)
+    if "optimal_s" in traj.info:  # (a path within a count is a move)
+        runs = traj.info.get("runs", 1.0)
+        assert traj.duration_s <= 1.02 * traj.info["time_scale"] * traj.info["optimal_s"] + 0.004 * runs
 
 
 @SETTINGS
