@@ -63,7 +63,8 @@ if TYPE_CHECKING:
 
 # attempts at encoding a planned motion: the placements (3, or 4 with a path's smooth plan), then slower
 # replays (`encode_with_retries`). Measured on 2700 random paths of 2-200 counts between waypoints
-# (tools/small_paths.py): with 6, 5.5 % of them were refused (1.46x slower at most); with 15, none
+# (benchmarks/bench_planner.py's path-small corpus): with 6, 5.5 % of them were refused (1.46x slower at
+# most); with 15 and the growing steps, none
 MAX_SLOWDOWNS = 15
 TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
 MIN_BLEND_SEGMENTS = 3.0  # a blend shorter than this many shortest segments is an exact stop (geometry)
