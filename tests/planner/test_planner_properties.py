@@ -221,7 +221,7 @@ def test_small_path_jobs(cell8: CellConfig, data: st.DataObject) -> None:
     assert_not_more_than_uniform(traj, job, cell8)
     # each rest-to-rest run of a few ms has its phases on whole ms, and a blended run of a few tens of ms
     # its chain's repairs (measured on 1200 random small paths: at most 3.0 ms per run beyond 1.02 x the
-    # optimum, median 1.09 x); the quantisation may need the motion slower (at most 4.2x on 2700 of them)
+    # optimum, median 1.09 x); the quantisation may need the motion slower (at most 2.4x on 2700 of them)
     if "optimal_s" in traj.info:  # (a path within a count is a move)
         runs = traj.info.get("runs", 1.0)
         assert traj.duration_s <= 1.02 * traj.info["time_scale"] * traj.info["optimal_s"] + 0.004 * runs
