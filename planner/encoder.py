@@ -727,30 +727,20 @@ def encode(
     ends = (p_first, v_first, p_last, v_last)
     if not (times_ms is None and uniform_fallback):
         return _quantise(ref, times, scales, tol, ends)
-    if variant != 0:
-        # a retry's placement, and the uniform grids with fewer knots: the coarsest uniform grid that
-        # keeps every promise bounds every encoding, retries included (a small path slowed down for its
-        # acceleration budget had 4 knots where 3 on a uniform grid passed)
-        placed: tuple[Knots, Reconstruction] | None = None
-        error: EncodingNeedsTime | EncodingFailed | None = None
-        try:
-            placed = _quantise(ref, times, scales, tol, ends)
-        except (EncodingNeedsTime, EncodingFailed) as e:
-            error = e
-        placed = _uniform_alternative(ref, scales, tol, ends, placed, times.size)
-        if placed is None:
-            assert error is not None
-            raise error
-        return placed
     # a plan made of whole cubics (a jerk-limited profile's phases, a user's rows, a path's chain)
     # often allows segments beyond `max_seg` (a worst case of the velocity quantisation), and a uniform
-    # grid may beat the greedy placement: try them too, keep the fewest knots that pass
+    # grid may beat the greedy placement: try them too, keep the fewest knots that pass. A retry
+    # (variant 1, 2) keeps its own placement, and is compared with the uniform grids too: the coarsest
+    # uniform grid that keeps every promise bounds every encoding (a small path slowed down for its
+    # acceleration budget had 4 knots where 3 on a uniform grid passed)
+    grids = [times]
+    if variant == 0:
+        longest = segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS
+        grids.append(place_knots(ref, scales, share * tol, min_seg, longest, acc_share))
     failure: EncodingNeedsTime | EncodingFailed | None = None
     found: tuple[Knots, Reconstruction] | None = None
-    longest = segment_cap(scales, tol) or SEGMENT_TIME_MAX_MS
     # fewest knots first: where that placement passes, the other (more knots) is not quantised at all
-    long_grid = place_knots(ref, scales, share * tol, min_seg, longest, acc_share)
-    for grid in sorted((times, long_grid), key=len):
+    for grid in sorted(grids, key=len):
         if found is not None and grid.size >= found[0].times_ms.size:
             continue
         try:
