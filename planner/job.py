@@ -808,7 +808,7 @@ def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
         if name in seen:
             raise PlanningError(AXIS_ID, f"axes[{j}] {name!r} is listed twice", path=f"axes[{j}]")
         seen.add(name)
-    return tuple(value)
+    return tuple(str(name) for name in value)  # plain str: a numpy string would print as np.str_('j1')
 
 
 def _limits(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> dict[str, tuple[float, ...]]:

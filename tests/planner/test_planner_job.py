@@ -16,6 +16,7 @@ from planner_checks import CONFIGS
 from planner.config import CellConfig
 from planner.errors import PlanningError
 from planner.job import Job, MoveData, PathData, job_from_dict, job_to_dict, load_job
+from planner.plan import plan_job
 
 AX3 = ["j1", "j2", "j3"]
 
@@ -360,3 +361,15 @@ def test_load_job_errors(cell: CellConfig, tmp_path: Path) -> None:
     with pytest.raises(PlanningError) as e:
         load_job(toml, cell)
     assert e.value.code == "NONFINITE" and e.value.path == "waypoints[1][0]"
+
+
+def test_axis_names_from_numpy_are_plain_strings_in_the_job_and_its_messages(cell: CellConfig) -> None:
+    """A Python caller may pass numpy strings (np.str_ is a str): the job keeps plain ones, so messages
+    name the axis as 'j1', not np.str_('j1')."""
+    axes = list(np.array(["j1", "j2"]))
+    job = job_from_dict({"kind": "timed", "axes": axes, "times": [0.0, 0.01],
+                         "positions": [[0.0, 0.0], [0.5, 0.0]]}, cell)
+    assert all(type(a) is str for a in job.axes)
+    with pytest.raises(PlanningError) as e:
+        plan_job(job, cell)
+    assert "'j1'" in e.value.message and "np.str_" not in e.value.message
