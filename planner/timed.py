@@ -115,7 +115,8 @@ def check_user_timing(
             lim = vlim_counts[i] if what == "velocity" else alim_counts[i]
             raise PlanningError(
                 INFEASIBLE,
-                f"axis {axes[i]!r} needs a {what} of {value * scale / cpu[i]:.4g}{unit} at "
+                f"axis {axes[i]!r} needs {'an' if what[0] in 'aeiou' else 'a'} {what} of "
+                f"{value * scale / cpu[i]:.4g}{unit} at "
                 f"t = {tick / 1000:.3f} s, above its limit {lim * scale / cpu[i]:.4g}{unit} "
                 f"(the job's own timing is kept: slow it down)",
                 path="times",
