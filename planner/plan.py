@@ -354,7 +354,7 @@ def encode_with_retries(
     smooth = False
     slowdowns = 0
     ref = build(factor, False)
-    # the placements (3, or 4 with the smooth plan), then up to 3 slower replays
+    # the placements (3, or 4 with the smooth plan), then the slower replays (MAX_SLOWDOWNS in all)
     for _attempt in range(MAX_SLOWDOWNS + (1 if smooth_differs else 0)):
         try:
             knots, rec = encode(

@@ -59,8 +59,15 @@ def constraint_rows(
     derivatives at the `THETAS` of each interval: q1, q2 (N+1, k, d); `deltas` (N+1,) the interval
     lengths (0 after the last gridpoint). Rows: joint acceleration <= alim and >= -alim, joint velocity
     squared <= vlim^2. `row_scale` (N+1, 2) >= 1 tightens a gridpoint's acceleration and velocity rows."""
-    scale = np.ones((q1.shape[0], 2)) if row_scale is None else np.ascontiguousarray(row_scale, dtype=np.float64)
-    return _rows(np.ascontiguousarray(q1), np.ascontiguousarray(q2), deltas, vlim, alim, scale, THETAS)
+    return _rows(np.ascontiguousarray(q1), np.ascontiguousarray(q2), deltas, vlim, alim,
+                 _row_scales(row_scale, q1.shape[0]), THETAS)
+
+
+def _row_scales(row_scale: FloatArray | None, gridpoints: int) -> FloatArray:
+    """`row_scale` as the kernels take it: (N+1, 2), contiguous, ones where none is given."""
+    if row_scale is None:
+        return np.ones((gridpoints, 2))
+    return np.ascontiguousarray(row_scale, dtype=np.float64)
 
 
 @kernel
@@ -130,24 +137,18 @@ def solve(samples: PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: F
     """The time-optimal path velocities s_dot at the gridpoints, rest to rest, under the joint velocity
     `vlim` and acceleration `alim` limits (per axis; `row_scale` tightens them per gridpoint, see
     `constraint_rows`). Raises PlanningError(INFEASIBLE) when no admissible profile exists."""
-    scale = _NO_SCALE if row_scale is None else np.ascontiguousarray(row_scale, dtype=np.float64)
-    sd, status, where = _solve(samples.q1, samples.q2, samples.deltas, vlim, alim, scale, row_scale is not None,
-                               THETAS)
+    sd, status, where = _solve(samples.q1, samples.q2, samples.deltas, vlim, alim,
+                               _row_scales(row_scale, samples.q1.shape[0]), THETAS)
     _check(status, where, samples.gridpoints.size)
     return sd
-
-
-_NO_SCALE = np.ones((1, 2))
 
 
 @kernel
 def _solve(
     q1: FloatArray, q2: FloatArray, deltas: FloatArray, vlim: FloatArray, alim: FloatArray, scale: FloatArray,
-    scaled: bool, thetas: FloatArray,
+    thetas: FloatArray,
 ) -> tuple[FloatArray, int, int]:
     """`solve` in one call: the rows, the velocity bound, the passes, s_dot."""
-    if not scaled:
-        scale = np.ones((q1.shape[0], 2))
     a, b, g = _rows(q1, q2, deltas, vlim, alim, scale, thetas)
     x, status, where = _passes(a, b, g, _velocity_bound(q1, vlim), deltas[:-1].copy())
     return np.sqrt(np.maximum(x, 0.0)), status, where

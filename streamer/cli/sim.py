@@ -76,7 +76,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             previous[sig] = signal.signal(sig, on_signal)
-    if getattr(args, "stop_on_stdin_eof", False):
+    if args.stop_on_stdin_eof:
         threading.Thread(target=_stop_at_eof, args=(sys.stdin, stop), name="pvt-sim-stdin", daemon=True).start()
     try:
         sim = SimulatedCell(cell, bus_config, motor=PRESETS[args.motor], sync_gap_factor=args.sync_gap_factor)
