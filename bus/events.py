@@ -23,6 +23,16 @@ class Sync:
 
 
 @dataclass(frozen=True)
+class SyncOnWire:
+    """SYNC `count` is on the wire, and every frame the bus carried before it has been fed (a runtime that
+    feeds the core each `Sync` ahead of the wire says so when the SYNC goes out: answers overdue are judged
+    from here, not from the Sync fed ahead)."""
+
+    count: int
+    t: float
+
+
+@dataclass(frozen=True)
 class BufferStatus:
     """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02.
 

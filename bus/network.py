@@ -39,10 +39,12 @@ are the python-can frame timestamps (`time.time()` base on the virtual and socke
 
 from __future__ import annotations
 
+import contextlib
+import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import can
@@ -51,6 +53,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from bus import cob, codec
 from bus.budget import cell_feedback_every
+from bus.engine import EngineBus, EngineSpec
 from bus.errors import (
     BUS_OPEN,
     CALLBACK,
@@ -82,6 +85,8 @@ NOTIFIER_CYCLE_S = 0.1  # canopen's default 1 s makes every close() wait up to 1
 
 def open_bus(bus_config: BusConfig, **extra: Any) -> can.BusABC:
     """A python-can bus from `BusConfig` (interface, channel, bitrate). Raises BusError(BUS_OPEN)."""
+    import bus.ipc  # noqa: F401  (our "ipc" interface, for processes that did not install the entry point)
+
     try:
         return can.Bus(interface=bus_config.interface, channel=bus_config.channel, bitrate=bus_config.bitrate,
                        **extra)
@@ -90,11 +95,32 @@ def open_bus(bus_config: BusConfig, **extra: Any) -> can.BusABC:
                        detail={"interface": bus_config.interface, "channel": str(bus_config.channel)}) from e
 
 
+def open_engine(spec: EngineSpec) -> EngineBus:
+    """The cycle engine process on `spec`'s bus (bus/engine.py). Raises BusError(BUS_OPEN)."""
+    if spec.interface == "virtual":
+        raise BusError(BUS_OPEN, "the cycle engine runs in a process of its own and python-can's virtual bus does "
+                       "not leave its process: use the ipc bus (interface 'ipc', bus/ipc.py) or socketcan",
+                       detail={"interface": spec.interface})
+    try:
+        return EngineBus(spec=spec)
+    except Exception as e:
+        raise BusError(BUS_OPEN, f"cannot start the cycle engine on {spec.interface}:{spec.channel}: {e}",
+                       detail={"interface": spec.interface, "channel": str(spec.channel)}) from e
+
+
+RECEIVE_PRIORITY = 60  # with the cycle engine: the receive thread's SCHED_FIFO priority (below the engine's 80)
+
+
 class _MasterListener(can.Listener):
     def __init__(self, adapter: MasterAdapter):
         self.adapter = adapter
+        self._prioritised = adapter.receive_priority is None
 
     def on_message_received(self, msg: can.Message) -> None:
+        if not self._prioritised:
+            self._prioritised = True
+            with contextlib.suppress(PermissionError, OSError):  # best-effort where refused (the engine says so)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.adapter.receive_priority or 1))
         self.adapter._on_message(msg)
 
     def on_error(self, exc: Exception) -> None:
@@ -118,6 +144,8 @@ class MasterAdapter:
         sdo_attempts: int = 1,
         eds_path: str | None = None,
         clock: Callable[[], float] = time.time,
+        engine: EngineSpec | None = None,
+        receive_priority: int | None = None,
     ):
         self.cell = cell
         self.bus_config = bus_config or cell.bus
@@ -135,7 +163,17 @@ class MasterAdapter:
         self._emit_lock = threading.RLock()
         self._closed = False
         self._own_bus = bus is None
+        # with `engine`, a process of its own owns the bus and sends SYNC and each cycle's frames (bus/engine.py)
+        self.engine: EngineBus | None = None
+        if bus is None and engine is not None:
+            self.engine = open_engine(engine)
+            if receive_priority is None:
+                receive_priority = RECEIVE_PRIORITY  # the way in of the cycle's answers
+            bus = self.engine
+            self._own_bus = True
         self._bus = bus if bus is not None else open_bus(self.bus_config, receive_own_messages=True)
+        # SCHED_FIFO of the receive thread, where permitted (None: as it is); with the engine by default
+        self.receive_priority = receive_priority
         self._network = canopen.Network(self._bus)
         self._network.NOTIFIER_CYCLE = NOTIFIER_CYCLE_S
         listeners: list[Any] = self._network.listeners
@@ -385,6 +423,13 @@ class MasterAdapter:
             self._sync_period_s = period
             self._sync_started_at = self.now()
             self._sync_echo_warned = False
+        if self.engine is not None:
+            try:
+                self.engine.start_sync(period, range(1, fb.counter_overflow + 1) if fb is not None else None)
+            except Exception as e:
+                raise BusError(SEND_FAILED, f"cannot start SYNC in the cycle engine: {type(e).__name__}: {e}") from None
+            self._sync_task = self.engine
+            return
         try:
             task: Any = self._bus.send_periodic(msgs, period, autostart=False)
             if hasattr(task, "on_error"):  # python-can's thread-based task: report a refused SYNC
@@ -404,8 +449,33 @@ class MasterAdapter:
         task, self._sync_task = self._sync_task, None
         with self._emit_lock:
             self._sync_started_at = None
-        if task is not None:
+        if task is None:
+            return
+        if task is self.engine:
+            self.engine.stop_sync()
+        else:
             task.stop()
+
+    def send_at(self, cycle: int, frames: Sequence[tuple[int, bytes]]) -> None:
+        """With the cycle engine: send `frames` right after SYNC `cycle` (the count of `Sync` events since
+        `start_sync`), or at once when it is out already (the engine reports it: `EngineBus.on_late`).
+        Without the engine: at once."""
+        self._check_open()
+        self.check()
+        if self.engine is None:
+            for cob_id, data in frames:
+                self.send(cob_id, data)
+            return
+        try:
+            self.engine.send_at(cycle, frames)
+        except Exception as e:
+            raise BusError(SEND_FAILED, f"the cycle engine refused frames for SYNC {cycle}: {type(e).__name__}: {e}",
+                           detail={"cycle": cycle}) from None
+
+    @property
+    def sync_schedule(self) -> tuple[float, float] | None:
+        """(time of SYNC 0, period) of the engine's SYNC schedule; None without the engine or SYNC."""
+        return self.engine.schedule if self.engine is not None else None
 
     @property
     def latest_sync(self) -> int | None:
@@ -416,6 +486,8 @@ class MasterAdapter:
     @property
     def sync_running(self) -> bool:
         task = self._sync_task
+        if task is not None and task is self.engine:
+            return self.engine.schedule is not None
         return task is not None and not getattr(task, "stopped", False)
 
     def check(self) -> None:
@@ -549,8 +621,13 @@ class MasterAdapter:
         except Exception as e:
             self._emit(SendFailed(f"time stamp: {type(e).__name__}: {e}", t))
 
-    def send_sync(self, counter: int | None = None) -> None:
-        """One SYNC now (the probe paces SYNC itself; the periodic task must be stopped)."""
+    def send_sync(self, counter: int | None = None, *, at: float | None = None) -> None:
+        """One SYNC now, or with the cycle engine at time `at` exactly (the probe paces SYNC itself; the
+        periodic SYNC must be stopped)."""
+        if self.engine is not None and at is not None:
+            self._check_open()
+            self.engine.sync_once(at, counter)
+            return
         self.send(cob.SYNC_COB_ID, b"" if counter is None else bytes([counter]))
 
     def _run_monitor(self) -> None:

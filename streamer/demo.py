@@ -10,9 +10,6 @@ from the trace after the job) to the output folder and prints a summary.
 from __future__ import annotations
 
 import contextlib
-import signal
-import subprocess
-import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -196,69 +193,51 @@ def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any
 
 
 @contextlib.contextmanager
-def drive_process(cell: CellConfig, config: Path | None, axes: int | None) -> Iterator[subprocess.Popen[str]]:
-    """`pvt sim` on the cell's bus as a second process; stopped with SIGTERM (its clean shutdown). Its
-    standard input is a pipe from this process: if this process dies without stopping it (SIGKILL), the
-    pipe closes and the drives leave the bus (`--stop-on-stdin-eof`) rather than answer the next master."""
-    cmd = [sys.executable, "-m", "streamer.cli", "sim", "--config", str(config or ROOT / "configs" / "demo.toml"),
-           "--bus", f"{cell.bus.interface}:{cell.bus.channel}", "--bitrate", str(cell.bus.bitrate),
-           "--sync-ms", str(cell.sync_period_ms), "--stop-on-stdin-eof"]
-    if axes is not None:
-        cmd += ["--axes", str(axes)]
-    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        assert proc.stdout is not None
-        first = proc.stdout.readline()  # "pvt sim: cell ..." once the drives are on the bus
-        if proc.poll() is not None or "drives" not in first:
-            rest = proc.stdout.read() if proc.poll() is not None else ""
-            raise RuntimeError(f"the drive process did not start: {first}{rest}".strip())
-        yield proc
-    finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        if proc.stdin is not None:
-            proc.stdin.close()
-
-
-@contextlib.contextmanager
-def realtime_cell(cell: CellConfig, traj: PvtTrajectory, *, external_drives: bool = False) -> Iterator[Any]:
-    """Simulated drives (in this process, unless `external_drives`) and a configured master adapter."""
+def realtime_cell(cell: CellConfig, traj: PvtTrajectory | None = None, *,
+                  external_drives: bool = False) -> Iterator[Any]:
+    """The simulated drives in a process of their own (`pvt sim`, unless `external_drives`: they run
+    elsewhere on the cell's bus; bus/sim/process.py) and a configured master adapter whose cycle engine owns
+    the bus (bus/engine.py). Yields the adapter; its `cell` is the cell on the bus actually used."""
+    from bus.engine import EngineSpec
     from bus.network import MasterAdapter
-    from bus.sim.node import SimulatedCell
+    from bus.sim.process import drives_process, joining_bus
 
-    sim = None
-    if not external_drives:
-        # In one Python process the simulated drives share the interpreter (and its GIL) with the
-        # master and its SYNC thread, so SYNC jitter here is partly an artifact of the simulation.
-        # The drives still check the SYNC period (EMCY 0x8780), but at 3x rather than 1.5x; virtual
-        # time and `pvt sim` in its own process keep the drive's 1.5x.
-        sim = SimulatedCell(cell, initial_positions=start_positions(cell, traj),
-                            sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
-    try:
-        adapter = MasterAdapter(None, cell)
+    run_cell = cell if external_drives else joining_bus(cell)
+    drives = contextlib.nullcontext() if external_drives else drives_process(
+        run_cell, positions=start_positions(run_cell, traj) if traj is not None else None)
+    with drives:
+        bus = run_cell.bus
+        adapter = MasterAdapter(None, run_cell, engine=EngineSpec(bus.interface, str(bus.channel), bus.bitrate))
         try:
             adapter.configure_drives()
             yield adapter
         finally:
             adapter.close()
-    finally:
-        if sim is not None:
-            sim.stop()
 
 
 def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_drives: bool = False,
-                 on_change: Any = None, cancel: threading.Event | None = None) -> tuple[dict[str, Any], Any]:
+                 on_change: Any = None, cancel: threading.Event | None = None, job: Job | None = None,
+                 on_engine: Any = None) -> tuple[dict[str, Any], Any]:
+    """The job in real time: the drives in a process of their own (or `external_drives` on the cell's bus),
+    the cycle engine in another, the core here. The drives' readings are measured first (the standstill
+    probe); when `job` is given and a drive rounds its demand otherwise than the plan assumed, the job is
+    planned again for the drives on the bus (whatever the master learns about a drive, it learns from it)."""
     from streamer.runtime.realtime import RealtimeRuntime
 
     out.mkdir(parents=True, exist_ok=True)
     with realtime_cell(cell, traj, external_drives=external_drives) as adapter:
-        rt = RealtimeRuntime(cell, adapter, log_path=out / "bus.log")
+        rt = RealtimeRuntime(adapter.cell, adapter, log_path=out / "bus.log")
         try:
+            rt.ensure_readings()
+            if job is not None:
+                measured = replace(cell, axes=tuple(
+                    replace(a, probed=replace(a.probed, rounding=rt.known[a.node_id].rounding))
+                    if a.probed.rounding is None and a.node_id in rt.known else a for a in cell.axes))
+                if measured != cell:
+                    cell = measured
+                    traj = plan_job(job, cell)
+            if on_engine is not None:
+                on_engine(adapter)
             result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_change=on_change, cancel=cancel)
         finally:
             rt.close()

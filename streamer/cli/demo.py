@@ -93,13 +93,17 @@ def run(args: argparse.Namespace) -> int:
                       "and `pvt submit JOB --wait` (docs/api.md).", highlight=False)
         return 2
     try:
+        # virtual time measures its own simulated drives; in real time the drives on the bus are measured
+        # (demo.run_realtime), and the job is planned again when they round otherwise
         cell, job, traj = demo.prepare(args.config, args.job, axes=args.axes, sync_ms=args.sync_ms,
-                                       bus=args.bus, bitrate=args.bitrate, commissioned=True)
+                                       bus=args.bus, bitrate=args.bitrate, commissioned=args.fast)
     except PlanningError as e:
         console.print(f"[red]error {e.code}[/red]" + escape((f" at {e.path}" if e.path else "") + f": {e.message}"),
                       highlight=False)
         return 2
-    mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"
+    bus = "a private ipc bus" if cell.bus.interface == "virtual" else f"{cell.bus.interface}:{cell.bus.channel}"
+    where = "the drives elsewhere" if args.external_drives else "the drives in a process of their own"
+    mode = "virtual time" if args.fast else f"real time on {bus}, {where}"
     console.print(
         f"[bold]pvt demo[/bold]: {traj.n_axes} axes, {traj.duration_s:.2f} s, {traj.n_points} points/axis, "
         f"SYNC {cell.sync_period_ms} ms, {mode}"
@@ -109,18 +113,16 @@ def run(args: argparse.Namespace) -> int:
         with display:
             if args.fast:
                 report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync)
-            elif cell.bus.interface != "virtual" and not args.external_drives:
-                # a real bus (vcan0, an adapter): the simulated drives run as their own process
-                with demo.drive_process(cell, args.config, args.axes):
-                    report, _ = demo.run_realtime(cell, traj, args.out, external_drives=True,
-                                                  on_change=display.on_change)
             else:
+                # the drives in a process of their own (`pvt sim`; elsewhere with --external-drives), the
+                # cycle engine in another (bus/engine.py)
                 report, _ = demo.run_realtime(cell, traj, args.out, external_drives=args.external_drives,
-                                              on_change=display.on_change)
+                                              job=job,
+                                              on_change=display.on_change, on_engine=display.on_engine)
     except Exception as e:  # bus errors, timeouts: say what and where, do not dump a traceback on users
         from bus.errors import BusError
 
-        if isinstance(e, BusError | TimeoutError):
+        if isinstance(e, BusError | TimeoutError | RuntimeError):
             console.print(f"[red]demo failed:[/red] {escape(str(e))}")
             return 1
         raise
@@ -166,6 +168,13 @@ class _Display:
 
     def on_sync(self, core: Any, n: int) -> None:
         self.on_change(core)
+
+    def on_engine(self, adapter: Any) -> None:
+        """Say once how the cycle engine runs (real-time priority, or best-effort and why)."""
+        status = adapter.engine.realtime if adapter.engine is not None else None
+        if status is not None:
+            colour = "green" if status.fifo else "yellow"
+            self.console.print(f"[{colour}]cycle engine:[/{colour}] {escape(status.message)}", highlight=False)
 
     def __rich__(self) -> Any:
         return self._render()

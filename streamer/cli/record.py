@@ -30,7 +30,7 @@ import argparse
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -112,28 +112,23 @@ class _FastSession:
 
 
 class _RealtimeSession:
-    """The cell's bus in real time: MasterAdapter + RealtimeRuntime (+ the simulated drives in this process
-    on python-can's virtual interface)."""
+    """The cell's bus in real time: MasterAdapter with its cycle engine + RealtimeRuntime (+ the simulated drives
+    in a process of their own, on a private ipc bus, when the cell's bus is python-can's virtual one)."""
 
     def __init__(self, cell: Any, traj: Any, nodes: Sequence[int], upload: str):
-        from bus.network import MasterAdapter
-        from bus.sim.node import SimulatedCell
-        from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
+        from streamer.demo import realtime_cell
         from streamer.recording.recorder import CanopenSdo, Recorder
         from streamer.runtime.realtime import RealtimeRuntime
 
         self.cell = cell
-        self.mode = f"real time on {cell.bus.interface}:{cell.bus.channel}"
-        self.sim: Any = None
-        self.adapter: Any = None
+        simulated = cell.bus.interface == "virtual"
+        where = "the simulated drives in a process of their own" if simulated else "the drives on the bus"
+        self.mode = f"real time on {cell.bus.interface}:{cell.bus.channel}, {where}"
+        self._stack = ExitStack()
         self.rt: Any = None
         try:
-            if cell.bus.interface == "virtual":
-                self.sim = SimulatedCell(cell, initial_positions=_start_positions(traj),
-                                         sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
-            self.adapter = MasterAdapter(None, cell)
-            self.adapter.configure_drives()
-            self.rt = RealtimeRuntime(cell, self.adapter)
+            self.adapter = self._stack.enter_context(realtime_cell(cell, traj, external_drives=not simulated))
+            self.rt = RealtimeRuntime(self.adapter.cell, self.adapter)
         except BaseException:
             self.close()
             raise
@@ -162,10 +157,7 @@ class _RealtimeSession:
     def close(self) -> None:
         if self.rt is not None:
             self.rt.close()
-        if self.adapter is not None:
-            self.adapter.close(check=False)
-        if self.sim is not None:
-            self.sim.stop()
+        self._stack.close()
 
 
 def _start_positions(traj: Any) -> dict[int, float] | None:

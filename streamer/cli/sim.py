@@ -11,7 +11,8 @@ cleanly. A parent that starts the drives (`pvt demo`) gives them a pipe for stan
 ends, however it ends (SIGKILL too), the pipe closes and the drives leave the bus with it, instead of
 answering the next master on it. A second process (`pvt serve`, any CANopen
 master) talks to them over the same bus. On the `virtual` interface only masters in this process can
-reach them; across processes use socketcan (vcan0).
+reach them; across processes use the `ipc` bus (bus/ipc.py, any Linux) or socketcan (vcan0). The drives'
+threads run at real-time priority where the system permits (`--rt-priority`), as hardware answers on time.
 """
 
 from __future__ import annotations
@@ -50,8 +51,29 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--stop-on-stdin-eof", action="store_true",
                    help="stop when standard input closes (a parent process holds it open: the drives leave the "
                         "bus when that process ends, even if it is killed)")
+    p.add_argument("--positions", default=None, metavar="NODE=COUNTS,...",
+                   help="where drives stand at power-on, in counts (default 0), e.g. 1=0,2=1500")
+    p.add_argument("--rt-priority", type=int, default=70,
+                   help="SCHED_FIFO priority of the drives' threads, as hardware answers on time (default 70; "
+                        "0: best-effort); refused without an rtprio limit or CAP_SYS_NICE, then best-effort")
     p.set_defaults(func=run)
     return p
+
+
+def parse_positions(text: str | None) -> dict[int, float]:
+    """`1=0,2=1500` -> {1: 0.0, 2: 1500.0}; raises ValueError naming the bad item."""
+    out: dict[int, float] = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        node, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError
+            out[int(node)] = float(value)
+        except ValueError:
+            raise ValueError(f"--positions: {item!r} is not NODE=COUNTS") from None
+    return out
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
@@ -64,6 +86,7 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
         if args.sync_ms is not None:
             cell = replace(cell, sync_period_ms=args.sync_ms)
         bus_config = cell.bus.with_spec(args.bus, args.bitrate)
+        positions = parse_positions(args.positions)
     except (PlanningError, ValueError) as e:
         print(f"pvt sim: {e}", file=sys.stderr)
         return 2
@@ -78,8 +101,16 @@ def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             previous[sig] = signal.signal(sig, on_signal)
     if args.stop_on_stdin_eof:
         threading.Thread(target=_stop_at_eof, args=(sys.stdin, stop), name="pvt-sim-stdin", daemon=True).start()
+    if args.rt_priority:
+        # before any thread starts: the drives' threads inherit it
+        from bus.engine import request_realtime
+
+        status = request_realtime(args.rt_priority, lock_memory=False)
+        if not status.fifo:
+            print(f"pvt sim: {status.message}", flush=True)
     try:
-        sim = SimulatedCell(cell, bus_config, motor=PRESETS[args.motor], sync_gap_factor=args.sync_gap_factor)
+        sim = SimulatedCell(cell, bus_config, motor=PRESETS[args.motor], sync_gap_factor=args.sync_gap_factor,
+                            initial_positions=positions)
     except ValueError as e:
         print(f"pvt sim: {e}", file=sys.stderr)
         return 2

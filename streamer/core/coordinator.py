@@ -137,6 +137,7 @@ from bus.events import (
     SendFailed,
     StatusWord,
     Sync,
+    SyncOnWire,
 )
 from planner import hermite
 from planner.cyclic import Setpoints
@@ -235,6 +236,7 @@ _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
 # (state, event type) -> handler name. Built as data so the table is inspectable and testable.
 _EVENT_HANDLERS: dict[str, str] = {
     "Sync": "_on_sync",
+    "SyncOnWire": "_on_sync_on_wire",
     "BufferStatus": "_on_buffer_status",
     "StatusWord": "_on_status",
     "PositionFeedback": "_on_position",
@@ -256,6 +258,7 @@ _CANCEL_HANDLERS: dict[JobState, str] = {
 }
 _EVENT_TYPES: dict[str, type] = {
     "Sync": Sync,
+    "SyncOnWire": SyncOnWire,
     "BufferStatus": BufferStatus,
     "StatusWord": StatusWord,
     "PositionFeedback": PositionFeedback,
@@ -896,20 +899,8 @@ class Coordinator:
         self._last_sync_t = ev.t
         self._cycle_used_bits = 0.0
         self._extra_bits = self._budget.streamer_bits
-        timeout = self._settings.tpdo_timeout_syncs
-        limit = m - timeout - 1
-        limit2 = m - timeout * self._feedback_every - 1
-        for f in self._axes:
-            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit2:
-                which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
-                self._fail(
-                    oc.TPDO_TIMEOUT,
-                    f"node {f.node_id}: no {which} for "
-                    f"{timeout if which == 'TPDO1' else timeout * self._feedback_every} "
-                    f"SYNCs (last answered SYNC {min(f.last_tpdo1, f.last_tpdo2)})",
-                    f.node_id,
-                )
-                return
+        if not self._settings.ahead_syncs and self._tpdo_overdue(m):
+            return
         if m == self._start_sync:
             for clock in self._clocks.values():
                 clock.start(m, ev.t)
@@ -957,6 +948,30 @@ class Coordinator:
                 f"node {late.node_id}: no standstill {self._settings.finish_timeout_ms} ms after the halt",
                 late.node_id,
             )
+
+    def _on_sync_on_wire(self, ev: SyncOnWire) -> None:
+        """Fed ahead of the wire (`ahead_syncs`): the answers overdue are judged when SYNC n is on the wire."""
+        if self._sync is not None and self._settings.ahead_syncs:
+            self._tpdo_overdue(min(ev.count, self._sync))
+
+    def _tpdo_overdue(self, m: int) -> bool:
+        """TPDO_TIMEOUT when a node has not answered for `tpdo_timeout_syncs` SYNCs up to SYNC m (every frame
+        the bus carried before SYNC m has been fed)."""
+        timeout = self._settings.tpdo_timeout_syncs
+        limit = m - timeout - 1
+        limit2 = m - timeout * self._feedback_every - 1
+        for f in self._axes:
+            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit2:
+                which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
+                self._fail(
+                    oc.TPDO_TIMEOUT,
+                    f"node {f.node_id}: no {which} for "
+                    f"{timeout if which == 'TPDO1' else timeout * self._feedback_every} "
+                    f"SYNCs (last answered SYNC {min(f.last_tpdo1, f.last_tpdo2)})",
+                    f.node_id,
+                )
+                return True
+        return False
 
     def _close_cycle(self) -> None:
         load = (self._budget.fixed_bits + self._cycle_used_bits) / self._budget.cycle_bits

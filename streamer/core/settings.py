@@ -65,6 +65,9 @@ class StreamerSettings:
     heartbeat_ms: int = 100  # producer time of the drives (for bus-load accounting only)
     prime_records_per_sync: int = 1
     tpdo_timeout_syncs: int = 3
+    # SYNCs the core is fed ahead of the wire (the real-time runtime's lead over the cycle engine: Sync(n) is fed
+    # up to `ahead_syncs` periods before SYNC n goes out); > 0: the answers overdue are judged on `SyncOnWire`
+    ahead_syncs: int = 0
     finish_timeout_ms: int = 2000
     start_tolerance_counts: int = 0
     demand_tolerance_counts: int = 2
@@ -103,6 +106,7 @@ class StreamerSettings:
                 raise bad(name, v, "must be a positive integer")
         for name in (
             "underflow_watermark",
+            "ahead_syncs",
             "repair_syncs",
             "loss_confirm_syncs",
             "start_tolerance_counts",

@@ -44,6 +44,7 @@ before it), and `execute` fails it NOT_HOMED if they still are not when it comes
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 import time
@@ -52,6 +53,7 @@ from typing import Any
 
 from bus import codec
 from bus.cob import pack_controlword, rpdo1_id
+from bus.engine import EngineSpec
 from bus.errors import BusError
 from bus.events import AdapterError, Bootup, Event
 from bus.network import MasterAdapter
@@ -101,7 +103,6 @@ EMERGENCY_STOP = "EMERGENCY_STOP"
 class RuntimeBackend:
     def __init__(self, cell: CellConfig, *, sim: bool = False, bus_config: BusConfig | None = None):
         self.cell = dataclasses.replace(cell, bus=bus_config) if bus_config is not None else cell
-        self._sim: Any = None
         self._lock = threading.Lock()
         self._fault: str = ""
         self._emergency = False  # an emergency stop hit the job that runs (or the idle cell)
@@ -114,13 +115,19 @@ class RuntimeBackend:
         self._positioning: dict[str, str] = {a.name: "IDLE" for a in cell.axes}
         self._emergency_answer: threading.Event | None = None  # set by the SYNC thread when the core took it
         self._emergency_info: dict[str, Any] | None = None
-        if sim:
-            from bus.sim.node import SimulatedCell
-            from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
-
-            self._sim = SimulatedCell(self.cell, sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
+        self._drives: Any = None  # the simulated drives' process (with `sim`), entered until close()
         try:
-            self.adapter = MasterAdapter(None, self.cell)
+            if sim:  # the drives in a process of their own, as hardware is, on a bus that joins processes
+                from bus.sim.process import drives_process, joining_bus
+
+                self.cell = joining_bus(self.cell)
+                self._drives = contextlib.ExitStack()
+                self._drives.enter_context(drives_process(self.cell))
+            bus = self.cell.bus
+            # the cycle engine owns every bus that joins processes (bus/engine.py); python-can's virtual bus stays
+            # in this process (drives simulated here by a test): the adapter sends itself
+            engine = None if bus.interface == "virtual" else EngineSpec(bus.interface, str(bus.channel), bus.bitrate)
+            self.adapter = MasterAdapter(None, self.cell, engine=engine)
             self.adapter.on_event(self._on_adapter_event)
             self.adapter.configure_drives()
             self.runtime = RealtimeRuntime(self.cell, self.adapter)
@@ -609,9 +616,9 @@ class RuntimeBackend:
         adapter = getattr(self, "adapter", None)
         if adapter is not None:
             adapter.close(check=False)
-        if self._sim is not None:
-            self._sim.stop()
-            self._sim = None
+        if self._drives is not None:
+            self._drives.close()
+            self._drives = None
 
 
 class _RealtimePort:

@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -38,8 +40,9 @@ from typing import Any
 
 import can
 
+from bus.engine import thread_priority
 from bus.errors import PROBE, BusError
-from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync
+from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync, SyncOnWire
 from bus.families import EPOS_IPM, PROFILES
 from bus.network import MasterAdapter
 from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
@@ -52,6 +55,29 @@ from streamer.runtime.extension import PrefetchExtender
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
+CYCLIC_AHEAD_MS = 20.0  # cells with drives fed one set point per SYNC: what a stall of this process may take
+FIFO_AHEAD_MS = 0.0  # EPOS-only cells: one period (a FIFO rides out a late record; feedback stays fresh)
+
+
+STREAMING_PRIORITY = 50  # with the cycle engine: SCHED_FIFO of the streaming thread (engine 80, receive 60)
+SWITCH_INTERVAL_S = 0.0005  # while a job streams: a thread holding the GIL gives it up this soon (default 5 ms)
+
+
+@contextlib.contextmanager
+def _switch_interval(seconds: float) -> Iterator[None]:
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(seconds)
+    try:
+        yield
+    finally:
+        sys.setswitchinterval(before)
+
+
+def default_ahead_ms(cell: CellConfig) -> float:
+    """How far ahead of the cycle engine the core runs by default: far enough to ride out a stall of the
+    master's process where a late frame faults a drive (cyclic set points), one period where it does not."""
+    cyclic = any(PROFILES[a.profile].kind == "cyclic" for a in cell.axes)
+    return CYCLIC_AHEAD_MS if cyclic else FIFO_AHEAD_MS
 
 _gc_lock = threading.Lock()
 _gc_holders = 0  # jobs streaming in this process (several runtimes may share one, as in the tests)
@@ -142,9 +168,15 @@ class RealtimeRuntime:
         *,
         log_path: Path | None = None,
         settings: StreamerSettings | None = None,
+        ahead_ms: float | None = None,
+        streaming_priority: int | None = None,
     ):
         self.cell = cell
         self.adapter = adapter
+        # with the cycle engine: how long before its SYNC the core is fed it (see `_Announcer`)
+        self.ahead_ms = float(ahead_ms) if ahead_ms is not None else default_ahead_ms(cell)
+        # SCHED_FIFO of the streaming thread while a job or the probe runs with the engine, where permitted
+        self.streaming_priority = streaming_priority if streaming_priority is not None else STREAMING_PRIORITY
         # settings given by the caller are taken as they are; else the cell's, with what the master knows
         # of each drive ([axis.probed]) completed by the standstill probe before the first job
         self._settings_given = settings is not None
@@ -163,6 +195,15 @@ class RealtimeRuntime:
         self._snap_lock = threading.Lock()
         self._snapshot: dict[int, NodeSnapshot] = {a.node_id: NodeSnapshot(a.node_id) for a in cell.axes}
         adapter.on_event(self._on_event)
+        engine = adapter.engine
+        if engine is not None:
+            engine.on_late = self._on_late
+            engine.on_send_failed = lambda cob_id, why: self._on_event(
+                SendFailed(f"the bus refused frame 0x{cob_id:03X}: {why}", adapter.now()))
+
+    def _on_late(self, cycle: int, frames: int, delay_s: float | None) -> None:
+        if self._running:
+            self._events.put(_Late(cycle, frames, delay_s))  # type: ignore[arg-type]
 
     def _on_event(self, ev: Event) -> None:
         """Adapter thread: keep the latest state of every node (cheap), queue events only during a job."""
@@ -213,21 +254,24 @@ class RealtimeRuntime:
         self._probing = True
         thaw = contextlib.ExitStack()
         thaw.enter_context(quiet_gc())  # the probe paces its SYNCs on this thread
+        if adapter.engine is not None:
+            thaw.enter_context(thread_priority(self.streaming_priority))
         try:
             while not probe.done:
                 if probe.wants_enable:
                     adapter.enable_drives()
                     probe.enabled(demands())
                 t_next = probe.next_sync_time()
-                while (now := adapter.now()) < t_next:
-                    ev = self._drain(min(0.002, t_next - now))
-                    if ev is not None:
-                        self._feed_probe(probe, ev)
+                if adapter.engine is None:  # this thread paces the SYNC; the engine sends it at its time itself
+                    while (now := adapter.now()) < t_next:
+                        ev = self._drain(min(0.002, t_next - now))
+                        if ev is not None:
+                            self._feed_probe(probe, ev)
                 if fb is not None:
                     counter = counter % fb.counter_overflow + 1
-                adapter.send_sync(counter if fb is not None else None)
+                adapter.send_sync(counter if fb is not None else None, at=t_next)
                 # the SYNC's echo (probe.on_sync) and its answers come through the queue
-                deadline = time.monotonic() + 0.2
+                deadline = time.monotonic() + 0.2 + max(0.0, t_next - adapter.now())
                 seen = probe.syncs_seen
                 while probe.syncs_seen == seen and time.monotonic() < deadline:
                     ev = self._drain(0.005)
@@ -301,6 +345,11 @@ class RealtimeRuntime:
         wall0 = time.monotonic()
         self.adapter.enable_drives()
         settings = self.settings if lead_ms is None else replace(self.settings, lead_ms=lead_ms)
+        if not self.adapter.sync_running:
+            self.adapter.start_sync()
+        engine = self.adapter.engine is not None
+        if engine:
+            settings = replace(settings, ahead_syncs=_Announcer.syncs_for(self.ahead_ms, cell.sync_period_s))
         prefetch: PrefetchExtender | None = None
         if extender is None:
             extender = prefetch = PrefetchExtender()
@@ -316,9 +365,12 @@ class RealtimeRuntime:
         self._tap.trace = trace
         thaw = contextlib.ExitStack()
         thaw.enter_context(quiet_gc())
-        if not self.adapter.sync_running:
-            self.adapter.start_sync()
+        if engine:  # this thread feeds the engine ahead: it preempts planning, logging and the API where permitted
+            thaw.enter_context(thread_priority(self.streaming_priority))
+            thaw.enter_context(_switch_interval(SWITCH_INTERVAL_S))
         limit = timeout_s if timeout_s is not None else core.stream_duration_ms / 1000.0 + 30.0
+        # from now on the core is fed each SYNC ahead of the wire (after the work above: its first SYNC is on time)
+        ahead = _Announcer.start(self.adapter, settings.ahead_syncs) if engine else None
         first_sync: int | None = None
         last_sync = -1
         cancelled = False
@@ -326,10 +378,16 @@ class RealtimeRuntime:
         settled = False
         try:
             while True:
-                ev = self._drain(0.05)
+                wait = 0.05 if ahead is None else min(0.05, max(0.0, ahead.next_due() - time.time()))
+                ev = self._drain(wait)
+                if ahead is not None:
+                    # Sync(n) is fed `ahead` before SYNC n goes out (and before any answer to it: catch up first)
+                    tag = getattr(ev, "sync_count", None) if ev is not None else None
+                    for sync in ahead.due(time.time(), tag if isinstance(tag, int) else None):
+                        self._feed(core, trace, sync, ahead)
                 if cancel is not None and cancel.is_set() and not cancelled and core.state not in TERMINAL:
                     cancelled = True
-                    self._feed(core, trace, Cancel(self.adapter.now()))
+                    self._feed(core, trace, Cancel(self.adapter.now()), ahead)
                 if ev is None:
                     if settle_until is not None and time.monotonic() >= settle_until:
                         break  # the job ended and nothing comes any more (bus-off: no SYNC, no TPDO)
@@ -338,11 +396,22 @@ class RealtimeRuntime:
                     if time.monotonic() - wall0 > limit:
                         raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
                     continue
+                if isinstance(ev, _Late):
+                    if ahead is not None and ahead.critical(ev.cycle):
+                        after = "after" if ev.delay_s is None else f"{1000 * ev.delay_s:.1f} ms after"
+                        self._feed(core, trace, SendFailed(
+                            f"frames for the cycle after SYNC {ev.cycle} reached the cycle engine {after} the next "
+                            f"SYNC: the master fell behind its {ahead.lead_s * 1000:.0f} ms lead", self.adapter.now()),
+                            ahead)
+                    continue
                 if isinstance(ev, Sync):
                     first_sync = ev.count if first_sync is None else first_sync
                     last_sync = ev.count
                     trace.on_sync(ev.count, ev.t)
-                self._feed(core, trace, ev)
+                    if ahead is not None:  # the core was fed this SYNC ahead of the wire: now it is out
+                        ahead.on_wire(ev)
+                        ev = SyncOnWire(ev.count, ev.t)
+                self._feed(core, trace, ev, ahead)
                 if on_change is not None:
                     on_change(core)
                 if core.state in TERMINAL:
@@ -373,17 +442,86 @@ class RealtimeRuntime:
                 return False
         return True
 
-    def _feed(self, core: Coordinator, trace: JobTrace, ev: Any) -> None:
+    def _feed(self, core: Coordinator, trace: JobTrace, ev: Any, ahead: _Announcer | None = None) -> None:
         pending = [ev]
         while pending:
             e = pending.pop(0)
             trace.on_event(e)
-            reaction = core.handle(e, wire_sync=self.adapter.latest_sync)
+            reaction = core.handle(e, wire_sync=self.adapter.latest_sync if ahead is None else None)
             if reaction.changes:
                 trace.on_changes(reaction.changes)
-            for s in reaction.sends:
-                try:
-                    self.adapter.send(s.cob_id, s.data)
-                except BusError as err:
-                    pending.append(SendFailed(str(err), self.adapter.now()))
-                    break
+            if not reaction.sends:
+                continue
+            try:
+                if ahead is None:
+                    for s in reaction.sends:
+                        self.adapter.send(s.cob_id, s.data)
+                else:  # after the SYNC the core last saw: it is on the wire, or in the engine's ring for it
+                    ahead.sending(reaction.sends)
+                    self.adapter.send_at(ahead.fed, [(s.cob_id, s.data) for s in reaction.sends])
+            except BusError as err:
+                pending.append(SendFailed(str(err), self.adapter.now()))
+
+
+@dataclass(frozen=True)
+class _Late:
+    """The cycle engine got frames for `cycle` after that SYNC had gone out (bus/engine.py)."""
+
+    cycle: int
+    frames: int
+    delay_s: float | None
+
+
+class _Announcer:
+    """When the real-time runtime feeds the core each SYNC: `lead_s` before the cycle engine sends it.
+
+    The engine sends SYNC n at t0 + n * period (its absolute-time schedule) and right after it the frames the
+    core returned for SYNC n, so the core must have been fed Sync(n) before that: `lead_s` (a whole number of
+    periods less half a period, so the core's work never meets the engine's busy moment) covers the longest
+    stall of this process the cell tolerates. A synchronous frame (a controlword, a cyclic set point) that
+    still reaches the engine after its SYNC is a fault (`critical`); a PVT record (asynchronous RPDO2) is not."""
+
+    def __init__(self, t0: float, period_s: float, syncs: int, first: int):
+        self.t0 = t0
+        self.period_s = period_s
+        self.syncs = syncs
+        self.lead_s = (syncs - 0.5) * period_s
+        self.fed = first - 1  # the last SYNC fed to the core
+        self._critical: set[int] = set()
+
+    @staticmethod
+    def syncs_for(ahead_ms: float, period_s: float) -> int:
+        """The whole periods of lead (less half a period) that cover `ahead_ms`: at least one."""
+        return max(1, math.ceil(ahead_ms / 1000.0 / period_s + 0.5))
+
+    @staticmethod
+    def start(adapter: MasterAdapter, syncs: int) -> _Announcer:
+        schedule = adapter.sync_schedule
+        if schedule is None:
+            raise BusError(PROBE, "the cycle engine has no SYNC schedule running")
+        t0, period = schedule
+        lead = (syncs - 0.5) * period
+        wire = adapter.latest_sync
+        first = max(0 if wire is None else wire + 1, math.ceil((time.time() + lead - t0) / period) + 1)
+        return _Announcer(t0, period, syncs, first)
+
+    def next_due(self) -> float:
+        return self.t0 + (self.fed + 1) * self.period_s - self.lead_s
+
+    def due(self, now: float, tag: int | None) -> Iterator[Sync]:
+        """The Syncs to feed now: every SYNC whose time to be fed has come, and every SYNC up to `tag`
+        (an answer to it is about to be fed)."""
+        while self.next_due() <= now or (tag is not None and tag > self.fed):
+            self.fed += 1
+            n = self.fed
+            yield Sync(n, self.t0 + n * self.period_s, None)
+
+    def on_wire(self, ev: Sync) -> None:
+        self._critical.discard(ev.count - 64)
+
+    def sending(self, sends: Any) -> None:
+        if any((s.cob_id & 0x780) != 0x300 for s in sends):  # anything but a PVT record (RPDO2)
+            self._critical.add(self.fed)
+
+    def critical(self, cycle: int) -> bool:
+        return cycle in self._critical

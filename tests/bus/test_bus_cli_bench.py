@@ -118,15 +118,15 @@ def _gone(pid: int) -> bool:
 
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads /proc")
 def test_the_demo_drive_process_leaves_the_bus_when_the_demo_is_killed(tmp_path: Path) -> None:
-    """`pvt demo` killed with SIGKILL cannot stop its `pvt sim` child; the child's standard input, a pipe
+    """`pvt demo` killed with SIGKILL cannot stop its drive process; the child's standard input, a pipe
     from the demo, closes with it, and the drives leave the bus instead of answering the next master."""
     script = tmp_path / "killed_demo.py"
     script.write_text(
         "import os, signal\n"
         "from planner.config import load_cell\n"
-        "from streamer.demo import drive_process\n"
-        f"cell = load_cell({str(DEMO)!r})\n"
-        f"with drive_process(cell, {str(DEMO)!r}, None) as proc:\n"
+        "from bus.sim.process import drives_process, joining_bus\n"
+        f"cell = joining_bus(load_cell({str(DEMO)!r}))\n"
+        "with drives_process(cell) as proc:\n"
         "    print(proc.pid, flush=True)\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
     )

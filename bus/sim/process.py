@@ -1,0 +1,118 @@
+"""Simulated drives in a process of their own, as hardware is: `drives_process(cell)`.
+
+Theory of operation. A real-time run must not share an interpreter with the drives it commands: in one
+process the drives wait for the master's GIL and the master for theirs, and a test then proves only that our
+simulation, our clock and our master agree. `drives_process` starts `python -m bus.sim.process`, hands it the
+cell (pickled on standard input: the `CellConfig` as the caller has it, options applied), and waits for its
+first line ("drives on BUS") once the drives are on the bus. The child runs `SimulatedCell` (bus/sim/node.py)
+at real-time priority where the system permits (the drives answer on time, as hardware does) until its
+standard input closes: when the parent stops it, or dies however it dies (SIGKILL too), the pipe closes and
+the drives leave the bus instead of answering the next master on it.
+
+The bus must join processes: the `ipc` interface (bus/ipc.py) or socketcan; python-can's `virtual` bus does
+not leave its process, so drives there would hear nobody.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import pickle
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, replace
+
+from planner.config import BusConfig, CellConfig
+
+DRIVES_PRIORITY = 70  # SCHED_FIFO: below the master's cycle engine (80), above its other threads
+READY_PREFIX = "drives on "
+
+
+@dataclass(frozen=True)
+class DrivesRequest:
+    """What the child runs: the cell's simulated drives on the cell's bus."""
+
+    cell: CellConfig
+    positions: Mapping[int, float]
+    sync_gap_factor: float = 1.5
+    priority: int | None = DRIVES_PRIORITY
+
+
+_private_buses = itertools.count()
+
+
+def joining_bus(cell: CellConfig) -> CellConfig:
+    """The cell on a bus that joins processes: python-can's `virtual` bus stays inside one process, so a
+    real-time run on it (the embedded default) gets a private `ipc` bus (bus/ipc.py) of its own instead."""
+    if cell.bus.interface != "virtual":
+        return cell
+    channel = f"pvt-{os.getpid()}-{next(_private_buses)}"
+    return replace(cell, bus=BusConfig(interface="ipc", channel=channel, bitrate=cell.bus.bitrate))
+
+
+@contextlib.contextmanager
+def drives_process(cell: CellConfig, *, positions: Mapping[int, float] | None = None,
+                   sync_gap_factor: float = 1.5, priority: int | None = DRIVES_PRIORITY,
+                   start_timeout_s: float = 60.0) -> Iterator[subprocess.Popen[bytes]]:
+    """The cell's simulated drives on its bus in a child process, from their power-on (`positions` in counts
+    by node id, default 0) until the block ends. Raises RuntimeError with the child's output if they do not
+    come up."""
+    proc = subprocess.Popen([sys.executable, "-m", "bus.sim.process"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        pickle.dump(DrivesRequest(cell, dict(positions or {}), sync_gap_factor, priority), proc.stdin)
+        proc.stdin.flush()
+        lines: list[str] = []
+        while True:
+            line = proc.stdout.readline().decode(errors="replace")
+            lines.append(line)
+            if not line or line.startswith(READY_PREFIX):
+                break
+        if not line.startswith(READY_PREFIX):
+            proc.wait(start_timeout_s)
+            raise RuntimeError(f"the drive process did not start: {''.join(lines).strip()}")
+        yield proc
+    finally:
+        if proc.stdin is not None:
+            with contextlib.suppress(OSError):
+                proc.stdin.close()  # the child's signal to leave the bus
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+def main() -> int:
+    """The child: read the request, run the drives until standard input closes."""
+    from bus.engine import request_realtime
+    from bus.sim.node import SimulatedCell
+
+    request: DrivesRequest = pickle.load(sys.stdin.buffer)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # the parent stops us by closing the pipe
+    status = request_realtime(request.priority, lock_memory=False)  # before any thread: they inherit it
+    cell = request.cell
+    sim = SimulatedCell(cell, initial_positions=request.positions, sync_gap_factor=request.sync_gap_factor)
+    sim.start()
+    try:
+        print(f"{READY_PREFIX}{cell.bus.interface}:{cell.bus.channel}: {len(cell.axes)} drives of cell "
+              f"{cell.name!r} ({status.message})", flush=True)
+        while sys.stdin.buffer.read(4096):
+            pass
+    finally:
+        sim.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
