@@ -11,7 +11,7 @@ cleanly. A parent that starts the drives (`pvt demo`) gives them a pipe for stan
 ends, however it ends (SIGKILL too), the pipe closes and the drives leave the bus with it, instead of
 answering the next master on it. A second process (`pvt serve`, any CANopen
 master) talks to them over the same bus. On the `virtual` interface only masters in this process can
-reach them; across processes use socketcan (vcan0).
+reach them; across processes use `ipc` (any Linux box: bus/ipc.py) or socketcan (vcan0).
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    import bus.ipc  # noqa: F401  (registers the "ipc" interface where the installed entry points predate it)
     from bus.sim.node import SimulatedCell  # canopen only when the command runs
 
     try:
