@@ -315,6 +315,21 @@ def test_a_bus_opened_later_is_found_by_a_sender_already_running(open_bus: OpenB
     assert got is not None and got.arbitration_id == 0x101
 
 
+def test_a_peer_registered_in_the_clock_tick_of_the_last_listing_is_still_found(open_bus: OpenBus,
+                                                                                 channel: str) -> None:
+    sender = open_bus()  # its first listing is as fresh as the directory's mtime (its own entry)
+    directory = bus.ipc.channel_directory(channel)
+    listed_at = directory.stat().st_mtime_ns
+    peer = open_bus()
+    os.utime(directory, ns=(listed_at, listed_at))  # a coarse clock: the new entry left the mtime as it was
+
+    time.sleep(2 * bus.ipc.RESCAN_CHECK_S)
+    sender.send(msg(0x100))
+
+    got = peer.recv(timeout=RECV_TIMEOUT_S)
+    assert got is not None and got.arbitration_id == 0x100
+
+
 # --- order and loss -------------------------------------------------------------------------------
 
 
@@ -423,6 +438,24 @@ def test_datagrams_that_are_not_frames_are_ignored_and_counted(open_bus: OpenBus
 
     assert got is not None and got.arbitration_id == 0x100
     assert receiver.stats.malformed == 2
+
+
+def test_a_frame_older_than_one_delivered_from_its_sender_is_dropped_and_counted(open_bus: OpenBus) -> None:
+    import socket
+
+    receiver = open_bus()
+
+    def frame(seq: int, cob_id: int) -> bytes:
+        return bus.ipc.HEADER.pack(bus.ipc.MAGIC, bus.ipc.VERSION, 0, 1, 0, 0xABCD, seq, cob_id, time.time()) + b"x"
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sender:  # one sender: one port, one id
+        for seq, cob_id in ((7, 0x101), (9, 0x103), (8, 0x102), (10, 0x104)):
+            sender.sendto(frame(seq, cob_id), ("127.0.0.1", receiver.port))
+        got = [receiver.recv(timeout=RECV_TIMEOUT_S) for _ in range(3)]
+
+    assert [m.arbitration_id for m in got if m] == [0x101, 0x103, 0x104]  # 0x102 came late: not delivered
+    assert receiver.stats.rx_late == 1
+    assert receiver.stats.rx_lost == 1  # the gap 7 -> 9 (its frame then came too late to fill it)
 
 
 # --- CANopen over it ------------------------------------------------------------------------------
