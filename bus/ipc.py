@@ -32,9 +32,11 @@ Guarantees:
   concurrent sending threads are numbered in wire order. A datagram that still arrives after a later one
   of the same sender (never observed; the kernel would have to reorder loopback traffic) is dropped and
   counted (`stats.rx_late`) rather than delivered out of order;
-- frames of different senders are ordered by their sender stamps, to the extent the senders' clocks
-  (one machine, one clock) and the scheduler allow: a receiver reads them in arrival order, and each
-  carries the stamp taken when it was sent;
+- frames of different senders are ordered by their sender stamps (one machine, one clock): the stamp is
+  the frame's time on the wire, and what the master attributes feedback by. `recv` hands frames over in
+  arrival order, which differs from stamp order only for frames of different senders sent within the
+  time one sender takes from its stamp to its sendto (microseconds; longer if it is preempted there), as
+  on python-can's `virtual` bus, which stamps in `send` too;
 - loss happens only when a receiver's socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB;
   the kernel caps them at net.core.rmem_max/wmem_max): the receiver counts the gaps in each sender's
   sequence (`stats.rx_lost`), a sender counts the datagrams a peer could not take at once
@@ -354,7 +356,7 @@ class IpcBus(can.BusABC):
                 self._drop_refused()
 
     def _send_to(self, datagram: bytes, port: int) -> None:
-        for _ in range(2):
+        for _ in range(3):  # a refusal reported here belongs to an earlier datagram: retry
             try:
                 self._sock.sendto(datagram, (HOST, port))
                 return

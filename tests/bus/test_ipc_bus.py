@@ -491,6 +491,21 @@ def test_a_canopen_sdo_upload_works_between_a_local_and_a_remote_node(open_bus: 
         drive_net.disconnect()
 
 
+def test_the_channels_in_use_are_detected(open_bus: OpenBus, channel: str) -> None:
+    open_bus()
+    assert {"interface": "ipc", "channel": channel} in can.detect_available_configs(interfaces=["ipc"])
+
+
+def test_the_benchmark_measures_both_buses(registry: Path) -> None:
+    from benchmarks import bench_ipc
+
+    virtual = bench_ipc.run("virtual", "burst", 200)
+    ipc = bench_ipc.run("ipc", "paced", 20)
+    assert virtual["received"] == 200 and virtual["lost"] == 0
+    assert ipc["received"] == 20 and ipc["lost"] == 0
+    assert 0 < ipc["p50_ms"] <= ipc["p99_ms"] and virtual["frames_per_s"] > 0
+
+
 # --- configuration ----------------------------------------------------------------------------------
 
 
