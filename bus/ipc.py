@@ -32,6 +32,9 @@ Guarantees:
   concurrent sending threads are numbered in wire order. A datagram that still arrives after a later one
   of the same sender (never observed; the kernel would have to reorder loopback traffic) is dropped and
   counted (`stats.rx_late`) rather than delivered out of order;
+- with `receive_own_messages` an own frame is queued back to this instance before any peer is sent it,
+  so a peer's answer to a frame never arrives before that frame's echo (as on a CAN bus: the master
+  attributes TPDOs to the newest SYNC echo seen, bus/network.py);
 - frames of different senders are ordered by their sender stamps (one machine, one clock): the stamp is
   the frame's time on the wire, and what the master attributes feedback by. `recv` hands frames over in
   arrival order, which differs from stamp order only for frames of different senders sent within the
@@ -347,10 +350,10 @@ class IpcBus(can.BusABC):
             self._seq = (seq + 1) % SEQ_MOD
             datagram = HEADER.pack(MAGIC, VERSION, flags, dlc & 0xFF, 0, self._sender_id, seq,
                                    msg.arbitration_id & 0xFFFFFFFF, time.time()) + data
+            if self.receive_own_messages:  # first: no peer's reply to this frame can overtake its echo
+                self._send_to(datagram, self._port)
             for port in list(self._peers):
                 self._send_to(datagram, port)
-            if self.receive_own_messages:
-                self._send_to(datagram, self._port)
             self.stats.sent += 1
             if self._refused:
                 self._drop_refused()

@@ -182,6 +182,38 @@ def test_receive_own_messages_delivers_own_frames_in_send_order_with_the_wire_st
     assert echoing.recv(timeout=0.05) is None
 
 
+class _InstantReplySocket:
+    """The socket of a bus whose peer answers a frame the moment it is sent to it (before the sender's
+    thread runs on: a preempted sender)."""
+
+    def __init__(self, real: Any, peer: IpcBus):
+        self._real, self._peer = real, peer
+
+    def sendto(self, data: bytes, address: Any) -> int:
+        sent: int = self._real.sendto(data, address)
+        if address[1] == self._peer.port:
+            question = self._peer.recv(timeout=RECV_TIMEOUT_S)
+            assert question is not None
+            self._peer.send(msg(question.arbitration_id + 0x100, b"answer"))
+        return sent
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._real, name)
+
+
+def test_an_answer_never_arrives_before_the_echo_of_the_frame_it_answers(open_bus: OpenBus,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    master, drive = open_bus(receive_own_messages=True), open_bus()
+    master.send(msg(0x700))  # learns its peer
+    assert master.recv(timeout=RECV_TIMEOUT_S) is not None and drive.recv(timeout=RECV_TIMEOUT_S) is not None
+    monkeypatch.setattr(master, "_sock", _InstantReplySocket(master._sock, drive))
+
+    master.send(msg(0x080))  # SYNC; the drive answers at once
+
+    got = [master.recv(timeout=RECV_TIMEOUT_S), master.recv(timeout=RECV_TIMEOUT_S)]
+    assert [(m.arbitration_id, m.is_rx) for m in got if m] == [(0x080, False), (0x180, True)]
+
+
 def test_without_receive_own_messages_own_frames_do_not_come_back(open_bus: OpenBus) -> None:
     quiet, peer = open_bus(receive_own_messages=False), open_bus()
     quiet.send(msg(0x123, b"x"))
