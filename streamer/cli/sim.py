@@ -77,6 +77,7 @@ def parse_positions(text: str | None) -> dict[int, float]:
 
 
 def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    import bus.ipc  # noqa: F401  (registers the "ipc" interface where the installed entry points predate it)
     from bus.sim.node import SimulatedCell  # canopen only when the command runs
 
     try:
