@@ -90,9 +90,11 @@ class EngineSpec:
     bitrate: int = 1_000_000
     priority: int | None = DEFAULT_PRIORITY  # None: do not ask for real-time priority
     lock_memory: bool = True
-    # wake this long before a SYNC is due and wait the rest actively: a select() wake-up is late by up to
-    # a few hundred us here even at SCHED_FIFO (measured: p99 190 us, spinning the last 300 us: p99 5-50 us)
-    spin_us: int = 300
+    # wake this long before a SYNC is due (at most half a period) and wait the rest actively: a wake-up is
+    # late by up to a few hundred us here even at SCHED_FIFO (measured: p99 190 us) and by milliseconds
+    # while another task runs in the kernel (this kernel preempts only at user level); a running engine is
+    # not held up by either
+    spin_us: int = 1000
 
 
 @dataclass(frozen=True)
@@ -221,6 +223,7 @@ class _Loop:
 
     def __init__(self, bus: can.BusABC, ctrl: _Channel, out: _Channel, spin_s: float = 0.0):
         self.bus = bus
+        self.spin_max_s = spin_s
         self.spin_s = spin_s
         self.ctrl = ctrl
         self.out = out
@@ -327,6 +330,7 @@ class _Loop:
         elif kind == "sync_start":
             period, counters = msg[1], msg[2]
             self.period = float(period)
+            self.spin_s = min(self.spin_max_s, 0.5 * self.period)
             self.counters = list(counters) if counters else None
             self.cycle = 0
             self.ring.clear()

@@ -1,0 +1,162 @@
+"""The cycle engine (bus/engine.py): SYNC on its schedule, each cycle's frames right after its SYNC, late
+batches reported, real-time priority asked for and its refusal said once; the runtime's announcer."""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections.abc import Iterator
+
+import can
+import pytest
+
+import bus.ipc  # noqa: F401  (the "ipc" interface)
+from bus.engine import EngineBus, EngineSpec, request_realtime
+from bus.events import Sync
+from streamer.runtime.realtime import _Announcer
+
+PERIOD_S = 0.01
+
+
+@pytest.fixture
+def channel() -> str:
+    return f"eng-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def engine(channel: str) -> Iterator[EngineBus]:
+    eb = EngineBus(spec=EngineSpec("ipc", channel))
+    notifier = can.Notifier(eb, [], timeout=0.05)  # reads the engine's frames (and its answers)
+    try:
+        yield eb
+    finally:
+        notifier.stop()
+        eb.shutdown()
+
+
+def _collect(listener: can.BusABC, seconds: float) -> list[can.Message]:
+    out: list[can.Message] = []
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        msg = listener.recv(0.01)
+        if msg is not None:
+            out.append(msg)
+    return out
+
+
+def test_syncs_follow_the_schedule_and_carry_the_counter(engine: EngineBus, channel: str) -> None:
+    with can.Bus(interface="ipc", channel=channel) as drive:
+        t0 = engine.start_sync(PERIOD_S, counters=[1, 2, 3])
+        got = [m for m in _collect(drive, 0.25) if m.arbitration_id == 0x80]
+        engine.stop_sync()
+    assert len(got) >= 15
+    counters = [m.data[0] for m in got]
+    assert all(b == a % 3 + 1 for a, b in zip(counters, counters[1:], strict=False))
+    first = round((got[0].timestamp - t0) / PERIOD_S)
+    for k, m in enumerate(got):  # each SYNC at its place on the absolute grid, not drifting
+        assert abs(m.timestamp - (t0 + (first + k) * PERIOD_S)) < 0.005
+
+
+def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel: str) -> None:
+    with can.Bus(interface="ipc", channel=channel) as drive:
+        t0 = engine.start_sync(PERIOD_S)
+        target = int((time.time() - t0) / PERIOD_S) + 10  # a SYNC 100 ms ahead
+        engine.send_at(target, [(0x401, b"\x01\x02"), (0x402, b"\x03")])
+        seen = _collect(drive, 0.2 + 10 * PERIOD_S)
+        engine.stop_sync()
+    syncs = [i for i, m in enumerate(seen) if m.arbitration_id == 0x80]
+    at = [i for i, m in enumerate(seen) if m.arbitration_id in (0x401, 0x402)]
+    assert len(at) == 2 and at[1] == at[0] + 1
+    before = [i for i in syncs if i < at[0]]
+    assert before and before[-1] == at[0] - 1  # the SYNC just before them, nothing between
+    sync_t = seen[before[-1]].timestamp
+    assert abs(sync_t - (t0 + target * PERIOD_S)) < 0.005  # and it is SYNC `target`
+    assert seen[at[1]].timestamp - sync_t < 0.002
+    assert engine.stats().late_batches == 0
+
+
+def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: EngineBus, channel: str) -> None:
+    late: list[tuple[int, int, float | None]] = []
+    engine.on_late = lambda cycle, frames, delay: late.append((cycle, frames, delay))
+    with can.Bus(interface="ipc", channel=channel) as drive:
+        t0 = engine.start_sync(PERIOD_S)
+        time.sleep(0.1)
+        past = int((time.time() - t0) / PERIOD_S) - 3
+        engine.send_at(past, [(0x201, b"\x1f\x00")])
+        current = int((time.time() - t0) / PERIOD_S)
+        engine.send_at(current, [(0x202, b"\x0f\x00")])  # its SYNC is out, the next not: in time
+        got = _collect(drive, 0.1)
+        engine.stop_sync()
+    assert {m.arbitration_id for m in got} >= {0x201, 0x202}
+    deadline = time.monotonic() + 2
+    while not late and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert [(c, n) for c, n, _ in late] == [(past, 1)]
+    assert late[0][2] is not None and late[0][2] > 0.0
+    st = engine.stats()
+    assert (st.late_batches, st.late_frames) == (1, 1)
+
+
+def test_the_engine_reports_its_priority_and_latency(engine: EngineBus) -> None:
+    status = engine.realtime
+    assert status.message
+    if os.geteuid() == 0:  # root may use SCHED_FIFO here
+        assert status.fifo and status.priority == 80
+    engine.start_sync(PERIOD_S)
+    time.sleep(0.2)
+    st = engine.stats()
+    engine.stop_sync()
+    assert st.cycles >= 15 and len(st.sync_delay_us) == st.cycles == len(st.cycle_latency_us)
+
+
+def test_a_refused_priority_is_said_once_and_the_engine_runs_best_effort(monkeypatch: pytest.MonkeyPatch,
+                                                                         channel: str) -> None:
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    status = request_realtime(80, lock_memory=False)
+    assert not status.fifo and status.priority is None
+    assert "best-effort" in status.message and "CAP_SYS_NICE" in status.message
+    # an engine that asks for none runs its schedule all the same, and says so
+    eb = EngineBus(spec=EngineSpec("ipc", channel, priority=None, lock_memory=False))
+    notifier = can.Notifier(eb, [], timeout=0.05)
+    try:
+        assert not eb.realtime.fifo and "best-effort" in eb.realtime.message
+        eb.start_sync(PERIOD_S)
+        time.sleep(0.15)
+        assert eb.stats().cycles >= 8
+    finally:
+        notifier.stop()
+        eb.shutdown()
+
+
+def test_the_engine_leaves_the_bus_when_the_master_goes(channel: str) -> None:
+    eb = EngineBus(spec=EngineSpec("ipc", channel))
+    proc = eb._proc
+    eb._ctrl.close()  # the master's end closes as if it died: no "close" command
+    assert proc.wait(5.0) == 0
+    eb._closed = True
+
+
+def test_the_announcer_feeds_each_sync_its_lead_before_the_engine_sends_it() -> None:
+    a = _Announcer(t0=100.0, period_s=0.002, syncs=5, first=10)
+    assert a.lead_s == pytest.approx(0.009)
+    assert a.next_due() == pytest.approx(100.0 + 10 * 0.002 - 0.009)
+    assert list(a.due(100.0 + 10 * 0.002 - 0.0095, None)) == []
+    fed = list(a.due(100.0 + 11 * 0.002 - 0.009, None))
+    assert [s.count for s in fed] == [10, 11] and fed[0] == Sync(10, 100.0 + 10 * 0.002, None)
+    # an answer tagged with a later SYNC than fed: every SYNC up to it is fed first
+    assert [s.count for s in a.due(0.0, 14)] == [12, 13, 14]
+
+
+def test_the_announcer_tells_synchronous_frames_from_records() -> None:
+    from bus.events import Send
+
+    a = _Announcer(t0=0.0, period_s=0.01, syncs=1, first=5)
+    list(a.due(1.0, None))
+    a.sending([Send(0x301, bytes(8))])  # a PVT record (RPDO2): asynchronous, late is harmless
+    assert not a.critical(a.fed)
+    a.sending([Send(0x201, b"\x1f\x00")])  # a controlword: late would start an axis a SYNC late
+    assert a.critical(a.fed)
