@@ -1,7 +1,7 @@
 """The multi-process demo on a real SocketCAN vcan0 (issue 6 section 3): `pvt demo --bus
-socketcan:vcan0` starts the simulated drives as a second process (`pvt sim`), streams the default
-6-axis job at 10 ms SYNC (python-can's periodic send = the kernel's broadcast manager) and must meet
-the same guarantees as on the virtual bus. Skipped where vcan0 does not exist; `make vcan-test` runs
+socketcan:vcan0` starts the simulated drives as a second process (bus/sim/process.py), streams the default
+6-axis job at 10 ms SYNC (sent by the cycle engine, bus/engine.py, a third process) and must meet the same
+guarantees as on the ipc bus. Skipped where vcan0 does not exist; `make vcan-test` runs
 it inside tools/vcan-vm."""
 
 from __future__ import annotations
