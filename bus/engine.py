@@ -363,12 +363,20 @@ class _Loop:
         else:
             self.out.send(("error", f"unknown engine command {kind!r}"))
 
+    def _next_due(self) -> float | None:
+        """When the next SYNC goes out: its time on the schedule, or a one-off SYNC's; never less than
+        MIN_GAP_AFTER_FRAMES_S after the last frame."""
+        if self.t0 is not None:
+            return max(self.t0 + self.cycle * self.period, self.last_frame_t + MIN_GAP_AFTER_FRAMES_S)
+        return self.once[0][0] if self.once else None
+
     def run(self) -> None:
         fd = _fileno(self.bus)
         rlist: list[Any] = [self.ctrl] + ([fd] if fd is not None else [])
         while not self.closing:
             if self.t0 is not None:
-                due = max(self.t0 + self.cycle * self.period, self.last_frame_t + MIN_GAP_AFTER_FRAMES_S)
+                due = self._next_due()
+                assert due is not None
                 wait = due - time.time()
                 if wait <= self.spin_s:
                     while time.time() < due:
@@ -397,9 +405,12 @@ class _Loop:
             ready, _, _ = select.select(rlist, wlist, [], wait)
             self._read_bus()
             if self.ctrl in ready:
+                # the master's commands until the next SYNC is near: a burst of them (the master catching up
+                # after a stall) waits for the SYNC, never the SYNC for them
+                due = self._next_due()
                 while self.ctrl.poll():
                     self._control(self.ctrl.recv())
-                    if self.closing:
+                    if self.closing or (due is not None and time.time() >= due - self.spin_s - POLL_S):
                         break
             self._flush()
 

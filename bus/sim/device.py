@@ -223,6 +223,7 @@ class DriveDevice:
         sync_gap_factor: float = 1.5,
         profile: DriveProfile | None = None,
         options: SimDriveOptions | None = None,
+        receive_slack_s: float = 0.0,
     ):
         if not 1 <= node_id <= 127:
             raise ValueError(f"node id must be 1..127, got {node_id}")
@@ -238,6 +239,10 @@ class DriveDevice:
         self.motor = motor
         self.counts_per_rev = int(counts_per_rev or (axis.counts_per_rev if axis else 8192))
         self.sync_gap_factor = float(sync_gap_factor)
+        # a SYNC or heartbeat that does not come is noticed by the timer this much after its deadline (the
+        # real-time adapter's own receive delay, so that a frame on the bus in time but not yet handed to the
+        # model is not taken for a lost one); a SYNC that comes late is judged by its time stamp at once
+        self.receive_slack_s = float(receive_slack_s)
         # the reading of every point the manuals leave open (planner/readings.py, docs/drive-model.md)
         self.options = o = options if options is not None else (axis.sim if axis is not None else SimDriveOptions())
         self._sample_before = o.tpdo_sampling == "before_rpdo"
@@ -392,11 +397,11 @@ class DriveDevice:
             if self._hb_next <= t:
                 self._hb_next = t + period
         sync_deadline = self._sync_deadline()
-        if sync_deadline is not None and t > sync_deadline:
+        if sync_deadline is not None and t > sync_deadline + self.receive_slack_s:
             self.counters.sync_gaps += 1
             self._fault(codec.EMCY_SYNC_LOST, 0, t)
         hb_deadline = self._hb_consumer_deadline()
-        if hb_deadline is not None and t > hb_deadline:
+        if hb_deadline is not None and t > hb_deadline + self.receive_slack_s:
             self._hb_rx_last = None
             self._fault(codec.EMCY_HEARTBEAT, 0, t)
         self._flush_event_tpdos()
@@ -406,7 +411,10 @@ class DriveDevice:
         """The earliest time `advance` has something to do, or None."""
         if self._nmt == NmtState.BOOTUP:
             return None
-        candidates = (self._hb_next, self._sync_deadline(), self._hb_consumer_deadline(),
+        slack = self.receive_slack_s
+        sync_deadline, hb_deadline = self._sync_deadline(), self._hb_consumer_deadline()
+        candidates = (self._hb_next, None if sync_deadline is None else sync_deadline + slack,
+                      None if hb_deadline is None else hb_deadline + slack,
                       self._held[0][0] if self._held else None, self._clock_deadline(), self._event_deadline())
         times = [x for x in candidates if x is not None]
         return min(times) if times else None

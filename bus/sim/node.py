@@ -20,7 +20,8 @@ that serialises everything that touches the models. What it does:
 - TPDOs, EMCYs, heartbeats, boot-up: whatever frames the model returns are sent as they are (a
   LocalNode sends no TPDO by itself).
 - Timers: a thread calls `model.advance(now)` at each model's `next_deadline()` (heartbeat producer,
-  SYNC loss, heartbeat consumer).
+  SYNC loss, heartbeat consumer); a SYNC or heartbeat that does not come at all is noticed RECEIVE_SLACK_S
+  late (this process' own receive delay is no loss), one that comes late by its bus time stamp at once.
 
 Time is `time.time()` (the clock python-can stamps virtual-bus frames with). An exception in any
 callback is recorded in `errors` (and re-raised by `check()`/`stop()`), never swallowed.
@@ -53,6 +54,11 @@ from bus.sim.od import SdoAbort
 from planner.config import BusConfig, CellConfig
 
 TIMER_MAX_SLEEP_S = 0.05
+# a SYNC or heartbeat that does not come at all is noticed this long after its deadline: the receive path of
+# a drive simulated on a general-purpose OS (a notifier thread, then the lock) may hold a frame that was on
+# the bus in time for a few ms; hardware has none. A SYNC that comes late is judged by its bus time stamp when
+# it comes, exactly (bus/sim/device.py `receive_slack_s`)
+RECEIVE_SLACK_S = 0.02
 
 # CiA 301 SDO block upload (client command specifier 5, server 6)
 _CCS_BLOCK_UPLOAD = 5 << 5
@@ -207,6 +213,7 @@ class SimulatedCell:
         eds_path: str | None = None,
         clock: Callable[[], float] = time.time,
         block_upload: bool = True,
+        receive_slack_s: float = RECEIVE_SLACK_S,
     ):
         self.cell = cell
         self.block_upload = block_upload
@@ -218,7 +225,8 @@ class SimulatedCell:
         self.models: dict[int, DriveDevice] = {
             a.node_id: make_drive(a, cell.drive, motor=motor,
                                   initial_position=positions.get(a.node_id, 0.0),
-                                  sync_gap_factor=sync_gap_factor, profile=profile)
+                                  sync_gap_factor=sync_gap_factor, profile=profile,
+                                  receive_slack_s=receive_slack_s)
             for a in cell.axes
         }
         self.nodes: dict[int, Any] = {}  # canopen.LocalNode (untyped library)

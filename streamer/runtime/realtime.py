@@ -55,7 +55,7 @@ from streamer.runtime.extension import PrefetchExtender
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
-CYCLIC_AHEAD_MS = 20.0  # cells with drives fed one set point per SYNC: what a stall of this process may take
+CYCLIC_AHEAD_MS = 50.0  # cells with drives fed one set point per SYNC: what a stall of this process may take
 FIFO_AHEAD_MS = 0.0  # EPOS-only cells: one period (a FIFO rides out a late record; feedback stays fresh)
 
 
