@@ -49,18 +49,40 @@ _BUS_THREAD_PREFIXES = ("Cyclic send task", "Notifier for bus", "pvt-master", "s
 _LEAK_GRACE_S = 2.0
 
 
+# processes of a real-time run: the cycle engine (bus/engine.py) and simulated drives (bus/sim/process.py)
+_BUS_PROCESS_MODULES = ("bus.engine", "bus.sim.process")
+
+
 def _bus_threads() -> set[threading.Thread]:
     return {t for t in threading.enumerate() if t.is_alive() and t.name.startswith(_BUS_THREAD_PREFIXES)}
 
 
+def _bus_processes() -> set[int]:
+    """This process' children that are a cycle engine or simulated drives, still running."""
+    out: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").glob("*/children"):
+        for pid in task.read_text().split():
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            except OSError:
+                continue
+            if state != "Z" and any(m.encode() in cmd for m in _BUS_PROCESS_MODULES):
+                out.add(int(pid))
+    return out
+
+
 @pytest.fixture(autouse=True)
 def _no_leaked_bus_threads() -> Iterator[None]:
-    """Every test stops the buses, masters and simulated drives it started (checked after its teardown)."""
-    before = _bus_threads()
+    """Every test stops the buses, masters, cycle engines and simulated drives it started (checked after its
+    teardown)."""
+    before, before_procs = _bus_threads(), _bus_processes()
     yield
     deadline = time.monotonic() + _LEAK_GRACE_S
-    while (left := _bus_threads() - before) and time.monotonic() < deadline:
+    while ((left := _bus_threads() - before) or _bus_processes() - before_procs) and time.monotonic() < deadline:
         time.sleep(0.05)
     if left:
         names = sorted(t.name for t in left)
         pytest.fail(f"the test left bus threads running: {names}", pytrace=False)
+    if procs := _bus_processes() - before_procs:
+        pytest.fail(f"the test left cycle engines or drive processes running: pids {sorted(procs)}", pytrace=False)

@@ -3,6 +3,7 @@ batches reported, real-time priority asked for and its refusal said once; the ru
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 import uuid
@@ -52,7 +53,7 @@ def test_syncs_follow_the_schedule_and_carry_the_counter(engine: EngineBus, chan
         engine.stop_sync()
     assert len(got) >= 15
     counters = [m.data[0] for m in got]
-    assert all(b == a % 3 + 1 for a, b in zip(counters, counters[1:], strict=False))
+    assert all(b == a % 3 + 1 for a, b in itertools.pairwise(counters))
     first = round((got[0].timestamp - t0) / PERIOD_S)
     for k, m in enumerate(got):  # each SYNC at its place on the absolute grid, not drifting
         assert abs(m.timestamp - (t0 + (first + k) * PERIOD_S)) < 0.005
@@ -149,6 +150,13 @@ def test_the_announcer_feeds_each_sync_its_lead_before_the_engine_sends_it() -> 
     assert [s.count for s in fed] == [10, 11] and fed[0] == Sync(10, 100.0 + 10 * 0.002, None)
     # an answer tagged with a later SYNC than fed: every SYNC up to it is fed first
     assert [s.count for s in a.due(0.0, 14)] == [12, 13, 14]
+
+
+def test_the_announcer_gives_each_sync_the_counter_the_engine_sends() -> None:
+    """With TPDO2 every n-th SYNC the core needs each SYNC's counter (0x1019) to know which node answers it;
+    the engine sends counters 1..N from SYNC 0 on (EngineBus.start_sync), so SYNC n carries n mod N + 1."""
+    a = _Announcer(t0=0.0, period_s=0.01, syncs=1, first=5, counter_overflow=4)
+    assert [(s.count, s.counter) for s in a.due(0.095, None)] == [(5, 2), (6, 3), (7, 4), (8, 1), (9, 2), (10, 3)]
 
 
 def test_the_announcer_tells_synchronous_frames_from_records() -> None:
