@@ -17,15 +17,16 @@ The candidates for one TPDO of one node are the SYNCs it can answer:
   before its SYNC);
 - after `after`, the last SYNC this PDO of the node answered (once, in order), and for TPDO1 also after the
   last SYNC its TPDO2 answered (a drive sends a SYNC's TPDOs in PDO order, TPDO1 first);
-- not before `upper - REACH` (an answer comes before the SYNC after next: a latency under a period plus the
-  bus) for the order's choice; content may look one SYNC further back (`CONTENT_REACH`, an answer held up
-  longer than that, as a starved host can);
+- not before `upper - REACH` (a few SYNCs: a starved SYNC sender puts several on the wire at once);
 - TPDO2 every n-th SYNC: only SYNCs whose counter carries the node (the feedback schedule, 0x1019).
-The order's choice is the earliest of them. If it fits the content (or content has no say: the axis at
-rest, a state with nothing to check), it is taken; else the earliest candidate that fits; if none fits,
-the order's choice, and the check that follows reports the fault (a lost, duplicated or swapped record
-fits no SYNC, so it is caught at once, as before). Taking the earliest never attributes an answer to a
-SYNC after the one it answers while the drive is right, so the bounds the next TPDO gets stay true.
+The order's choice is the earliest of them: with no answer lost it is the one (the drive answers every
+SYNC, in order). If the content fits it (or content has no say: the axis at rest, a state with nothing to
+check), it is taken; else the earliest candidate the content fits (an answer was lost: this one answers a
+later SYNC); if none fits, the order's choice, and the check that follows reports the fault (a lost,
+duplicated or swapped record fits no SYNC, so it is caught at once, as before). Taking the earliest never
+attributes an answer to a SYNC after the one it answers while the drive is right, so the bounds the next
+TPDO gets stay true; after a lost answer with nothing to tell the SYNCs apart (at rest) the attribution may
+lag by a SYNC until the content differs, which no check minds (they all fit).
 """
 
 from __future__ import annotations
@@ -34,13 +35,12 @@ from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-REACH = 1  # the order's choice: an answer comes before the SYNC after next
-CONTENT_REACH = 2  # content may place an answer this many SYNCs before the newest on the wire
+REACH = 3  # an answer can reach the master this many SYNCs after the newest on the wire, no more
 
 Fits = Callable[[int], bool | None]  # does the TPDO's content fit SYNC m? None: content has no say
 
 
-def candidates(upper: int, after: int, *, reach: int = CONTENT_REACH,
+def candidates(upper: int, after: int, *, reach: int = REACH,
                scheduled: Callable[[int], bool] | None = None) -> list[int]:
     """The SYNCs a TPDO can answer, earliest first: in (after, upper], not before upper - reach, and only
     those `scheduled` says carry it (TPDO2 every n-th SYNC)."""
@@ -48,33 +48,24 @@ def candidates(upper: int, after: int, *, reach: int = CONTENT_REACH,
     return [m for m in range(lo, upper + 1) if scheduled is None or scheduled(m)]
 
 
-def choose(order: int | None, options: Sequence[int], fits: Fits) -> int | None:
-    """The SYNC a TPDO answers: the order's choice if its content fits there (or content has no say), else
-    the earliest option it fits, else the order's choice (None: no SYNC it can answer; ignore it)."""
-    if order is not None:
-        ok = fits(order)
-        if ok is None or ok:
-            return order
-    for m in options:
-        if m != order and fits(m):
-            return m
-    return order
+def choose(options: Sequence[int], fits: Fits) -> int | None:
+    """The SYNC a TPDO answers among `options` (earliest first): the earliest if its content fits there or
+    content has no say, else the earliest it fits, else the earliest (None: no SYNC it can answer)."""
+    if not options:
+        return None
+    order = options[0]
+    ok = fits(order)
+    if ok is None or ok:
+        return order
+    return next((m for m in options[1:] if fits(m)), order)
 
 
 def attribute(upper: int, after: int, fits: Fits, *,
               scheduled: Callable[[int], bool] | None = None, schedule_reach: int = 0) -> int | None:
     """The SYNC a TPDO answers (see the module docstring). `after`: the last SYNC it cannot answer (the
     last one this PDO of the node answered; for TPDO1 also its TPDO2's). `scheduled`/`schedule_reach`: a
-    PDO sent every n-th SYNC, with how far back its schedule looks (2n)."""
-    if scheduled is not None:
-        options = candidates(upper, after, reach=max(schedule_reach, CONTENT_REACH), scheduled=scheduled)
-        # the order's choice: the newest scheduled SYNC (one in every n: the answer to the previous is older)
-        order = options[-1] if options else None
-    else:
-        options = candidates(upper, after)
-        near = [m for m in options if m >= upper - REACH]
-        order = near[0] if near else None
-    return choose(order, options, fits)
+    PDO sent every n-th SYNC, with how far back its schedule looks (2n - 1)."""
+    return choose(candidates(upper, after, reach=max(schedule_reach, REACH), scheduled=scheduled), fits)
 
 
 @dataclass

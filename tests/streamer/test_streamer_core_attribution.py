@@ -17,7 +17,7 @@ from streamer.core.attribution import attribute, candidates, choose
 
 def test_candidates_are_after_the_last_answer_and_not_after_the_newest_sync() -> None:
     assert candidates(11, 9) == [10, 11]
-    assert candidates(11, 5) == [9, 10, 11]  # content looks two SYNCs back at most
+    assert candidates(11, 5) == [8, 9, 10, 11]  # at most REACH SYNCs before the newest on the wire
     assert candidates(11, 11) == []  # nothing left to answer: the TPDO is ignored
     assert candidates(12, 5, reach=5, scheduled=lambda m: m % 3 == 0) == [9, 12]
 
@@ -25,7 +25,7 @@ def test_candidates_are_after_the_last_answer_and_not_after_the_newest_sync() ->
 def test_an_answer_after_the_next_sync_is_the_previous_sync_s() -> None:
     # SYNC 10's answer arrives after SYNC 11 (tag 11); the last answer was SYNC 9's: the order says 10, and
     # the content (the demand of SYNC 10) agrees
-    demand = {9: 100, 10: 200, 11: 300}
+    demand = {9: 100, 10: 200, 11: 300, 12: 400}
     assert attribute(11, 9, lambda m: demand[m] == 200) == 10
     # the same content with the answer to 10 lost: the next one (SYNC 11's) fits 11 only
     assert attribute(11, 9, lambda m: demand[m] == 300) == 11
@@ -33,17 +33,17 @@ def test_an_answer_after_the_next_sync_is_the_previous_sync_s() -> None:
     assert attribute(11, 9, lambda m: None) == 10
     # content that fits no SYNC: the order's choice, and the check that follows reports the fault
     assert attribute(11, 9, lambda m: False) == 10
-    # held up longer (two SYNCs on the wire since): content may place it one SYNC further back
-    assert attribute(12, 9, lambda m: demand.get(m) == 200) == 10
-    assert attribute(12, 9, lambda m: None) == 11  # ... the order alone does not
+    # SYNCs bunched behind a starved sender (11 and 12 on the wire when SYNC 10's answer arrives)
+    assert attribute(12, 9, lambda m: demand[m] == 200) == 10
     # at rest every SYNC fits: the earliest, never one after the SYNC it answers
-    assert choose(10, [10, 11], lambda m: True) == 10
+    assert choose([10, 11], lambda m: True) == 10
+    assert choose([], lambda m: True) is None
 
 
 def test_scheduled_feedback_answers_a_sync_that_carries_it() -> None:
     every_3 = lambda m: m % 3 == 0  # noqa: E731
-    assert attribute(13, 8, lambda m: None, scheduled=every_3, schedule_reach=5) == 12
-    assert attribute(13, 8, lambda m: m == 9, scheduled=every_3, schedule_reach=5) == 9  # the late one
+    assert attribute(13, 8, lambda m: None, scheduled=every_3, schedule_reach=5) == 9
+    assert attribute(13, 8, lambda m: m == 12, scheduled=every_3, schedule_reach=5) == 12  # 9's was lost
     assert attribute(13, 12, lambda m: None, scheduled=every_3, schedule_reach=5) is None
 
 
