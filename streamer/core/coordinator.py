@@ -12,7 +12,9 @@ Dispatch is a table keyed by (job state, event type); a pair without an entry ra
 Contract with the runtime (the adapter that calls it):
 - feed `Sync(n)` after SYNC n is on the wire (or queued ahead of anything the core returns), and before
   any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST);
-- feed TPDOs with `sync_count` set to the SYNC they answer (None = the last Sync fed);
+- feed TPDOs with `sync_count` set to the newest SYNC on the wire when they arrived (None = the last Sync
+  fed): the core decides which SYNC each answers (Feedback attribution, below); their time stamps are not
+  used for that;
 - send the returned frames at once, in order; they must reach the drives before the next SYNC;
 - the drives are operation enabled in mode 7 with the buffer cleared and enabled before the job
   (the core verifies it on the first TPDOs and fails DRIVE_NOT_READY otherwise; the adapter does the
@@ -95,6 +97,17 @@ error bit or the statusword fault bit in a TPDO, TPDO1/TPDO2 missing for `tpdo_t
 SendFailed or AdapterError, and every accounting failure of a feeder -> controlword 0x000B (quick stop)
 to every axis in that same reaction (unless nothing had been sent to the drives yet) and FAILED with
 the code, the node and a message. Then the core is poisoned (rule 4 of STYLE.md).
+
+Feedback attribution (streamer/core/attribution.py): a drive answers every SYNC once, in order, but may
+answer up to 0.9 period late (an EPOS; a busy bus or host adds to it), so its answer can reach the master
+after the next SYNC. Each TPDO is attributed to the SYNC it answers by what it contains: among the SYNCs it
+can answer (after the last one its node answered, TPDO1 also after its TPDO2's, up to the newest on the wire
+and at most 3 before it; TPDO2 every n-th SYNC only on SYNCs whose counter carries it) the earliest whose
+predicted content it fits: TPDO2 the position demand below (`_demand_fits`; a cyclic axis: the set points
+it can have reached), TPDO1 ip mode active only from the start SYNC and a fill the records sent and consumed
+explain (`_status_fits`); the earliest candidate when it fits none (the check then fails). Arrival time
+plays no part. The start check, the fill accounting, the demand check and the report (`JobReport.feedback`:
+per node, every TPDO2 and the last ip-active SYNC as attributed) all use this one decision.
 
 Position demand check: every TPDO2 is compared with the demand the drive must have after the ms it
 interpolated, predicted from the queued records with planner.hermite (exact with counts_per_rev, at
