@@ -36,9 +36,10 @@ class SyncOnWire:
 class BufferStatus:
     """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02.
 
-    `sync_count` is the number of the SYNC this TPDO answers, when the adapter knows it (it does: it sent
-    that SYNC). With None the streamer attributes it to the last `Sync` it was fed, which is only right
-    when no TPDO arrives after the next SYNC.
+    `sync_count` is the newest SYNC on the wire when this TPDO arrived, when the adapter knows it (it does:
+    it sent that SYNC): the TPDO answers that SYNC or an earlier one (a drive may answer after the next
+    SYNC), and the streamer core decides which by what the TPDO contains (streamer/core/attribution.py).
+    With None the core takes the last `Sync` it was fed as that bound.
     """
 
     node: int
@@ -56,7 +57,7 @@ class StatusWord:
     node: int
     statusword: int
     t: float
-    sync_count: int | None = None  # the SYNC this TPDO answers (see BufferStatus)
+    sync_count: int | None = None  # the newest SYNC on the wire when it arrived (see BufferStatus)
 
 
 @dataclass(frozen=True)
@@ -67,7 +68,7 @@ class PositionFeedback:
     position_actual: int
     position_demand: int
     t: float
-    sync_count: int | None = None  # the SYNC this TPDO answers (see BufferStatus)
+    sync_count: int | None = None  # the newest SYNC on the wire when it arrived (see BufferStatus)
 
 
 @dataclass(frozen=True)

@@ -124,6 +124,9 @@ class SimDriveOptions:
     clock: str = "sync"
     clock_drift_ppm: float = 0.0  # own clock only: + runs fast, - slow
     tpdo_latency_ms: float = 0.0  # synchronous TPDOs go out up to this long after the SYNC (uniform)
+    # and up to this much later still (a second uniform draw per SYNC, added): answers later than the drive
+    # states, some past the next SYNC (a busy bus or host between drive and master); the order is kept
+    tpdo_jitter_ms: float = 0.0
     absent: tuple[int, ...] = ()  # optional objects this drive does not have
     seed: int = 0  # for the TPDO latency draws (node id is added)
     # homing inputs (issue 14; docs/drive-model.md "Homing"), in the axis' user units of the drive's position
@@ -143,6 +146,7 @@ class SimDriveOptions:
         _float("sim", "homing_travel", self.homing_travel, 0.0, 1e12)
         _float("sim", "clock_drift_ppm", self.clock_drift_ppm, -5000.0, 5000.0)
         _float("sim", "tpdo_latency_ms", self.tpdo_latency_ms, 0.0, 1000.0)
+        _float("sim", "tpdo_jitter_ms", self.tpdo_jitter_ms, 0.0, 1000.0)
         object.__setattr__(self, "absent", _indices("sim", "absent", self.absent))
         if self.clock_drift_ppm and self.clock != "own":
             raise PlanningError(CONFIG, "sim.clock_drift_ppm needs sim.clock = \"own\" (a SYNC-locked drive has "

@@ -7,7 +7,9 @@ two ways and the larger is reported:
 - at every ms, from the records that were streamed, through the drive's interpolation formula
   (`PvtTrajectory.deviation()`; `decode_candump` proves the records on the wire are exactly these);
 - at every SYNC, from the position demand the drive itself reported in TPDO2 (0x6062), against the
-  plan rounded as the drive rounds.
+  plan rounded as the drive rounds. Each sample is taken at the SYNC the streamer core attributed it to
+  (`JobReport.feedback`, streamer/core/attribution.py: by what it contains), never by when it arrived: a
+  drive that answers late has its answers reach the master after the next SYNC.
 An axis whose drive takes one set point per SYNC (planner/cyclic.py) is measured the same two ways: at every
 ms from the set points the core sent (`setpoints`, which `decode_setpoints` reads back from the candump),
 through the drive's own interpolation, and at every SYNC from its reported demand.
@@ -75,7 +77,8 @@ def build_report(
         own_clock = r.clock == "own"
         rho = (min(r.clock_ppm_max, 50.0) if time_stamp else r.clock_ppm_max) * 1e-6
         sampled_dev = explained = unexplained = 0
-        for s, d in zip(ax.pos_sync, ax.demand, strict=True):
+        log = core.feedback.get(node)
+        for s, d in zip(log.sync if log is not None else (), log.demand if log is not None else (), strict=True):
             if core.start_sync is not None and s > core.start_sync + traj.duration_ms // sync_period_ms + 1:
                 break  # after the plan's end: the stop or hold is not the plan
             k = _plan_index(s, core.start_sync, sync_period_ms, traj.duration_ms)
@@ -103,8 +106,8 @@ def build_report(
             drive_time_dev = max(int(encoder_dev[i]), sampled_dev)
         final_actual = trace.final_actual(node)
         target = int(traj.positions[i, -1])
-        ends = [s for s in ax.ip_active_syncs]
-        end_sync = (ends[-1] + 1) if ends else None
+        last_active = log.last_active_sync if log is not None else None
+        end_sync = last_active + 1 if last_active is not None else None
         if interp != "pvt" and tel is not None:
             end_sync = tel.end_sync
         axes_out.append(

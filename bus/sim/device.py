@@ -253,6 +253,7 @@ class DriveDevice:
         self._tick_underflow = o.underflow_check == "every_tick"
         self._clock = MotionClock(o.clock_drift_ppm) if o.clock == "own" else None
         self._tpdo_latency_s = o.tpdo_latency_ms / 1000.0
+        self._tpdo_jitter_s = o.tpdo_jitter_ms / 1000.0
         self._latency_rng = random.Random(o.seed * 1000 + node_id)
         self._held: list[tuple[float, Frame]] = []  # TPDOs answering a SYNC, sent after the latency
         self._absent = frozenset(o.absent)
@@ -982,14 +983,19 @@ class DriveDevice:
         return out
 
     def _send_sync_tpdos(self, frames: list[Frame], t: float) -> None:
-        """Now, or after this SYNC's latency draw (the `tpdo_latency_ms` option; all of a SYNC's TPDOs
-        go together, in PDO order)."""
+        """Now, or after this SYNC's latency draw (the `tpdo_latency_ms` option, plus the `tpdo_jitter_ms`
+        draw; all of a SYNC's TPDOs go together, in PDO order, never before the previous SYNC's)."""
         if not frames:
             return
-        if self._tpdo_latency_s <= 0.0:
+        if self._tpdo_latency_s <= 0.0 and self._tpdo_jitter_s <= 0.0:
             self._out.extend(frames)
             return
         at = t + self._latency_rng.uniform(0.0, self._tpdo_latency_s)
+        if self._tpdo_jitter_s > 0.0:
+            at += self._latency_rng.uniform(0.0, self._tpdo_jitter_s)
+        # in order: a SYNC's answers never overtake the previous SYNC's (a later draw waits behind them)
+        if self._held:
+            at = max(at, self._held[-1][0])
         self._held.extend((at, f) for f in frames)
 
     def _release_held(self, t: float) -> None:

@@ -12,7 +12,9 @@ Dispatch is a table keyed by (job state, event type); a pair without an entry ra
 Contract with the runtime (the adapter that calls it):
 - feed `Sync(n)` after SYNC n is on the wire (or queued ahead of anything the core returns), and before
   any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST);
-- feed TPDOs with `sync_count` set to the SYNC they answer (None = the last Sync fed);
+- feed TPDOs with `sync_count` set to the newest SYNC on the wire when they arrived (None = the last Sync
+  fed): the core decides which SYNC each answers (Feedback attribution, below); their time stamps are not
+  used for that;
 - send the returned frames at once, in order; they must reach the drives before the next SYNC;
 - the drives are operation enabled in mode 7 with the buffer cleared and enabled before the job
   (the core verifies it on the first TPDOs and fails DRIVE_NOT_READY otherwise; the adapter does the
@@ -96,6 +98,17 @@ SendFailed or AdapterError, and every accounting failure of a feeder -> controlw
 to every axis in that same reaction (unless nothing had been sent to the drives yet) and FAILED with
 the code, the node and a message. Then the core is poisoned (rule 4 of STYLE.md).
 
+Feedback attribution (streamer/core/attribution.py): a drive answers every SYNC once, in order, but may
+answer up to 0.9 period late (an EPOS; a busy bus or host adds to it), so its answer can reach the master
+after the next SYNC. Each TPDO is attributed to the SYNC it answers by what it contains: among the SYNCs it
+can answer (after the last one its node answered, TPDO1 also after its TPDO2's, up to the newest on the wire
+and at most 3 before it; TPDO2 every n-th SYNC only on SYNCs whose counter carries it) the earliest whose
+predicted content it fits: TPDO2 the position demand below (`_demand_fits`; a cyclic axis: the set points
+it can have reached), TPDO1 ip mode active only from the start SYNC and a fill the records sent and consumed
+explain (`_status_fits`); the earliest candidate when it fits none (the check then fails). Arrival time
+plays no part. The start check, the fill accounting, the demand check and the report (`JobReport.feedback`:
+per node, every TPDO2 and the last ip-active SYNC as attributed) all use this one decision.
+
 Position demand check: every TPDO2 is compared with the demand the drive must have after the ms it
 interpolated, predicted from the queued records with planner.hermite (exact with counts_per_rev, at
 knots only without). A difference over demand_tolerance_counts is PROTOCOL (records executed out of
@@ -116,9 +129,6 @@ import numpy as np
 from bus.budget import (
     CONTROLWORD_FRAME_BITS,
     RECORD_FRAME_BITS,
-    SYNC_FRAME_BITS,
-    TIME_STAMP_FRAME_BITS,
-    TPDO_FRAME_BITS,
     CycleBudget,
     cycle_budget,
     setpoint_frame_bits,
@@ -142,7 +152,9 @@ from bus.events import (
 from planner import hermite
 from planner.cyclic import Setpoints
 from planner.record import PvtRecord, pack
+from streamer.core import attribution
 from streamer.core import outcome as oc
+from streamer.core.attribution import FeedbackLog
 from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder, pack_frame
 from streamer.core.drive_time import DriveTime
 from streamer.core.feeder import AxisTelemetry, FeederInput, FeederState, FifoFeeder, stream_framing
@@ -359,6 +371,9 @@ class JobReport:
     axes: tuple[AxisTelemetry, ...] = ()
     positioning: dict[int, str] = field(default_factory=dict)  # node -> PositioningState name, at the end
     warnings: tuple[NotInTarget, ...] = ()
+    # per node, what its drive reported at each SYNC as the core attributed it (the report's deviation and
+    # end SYNC come from it, never from arrival order); the core's own logs, read-only
+    feedback: dict[int, FeedbackLog] = field(default_factory=dict)
 
 
 class Coordinator:
@@ -426,15 +441,8 @@ class Coordinator:
         self._cw: dict[int, dict[int, Send]] = {}
         self._clocks: dict[int, DriveTime] = {}
         self._sampling: dict[int, str | None] = {}
-        # how long a TPDO may come after its SYNC: the drive's latency (0.9 of a period when unknown, the
-        # longest the readings permit) and the cycle's own frames queued ahead of it (SYNC, time stamp,
-        # every node's TPDOs)
-        queue_s = (SYNC_FRAME_BITS + TIME_STAMP_FRAME_BITS + 2 * n * TPDO_FRAME_BITS) / s.bitrate
-        self._latency_window_s = {
-            node: max(1.5 * (0.9 * s.sync_period_ms if r.tpdo_latency_ms is None else r.tpdo_latency_ms),
-                      0.5 * s.sync_period_ms) / 1000.0 + queue_s
-            for node, r in readings.items()
-        }
+        # what every drive reported, per SYNC as attributed (the report's deviation is measured from it)
+        self._feedback_log: dict[int, FeedbackLog] = {node: FeedbackLog() for node in self._plan.node_ids}
         for axis, node in enumerate(self._plan.node_ids):
             r = readings[node]
             start = self._plan.start_positions[axis]
@@ -649,6 +657,7 @@ class Coordinator:
             axes=self.telemetry(),
             positioning={n: st.name for n, st in self._positioning.states().items()},
             warnings=tuple(self._positioning.warnings),
+            feedback=dict(self._feedback_log),
         )
 
     # ---- construction-time feasibility --------------------------------------------------------------
@@ -773,17 +782,12 @@ class Coordinator:
         _, now_hi = self._clocks[f.node_id].ticks(self._sync, self._sync_time(self._sync))
         return float(due - now_hi)
 
-    def _attribute(self, f: FifoFeeder | CyclicFeeder, pdo: int, sync_count: int | None, t: float) -> int | None:
-        """The SYNC a TPDO of `f`'s node answers. `sync_count` is the runtime's tag: the newest SYNC on the
-        wire before the TPDO arrived, so the TPDO answers it or an older one. A drive answers every SYNC
-        once, in order (CiA 301), within a latency that may exceed the rest of the period (it then arrives
-        after the next SYNC): so TPDO1 answers the SYNC after the last one it answered, unless that is not
-        on the wire yet (the drive answered quickly: the newest), or its answer is overdue (it came more
-        than the node's latency window after that SYNC: the answer was lost, this one answers a later
-        SYNC). The window is max(1.5 x the drive's stated TPDO latency, half a period) plus the time the
-        cycle's own frames can hold a TPDO back: long enough for every late answer the drive's latency
-        explains, short enough to tell a lost answer from a late one when the drive answers well inside
-        the period. TPDO2 every n-th SYNC answers the newest SYNC whose counter carries it."""
+    def _attribute(self, f: FifoFeeder | CyclicFeeder, pdo: int, sync_count: int | None,
+                   fits: attribution.Fits) -> int | None:
+        """The SYNC a TPDO of `f`'s node answers, by what it contains (streamer/core/attribution.py: one
+        rule for every check and the report). `sync_count` is the runtime's tag: the newest SYNC on the
+        wire before the TPDO arrived, so the TPDO answers it or an older one; `fits(m)` tests the TPDO's
+        content against SYNC m. TPDO2 every n-th SYNC answers a SYNC whose counter carries it."""
         cur = self._sync
         if cur is None:
             return None  # no SYNC seen yet in this job: an answer to an earlier one, not ours
@@ -795,18 +799,71 @@ class Coordinator:
                 )
             upper = sync_count
         fb = self._feedback
-        if pdo == 2 and fb is not None and fb.every > 1:
-            for m in range(upper, max(upper - 2 * fb.every, -1), -1):
-                if m in self._sync_counters and fb.carries(f.node_id, self._sync_counters[m]):
-                    return m
+        if pdo == 2:
+            if fb is not None and fb.every > 1:
+                counters, node = self._sync_counters, f.node_id
+                return attribution.attribute(
+                    upper, f.last_tpdo2, fits,
+                    scheduled=lambda m: m in counters and fb.carries(node, counters[m]),
+                    schedule_reach=2 * fb.every - 1)
+            return attribution.attribute(upper, f.last_tpdo2, fits)
+        # a SYNC's TPDO1 goes out before its TPDO2: a TPDO1 answers a SYNC after the one TPDO2 last answered
+        return attribution.attribute(upper, max(f.last_tpdo1, f.last_tpdo2), fits)
+
+    def _progress_at(self, f: FifoFeeder, m: int, active: bool) -> tuple[bool, bool, int, int]:
+        """(started, activated, least ms, most ms interpolated) of `f`'s drive at SYNC m, given whether it
+        reports ip mode active there (the start SYNC's TPDO may be sampled before its controlword)."""
+        s = self._start_sync
+        started = s is not None and m >= s
+        activated = started and (m != s or active)
+        if not activated:
+            return started, False, 0, 0
+        lo_ms, hi_ms = self._clocks[f.node_id].ticks(m, self._sync_time(m))
+        return started, True, lo_ms, hi_ms
+
+    def _status_fits(self, f: FifoFeeder, m: int, sw: int, bs: int, fill: int) -> bool | None:
+        """Could a FIFO drive report (statusword, buffer status, fill) at SYNC m? No when ip mode is active
+        before the start, inactive while the stream is running (the start SYNC's sampling reading aside), or
+        the fill is not one the records sent and consumed by then explain (above: a duplicate there; below
+        by more than the unconfirmed batch: consumed records the plan does not explain); None when the state
+        checks nothing."""
+        fs = f.state
+        if (self._state in (JobState.CONFIGURING, JobState.HALTING) or bs & BS_ERRORS or sw & SW_FAULT
+                or fs in (FeederState.WAITING, FeederState.FINISHED, FeederState.FAULTED, FeederState.HALTING)):
             return None
-        last = f.last_tpdo1 if pdo == 1 else f.last_tpdo2
-        cand = max(upper - 1, last + 1)
-        # an answer overdue by more than the node's latency window was lost: the TPDO answers a later SYNC
-        window = self._latency_window_s[f.node_id]
-        while cand < upper and t - self._sync_times.get(cand, t) > window:
-            cand += 1
-        return min(upper, cand)
+        active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
+        started, activated, lo_ms, hi_ms = self._progress_at(f, m, active)
+        if active and not started:
+            return False
+        if started and not active:
+            sampled_before = m == self._start_sync and self._sampling[f.node_id] != "after_rpdo"
+            if not sampled_before and (fs is FeederState.STARTING or hi_ms < self._t_end):
+                return False
+        least, most = f.possible_fill(m, f.stream_consumed(consumed_at(self._ends, lo_ms), activated),
+                                      f.stream_consumed(consumed_at(self._ends, hi_ms), activated),
+                                      1 if f.hides_target and active else 0)
+        return least <= fill <= most
+
+    def _demand_fits(self, f: FifoFeeder, m: int, demand: int) -> bool | None:
+        """Is the position demand a FIFO drive reports the plan's at SYNC m (within the demand tolerance, at
+        any tick its clock allows)? None when there is nothing to compare with (configuring, halting)."""
+        if self._state in (JobState.CONFIGURING, JobState.HALTING) or f.state is FeederState.FAULTED:
+            return None
+        tol = self._settings.demand_tolerance_counts
+        s, clock = self._start_sync, self._clocks[f.node_id]
+        if s is None or m <= s or clock.exact:
+            options = f.demand_candidates(self._elapsed(m), self._ends)
+            return min(abs(demand - c) for c in options) <= tol if options else None
+        _, err = clock.matching(m, self._sync_time(m), lambda k: f.demand_candidates(k, self._ends), demand, tol)
+        return err <= tol
+
+    def _setpoint_fits(self, f: CyclicFeeder, m: int, demand: int) -> bool | None:
+        """Is a cyclic drive's reported demand between the set points it can have reached at SYNC m?"""
+        if self._state is JobState.CONFIGURING or f.state in (FeederState.HALTING, FeederState.FAULTED,
+                                                                FeederState.FINISHED):
+            return None
+        lo, hi = f.expected_demand(m, self._start_sync)
+        return max(0, lo - demand, demand - hi) <= self._settings.demand_tolerance_counts
 
     def _set_state(self, new: JobState, outcome: JobOutcome | None = None) -> None:
         if new not in _JOB_TRANSITIONS[self._state]:
@@ -1092,12 +1149,14 @@ class Coordinator:
         f = self._by_node.get(ev.node)
         if not isinstance(f, CyclicFeeder):
             return
-        m = self._attribute(f, 1, ev.sync_count, ev.t)
+        m = self._attribute(f, 1, ev.sync_count, lambda _m: None)
         if m is None or m <= f.last_tpdo1:
             return
         f.last_tpdo1 = m
         self._t = ev.t
         sw, node = ev.statusword, f.node_id
+        if sw & SW_IP_ACTIVE:
+            self._feedback_log[node].active(m)
         f.last_statusword = sw
         if sw & SW_FAULT:
             self._fail(oc.DRIVE_FAULT, f"node {node}: statusword 0x{sw:04X} reports a fault at SYNC {m}", node,
@@ -1142,13 +1201,15 @@ class Coordinator:
         f = self._by_node.get(ev.node)
         if not isinstance(f, FifoFeeder):
             return
-        m = self._attribute(f, 1, ev.sync_count, ev.t)
+        sw, bs, node = ev.statusword, ev.buffer_status, f.node_id
+        fill = self._fifo - ev.free_size
+        m = self._attribute(f, 1, ev.sync_count, lambda k: self._status_fits(f, k, sw, bs, fill))
         if m is None or m <= f.last_tpdo1:
             return
         f.last_tpdo1 = m
         self._t = ev.t
-        sw, bs, node = ev.statusword, ev.buffer_status, f.node_id
-        fill = self._fifo - ev.free_size
+        if bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
+            self._feedback_log[node].active(m)
         if bs & BS_ERRORS:
             if bs & BS_UNDERFLOW_ERROR:
                 code, what = oc.BUFFER_UNDERFLOW, "IP buffer underflow error"
@@ -1191,19 +1252,16 @@ class Coordinator:
             return
         active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
         s = self._start_sync
-        started = s is not None and m >= s
         # the TPDO of the start SYNC itself may be sampled before or after that SYNC's controlword
         # applies (reading `tpdo_sampling`): it may still show ip mode inactive
         sampling = self._sampling[node]
-        activated = started and (m != s or active)
+        started, activated, lo_ms, hi_ms = self._progress_at(f, m, active)
         if not started:
             if active:
                 self._fail(oc.PROTOCOL, f"node {node}: ip mode active at SYNC {m}, before the start", node)
                 return
-            lo_ms = hi_ms = 0
         else:
             assert s is not None
-            lo_ms, hi_ms = self._clocks[node].ticks(m, self._sync_time(m)) if activated else (0, 0)
             if not active:
                 sampled_before = m == s and sampling != "after_rpdo"
                 if fs is FeederState.STARTING and not sampled_before:
@@ -1376,11 +1434,12 @@ class Coordinator:
         if isinstance(f, CyclicFeeder):
             self._on_cyclic_position(f, ev)
             return
-        m = self._attribute(f, 2, ev.sync_count, ev.t)
+        m = self._attribute(f, 2, ev.sync_count, lambda k: self._demand_fits(f, k, ev.position_demand))
         if m is None or m <= f.last_tpdo2:
             return
         f.last_tpdo2 = m
         self._t = ev.t
+        self._feedback_log[f.node_id].position(m, ev.position_demand, ev.position_actual)
         if self._state is JobState.CONFIGURING:
             f.first_demand = ev.position_demand
             self._try_configure()
@@ -1427,11 +1486,12 @@ class Coordinator:
                 )
 
     def _on_cyclic_position(self, f: CyclicFeeder, ev: PositionFeedback) -> None:
-        m = self._attribute(f, 2, ev.sync_count, ev.t)
+        m = self._attribute(f, 2, ev.sync_count, lambda k: self._setpoint_fits(f, k, ev.position_demand))
         if m is None or m <= f.last_tpdo2:
             return
         f.last_tpdo2 = m
         self._t = ev.t
+        self._feedback_log[f.node_id].position(m, ev.position_demand, ev.position_actual)
         if self._state is JobState.CONFIGURING:
             f.first_demand = ev.position_demand
             self._try_configure()

@@ -299,10 +299,9 @@ class FifoFeeder:
         or None (possibly after scheduling a resend).
         """
         visible = self.sent_end > self.confirmed and self.batch_tag <= sync
-        base = (self.sent_end if visible else self.confirmed) - hidden
         c_hi = consumed if consumed_hi is None else max(consumed, consumed_hi)
-        expected = base - consumed  # the fill with nothing missing and the least consumption
-        lowest = base - c_hi  # ... and the most consumption the drive's clock allows
+        expected = self.expected_fill(sync, consumed, hidden)  # nothing missing, the least consumption
+        lowest = expected - (c_hi - consumed)  # ... and the most consumption the drive's clock allows
         batch = self.sent_end - self.confirmed if visible else 0
         lo, hi = self.confirmed, self.sent_end
         node = self.node_id
@@ -377,6 +376,22 @@ class FifoFeeder:
         self.sent_end = self.confirmed
         self.suspect_sync = None
         return None
+
+    def expected_fill(self, sync: int, consumed: int, hidden: int = 0) -> int:
+        """The fill the drive can report at SYNC `sync` with nothing missing, having consumed `consumed`
+        stream records (the unconfirmed batch counts from its tag on). More is never possible there: a fill
+        above it is a duplicate, or an answer to another SYNC (the attribution tries that first)."""
+        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
+        return (self.sent_end if visible else self.confirmed) - hidden - consumed
+
+    def possible_fill(self, sync: int, consumed: int, consumed_hi: int, hidden: int = 0) -> tuple[int, int]:
+        """[least, most] fill the drive can report at SYNC `sync` without a PROTOCOL fault: most = nothing
+        missing and the least consumption; least = the whole unconfirmed batch missing and the most
+        consumption its clock allows. Outside it the answer is to another SYNC, or a fault."""
+        most = self.expected_fill(sync, consumed, hidden)
+        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
+        batch = self.sent_end - self.confirmed if visible else 0
+        return most - (max(consumed, consumed_hi) - consumed) - batch, most
 
     def take(self, n: int, tag: int) -> list[Send]:
         """The next n frames of the stream, sent now and counted in the fill from SYNC `tag`."""

@@ -1,10 +1,13 @@
 """What happened on the bus during a job, seen from the master: per-SYNC traces and a frame tally.
 
 `JobTrace` is fed the same events the streamer core is fed (plus every frame, for the tally and the
-bus-load measurement) and keeps, per axis, one sample per SYNC: FIFO fill, position actual and
-position demand. It is shared by the virtual-time and the real-time runtimes, so the report and the
-plot are built the same way whatever bus ran the job. No I/O, no clock: timestamps come with the
-events.
+bus-load measurement) and keeps, per axis, one sample per TPDO: FIFO fill, position actual and
+position demand, each with the runtime's tag (the newest SYNC on the wire when it arrived). The tag is
+the SYNC answered only for a drive that answers before the next SYNC: the SYNC each answers is decided by
+the streamer core from what it contains (streamer/core/attribution.py), and the report's deviation and end
+SYNC are taken from the core's attribution (`JobReport.feedback`), not from these tags. It is shared by
+the virtual-time and the real-time runtimes, so the report and the plot are built the same way whatever
+bus ran the job. No I/O, no clock: timestamps come with the events.
 
 With `record=True` (the default) it also keeps what the job's recording needs (streamer/recording):
 every frame with its data and time (in compact arrays, up to `max_frames`, then counted in

@@ -1,7 +1,8 @@
 """Reliability suite fixtures: every FaultModel a test creates through `faults` has its seed printed
 when the test fails (replay with PVT_FAULT_SEED=<seed>); `variant` runs a scenario on the reference
 drive and on the drive variants issue 11 names for it (TPDO sampled before the RPDOs, FIFO counted
-without the target, the drive's own clock, TPDO latency)."""
+without the target, the drive's own clock, TPDO latency), and on answers later than the drive states
+(issue 22: past the next SYNC)."""
 
 from __future__ import annotations
 
@@ -44,6 +45,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "fifo_until_start": {"fifo_count": "until_segment_start"},
     "own_clock": {"clock": "own", "clock_drift_ppm": 200.0},
     "tpdo_latency": {"tpdo_latency_ms": 9.0},
+    # answers later than the drive states (a busy bus or host): some past the next SYNC, a few later than
+    # 1.5 x the stated latency (the attribution is by content: streamer/core/attribution.py)
+    "tpdo_late": {"tpdo_latency_ms": 9.0, "tpdo_jitter_ms": 6.0},
 }
 
 

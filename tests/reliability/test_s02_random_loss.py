@@ -40,6 +40,11 @@ def check_run(rig: Rig, model: FaultModel) -> tuple[int, int]:
     # record boundary falls inside that tick the fill cannot tell a lost record from one consumed early,
     # and the core waits one SYNC more (streamer/core/feeder.py)
     within = 3 if rig.cell.axes[0].probed.clock == "own" else 2
+    # a drive whose answers may come after the next SYNC shows the loss that much later (the first answer
+    # that can show it is the late one): one SYNC more
+    sim = rig.cell.axes[0].sim
+    if sim.tpdo_latency_ms + sim.tpdo_jitter_ms > rig.cell.sync_period_ms:
+        within += 1
     for d in drops:
         lost_sync = rig.sync_at(d.t)
         resend = next((w for w in rig.wire if w.t > d.t and w.cob_id == d.cob_id and w.data == d.data), None)
