@@ -72,6 +72,7 @@ from typing import Any
 
 import zenoh
 
+from planner.errors import POSITION_LIMIT
 from streamer.api import errors as E
 from streamer.api import keys
 from streamer.api.backend import CancelToken, MotionBackend, Planned
@@ -635,7 +636,7 @@ class JobService:
             )
         job_body, buffer, lead_ms = _split_buffer(sub.body, self.backend.cell.sync_period_ms, REPAIR_SYNCS)
         job_body, record = _split_record(job_body)
-        job = self.backend.validate(job_body)
+        job = self._validate(job_body, buffer)
         ready, reason = self._ready()
         if not ready:
             raise MotionError(
@@ -710,6 +711,25 @@ class JobService:
             raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
         self.counters["accepted"] += 1
         return record, False, planning_s
+
+    def _validate(self, body: Mapping[str, Any], buffer: str | None) -> Any:
+        """The backend's validation. An aborting move while a job runs is a change: a target outside the
+        software position limits is then the change's refusal, COMMAND_REJECTED with `detail.planner_code`
+        POSITION_LIMIT, as the backend answers a relative or additive change whose target lands there (one
+        code for "this change cannot be made", whatever stage found it); other bad input keeps its code."""
+        try:
+            return self.backend.validate(body)
+        except Exception as exc:
+            code = getattr(exc, "code", None)
+            if buffer != "aborting" or code != POSITION_LIMIT:
+                raise
+            with self._cv:
+                running = self._current is not None
+            if not running:
+                raise
+            err = error_from_exception(exc)
+            raise MotionError(E.COMMAND_REJECTED, f"the change's target cannot be reached: {err.message}",
+                              path=err.path or "target", detail={"planner_code": code}) from None
 
     def _admit_change(self, sub: Submission, via: str, job_id: str, job: Any, current: _Queued, t0: float,
                       body: bytes) -> tuple[JobRecord, bool, float]:
