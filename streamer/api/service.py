@@ -188,6 +188,8 @@ class _Emitter:
         # latest update until `unpause()`, so no progress event can come before the job's `priming`
         self._paused = paused
         self.progress = 0.0  # the latest progress the backend reported (status, telemetry)
+        self._positioning: Any = None  # the latest `positioning` the backend reported (the cancelling event's)
+        self._timer: threading.Timer | None = None  # sends a held update once the interval is over
 
     def __call__(self, event_type: str, fields: Mapping[str, Any] | None = None) -> None:
         if event_type == EventType.PRIMING.value:
@@ -206,12 +208,31 @@ class _Emitter:
             if self._closed:
                 return
             self.progress = data["progress"]
-            if self._paused or (now - self._last_sent < self._min_interval_s and data["progress"] < 1.0):
-                self._held = data  # the latest update is sent at the end if nothing newer goes out
+            if "positioning" in data:
+                self._positioning = data["positioning"]
+            # at most one per min_interval, also after the plan's end (progress 1.0, positioning changes): the
+            # latest update waits and goes out with the next one allowed, or at the end (close)
+            if self._paused or now - self._last_sent < self._min_interval_s:
+                self._held = data
+                if not self._paused and self._timer is None:
+                    self._timer = threading.Timer(self._last_sent + self._min_interval_s - now, self._flush)
+                    self._timer.daemon = True
+                    self._timer.start()
                 return
             self._last_sent = now
             self._held = None
             self._service._post_progress(self._job_id, self._type(), data)
+
+    def _flush(self) -> None:
+        """The timer: the held update goes out (latest wins) unless something newer already went."""
+        with self._lock:
+            self._timer = None
+            held, self._held = self._held, None
+            if held is None or self._closed or self._paused:
+                self._held = held
+                return
+            self._last_sent = time.monotonic()
+            self._service._post_progress(self._job_id, self._type(), held)
 
     def unpause(self) -> None:
         with self._lock:
@@ -234,17 +255,28 @@ class _Emitter:
                 self._service._post_progress(self._job_id, EventType.RUNNING, held)
             self._cancelling = True
             self._last_sent = time.monotonic()
-            return self._service._post_progress(
-                self._job_id, EventType.CANCELLING, {"progress": self.progress, "reason": reason}
-            )
+            fields: dict[str, Any] = {"progress": self.progress, "reason": reason}
+            if self._positioning is not None:  # the cancelling events carry it, the first one too
+                fields["positioning"] = self._positioning
+            return self._service._post_progress(self._job_id, EventType.CANCELLING, fields)
 
     def close(self) -> None:
-        """Stop accepting; send the last held-back progress update so the final progress is seen."""
+        """Stop accepting; send the last held-back progress update so the final progress is seen: once the
+        interval since the previous one is over (at most progress_hz per second, the last one too), before the
+        job's final event (the caller posts it after this returns)."""
         with self._lock:
             self._closed = True
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
             held, self._held = self._held, None
-            if held is not None and not self._paused:
-                self._service._post_progress(self._job_id, self._type(), held)
+            if held is None or self._paused:
+                return
+            kind = self._type()
+            wait_s = self._last_sent + self._min_interval_s - time.monotonic()
+        if wait_s > 0.0:
+            time.sleep(wait_s)  # nothing else posts for this job now: it is closed
+        self._service._post_progress(self._job_id, kind, held)
 
 
 
@@ -1432,6 +1464,8 @@ class JobService:
                 raise MotionError(E.BUSY, f"job {self.running_job!r} is still stopping; resume when it has ended")
             try:
                 ready, reason = self.backend.reset()
+            except MotionError:
+                raise  # a coded refusal (BUSY: the emergency stop is still stopping the drives)
             except Exception as exc:
                 raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
             did_reset = True
@@ -1457,6 +1491,8 @@ class JobService:
             raise MotionError(E.BUSY, f"job {self.running_job!r} is running; cancel it before a reset")
         try:
             ready, reason = self.backend.reset()
+        except MotionError:
+            raise
         except Exception as exc:
             raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
         if ready:
