@@ -223,11 +223,19 @@ class RuntimeBackend:
     def _execute_motion(self, planned: Planned, emit: Emit, cancel: CancelToken, record: Any) -> Mapping[str, Any]:
         traj = planned.trajectory
         snap = self.runtime.snapshot()
-        off = [name for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True))
+        off = [(str(name), snap[node].position_demand, int(traj.positions[i, 0]))
+               for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True))
                if snap[node].position_demand != int(traj.positions[i, 0])]
-        if off:  # an earlier job ended elsewhere (cancelled or failed): plan again from here
-            planned = self.plan(planned.job, None)
-            traj = planned.trajectory
+        if off:
+            # the start is checked in one place: the service (current_positions) re-plans a queued job whose axes
+            # stopped elsewhere with the travel memory (last target, direction) it reported the target with; a
+            # second re-plan here, without it, could send an additive or modulo move to another target
+            name, at, start = off[0]
+            return {"result": "failed", "faults": [], "axes": [], "error": {
+                "code": "START_MISMATCH", "node": None, "path": "axes",
+                "message": f"axis {name!r} stands at {at} counts, the plan starts at {start} counts: a plan is "
+                           "streamed from where it starts, never re-planned here (the service checks the start)",
+                "detail": {"axes": [{"axis": n, "position_counts": a, "plan_start_counts": s} for n, a, s in off]}}}
         group = None
         if record is not None:
             from streamer.recording.drive import DriveRecordingError
