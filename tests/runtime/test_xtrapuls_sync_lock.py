@@ -65,3 +65,24 @@ def test_the_master_waits_for_180_ms_of_sync_then_every_drive_starts_on_one_sync
     assert out2 is not None and out2.result.value == "done", out2
     s2 = second.coordinator.start_sync
     assert s2 is not None and s2 - second.first_sync < 10 and refusals(rt) == 0
+
+
+def test_in_real_time_bit4_goes_out_after_180_ms_of_sync_and_every_drive_takes_it(tmp_path: Path) -> None:
+    """The real-time runtime passes no `Sync.since`: the core counts from its own first SYNC. The simulated drives
+    run on the bus (canopen LocalNodes, wall clock), as `pvt sim` runs them for `--external-drives`."""
+    import can
+
+    from bus.cob import SYNC_COB_ID, rpdo1_id
+
+    cell, _job, traj = demo.prepare(ROOT / "configs" / "xtrapuls.toml")
+    report, _trace = demo.run_realtime(cell, traj, tmp_path)
+    assert "not ip mode active" not in str(report.get("message")), report  # no drive refused bit 4
+    assert all(a["start_sync"] is not None for a in report["axes"]), report  # every axis started
+    with can.LogReader(str(tmp_path / "bus.log")) as reader:
+        frames = [(m.timestamp, m.arbitration_id, bytes(m.data)) for m in reader]
+    first_sync = next(t for t, cob, _ in frames if cob == SYNC_COB_ID)
+    for a in cell.axes:
+        bit4 = [t for t, cob, data in frames
+                if cob == rpdo1_id(a.node_id) and int.from_bytes(data[:2], "little") & 0x0010]
+        assert bit4, f"node {a.node_id}: no controlword with bit 4"
+        assert bit4[0] - first_sync >= 0.180, (a.node_id, bit4[0] - first_sync)
