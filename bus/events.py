@@ -15,11 +15,14 @@ from dataclasses import dataclass
 @dataclass(frozen=True)
 class Sync:
     """The master sent SYNC number `count` (0, 1, 2, ...) at time `t`; `counter` is the CiA 301 SYNC
-    counter byte it carried (None: a SYNC without counter)."""
+    counter byte it carried (None: a SYNC without counter). `since`: when the SYNC producer's current
+    unbroken run began (the time of its first SYNC, on the clock of `t`), if the runtime knows; None: the
+    core takes the first Sync it was fed (a drive that locks on SYNC, the XtrapulsPac, needs 180 ms of it)."""
 
     count: int
     t: float
     counter: int | None = None
+    since: float | None = None
 
 
 @dataclass(frozen=True)

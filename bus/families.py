@@ -235,6 +235,8 @@ XTRAPULS_IP = XtrapulsProfile(
     }),
     hold_objects=("ip_data_position", "ip_data_velocity"),
     halt_in_mode=False,
+    # seed 003 3.1.1.4 "At least 180 ms are necessary for the servo-drive to start the synchronisation"
+    sync_lock_ms=180,
 )
 
 

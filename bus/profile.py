@@ -340,6 +340,8 @@ class DriveProfile:
     hold_objects: tuple[str, ...] = ()
     # controlword bit 4 starts the interpolation (IP); False: the drive follows set points once enabled (CSP)
     starts_with_bit4: bool = True
+    # how long SYNC must have run before the drive accepts bit 4 (its PLL locks on SYNC: XtrapulsPac 180 ms)
+    sync_lock_ms: int = 0
     # halt (controlword bit 8) is available in this mode
     halt_in_mode: bool = True
 

@@ -748,6 +748,9 @@ class DriveDevice:
             for base, direction in ((0x1400, "rx"), (0x1800, "tx")):
                 h[(base + n, 1)] = self._pdo_cob_writer(base + n)
                 h[(base + n, 2)] = self._pdo_type_writer(base + n, direction)
+            for sub in (3, 5):  # inhibit time, event timer: the running TPDO takes them at once
+                if (0x1800 + n, sub) in self.objects.objects:
+                    h[(0x1800 + n, sub)] = self._tpdo_timing_writer(0x1800 + n, sub)
             for base, direction in ((0x1600, "rx"), (0x1A00, "tx")):
                 comm = (0x1400 if direction == "rx" else 0x1800) + n
                 h[(base + n, 0)] = self._pdo_count_writer(base + n, comm, direction)
@@ -831,6 +834,23 @@ class DriveDevice:
                                f"{direction}PDO transmission type {value} not supported")
             self._od[(comm, 2)] = value
             self._rebuild_pdos()
+
+        return write
+
+    def _tpdo_timing_writer(self, comm: int, sub: int) -> Callable[[int], None]:
+        """0x18xx:03 (inhibit time, 100 us) and 0x18xx:05 (event timer, ms): stored and applied to the TPDO
+        as it runs, keeping when it was last sent (CiA 301 lets a master change the event timer of a valid
+        PDO; a rebuild would only pick it up at the next remapping)."""
+        number = comm - 0x1800 + 1
+
+        def write(value: int) -> None:
+            self._od[(comm, sub)] = value
+            for p in (*self._tx_event, *self._tx_sync):
+                if p.number == number:
+                    if sub == 5:
+                        p.event_timer_s = value * 1e-3
+                    else:
+                        p.inhibit_s = value * 1e-4
 
         return write
 

@@ -18,6 +18,10 @@ RPDOs, `_after_sync_rpdos`):
 3. The interpolator (it "is running in any mode") latches x_k = 0x60C1:01 (and v_k = 0x60C1:02).
 4. Interpolation starts at the first SYNC at which controlword bit 4 is set in operation enabled, mode
    7, with the PLL locked: from the current demand (x_{k-1} := the demand), so enabling moves nothing.
+   Bit 4 that finds the PLL not locked (less than 180 ms of SYNC) is refused: statusword bit 12 stays
+   low, nothing moves, and the request stays refused until bit 4 is seen low at a SYNC and set again
+   (the manual gives the 180 ms and no synchronisation state to wait on; a drive that "needs" the SYNC
+   first does not start on a request it could not serve).
 5. The period's polynomial by sub-mode 0x60C0: 0 linear x_{k-1} -> x_k; -1 PV the cubic Hermite from
    (x_{k-1}, v_{k-1}) to (x_k, v_k); -2 P3 the parabola through x_{k-2}, x_{k-1}, x_k; played over the
    ticks of the coming period (cyclic.py), so x_k is the demand at SYNC k+1.
@@ -94,6 +98,8 @@ class XtrapulsDrive(CyclicDrive):
     _pll_sorted: list[float]
     _pll_since: float | None = None
     _locked = False
+    _ip_refused = False  # bit 4 came before the PLL locked: ignored until it falls
+    ip_refusals = 0  # requests (bit 4 rising, operation enabled, mode 7) refused for want of the lock
     setpoints_received = 0
     setpoints_late = 0  # error 50 at a SYNC (missing or less than 100 us before it)
 
@@ -123,6 +129,7 @@ class XtrapulsDrive(CyclicDrive):
         self._reset_interpolator()
         self._sp_arrival = None
         self._prev_sync = None
+        self._ip_refused = False
         self._pll_reset()
 
     def _refresh_family(self, od: dict[Key, int]) -> None:
@@ -235,8 +242,15 @@ class XtrapulsDrive(CyclicDrive):
         x = float(self._od[SET_POINT])
         self._x = (self._x[1], self._x[2], x)
         self._v = (self._v[1], float(self._od[SET_VELOCITY]))
-        if (not self._ip_active and self._locked and self._cw & codec.CW_ENABLE_IP
-                and self._state == Cia402State.OPERATION_ENABLED and self._mode == IP_MODE):
+        wanted = bool(self._cw & codec.CW_ENABLE_IP) and self._state == Cia402State.OPERATION_ENABLED and \
+            self._mode == IP_MODE
+        if not wanted:
+            self._ip_refused = False  # bit 4 low (or not enabled in mode 7): the next request is a new one
+        elif not self._ip_active and not self._ip_refused and not self._locked:
+            # bit 4 before 180 ms of SYNC: refused, bit 12 stays low until bit 4 falls and rises again
+            self._ip_refused = True
+            self.ip_refusals += 1
+        elif not self._ip_active and not self._ip_refused:
             self._ip_active = True
             self.counters.activations += 1
             here = self._demand if self._unit else self._demand / self._scale

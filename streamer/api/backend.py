@@ -49,9 +49,12 @@ Contract, method by method (which service thread calls it, what it may raise):
   `{"code": str, "node": int | None, "message": str}` (extra keys such as `detail`, `sync` are kept).
   It should not raise; if it does, the job fails with the exception's `code` when it has one (a
   `PlanningError`), else INTERNAL, with the exception text. If the drives do not stand at the plan's knot
-  0 when execute is called (a job before it was cancelled or failed), re-plan from the current positions
-  (`self.plan(planned.job, None)`) or fail START_MISMATCH; with `current_positions()` the service checks
-  this itself before `execute` (below). After a cancel, `progress` stays the share of the *job's* plan
+  0 when execute is called (a job before it was cancelled or failed): with `current_positions()` the
+  service has checked (and re-planned) the start itself before `execute` (below), with the travel memory
+  the job's target was reported with, so the backend fails START_MISMATCH and never re-plans on its own
+  (a second re-plan, without that memory, could take an additive or modulo move elsewhere); a backend
+  without `current_positions()` re-plans from the current positions (`self.plan(planned.job, None)`) or
+  fails START_MISMATCH. After a cancel, `progress` stays the share of the *job's* plan
   that was executed (it does not run on to 1.0 through the stop trajectory): the service publishes those
   updates as `cancelling` events with the true progress.
   `planned.record` is the job's `record` section (a `RecordRequest`, checked by the service) or None:

@@ -72,6 +72,7 @@ from typing import Any
 
 import zenoh
 
+from planner.errors import POSITION_LIMIT
 from streamer.api import errors as E
 from streamer.api import keys
 from streamer.api.backend import CancelToken, MotionBackend, Planned
@@ -187,6 +188,8 @@ class _Emitter:
         # latest update until `unpause()`, so no progress event can come before the job's `priming`
         self._paused = paused
         self.progress = 0.0  # the latest progress the backend reported (status, telemetry)
+        self._positioning: Any = None  # the latest `positioning` the backend reported (the cancelling event's)
+        self._timer: threading.Timer | None = None  # sends a held update once the interval is over
 
     def __call__(self, event_type: str, fields: Mapping[str, Any] | None = None) -> None:
         if event_type == EventType.PRIMING.value:
@@ -205,12 +208,31 @@ class _Emitter:
             if self._closed:
                 return
             self.progress = data["progress"]
-            if self._paused or (now - self._last_sent < self._min_interval_s and data["progress"] < 1.0):
-                self._held = data  # the latest update is sent at the end if nothing newer goes out
+            if "positioning" in data:
+                self._positioning = data["positioning"]
+            # at most one per min_interval, also after the plan's end (progress 1.0, positioning changes): the
+            # latest update waits and goes out with the next one allowed, or at the end (close)
+            if self._paused or now - self._last_sent < self._min_interval_s:
+                self._held = data
+                if not self._paused and self._timer is None:
+                    self._timer = threading.Timer(self._last_sent + self._min_interval_s - now, self._flush)
+                    self._timer.daemon = True
+                    self._timer.start()
                 return
             self._last_sent = now
             self._held = None
             self._service._post_progress(self._job_id, self._type(), data)
+
+    def _flush(self) -> None:
+        """The timer: the held update goes out (latest wins) unless something newer already went."""
+        with self._lock:
+            self._timer = None
+            held, self._held = self._held, None
+            if held is None or self._closed or self._paused:
+                self._held = held
+                return
+            self._last_sent = time.monotonic()
+            self._service._post_progress(self._job_id, self._type(), held)
 
     def unpause(self) -> None:
         with self._lock:
@@ -233,17 +255,28 @@ class _Emitter:
                 self._service._post_progress(self._job_id, EventType.RUNNING, held)
             self._cancelling = True
             self._last_sent = time.monotonic()
-            return self._service._post_progress(
-                self._job_id, EventType.CANCELLING, {"progress": self.progress, "reason": reason}
-            )
+            fields: dict[str, Any] = {"progress": self.progress, "reason": reason}
+            if self._positioning is not None:  # the cancelling events carry it, the first one too
+                fields["positioning"] = self._positioning
+            return self._service._post_progress(self._job_id, EventType.CANCELLING, fields)
 
     def close(self) -> None:
-        """Stop accepting; send the last held-back progress update so the final progress is seen."""
+        """Stop accepting; send the last held-back progress update so the final progress is seen: once the
+        interval since the previous one is over (at most progress_hz per second, the last one too), before the
+        job's final event (the caller posts it after this returns)."""
         with self._lock:
             self._closed = True
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
             held, self._held = self._held, None
-            if held is not None and not self._paused:
-                self._service._post_progress(self._job_id, self._type(), held)
+            if held is None or self._paused:
+                return
+            kind = self._type()
+            wait_s = self._last_sent + self._min_interval_s - time.monotonic()
+        if wait_s > 0.0:
+            time.sleep(wait_s)  # nothing else posts for this job now: it is closed
+        self._service._post_progress(self._job_id, kind, held)
 
 
 
@@ -635,7 +668,7 @@ class JobService:
             )
         job_body, buffer, lead_ms = _split_buffer(sub.body, self.backend.cell.sync_period_ms, REPAIR_SYNCS)
         job_body, record = _split_record(job_body)
-        job = self.backend.validate(job_body)
+        job = self._validate(job_body, buffer)
         ready, reason = self._ready()
         if not ready:
             raise MotionError(
@@ -710,6 +743,25 @@ class JobService:
             raise MotionError(E.INTERNAL, f"job {job_id!r} was journalled but cannot be read back")
         self.counters["accepted"] += 1
         return record, False, planning_s
+
+    def _validate(self, body: Mapping[str, Any], buffer: str | None) -> Any:
+        """The backend's validation. An aborting move while a job runs is a change: a target outside the
+        software position limits is then the change's refusal, COMMAND_REJECTED with `detail.planner_code`
+        POSITION_LIMIT, as the backend answers a relative or additive change whose target lands there (one
+        code for "this change cannot be made", whatever stage found it); other bad input keeps its code."""
+        try:
+            return self.backend.validate(body)
+        except Exception as exc:
+            code = getattr(exc, "code", None)
+            if buffer != "aborting" or code != POSITION_LIMIT:
+                raise
+            with self._cv:
+                running = self._current is not None
+            if not running:
+                raise
+            err = error_from_exception(exc)
+            raise MotionError(E.COMMAND_REJECTED, f"the change's target cannot be reached: {err.message}",
+                              path=err.path or "target", detail={"planner_code": code}) from None
 
     def _admit_change(self, sub: Submission, via: str, job_id: str, job: Any, current: _Queued, t0: float,
                       body: bytes) -> tuple[JobRecord, bool, float]:
@@ -1412,6 +1464,8 @@ class JobService:
                 raise MotionError(E.BUSY, f"job {self.running_job!r} is still stopping; resume when it has ended")
             try:
                 ready, reason = self.backend.reset()
+            except MotionError:
+                raise  # a coded refusal (BUSY: the emergency stop is still stopping the drives)
             except Exception as exc:
                 raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
             did_reset = True
@@ -1437,6 +1491,8 @@ class JobService:
             raise MotionError(E.BUSY, f"job {self.running_job!r} is running; cancel it before a reset")
         try:
             ready, reason = self.backend.reset()
+        except MotionError:
+            raise
         except Exception as exc:
             raise MotionError(E.INTERNAL, f"backend.reset() raised {type(exc).__name__}: {exc}") from None
         if ready:

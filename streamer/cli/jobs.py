@@ -34,10 +34,12 @@ from streamer.cli.tables import Col, fit_table, number
 
 STORE_HELP = ("data directory of the journal (default: the state dir, $XDG_STATE_HOME/pvt or ~/.local/state/pvt), "
               "or the journal file itself (.sqlite/.db)")
+# one line per job whatever its error: id, kind, state and planned duration always, the error cut to the line
+# (the whole of it in `pvt jobs show ID`), the rest while it fits
 JOB_COLUMNS = [
-    Col("#", justify="right"), Col("job_id"), Col("kind", drop=2), Col("state"), Col("via", drop=4),
-    Col("planned [s]", justify="right"), Col("points", justify="right", drop=3), Col("submitted", drop=1),
-    Col("error", text=True),
+    Col("#", justify="right", drop=1), Col("job_id"), Col("kind"), Col("state"), Col("via", drop=4),
+    Col("planned [s]", justify="right"), Col("points", justify="right", drop=3), Col("submitted", drop=2),
+    Col("error", cut=True, whole="`pvt jobs show ID` has the whole text"),
 ]
 EVENT_COLUMNS = [Col("seq", justify="right"), Col("time", drop=1), Col("type"), Col("state", drop=2),
                  Col("details", text=True)]
@@ -111,9 +113,10 @@ def _journal_path(args: argparse.Namespace) -> Path:
 
 
 class _Lookup(Exception):
-    def __init__(self, message: str, status: int):
+    def __init__(self, message: str, status: int, record: Any = None):
         super().__init__(message)
         self.status = status
+        self.record = record  # the journal's record when the job exists but has no recording
 
 
 def _find(args: argparse.Namespace) -> tuple[Path, Any]:
@@ -149,7 +152,7 @@ def _find(args: argparse.Namespace) -> tuple[Path, Any]:
             raise _Lookup(f"no job {args.job!r} in {journal} and no recording of it in {folder}", 1)
         why = ("it never started, so nothing was recorded" if not record.started_t
                else "retention removed it, or the job streamed nothing (or ran with recording off)")
-        raise _Lookup(f"job {args.job!r} ({record.state.value}) has no recording in {folder}: {why}", 1)
+        raise _Lookup(f"job {args.job!r} ({record.state.value}) has no recording in {folder}: {why}", 1, record)
     return path, record
 
 
@@ -165,6 +168,10 @@ def run_show(args: argparse.Namespace) -> int:
         path, record = _find(args)
         rec = read_mcap(path)
     except _Lookup as exc:
+        if exc.record is not None:  # the journal still has the job: its row, the error whole
+            _show_journal(exc.record.to_status(), str(exc), getattr(args, "json", False))
+            err.print(f"pvt jobs show: {exc}", highlight=False, markup=False)
+            return exc.status  # 1: no recording (what the journal has is printed)
         err.print(f"pvt jobs show: {exc}", highlight=False, markup=False)
         return exc.status
     except RecordingError as exc:
@@ -184,11 +191,8 @@ def run_show(args: argparse.Namespace) -> int:
     out.print(f"[bold]job {rec.job_id or '-'}[/bold] on cell {rec.cell or '-'}: {state}; recording {path} "
               f"({info['bytes']} bytes)")
     if journal:
-        out.print(f"kind {journal.get('kind')}, submitted {_time(journal.get('submitted_t'))}, started "
-                  f"{_time(journal.get('started_t'))}, finished {_time(journal.get('finished_t'))}")
-        if journal.get("error"):
-            e = journal["error"]
-            out.print(f"[red]error {e.get('code')}[/red]: " + escape(str(e.get("message", ""))))
+        for line in _journal_lines(journal):
+            out.print(line)
     out.print(f"SYNC {rec.sync_period_ms} ms, first SYNC {rec.first_sync}, start SYNC {rec.start_sync}, "
               f"{info['duration_s']:.3f} s recorded, {info['frames']} CAN frames"
               + (f" ({rec.frames_dropped} more not kept)" if rec.frames_dropped else ""))
@@ -206,6 +210,32 @@ def run_show(args: argparse.Namespace) -> int:
                         rows, out.width, title="events"), highlight=False)
     out.print("messages: " + ", ".join(f"{topic} {n}" for topic, n in info["messages"].items()), markup=False)
     return 0
+
+
+def _journal_lines(journal: dict[str, Any]) -> list[str]:
+    """The journal's part of `pvt jobs show`: kind and times, the error whole (markup escaped)."""
+    lines = [f"kind {journal.get('kind')}, submitted {_time(journal.get('submitted_t'))}, started "
+             f"{_time(journal.get('started_t'))}, finished {_time(journal.get('finished_t'))}"]
+    e = journal.get("error")
+    if isinstance(e, dict):
+        lines.append(f"[red]error {escape(str(e.get('code')))}[/red]: " + escape(str(e.get("message", ""))))
+    return lines
+
+
+def _show_journal(journal: dict[str, Any], why: str, as_json: bool) -> None:
+    """`pvt jobs show` of a job without a recording (it never started, or retention removed it): what the
+    journal has."""
+    from rich.console import Console
+
+    journal = {k: v for k, v in journal.items() if k != "report"}
+    if as_json:
+        print(json.dumps({"journal": journal, "recording": None, "why": why}, indent=2, default=str))
+        return
+    out = Console()
+    out.print(f"[bold]job {escape(str(journal.get('job_id')))}[/bold] on cell {escape(str(journal.get('cell')))}: "
+              f"{journal.get('state')}")
+    for line in _journal_lines(journal):
+        out.print(line)
 
 
 def run_export(args: argparse.Namespace) -> int:

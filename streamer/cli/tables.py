@@ -8,6 +8,11 @@ rest and wrap at spaces; headers are wrapped to their column's width (units go i
 caption names the ones left out and where to see them. When even the required columns cannot fit, the
 table turns into records (one "field value" block per row), values folded but whole.
 
+The one exception is a `cut` column (a listing's error: one line per row matters more there than the whole
+text, which has a place of its own): it takes the width the others leave, on one line, and a value longer
+than that ends in "…"; the caption says where the whole text is (`Col.whole`). It never turns the table
+into records: it shrinks down to its header's width first.
+
 `number` prints a number without an exponent (1000, not 1e+03) with about `digits` significant digits.
 """
 
@@ -26,6 +31,7 @@ from rich.text import Text
 # A column costs its content width plus 2 spaces of padding and 1 border; the table 1 more border.
 _PER_COLUMN = 3
 _MIN_TEXT = 16  # a wrapping text column is never narrower than this (or its longest word)
+_MIN_CUT = 12  # a cut column is given this much before optional columns are added
 
 
 @dataclass(frozen=True)
@@ -37,6 +43,8 @@ class Col:
     justify: str = "left"
     text: bool = False
     drop: int = 0
+    cut: bool = False  # one line, cut to the width left ("…"); `whole` says where the whole text is
+    whole: str = ""
 
 
 def number(value: Any, digits: int = 4, *, none: str = "-") -> str:
@@ -80,7 +88,7 @@ def fit_table(
 ) -> Table:
     """A rich Table of `rows` that fits `width` columns of terminal (see the module docstring)."""
     cols = list(range(len(columns)))
-    rows = [[str(v) for v in r] for r in rows]
+    rows = [[" ".join(str(v).split()) if columns[i].cut else str(v) for i, v in enumerate(r)] for r in rows]
 
     def content(i: int) -> int:
         return max((cell_len(line) for r in rows for line in r[i].split("\n")), default=0)
@@ -88,6 +96,8 @@ def fit_table(
     def need(i: int) -> int:  # the width a column needs to show every value unbroken
         c = columns[i]
         header_min = _words_width(c.header)
+        if c.cut:
+            return max(header_min, min(_MIN_CUT, content(i)), 1)
         if c.text:
             longest_word = max((_words_width(r[i]) for r in rows), default=0)
             return max(header_min, min(_MIN_TEXT, max(content(i), 1)), longest_word if longest_word <= 40 else 0)
@@ -104,26 +114,40 @@ def fit_table(
             cols = sorted([*cols, i])
         else:
             dropped.append(i)
-    if total(cols) > width:
+    floor = {i: max(1, _words_width(columns[i].header)) for i in cols if columns[i].cut}
+    if total(cols) - sum(need(i) - floor[i] for i in floor) > width:
         return _records(columns, rows, title)
     fits = True
     spare = width - total(cols)
-    text_cols = [i for i in cols if columns[i].text]
-    caption = None
+    widths = {i: need(i) for i in cols}
+    for i in floor:  # short of width: the cut columns give up what they must, down to their header's width
+        give = min(max(0, -spare), widths[i] - floor[i])
+        widths[i] -= give
+        spare += give
+    text_cols = [i for i in cols if columns[i].text or columns[i].cut]
+    for i in text_cols:
+        # the text columns share what is left, the first gets the remainder
+        share = spare // len(text_cols) + (spare % len(text_cols) if i == text_cols[0] else 0)
+        widths[i] = min(widths[i] + share, max(widths[i], content(i)))
+    notes: list[str] = []
     if dropped:
         names = ", ".join(columns[i].header.replace("\n", " ") for i in sorted(dropped))
-        caption = f"not shown at {width} columns: {names} (wider terminal, or {more})"
+        notes.append(f"not shown at {width} columns: {names} (wider terminal, or {more})")
+    for i in cols:
+        c = columns[i]
+        if c.cut and any(cell_len(r[i]) > widths[i] for r in rows):
+            notes.append(f"{c.header.replace(chr(10), ' ')} cut to the line" + (f": {c.whole}" if c.whole else ""))
+    caption = "; ".join(notes) if notes else None
     table = Table(title=Text(title) if title else None, caption=Text(caption) if caption else None,
                   caption_justify="left", title_justify="left")
     for i in cols:
         c = columns[i]
-        w = need(i)
-        if c.text and fits and text_cols:
-            # the text columns share what is left, the first gets the remainder
-            share = spare // len(text_cols) + (spare % len(text_cols) if i == text_cols[0] else 0)
-            w = min(w + share, max(w, content(i)))
+        w = widths[i]
         header = Text(_wrap_header(c.header, w))  # Text: "[s]" is a unit here, not rich markup
-        if fits and not c.text:
+        if c.cut:
+            table.add_column(header, justify=c.justify, no_wrap=True, overflow="ellipsis",  # type: ignore[arg-type]
+                             min_width=w, max_width=w)
+        elif fits and not c.text:
             table.add_column(header, justify=c.justify, no_wrap=True, min_width=w, max_width=w)  # type: ignore[arg-type]
         else:  # text wraps at spaces (a word longer than the column folds: shown whole, never cut)
             table.add_column(header, justify=c.justify, overflow="fold", min_width=w)  # type: ignore[arg-type]

@@ -11,7 +11,9 @@ Dispatch is a table keyed by (job state, event type); a pair without an entry ra
 
 Contract with the runtime (the adapter that calls it):
 - feed `Sync(n)` after SYNC n is on the wire (or queued ahead of anything the core returns), and before
-  any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST);
+  any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST); `Sync.since`,
+  when the runtime knows it, is when the SYNC's unbroken run began (else the core counts from its first
+  Sync): an XtrapulsPac gets controlword bit 4 only once SYNC has run its `sync_lock_ms` (180 ms);
 - feed TPDOs with `sync_count` set to the newest SYNC on the wire when they arrived (None = the last Sync
   fed): the core decides which SYNC each answers (Feedback attribution, below); their time stamps are not
   used for that;
@@ -494,6 +496,7 @@ class Coordinator:
         self._changes: list[StateChange] = []
         self._sync: int | None = None
         self._first_sync: int | None = None
+        self._sync_since: float | None = None  # when the SYNC's current run began (Sync.since, or our first)
         self._sync_times: dict[int, float] = {}  # recent SYNC count -> time sent
         self._sync_counters: dict[int, int | None] = {}  # recent SYNC count -> its counter byte
         self._t = 0.0
@@ -918,6 +921,10 @@ class Coordinator:
         prev = self._sync
         self._sync_times[m] = ev.t
         self._sync_counters[m] = ev.counter
+        if ev.since is not None:
+            self._sync_since = ev.since
+        elif self._sync_since is None:
+            self._sync_since = ev.t  # the runtime does not say: SYNC has run at least since our first
         self._sync_times.pop(m - 64, None)
         self._sync_counters.pop(m - 64, None)
         if prev is None:
@@ -1099,21 +1106,47 @@ class Coordinator:
         after a are latched); START_FAILED when it never comes."""
         if f.state is not FeederState.PRIMING:
             return
+        if f.spec.starts_with_bit4 and f.bit4_sync is None:
+            self._request_ip(f, m)
+            return
         if f.active_sync is not None:
             if m >= f.active_sync + HOLD_AFTER_ACTIVE:
                 f.fire(FeederInput.PRIMED)
             return
-        if f.ready_sync is not None and (m - f.ready_sync) * self._period > self._settings.activate_timeout_ms:
+        asked = f.bit4_sync if f.spec.starts_with_bit4 else f.ready_sync
+        if asked is not None and (m - asked) * self._period > self._settings.activate_timeout_ms:
             what = "ip mode active (statusword bit 12)" if f.spec.starts_with_bit4 else \
                 "following the set point (statusword bit 12)"
+            why = (f"; SYNC had run {f.bit4_sync_ran_ms} ms at the SYNC that applied bit 4, the drive needs "
+                   f"{f.spec.sync_lock_ms} ms of it" if f.spec.starts_with_bit4 else "")
             self._fail(
                 oc.START_FAILED,
                 f"node {f.node_id}: not {what} {self._settings.activate_timeout_ms} ms after "
                 f"{'controlword bit 4' if f.spec.starts_with_bit4 else 'operation enabled'} (statusword "
-                f"0x{f.last_statusword or 0:04X}; an XtrapulsPac needs 180 ms of SYNC first)",
+                f"0x{f.last_statusword or 0:04X}{why})",
                 f.node_id,
-                {"statusword": f.last_statusword},
+                {"statusword": f.last_statusword, "sync_ran_ms": f.bit4_sync_ran_ms},
             )
+
+    def _sync_ran_ms(self, m: int) -> float:
+        """How long SYNC had run at SYNC m (since the producer's run began, as far as the core knows)."""
+        t = self._sync_times.get(m)
+        if t is None or self._sync_since is None:
+            return 0.0
+        return 1000.0 * (t - self._sync_since)
+
+    def _request_ip(self, f: CyclicFeeder, m: int) -> None:
+        """Controlword bit 4 to an XtrapulsPac after SYNC m, once SYNC has run long enough at the SYNC that
+        applies it (m + 1) for the drive's PLL to have locked: `sync_lock_ms` before SYNC m, one period to
+        spare (a drive refuses bit 4 before that, seed 003: "At least 180 ms are necessary for the
+        servo-drive to start the synchronisation"; the manual gives no synchronisation state to read, so
+        statusword bit 12 after bit 4 is the check)."""
+        ran = self._sync_ran_ms(m)
+        if ran + 1e-6 < f.spec.sync_lock_ms:
+            return
+        self._emit_cw(f, CW_START_IP)
+        f.bit4_sync = m
+        f.bit4_sync_ran_ms = round(ran + self._period)
 
     def _send_setpoints(self, m: int) -> None:
         """After SYNC m: every cyclic frame whose axes are being fed, each axis' set point for SYNC m + 1;
@@ -1179,7 +1212,8 @@ class Coordinator:
                 self._progress_job()
             return
         if fs is FeederState.PRIMING:
-            if active and f.active_sync is None and (f.ready_sync is None or m > f.ready_sync):
+            asked = f.bit4_sync if f.spec.starts_with_bit4 else f.ready_sync
+            if active and f.active_sync is None and asked is not None and m > asked:
                 f.active_sync = m
             return
         s = self._start_sync
@@ -1379,10 +1413,10 @@ class Coordinator:
             else:
                 # the hold set point from now on (sent with the next SYNC's reaction, and this one now, so the
                 # SYNC that applies bit 4 finds one); an XtrapulsPac gets bit 4 (a rising edge: enable left it
-                # low), a CSP drive already follows its target
+                # low) once SYNC has run long enough for its PLL, a CSP drive already follows its target
                 f.ready_sync = self._sync
-                if f.spec.starts_with_bit4:
-                    self._emit_cw(f, CW_START_IP)
+                if f.spec.starts_with_bit4 and self._sync is not None:
+                    self._request_ip(f, self._sync)
         self._set_state(JobState.PRIMING)
         self._positioning.start()
         if self._cyclic and self._sync is not None:

@@ -56,6 +56,7 @@ class CyclicAxis:
     slot: SetpointSlot
     interpolation: str  # "linear" | "pv" | "p3"
     starts_with_bit4: bool = True
+    sync_lock_ms: int = 0  # SYNC the drive must have seen before bit 4 (XtrapulsPac: 180 ms, else it refuses)
 
 
 class CyclicFeeder:
@@ -79,7 +80,9 @@ class CyclicFeeder:
         self.last_tpdo2 = -1
         self.first_status: int | None = None  # statusword of the first TPDO1 of the job
         self.first_demand: int | None = None
-        self.ready_sync: int | None = None  # the SYNC after which it got its first hold (and bit 4)
+        self.ready_sync: int | None = None  # the SYNC after which it got its first hold
+        self.bit4_sync: int | None = None  # the SYNC after which it got controlword bit 4 (ip mode requested)
+        self.bit4_sync_ran_ms = 0  # how long SYNC had run at the SYNC that applied bit 4
         self.active_sync: int | None = None  # the SYNC bit 12 was first seen set (ip mode active)
         self.holds_after_active = 0
         self.sent_index = -1  # the last set point index sent (-1: only holds so far)

@@ -186,7 +186,7 @@ class StreamerSettings:
 
         slots = setpoint_slots(cell.axes)
         cyclic = {a.node_id: CyclicAxis(slots[a.node_id], PROFILES[a.profile].submode(a),
-                                        PROFILES[a.profile].starts_with_bit4)
+                                        PROFILES[a.profile].starts_with_bit4, PROFILES[a.profile].sync_lock_ms)
                   for a in cell.axes if a.node_id in slots}
         base = cls(
             sync_period_ms=cell.sync_period_ms,

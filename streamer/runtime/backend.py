@@ -54,7 +54,7 @@ from typing import Any
 from bus import codec
 from bus.cob import pack_controlword, rpdo1_id
 from bus.engine import EngineSpec
-from bus.errors import BusError
+from bus.errors import BusError, ProtocolError
 from bus.events import AdapterError, Bootup, Event
 from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
@@ -65,9 +65,9 @@ from planner.travel import resolve_target
 from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
 from streamer.api.errors import MotionError
-from streamer.core.coordinator import Coordinator
+from streamer.core.coordinator import Coordinator, JobState
 from streamer.core.plan_source import Change, ChangeResult, EmergencyStop
-from streamer.core.positioning import NotInTarget
+from streamer.core.positioning import NotInTarget, PositioningState
 from streamer.recording.writer import PlanView, RecordingInputs
 from streamer.report import build_report
 from streamer.runtime.extension import VelocityChangePlanner
@@ -106,6 +106,7 @@ class RuntimeBackend:
         self._lock = threading.Lock()
         self._fault: str = ""
         self._emergency = False  # an emergency stop hit the job that runs (or the idle cell)
+        self._quick_stop_t: float | None = None  # when the last quick stop to every drive was sent (adapter clock)
         self._recording: RecordingInputs | None = None
         self.referencing = Referencing(self.cell)
         self._piece: _Piece | None = None  # the running stream's current owner (None: nothing streams)
@@ -229,11 +230,19 @@ class RuntimeBackend:
     def _execute_motion(self, planned: Planned, emit: Emit, cancel: CancelToken, record: Any) -> Mapping[str, Any]:
         traj = planned.trajectory
         snap = self.runtime.snapshot()
-        off = [name for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True))
+        off = [(str(name), snap[node].position_demand, int(traj.positions[i, 0]))
+               for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True))
                if snap[node].position_demand != int(traj.positions[i, 0])]
-        if off:  # an earlier job ended elsewhere (cancelled or failed): plan again from here
-            planned = self.plan(planned.job, None)
-            traj = planned.trajectory
+        if off:
+            # the start is checked in one place: the service (current_positions) re-plans a queued job whose axes
+            # stopped elsewhere with the travel memory (last target, direction) it reported the target with; a
+            # second re-plan here, without it, could send an additive or modulo move to another target
+            name, at, start = off[0]
+            return {"result": "failed", "faults": [], "axes": [], "error": {
+                "code": "START_MISMATCH", "node": None, "path": "axes",
+                "message": f"axis {name!r} stands at {at} counts, the plan starts at {start} counts: a plan is "
+                           "streamed from where it starts, never re-planned here (the service checks the start)",
+                "detail": {"axes": [{"axis": n, "position_counts": a, "plan_start_counts": s} for n, a, s in off]}}}
         group = None
         if record is not None:
             from streamer.recording.drive import DriveRecordingError
@@ -255,6 +264,20 @@ class RuntimeBackend:
         seen_positioning = [-1]
         info_stop = [""]
         names = dict(zip(traj.node_ids, (str(n) for n in traj.axis_names), strict=True))
+        before = dict(self._positioning)  # what earlier jobs left (an axis this job never commanded keeps it)
+
+        def job_positioning(core: Coordinator) -> dict[str, str]:
+            """The job's axes as its core tracks them; IDLE there means not commanded yet: START while the job
+            configures and primes (docs/api.md), else what earlier jobs left (cancelled before the start)."""
+            out: dict[str, str] = {}
+            ending = core.state in (JobState.DONE, JobState.CANCELLED, JobState.FAILED)
+            for n, st in core.positioning().items():
+                name = names[n]
+                if st is PositioningState.IDLE:
+                    out[name] = before.get(name, "IDLE") if ending else "START"
+                else:
+                    out[name] = st.name
+            return out
 
         def on_change(core: Coordinator) -> None:
             if len(core.change_results) > answered[0]:
@@ -268,13 +291,15 @@ class RuntimeBackend:
             moved = core.positioning_change_count != seen_positioning[0]
             if moved:
                 seen_positioning[0] = core.positioning_change_count
-                self._positioning = {**self._positioning,
-                                     **{names[n]: st.name for n, st in core.positioning().items()}}
+                self._positioning = {**self._positioning, **job_positioning(core)}
+            if core.start_sync is None:
+                return  # the first running event marks the synchronous start (docs/api.md section 6)
             if p - last[0] < 0.01 and not (p >= 1.0 > last[0]) and not moved:
                 return
             last[0] = p
             state = core.state.value
-            positioning = {names[n]: st.name for n, st in core.positioning().items()}
+            # every axis: the job's as its core tracks them, the others as earlier jobs left them
+            positioning = {**self._positioning, **job_positioning(core)}
             elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
             planned_ms = pc.duration_ms
             # a velocity move has no end to measure progress against: 0 until it has stopped, and how long it ran
@@ -318,8 +343,10 @@ class RuntimeBackend:
                               setpoints={n: core.setpoints(n) for n in traj.node_ids})
         outcome = core.outcome
         final = core.report()
-        self._positioning = {**self._positioning, **{names[n]: st for n, st in final.positioning.items()}}
-        report["positioning"] = {names[n]: st for n, st in final.positioning.items()}
+        left = {names[n]: before.get(names[n], st) if st == PositioningState.IDLE.name else st
+                for n, st in final.positioning.items()}
+        self._positioning = {**self._positioning, **left}
+        report["positioning"] = left
         if final.warnings:
             report["warnings"] = [self._warning(w, names[w.node]) for w in final.warnings]
         with self._lock:
@@ -508,6 +535,7 @@ class RuntimeBackend:
             self._emergency = True
             self._fault = (f"{EMERGENCY_STOP}: quick stop (0x000B) to every drive by the operator; "
                            "resume (reset) re-enables them")
+            self._quick_stop_t = self.adapter.now()
         # a running job: its core fails and quick-stops its axes in that reaction, and sends nothing after
         # (the runtime queues adapter events only while a job runs; otherwise this is a no-op)
         self.runtime._on_event(AdapterError("emergency stop", "requested by the operator", self.adapter.now()))
@@ -602,11 +630,42 @@ class RuntimeBackend:
         with self._lock:
             return (not self._fault, self._fault)
 
+    def _quick_stop_running(self) -> str:
+        """Why the quick stop sent to every drive has not ended yet ("" once it has): it acts at the SYNC after it
+        was sent (RPDO1 is synchronous), then each drive ramps down; enabling a drive before that would be undone
+        by the quick stop still on its way (the drive ends switch on disabled after the enable)."""
+        with self._lock:
+            sent = self._quick_stop_t
+        if sent is None:
+            return ""
+        period = self.cell.sync_period_s
+        waited = self.adapter.now() - sent
+        if waited < 2.0 * period:  # the SYNC that applies it, and the statusword that answers it
+            return (f"the quick stop sent {1000.0 * waited:.0f} ms ago takes effect at the next SYNC "
+                    f"({self.cell.sync_period_ms} ms period)")
+        snap = self.runtime.snapshot()
+        for a in self.cell.axes:
+            sw = snap[a.node_id].statusword
+            try:
+                state = codec.state_from_statusword(sw) if sw is not None else None
+            except ProtocolError:
+                state = None
+            if state in (codec.Cia402State.QUICK_STOP_ACTIVE, codec.Cia402State.FAULT_REACTION_ACTIVE):
+                return f"node {a.node_id} ({a.name}) is still ramping down ({state.value}, statusword 0x{sw:04X})"
+        return ""
+
     def reset(self) -> tuple[bool, str]:
+        """Re-enable every drive (fault reset when faulted). Raises MotionError BUSY while the quick stop of an
+        emergency stop is still taking effect (a resume that comes too early; docs/api.md section 8)."""
+        why = self._quick_stop_running()
+        if why:
+            raise MotionError(E.BUSY, f"the emergency stop is still stopping the drives: {why}; resume when they "
+                              "have stopped")
         self.adapter.enable_drives()  # fault reset when faulted, shutdown, enable, buffer clear/enable
         with self._lock:
             self._fault = ""
             self._emergency = False
+            self._quick_stop_t = None
         return self.ready()
 
     def close(self) -> None:

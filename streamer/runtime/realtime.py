@@ -517,7 +517,7 @@ class _Announcer:
             self.fed += 1
             n = self.fed
             counter = None if self.counter_overflow is None else n % self.counter_overflow + 1
-            yield Sync(n, self.t0 + n * self.period_s, counter)
+            yield Sync(n, self.t0 + n * self.period_s, counter, since=self.t0)  # the engine's unbroken run
 
     def on_wire(self, ev: Sync) -> None:
         self._critical.discard(ev.count - 64)

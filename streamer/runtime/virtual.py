@@ -237,6 +237,7 @@ class VirtualRuntime:
         self._cycle = -1  # SYNC producer cycles (the index given to sync_time)
         self._sync = -1  # SYNCs echoed (the count the core is fed, as the adapter counts them)
         self._last_sync_t: float | None = None
+        self._run_since: float | None = None  # the first SYNC of the current unbroken run (Sync.since)
         self._window_bits = 0
         self._last_heartbeat: dict[int, float] = {}
         self._hb_lost: set[int] = set()
@@ -374,6 +375,8 @@ class VirtualRuntime:
         self._sync += 1
         n = self._sync
         last, self._last_sync_t = self._last_sync_t, t
+        if last is None or abs(t - last - self.period_s) >= 0.5 * self.period_s:
+            self._run_since = t  # a first SYNC, or one off its period by half of it: a drive's PLL starts over
         core = self._core
         if self.trace is not None:
             self.trace.on_sync(n, t)
@@ -381,7 +384,7 @@ class VirtualRuntime:
             for f in self._probe.on_sync(n, t, data[0] if data else None):
                 self._send(f, t)
         if core is not None:
-            self._apply(core, Sync(n, t, data[0] if data else None), t)
+            self._apply(core, Sync(n, t, data[0] if data else None, since=self._run_since), t)
         if last is not None and self._bus_load_events:
             load = self._window_bits / (self._bitrate * max(t - last, self.period_s))
             if core is not None:

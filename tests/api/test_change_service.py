@@ -14,6 +14,7 @@ from planner.config import CellConfig
 from streamer.api.client import Job
 from streamer.api.errors import MotionError
 from tests.api.conftest import Served
+from tests.api.fakes import timed_job
 
 AXES = ["j1", "j2", "j3"]
 FIRST = [2.5, -1.8, 2.2]
@@ -66,6 +67,12 @@ def test_a_change_that_cannot_be_made_is_rejected_and_the_running_job_goes_on(re
                               job_id="run-c")
             assert info.value.code == "COMMAND_REJECTED" and "same axes" in info.value.message
             assert info.value.path == "axes"
+            # a target outside the software limits (j1: -3..3 rad) is the change's refusal too (docs/api.md)
+            with pytest.raises(MotionError) as info:
+                client.submit({"kind": "move", "axes": AXES, "target": [3.5, 0.0, 0.0], "buffer": "aborting"},
+                              job_id="run-d")
+            assert info.value.code == "COMMAND_REJECTED", info.value
+            assert info.value.detail["planner_code"] == "POSITION_LIMIT" and "j1" in info.value.message
             done = a.wait(timeout=60)
             assert done.state.value == "done", done
         here = real.backend.current_positions()  # type: ignore[attr-defined]
@@ -88,6 +95,32 @@ def test_buffer_and_lead_are_checked(serve: Callable[..., Served], extra: dict[s
     with served.client() as client, pytest.raises(MotionError) as info:
         client.submit({"kind": "move", "axes": ["j1"], "target": [0.1], **extra})
     assert info.value.code == code and info.value.path == path and words in info.value.message
+
+
+def test_a_change_outside_the_position_limits_is_command_rejected_with_the_planner_code(
+        serve: Callable[..., Served]) -> None:
+    """Issue 23 item 5: what the validation finds (here the fake's POSITION_LIMIT) about an aborting move while a
+    job runs is the change's refusal, as docs/api.md's table says; with nothing running the move is a job like
+    any other and keeps the planner's code."""
+    served = serve(time_scale=1.0)
+    out_of_reach = {"kind": "move", "axes": ["j1"], "target": [0.1], "buffer": "aborting", "tolerance_counts": 904}
+    with served.client() as client:
+        with pytest.raises(MotionError) as alone:
+            client.submit(out_of_reach)
+        assert alone.value.code == "POSITION_LIMIT"
+        running = client.submit(timed_job(3.0))
+        deadline = time.monotonic() + 10
+        while running.status(timeout=5).state.value != "running" and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with pytest.raises(MotionError) as info:
+            client.submit(out_of_reach)
+        assert info.value.code == "COMMAND_REJECTED" and info.value.path == "tolerance_counts"
+        assert info.value.detail == {"planner_code": "POSITION_LIMIT"} and "j1" in info.value.message
+        with pytest.raises(MotionError) as schema:  # bad input keeps its own code
+            client.submit({**out_of_reach, "tolerance_counts": 1, "bogus": 1})
+        assert schema.value.code == "SCHEMA"
+        assert running.status(timeout=5).state.value == "running"  # untouched
+        running.cancel()
 
 
 def test_an_aborting_move_with_nothing_running_is_queued_like_any_job(serve: Callable[..., Served]) -> None:

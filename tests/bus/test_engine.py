@@ -147,7 +147,7 @@ def test_the_announcer_feeds_each_sync_its_lead_before_the_engine_sends_it() -> 
     assert a.next_due() == pytest.approx(100.0 + 10 * 0.002 - 0.009)
     assert list(a.due(100.0 + 10 * 0.002 - 0.0095, None)) == []
     fed = list(a.due(100.0 + 11 * 0.002 - 0.009, None))
-    assert [s.count for s in fed] == [10, 11] and fed[0] == Sync(10, 100.0 + 10 * 0.002, None)
+    assert [s.count for s in fed] == [10, 11] and fed[0] == Sync(10, 100.0 + 10 * 0.002, None, since=100.0)
     # an answer tagged with a later SYNC than fed: every SYNC up to it is fed first
     assert [s.count for s in a.due(0.0, 14)] == [12, 13, 14]
 

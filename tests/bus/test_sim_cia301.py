@@ -126,3 +126,24 @@ def _read(node: canopen.RemoteNode, index: int) -> int | None:
         return int(node.sdo[index].raw)
     except (SdoAbortedError, canopen.SdoCommunicationError):
         return None
+
+
+def test_event_timer_written_on_a_running_tpdo_takes_effect(drive) -> None:
+    """Issue 23 item 4: a stock master sets 0x1801:05 on TPDO2 while it runs (event driven, valid, NMT
+    operational), as CiA 301 allows for the event timer; the drive must send it every 50 ms from then on."""
+    _sim, net, node = drive
+    node.sdo[0x1801][2].raw = 255  # TPDO2 (0x6064, 0x6062 by default) event driven
+    stamps = Stamps(cob.TPDO2_BASE + 1)
+    net.notifier.add_listener(stamps)
+    node.nmt.state = "OPERATIONAL"
+    assert wait_until(lambda: len(stamps.times) >= 1, 1.0)  # its first transmission; nothing changes after
+    node.sdo[0x1801][5].raw = 50
+    assert node.sdo[0x1801][5].raw == 50
+    with stamps.lock:
+        before = len(stamps.times)
+    time.sleep(0.5)
+    with stamps.lock:
+        times = stamps.times[before:]
+    assert len(times) >= 8, times  # CiA 301: one every 50 ms at standstill (10 in 0.5 s)
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert sorted(gaps)[len(gaps) // 2] == pytest.approx(0.050, abs=0.010), gaps

@@ -498,27 +498,42 @@ def test_error_49_on_a_period_error_of_0_4_percent(error: float, faults: bool, g
     assert [e.code for e in r.emcys()] == ([EMCY_SYNC] if faults else [])
 
 
-def test_no_motion_and_no_ip_before_180_ms_of_sync() -> None:
+def test_bit4_before_180_ms_of_sync_is_refused_until_it_falls_and_rises_again() -> None:
     r = Rig(initial_position=0.0)
     r.enable()
     r.cw(0x001F)  # bit 4 high from the first SYNC on
-    syncs = 0
     target = 0
-    while not r.m.ip_active:
+    for _ in range(40):  # 400 ms: the PLL locks after 180 ms, the early request stays refused
         target += 200
         r.setpoint(target)
         r.sync()
-        syncs += 1
-        if not r.m.ip_active:
-            assert r.m.statusword & codec.SW_IP_ACTIVE == 0 and r.m.sdo_read(0x6062, 0) == 0
-            assert r.m.position_actual == 0
-        assert syncs < 30
-    # SYNC since t = 10 ms; locked at the SYNC 180 ms later (the 19th); IP starts by itself (bit 4 still high)
-    assert syncs == 19 and r.t == pytest.approx(0.19)
-    assert r.m.statusword == 0x1227 and not r.emcys()
+        assert not r.m.ip_active and r.m.statusword & codec.SW_IP_ACTIVE == 0
+        assert r.m.sdo_read(0x6062, 0) == 0 and r.m.position_actual == 0
+    assert r.m.pll_locked and r.m.ip_refusals == 1 and not r.emcys()
+    r.cw(0x000F)  # bit 4 low at a SYNC ...
+    r.setpoint(target)
+    r.sync()
+    assert not r.m.ip_active
+    r.cw(0x001F)  # ... and high again, now with the PLL locked: ip mode starts at the next SYNC
     r.setpoint(target + 200)
     r.sync()
-    assert r.m.sdo_read(0x6062, 0) == target  # from the demand 0 to the set point latched at the start
+    assert r.m.ip_active and r.m.statusword == 0x1227 and r.m.ip_refusals == 1
+    r.setpoint(target + 400)
+    r.sync()
+    assert r.m.sdo_read(0x6062, 0) == target + 200  # from the demand 0 to the set point latched at the start
+
+
+def test_bit4_after_180_ms_of_sync_starts_at_once() -> None:
+    r = Rig(initial_position=0.0)
+    r.enable()
+    r.sync(18)  # SYNC since t = 10 ms: the 18th is 170 ms after the first, the 19th 180 ms
+    assert not r.m.pll_locked
+    r.sync()
+    assert r.m.pll_locked
+    r.cw(0x001F)
+    r.setpoint(0)
+    r.sync()
+    assert r.m.ip_active and r.m.ip_refusals == 0
 
 
 def test_the_pll_needs_a_period_within_the_sync_error_limit() -> None:

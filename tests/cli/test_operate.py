@@ -257,8 +257,11 @@ def test_a_queued_job_after_a_cancel_ends_infeasible_with_the_axis_and_both_posi
         detail = err.status.raw["error"]["detail"]
         assert detail["axis"] == "j1" and detail["position"] == pytest.approx(stood) and detail["job_start"] == 1.0
         out = pvt("jobs", "--connect", served.endpoint)
-        assert_fits(out.stdout)
-        assert words_in(out.stdout, f"INFEASIBLE: positions[0][0]: axis 'j1' stands at {stood:.6g} rad")
+        assert out.returncode == 0 and all(len(line) <= 80 for line in out.stdout.splitlines()), out.stdout
+        assert "INFEASIBLE" in out.stdout  # one line per job, the error cut to it (issue 23 item 6) ...
+        shown = pvt("jobs", "show", "planned-from-its-end", "--store", str(served.store.path))
+        # ... and whole in `pvt jobs show` (the job never started: no recording, exit 1, the journal's row)
+        assert words_in(shown.stdout, f"INFEASIBLE: positions[0][0]: axis 'j1' stands at {stood:.6g} rad"), shown
 
 
 def test_after_a_cancel_a_move_and_a_start_current_path_are_replanned(serve: Serve, demo_cell: CellConfig) -> None:

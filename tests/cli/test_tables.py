@@ -3,6 +3,7 @@ headers; numbers never as 1e+03; plots label the axis unit (the cell's `unit`)."
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from collections.abc import Callable
@@ -10,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from rich.cells import cell_len
 from rich.console import Console
 
 from planner.config import CellConfig, load_cell
@@ -18,7 +20,7 @@ from streamer.api.errors import JobFailedError
 from streamer.api.model import JobState
 from streamer.cli.tables import Col, fit_table, number
 from tests.api.conftest import Served
-from tests.api.fakes import TrackingFake, timed_job
+from tests.api.fakes import FakeBackend, TrackingFake, timed_job
 from tests.cli.conftest import assert_fits, flat, pvt, words_in
 
 Serve = Callable[..., Served]
@@ -88,6 +90,51 @@ def test_pvt_jobs_fits_80_columns_locally_and_remotely(serve: Serve) -> None:
             assert LONG_ID in out.stdout and "short" in out.stdout
             assert words_in(out.stdout, "FOLLOWING_ERROR: node 3 raised FOLLOWING_ERROR")
             assert "planned" in out.stdout and "[s]" in out.stdout
+
+
+INFEASIBLE = ("the queued move of axes ['j1', 'j2', 'j3'] no longer starts where the axes stand: axis 'j2' "
+              "stands at 0.4312 rad, the job's first row is at -0.2500 rad (off by 6812 counts, tolerance 2); "
+              "re-plan it with start = \"current\" or submit configs/jobs/pick-and-place-station-a.toml again")
+
+
+class FailingFake(FakeBackend):
+    """Every job whose name starts with "bad" fails INFEASIBLE with a long message (the cell stays ready)."""
+
+    def execute(self, planned: Any, emit: Any, cancel: Any) -> Any:
+        if str(planned.job.get("name", "")).startswith("bad"):
+            return self._report("failed", planned, 0.0, error={"code": "INFEASIBLE", "node": None,
+                                                               "message": INFEASIBLE})
+        return super().execute(planned, emit, cancel)
+
+
+def test_pvt_jobs_keeps_one_line_per_job_at_80_columns_with_long_errors(serve: Serve, demo_cell: CellConfig) -> None:
+    """Issue 23 item 6: a journal with a few long errors (and the service's own 32-character job ids) lists one
+    line per job at 80 columns: id, kind, state and planned duration whole, the error cut to the line, the
+    caption says where the whole text is, and `pvt jobs show ID` prints it."""
+    served = serve(backend=FailingFake(demo_cell))
+    ids: list[str] = []
+    with served.client() as client:
+        for name in ("ok-1", "bad-1", "ok-2", "bad-2", "bad-3"):
+            job = client.submit(timed_job(0.1, name=name))
+            with contextlib.suppress(JobFailedError):
+                job.wait(timeout=10)
+            ids.append(job.job_id)
+    assert all(len(i) == 32 for i in ids)
+    out = pvt("jobs", "--store", str(served.store.path))
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert all(cell_len(line) <= 80 for line in lines), lines
+    for job_id, name in zip(ids, ("ok-1", "bad-1", "ok-2", "bad-2", "bad-3"), strict=True):
+        rows = [line for line in lines if job_id in line]
+        assert len(rows) == 1, out.stdout  # one line, the whole id on it
+        state = "failed" if name.startswith("bad") else "done"
+        assert "timed" in rows[0] and state in rows[0] and "0.100" in rows[0], rows[0]
+        if state == "failed":
+            assert "INFEASIBLE" in rows[0] and "…" in rows[0]  # the code, the rest cut to the line
+    assert len(lines) <= len(ids) + 10, out.stdout  # title, header, borders, caption: not 9-line cards
+    assert "pvt jobs show ID" in flat(out.stdout)
+    shown = pvt("jobs", "show", ids[1], "--store", str(served.store.path))
+    assert words_in(shown.stdout, f"error INFEASIBLE: {INFEASIBLE}"), shown.stdout
 
 
 def test_pvt_status_shows_positions_in_the_axis_unit(serve: Serve, tmp_path: Path) -> None:
@@ -172,3 +219,19 @@ def test_pvt_plan_fits_80_columns_with_units_and_no_exponents(
     cli_plan.plot(traj, tmp_path / "plot.png", units=["mm", "mm"])
     assert {"position [mm]", "velocity [mm/s]", "acceleration [mm/s²]", "deviation [counts]"} <= set(labels)
     assert not [label for label in labels if "[unit" in label]
+
+
+def test_the_readme_shows_the_jobs_layout_pvt_jobs_prints() -> None:
+    """The README's `pvt jobs` example at 80 columns is what the job table prints for those rows."""
+    from streamer.cli.jobs import JOB_COLUMNS
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    block = readme.split("`pvt jobs` keeps one line per job", 1)[1].split("```text\n", 1)[1].split("```", 1)[0]
+    rows = [["3", "5c5f5e0fb3bb4b96957da18ae5f728f6", "move", "failed", "api", "2.412", "41", "12:00:09",
+             "INFEASIBLE: the queued move of axes ['j1', 'j2'] no longer starts where the axes stand"],
+            ["2", "pick-1", "path", "done", "api", "3.870", "96", "12:00:04", ""],
+            ["1", "0aca1aae31934139aca4cae18b05af8e", "move", "done", "cli", "1.205", "22", "12:00:01", ""]]
+    console = Console(width=80, record=True, color_system=None)
+    console.print(fit_table(JOB_COLUMNS, rows, 80, title="jobs in ~/.local/state/pvt/demo.jobs.sqlite (3 total)"))
+    printed = [line.rstrip() for line in console.export_text().splitlines()]
+    assert printed == block.rstrip("\n").splitlines()

@@ -17,7 +17,7 @@ import pytest
 from streamer_doubles import CPR, FakeIpDriveDouble, FakeTrajectory, Rig, decel_stop_planner, make_plan, make_trajectory
 
 from bus import cob
-from bus.events import Cancel, Emcy, PositionFeedback, Send, StatusWord
+from bus.events import Cancel, Emcy, PositionFeedback, Send, StatusWord, Sync
 from bus.profile import SetpointSlot
 from streamer.core import JobResult, JobState, StopRequest, StreamerSettings, StreamPlan
 from streamer.core import outcome as oc
@@ -330,8 +330,46 @@ def test_a_drive_that_never_activates_fails_start_failed() -> None:
     rig = CyclicRig(plan, settings=settings, lock_after=10_000)
     assert rig.run(200) is JobState.FAILED
     out = rig.core.outcome
-    assert out is not None and out.code == oc.START_FAILED and "180 ms" in out.message
+    assert out is not None and out.code == oc.START_FAILED and "SYNC had run" in out.message
     assert (CW_START_IP in [cw for _, cw in rig.controlwords(node)])
+
+
+def test_bit4_waits_until_sync_has_run_as_long_as_the_drive_needs() -> None:
+    """An XtrapulsPac refuses bit 4 before 180 ms of SYNC (seed 003): the core sends it only once SYNC has run
+    that long at the SYNC before the one that applies it, counted from its own first Sync when the runtime
+    does not say when the run began."""
+    plan = make_plan(1, 400, seed=3)
+    node = plan.node_ids[0]
+    rig = CyclicRig(plan, cyclic={node: CyclicAxis(slot(node), "linear", True, 180)})
+    assert rig.run(400) is JobState.DONE, rig.core.outcome
+    first_bit4 = next(m for m, cw in rig.controlwords(node) if cw == CW_START_IP)
+    assert first_bit4 == 180 // rig.period_ms  # SYNC 18 (t = 180 ms): applied at SYNC 19, 190 ms into the run
+    # bit 4 once, and set points (holds) from the configuration on, long before it
+    assert [cw for _, cw in rig.controlwords(node)].count(CW_START_IP) == 1
+    assert rig.setpoint_frames(slot(node).cob_id)[0][0] < first_bit4
+
+
+@dataclass
+class RunningSyncRig(CyclicRig):
+    """The runtime's SYNC has run since `since` (before the job): every Sync says so."""
+
+    since: float = -1.0
+
+    def feed(self, event: object) -> None:
+        if isinstance(event, Sync):
+            event = Sync(event.count, event.t, event.counter, since=self.since)
+        super().feed(event)
+
+
+def test_bit4_goes_out_at_once_when_the_runtime_says_sync_ran_long_enough() -> None:
+    plan = make_plan(1, 400, seed=3)
+    node = plan.node_ids[0]
+    rig = RunningSyncRig(plan, cyclic={node: CyclicAxis(slot(node), "linear", True, 180)}, since=-0.2)
+    assert rig.run(400) is JobState.DONE, rig.core.outcome
+    assert next(m for m, cw in rig.controlwords(node) if cw == CW_START_IP) == 0
+    late = RunningSyncRig(plan, cyclic={node: CyclicAxis(slot(node), "linear", True, 180)}, since=-0.1)
+    assert late.run(400) is JobState.DONE, late.core.outcome
+    assert next(m for m, cw in late.controlwords(node) if cw == CW_START_IP) == 8  # 100 ms before + 80 ms
 
 
 def test_a_slow_lock_delays_the_start_but_not_the_alignment() -> None:
