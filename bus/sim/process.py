@@ -28,6 +28,7 @@ from dataclasses import dataclass, replace
 from planner.config import BusConfig, CellConfig
 
 DRIVES_PRIORITY = 70  # SCHED_FIFO: below the master's cycle engine (80), above its other threads
+DRIVES_PER_PROCESS = 6
 READY_PREFIX = "drives on "
 
 
@@ -56,10 +57,22 @@ def joining_bus(cell: CellConfig) -> CellConfig:
 @contextlib.contextmanager
 def drives_process(cell: CellConfig, *, positions: Mapping[int, float] | None = None,
                    sync_gap_factor: float = 1.5, priority: int | None = DRIVES_PRIORITY,
-                   start_timeout_s: float = 60.0) -> Iterator[subprocess.Popen[bytes]]:
-    """The cell's simulated drives on its bus in a child process, from their power-on (`positions` in counts
-    by node id, default 0) until the block ends. Raises RuntimeError with the child's output if they do not
-    come up."""
+                   start_timeout_s: float = 60.0) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """The cell's simulated drives on its bus in child processes of at most DRIVES_PER_PROCESS drives each (as
+    hardware, each drive answers on its own: one interpreter for 24 drives answers the last ones late), from
+    their power-on (`positions` in counts by node id, default 0) until the block ends. Raises RuntimeError
+    with a child's output if its drives do not come up."""
+    axes = cell.axes
+    with contextlib.ExitStack() as stack:
+        procs = [stack.enter_context(_drives_process(replace(cell, axes=axes[k:k + DRIVES_PER_PROCESS]),
+                                                     positions, sync_gap_factor, priority, start_timeout_s))
+                 for k in range(0, len(axes), DRIVES_PER_PROCESS)]
+        yield procs
+
+
+@contextlib.contextmanager
+def _drives_process(cell: CellConfig, positions: Mapping[int, float] | None, sync_gap_factor: float,
+                    priority: int | None, start_timeout_s: float) -> Iterator[subprocess.Popen[bytes]]:
     proc = subprocess.Popen([sys.executable, "-m", "bus.sim.process"], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:

@@ -126,8 +126,8 @@ def test_the_demo_drive_process_leaves_the_bus_when_the_demo_is_killed(tmp_path:
         "from planner.config import load_cell\n"
         "from bus.sim.process import drives_process, joining_bus\n"
         f"cell = joining_bus(load_cell({str(DEMO)!r}))\n"
-        "with drives_process(cell) as proc:\n"
-        "    print(proc.pid, flush=True)\n"
+        "with drives_process(cell) as procs:\n"
+        "    print(procs[0].pid, flush=True)\n"
         "    os.kill(os.getpid(), signal.SIGKILL)\n"
     )
     parent = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,

@@ -18,6 +18,7 @@ from bus.events import Sync
 from streamer.runtime.realtime import _Announcer
 
 PERIOD_S = 0.01
+pytestmark = pytest.mark.realtime
 
 
 @pytest.fixture

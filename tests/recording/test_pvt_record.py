@@ -93,6 +93,7 @@ def test_pvt_record_fast_3_axis_move_with_movement_trigger(tmp_path: Path, move3
     assert meta["traces"] == 6 and meta["markers"] == 1 and meta["display"] == "hold"
 
 
+@pytest.mark.realtime
 def test_pvt_record_real_time_3_axis_move_block_upload(tmp_path: Path, move3: Path,
                                                        capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "rec"

@@ -79,6 +79,7 @@ def test_cli_demo_rejects_bad_bus_spec(tmp_path: Path) -> None:
     assert pvt(["demo", "--fast", "--quiet", "--bus", "vcan0", "--out", str(tmp_path)]) == 2
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 def test_demo_real_time_on_virtual_bus(tmp_path: Path) -> None:
     cell, _job, traj = demo.prepare(axes=6)

@@ -157,6 +157,7 @@ def test_each_cyclic_drive_stays_within_its_bound_at_every_internal_cycle(name: 
     assert checked >= sum(1 for n in traj.node_ids if n in log) * traj.duration_ms
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_family_demo_real_time(tmp_path: Path, name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])

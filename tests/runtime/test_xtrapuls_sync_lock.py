@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
+
 from bus.sim.virtual import VirtualCell
 from bus.sim.xtrapuls import XtrapulsDrive
 from planner.config import CellConfig
@@ -67,9 +69,11 @@ def test_the_master_waits_for_180_ms_of_sync_then_every_drive_starts_on_one_sync
     assert s2 is not None and s2 - second.first_sync < 10 and refusals(rt) == 0
 
 
+@pytest.mark.realtime
 def test_in_real_time_bit4_goes_out_after_180_ms_of_sync_and_every_drive_takes_it(tmp_path: Path) -> None:
-    """The real-time runtime passes no `Sync.since`: the core counts from its own first SYNC. The simulated drives
-    run on the bus (canopen LocalNodes, wall clock), as `pvt sim` runs them for `--external-drives`."""
+    """In real time the core is told since when the cycle engine's SYNC schedule runs (`Sync.since`). The simulated
+    drives run in a process of their own on the bus (canopen LocalNodes, wall clock), as `pvt sim` runs them for
+    `--external-drives`."""
     import can
 
     from bus.cob import SYNC_COB_ID, rpdo1_id
