@@ -65,7 +65,16 @@ def attribute(upper: int, after: int, fits: Fits, *,
     """The SYNC a TPDO answers (see the module docstring). `after`: the last SYNC it cannot answer (the
     last one this PDO of the node answered; for TPDO1 also its TPDO2's). `scheduled`/`schedule_reach`: a
     PDO sent every n-th SYNC, with how far back its schedule looks (2n - 1)."""
-    return choose(candidates(upper, after, reach=max(schedule_reach, REACH), scheduled=scheduled), fits)
+    if scheduled is not None:
+        return choose(candidates(upper, after, reach=max(schedule_reach, REACH), scheduled=scheduled), fits)
+    # `choose` over `candidates`, without building the list (this runs for every TPDO)
+    first = max(after + 1, upper - REACH)
+    if first > upper:
+        return None
+    ok = fits(first)
+    if ok is None or ok:
+        return first
+    return next((m for m in range(first + 1, upper + 1) if fits(m)), first)
 
 
 @dataclass

@@ -445,6 +445,9 @@ class Coordinator:
         self._sampling: dict[int, str | None] = {}
         # what every drive reported, per SYNC as attributed (the report's deviation is measured from it)
         self._feedback_log: dict[int, FeedbackLog] = {node: FeedbackLog() for node in self._plan.node_ids}
+        self._memo_progress: tuple[tuple[int, int, bool], tuple[bool, bool, int, int]] | None = None
+        self._memo_demand: tuple[tuple[int, int], tuple[int, ...]] | None = None
+        self._memo_match: tuple[tuple[int, int, int], tuple[list[int], int]] | None = None
         for axis, node in enumerate(self._plan.node_ids):
             r = readings[node]
             start = self._plan.start_positions[axis]
@@ -537,6 +540,8 @@ class Coordinator:
         if fn is None:
             raise UnexpectedEvent(f"no transition for {type(event).__name__} in state {self._state.name}")
         self._wire_sync = wire_sync
+        # what the attribution worked out for a TPDO, kept for the checks of that same TPDO only
+        self._memo_progress = self._memo_demand = self._memo_match = None
         fn(event)
         if not self._out and not self._changes:
             return _NOTHING
@@ -816,13 +821,19 @@ class Coordinator:
     def _progress_at(self, f: FifoFeeder, m: int, active: bool) -> tuple[bool, bool, int, int]:
         """(started, activated, least ms, most ms interpolated) of `f`'s drive at SYNC m, given whether it
         reports ip mode active there (the start SYNC's TPDO may be sampled before its controlword)."""
+        memo = self._memo_progress
+        if memo is not None and memo[0] == (f.node_id, m, active):
+            return memo[1]  # the attribution just worked it out for this TPDO
         s = self._start_sync
         started = s is not None and m >= s
         activated = started and (m != s or active)
         if not activated:
-            return started, False, 0, 0
-        lo_ms, hi_ms = self._clocks[f.node_id].ticks(m, self._sync_time(m))
-        return started, True, lo_ms, hi_ms
+            out = started, False, 0, 0
+        else:
+            lo_ms, hi_ms = self._clocks[f.node_id].ticks(m, self._sync_time(m))
+            out = started, True, lo_ms, hi_ms
+        self._memo_progress = ((f.node_id, m, active), out)
+        return out
 
     def _status_fits(self, f: FifoFeeder, m: int, sw: int, bs: int, fill: int) -> bool | None:
         """Could a FIFO drive report (statusword, buffer status, fill) at SYNC m? No when ip mode is active
@@ -855,10 +866,30 @@ class Coordinator:
         tol = self._settings.demand_tolerance_counts
         s, clock = self._start_sync, self._clocks[f.node_id]
         if s is None or m <= s or clock.exact:
-            options = f.demand_candidates(self._elapsed(m), self._ends)
+            options = self._demand_options(f, self._elapsed(m))
             return min(abs(demand - c) for c in options) <= tol if options else None
-        _, err = clock.matching(m, self._sync_time(m), lambda k: f.demand_candidates(k, self._ends), demand, tol)
+        _, err = self._clock_match(f, m, demand)
         return err <= tol
+
+    def _demand_options(self, f: FifoFeeder, elapsed_ms: int) -> tuple[int, ...]:
+        """`f.demand_candidates(elapsed_ms)`, worked out once per TPDO2 (the attribution, then the check)."""
+        memo = self._memo_demand
+        if memo is not None and memo[0] == (f.node_id, elapsed_ms):
+            return memo[1]
+        out = f.demand_candidates(elapsed_ms, self._ends)
+        self._memo_demand = ((f.node_id, elapsed_ms), out)
+        return out
+
+    def _clock_match(self, f: FifoFeeder, m: int, demand: int) -> tuple[list[int], int]:
+        """The own clock's ticks at SYNC m that `demand` matches, and the error (`DriveTime.matching`),
+        worked out once per TPDO2."""
+        memo = self._memo_match
+        if memo is not None and memo[0] == (f.node_id, m, demand):
+            return memo[1]
+        out = self._clocks[f.node_id].matching(m, self._sync_time(m), lambda k: f.demand_candidates(k, self._ends),
+                                               demand, self._settings.demand_tolerance_counts)
+        self._memo_match = ((f.node_id, m, demand), out)
+        return out
 
     def _setpoint_fits(self, f: CyclicFeeder, m: int, demand: int) -> bool | None:
         """Is a cyclic drive's reported demand between the set points it can have reached at SYNC m?"""
@@ -1485,7 +1516,7 @@ class Coordinator:
         demand = ev.position_demand
         clock = self._clocks[f.node_id]
         if s is None or m <= s or clock.exact:
-            candidates = f.demand_candidates(self._elapsed(m), self._ends)
+            candidates = self._demand_options(f, self._elapsed(m))
             if not candidates:
                 return
             err = min(abs(demand - c) for c in candidates)
@@ -1493,8 +1524,7 @@ class Coordinator:
         else:
             # a drive with its own clock: the ticks its demand matches pin its clock down
             t_m = self._sync_time(m)
-            ticks, err = clock.matching(m, t_m, lambda k: f.demand_candidates(k, self._ends), demand,
-                                        self._settings.demand_tolerance_counts)
+            ticks, err = self._clock_match(f, m, demand)
             clock.observe(m, t_m, ticks)
             lo, _ = clock.ticks(m, t_m)
             expected = (f.demand_candidates(lo, self._ends) or (demand,))[0]

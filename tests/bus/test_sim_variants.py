@@ -226,6 +226,29 @@ def test_tpdo_latency_holds_the_tpdos_up_to_the_stated_time() -> None:
     assert max(delays) > 0.007 and min(delays) < 0.002  # spread over the stated range
 
 
+def test_tpdo_jitter_sends_some_answers_after_the_next_sync_in_order() -> None:
+    """tpdo_jitter_ms: up to that much after the latency draw, so some answers come after the next SYNC;
+    a SYNC's answers never overtake the previous SYNC's (a drive answers in order)."""
+    d = VDrive(options=SimDriveOptions(tpdo_latency_ms=9.0, tpdo_jitter_ms=6.0, seed=3))
+    d.enable()
+    d.t += 0.0095
+    d.model.advance(d.t + 0.02)  # what the enable sequence's SYNCs still held
+    d.t += 0.02
+    syncs: list[float] = []
+    arrivals: list[float] = []
+    for _ in range(200):
+        d.t += 0.010
+        syncs.append(d.t)
+        for f in d.model.on_sync(d.t):
+            if f.cob_id == cob.tpdo1_id(1):
+                arrivals.append(d.t)
+        while (due := d.model.next_deadline()) is not None and due < d.t + 0.010:
+            arrivals += [due for f in d.model.advance(due) if f.cob_id == cob.tpdo1_id(1)]
+    delays = [a - s for s, a in zip(syncs, arrivals, strict=False)]
+    assert len(arrivals) >= 190 and arrivals == sorted(arrivals)
+    assert sum(1 for x in delays if x > 0.010) >= 10 and max(delays) <= 0.015 + 1e-9
+
+
 # ---- CiA 301: SYNC counter and TPDO start value ---------------------------------------------------------------------
 def test_tpdo2_every_nth_sync_from_its_start_value() -> None:
     fb = FeedbackSchedule.staggered([1, 2, 3, 4, 5], 4)
