@@ -98,6 +98,7 @@ class _Waiting:
     fed_elapsed_ms: float | None = None  # the stream time when the core took the request
 CW_QUICK_STOP = 0x000B  # CiA 402 controlword: quick stop (bit 2 low)
 EMERGENCY_STOP = "EMERGENCY_STOP"
+QUICK_STOP_WAIT_S = 2.0  # how long a resume is BUSY after an emergency quick stop, at most
 
 
 class RuntimeBackend:
@@ -632,24 +633,33 @@ class RuntimeBackend:
 
     def _quick_stop_running(self) -> str:
         """Why the quick stop sent to every drive has not ended yet ("" once it has): it acts at the SYNC after it
-        was sent (RPDO1 is synchronous), then each drive ramps down; enabling a drive before that would be undone
-        by the quick stop still on its way (the drive ends switch on disabled after the enable)."""
+        was sent (RPDO1 is synchronous), then each drive ramps down and ends switch on disabled (0x605A = 2);
+        enabling a drive before that would be undone by the quick stop still on its way. A drive whose last
+        statusword still says operation enabled has not taken it yet, one in quick stop active is ramping; a
+        drive that reports no statusword here (a cyclic family's TPDO1) is given two SYNC periods. After
+        QUICK_STOP_WAIT_S the reset goes ahead whatever (a refused frame must not hold the cell forever)."""
         with self._lock:
             sent = self._quick_stop_t
         if sent is None:
             return ""
-        period = self.cell.sync_period_s
         waited = self.adapter.now() - sent
-        if waited < 2.0 * period:  # the SYNC that applies it, and the statusword that answers it
-            return (f"the quick stop sent {1000.0 * waited:.0f} ms ago takes effect at the next SYNC "
-                    f"({self.cell.sync_period_ms} ms period)")
+        if waited >= QUICK_STOP_WAIT_S:
+            return ""
         snap = self.runtime.snapshot()
         for a in self.cell.axes:
             sw = snap[a.node_id].statusword
+            if sw is None:
+                if waited < 2.0 * self.cell.sync_period_s:
+                    return (f"node {a.node_id} ({a.name}) takes the quick stop sent {1000.0 * waited:.0f} ms ago at "
+                            f"the next SYNC")
+                continue
             try:
-                state = codec.state_from_statusword(sw) if sw is not None else None
+                state = codec.state_from_statusword(sw)
             except ProtocolError:
-                state = None
+                continue
+            if state is codec.Cia402State.OPERATION_ENABLED:
+                return (f"node {a.node_id} ({a.name}) takes the quick stop sent {1000.0 * waited:.0f} ms ago at the "
+                        "next SYNC")
             if state in (codec.Cia402State.QUICK_STOP_ACTIVE, codec.Cia402State.FAULT_REACTION_ACTIVE):
                 return f"node {a.node_id} ({a.name}) is still ramping down ({state.value}, statusword 0x{sw:04X})"
         return ""

@@ -17,8 +17,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import pytest
-
 from planner.config import CellConfig
 from streamer.api.errors import MotionError
 from tests.api.conftest import Served
@@ -98,27 +96,30 @@ def test_the_first_running_event_shows_start_and_what_earlier_jobs_left(real: Se
 
 
 def test_resume_right_after_an_emergency_stop_is_busy_never_internal(real: Served) -> None:
+    """A resume that comes before the quick stop (synchronous RPDO1) took effect at the next SYNC is BUSY; one
+    that comes after it (the SYNC may be 1 ms away) re-enables the drives. Never INTERNAL (before: 'node 4 is
+    switch on disabled, not operation enabled, after 0x0006/0x000F' in 4 of 10 tries)."""
+    busy = 0
     try:
         with real.client() as client:
-            for _ in range(3):
+            for _ in range(10):
                 assert client.stop(emergency=True)["method"] == "quick_stop"
-                with pytest.raises(MotionError) as info:
-                    client.resume()
-                assert info.value.code == "BUSY", info.value
-                assert "still stopping the drives" in info.value.message
+                reply: dict[str, Any] | None = None
                 deadline = time.monotonic() + 10
-                while time.monotonic() < deadline:
+                while reply is None:
                     try:
                         reply = client.resume()
-                        break
                     except MotionError as exc:
-                        assert exc.code == "BUSY", exc
-                        time.sleep(0.01)
+                        assert exc.code == "BUSY" and "still stopping the drives" in exc.message, exc
+                        busy += 1
+                        assert time.monotonic() < deadline
+                        time.sleep(0.005)
                 assert reply["reset"] is True and reply["ready"] is True, reply
                 deadline = time.monotonic() + 5  # the drives' statuswords come with the next TPDOs
                 while not all(d["state"] == "operation enabled" for d in client.service_status()["drives"]):
                     assert time.monotonic() < deadline, client.service_status()["drives"]
                     time.sleep(0.02)
+        assert busy >= 1  # at least one resume came before the SYNC that applied the quick stop
     finally:
         real.service.close()
         real.backend.close()  # type: ignore[attr-defined]

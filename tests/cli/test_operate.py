@@ -151,7 +151,7 @@ def test_stop_then_hold_then_resume(serve: Serve, demo_cell: CellConfig) -> None
         assert queued.wait(timeout=10).state == JobState.DONE
         assert client.job("late").wait(timeout=10).state == JobState.DONE
         # hold: the running job goes on to its end, the next one waits until resume
-        client.submit(ramp(0.0, 0.3, 1.0, axes=("j4",)), job_id="goes-on")
+        client.submit(ramp(0.0, 0.3, 3.0, axes=("j4",)), job_id="goes-on")  # longer than `pvt hold` takes to start
         nxt = client.submit(ramp(0.0, 0.3, 0.2, axes=("j5",)), job_id="after-hold")
         running(served, "goes-on")
         out = pvt("hold", "--connect", served.endpoint)
