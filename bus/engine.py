@@ -232,9 +232,13 @@ class _Loop:
         self.t0: float | None = None
         self.period = 0.0
         self.counters: list[bytes] | None = None
+        # the SYNC counter (CiA 301 0x1019) runs on across schedules and single SYNCs: a drive that sends a
+        # TPDO every n-th SYNC from the counter's start value keeps counting SYNCs, so a counter that started
+        # again at 1 after the standstill probe would no longer say which drives answer which SYNC
+        self.counter_pos = 0
         self.cycle = 0  # the next SYNC to send
         self.last_frame_t = 0.0  # when the last frame of the latest cycle went out
-        self.once: list[tuple[float, bytes]] = []  # single SYNCs at absolute times (no schedule running)
+        self.once: list[float] = []  # single SYNCs at absolute times (no schedule running)
         self.sync_sent_at: dict[int, float] = {}
         self.stats = EngineStats()
         self._delay = array("i")
@@ -271,7 +275,7 @@ class _Loop:
         due = self.t0 + n * self.period
         woke = time.time()
         self._read_bus()  # what arrived before this SYNC is listed before it
-        data = self.counters[n % len(self.counters)] if self.counters else b""
+        data = self._next_counter()
         t = self._send(SYNC_COB_ID, data, 0)
         if t is None:  # the bus refused SYNC: the schedule stops (as python-can's periodic task does)
             self.out.send(("sync_failed", n))
@@ -290,6 +294,19 @@ class _Loop:
         self._delay.append(int(delay * 1e6))
         self._latency.append(int(((last or t) - t) * 1e6))
         self._woke.append(int((woke - due) * 1e6))
+
+    def _next_counter(self) -> bytes:
+        if not self.counters:
+            return b""
+        data = self.counters[self.counter_pos % len(self.counters)]
+        self.counter_pos += 1
+        return data
+
+    def _set_counters(self, counters: Sequence[bytes] | None) -> None:
+        new = list(counters) if counters else None
+        if new != self.counters:
+            self.counters = new
+            self.counter_pos = 0
 
     # ---- receiving
     def _read_bus(self) -> None:
@@ -331,14 +348,15 @@ class _Loop:
             period, counters = msg[1], msg[2]
             self.period = float(period)
             self.spin_s = min(self.spin_max_s, 0.5 * self.period)
-            self.counters = list(counters) if counters else None
+            self._set_counters(counters)
             self.cycle = 0
             self.ring.clear()
             self.sync_sent_at.clear()
             self.t0 = time.time() + START_DELAY_S
-            self.out.send(("sync_started", self.t0, self.period))
+            self.out.send(("sync_started", self.t0, self.period, self.counter_pos))
         elif kind == "sync_once":  # one SYNC at an absolute time, outside a schedule (the standstill probe)
-            self.once.append((float(msg[1]), bytes(msg[2])))
+            self._set_counters(msg[2])
+            self.once.append(float(msg[1]))
             self.once.sort()
         elif kind == "sync_stop":
             self.t0 = None
@@ -368,7 +386,7 @@ class _Loop:
         MIN_GAP_AFTER_FRAMES_S after the last frame."""
         if self.t0 is not None:
             return max(self.t0 + self.cycle * self.period, self.last_frame_t + MIN_GAP_AFTER_FRAMES_S)
-        return self.once[0][0] if self.once else None
+        return self.once[0] if self.once else None
 
     def run(self) -> None:
         fd = _fileno(self.bus)
@@ -386,14 +404,14 @@ class _Loop:
                     continue
                 wait -= self.spin_s
             elif self.once:
-                due, data = self.once[0]
+                due = self.once[0]
                 wait = due - time.time()
                 if wait <= self.spin_s:
                     while time.time() < due:
                         pass
                     self.once.pop(0)
                     self._read_bus()
-                    self._send(SYNC_COB_ID, data, 0)
+                    self._send(SYNC_COB_ID, self._next_counter(), 0)
                     self._flush()
                     continue
                 wait -= self.spin_s
@@ -491,6 +509,7 @@ class EngineBus(can.BusABC):
         self._replies: queue.Queue[tuple[Any, ...]] = queue.Queue()
         self._closed = False
         self.schedule: tuple[float, float] | None = None  # (t0, period) while the engine sends SYNC
+        self.counter_start = 0  # SYNC n of the schedule carries counters[(counter_start + n) % len(counters)]
         self.late: list[tuple[int, int, float | None]] = []  # (cycle, frames, seconds after its SYNC)
         self.on_late: Callable[[int, int, float | None], None] | None = None
         self.on_send_failed: Callable[[int, str], None] | None = None
@@ -544,6 +563,7 @@ class EngineBus(can.BusABC):
                     is_rx=not own, channel=channel))
         elif kind == "sync_started":
             self.schedule = (item[1], item[2])
+            self.counter_start = item[3]
             self._replies.put(item)
         elif kind in ("sync_stopped", "stats"):
             self._replies.put(item)
@@ -573,9 +593,10 @@ class EngineBus(can.BusABC):
         reply = self._reply("sync_started", timeout_s)
         return float(reply[1])
 
-    def sync_once(self, at: float, counter: int | None = None) -> None:
-        """One SYNC at time `at` (time.time() base), when no schedule runs."""
-        self._command(("sync_once", float(at), b"" if counter is None else bytes([counter])))
+    def sync_once(self, at: float, counters: Sequence[int] | None = None) -> None:
+        """One SYNC at time `at` (time.time() base), when no schedule runs; with `counters` it carries the
+        next of them (the counter runs on from the last SYNC sent)."""
+        self._command(("sync_once", float(at), [bytes([c]) for c in counters] if counters else None))
 
     def stop_sync(self, timeout_s: float = 5.0) -> None:
         if self.schedule is None:

@@ -477,6 +477,13 @@ class MasterAdapter:
         """(time of SYNC 0, period) of the engine's SYNC schedule; None without the engine or SYNC."""
         return self.engine.schedule if self.engine is not None else None
 
+    def sync_counter(self, count: int) -> int | None:
+        """With the engine: the SYNC counter SYNC `count` of its schedule carries (None without a counter)."""
+        fb = self.feedback
+        if fb is None or self.engine is None:
+            return None
+        return (self.engine.counter_start + count) % fb.counter_overflow + 1
+
     @property
     def latest_sync(self) -> int | None:
         """The count of the newest SYNC heard back from the bus (None before the first)."""
@@ -625,8 +632,9 @@ class MasterAdapter:
         """One SYNC now, or with the cycle engine at time `at` exactly (the probe paces SYNC itself; the
         periodic SYNC must be stopped)."""
         if self.engine is not None and at is not None:
-            self._check_open()
-            self.engine.sync_once(at, counter)
+            self._check_open()  # the engine carries the SYNC counter on from the last SYNC it sent
+            fb = self.feedback
+            self.engine.sync_once(at, range(1, fb.counter_overflow + 1) if fb is not None else None)
             return
         self.send(cob.SYNC_COB_ID, b"" if counter is None else bytes([counter]))
 

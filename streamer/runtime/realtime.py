@@ -481,9 +481,10 @@ class _Announcer:
     stall of this process the cell tolerates. A synchronous frame (a controlword, a cyclic set point) that
     still reaches the engine after its SYNC is a fault (`critical`); a PVT record (asynchronous RPDO2) is not."""
 
-    def __init__(self, t0: float, period_s: float, syncs: int, first: int, counter_overflow: int | None = None):
+    def __init__(self, t0: float, period_s: float, syncs: int, first: int,
+                 counter: Callable[[int], int | None] = lambda n: None):
         self.t0 = t0
-        self.counter_overflow = counter_overflow  # the SYNC counter 1..N the engine sends (0x1019), if any
+        self.counter = counter  # the SYNC counter (0x1019) SYNC n carries, if any
         self.period_s = period_s
         self.syncs = syncs
         self.lead_s = (syncs - 0.5) * period_s
@@ -504,8 +505,7 @@ class _Announcer:
         lead = (syncs - 0.5) * period
         wire = adapter.latest_sync
         first = max(0 if wire is None else wire + 1, math.ceil((time.time() + lead - t0) / period) + 1)
-        fb = adapter.feedback
-        return _Announcer(t0, period, syncs, first, fb.counter_overflow if fb is not None else None)
+        return _Announcer(t0, period, syncs, first, adapter.sync_counter)
 
     def next_due(self) -> float:
         return self.t0 + (self.fed + 1) * self.period_s - self.lead_s
@@ -516,8 +516,7 @@ class _Announcer:
         while self.next_due() <= now or (tag is not None and tag > self.fed):
             self.fed += 1
             n = self.fed
-            counter = None if self.counter_overflow is None else n % self.counter_overflow + 1
-            yield Sync(n, self.t0 + n * self.period_s, counter, since=self.t0)  # the engine's unbroken run
+            yield Sync(n, self.t0 + n * self.period_s, self.counter(n), since=self.t0)  # the engine's unbroken run
 
     def on_wire(self, ev: Sync) -> None:
         self._critical.discard(ev.count - 64)

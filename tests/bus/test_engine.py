@@ -60,6 +60,22 @@ def test_syncs_follow_the_schedule_and_carry_the_counter(engine: EngineBus, chan
         assert abs(m.timestamp - (t0 + (first + k) * PERIOD_S)) < 0.005
 
 
+def test_the_sync_counter_runs_on_across_schedules_and_single_syncs(engine: EngineBus, channel: str) -> None:
+    """A drive sending a TPDO every n-th SYNC from its start value keeps counting SYNCs: the counter must run
+    on after the schedule stops and starts again (the standstill probe in between), never restart at 1."""
+    with can.Bus(interface="ipc", channel=channel) as drive:
+        engine.start_sync(PERIOD_S, counters=[1, 2, 3, 4, 5])
+        time.sleep(0.07)
+        engine.stop_sync()
+        engine.sync_once(time.time() + 0.01, counters=[1, 2, 3, 4, 5])
+        engine.start_sync(PERIOD_S, counters=[1, 2, 3, 4, 5])
+        time.sleep(0.07)
+        engine.stop_sync()
+        got = [m.data[0] for m in _collect(drive, 0.05) if m.arbitration_id == 0x80]
+    assert len(got) >= 10
+    assert all(b == a % 5 + 1 for a, b in itertools.pairwise(got)), got
+
+
 def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel: str) -> None:
     with can.Bus(interface="ipc", channel=channel) as drive:
         t0 = engine.start_sync(PERIOD_S)
@@ -156,7 +172,7 @@ def test_the_announcer_feeds_each_sync_its_lead_before_the_engine_sends_it() -> 
 def test_the_announcer_gives_each_sync_the_counter_the_engine_sends() -> None:
     """With TPDO2 every n-th SYNC the core needs each SYNC's counter (0x1019) to know which node answers it;
     the engine sends counters 1..N from SYNC 0 on (EngineBus.start_sync), so SYNC n carries n mod N + 1."""
-    a = _Announcer(t0=0.0, period_s=0.01, syncs=1, first=5, counter_overflow=4)
+    a = _Announcer(t0=0.0, period_s=0.01, syncs=1, first=5, counter=lambda n: n % 4 + 1)
     assert [(s.count, s.counter) for s in a.due(0.095, None)] == [(5, 2), (6, 3), (7, 4), (8, 1), (9, 2), (10, 3)]
 
 
