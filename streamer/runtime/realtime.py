@@ -254,8 +254,9 @@ class RealtimeRuntime:
         self._probing = True
         thaw = contextlib.ExitStack()
         thaw.enter_context(quiet_gc())  # the probe paces its SYNCs on this thread
-        if adapter.engine is not None:
+        if adapter.engine is not None:  # it paces the probe's SYNCs: as the streaming thread runs a job
             thaw.enter_context(thread_priority(self.streaming_priority))
+            thaw.enter_context(_switch_interval(SWITCH_INTERVAL_S))
         try:
             while not probe.done:
                 if probe.wants_enable:
