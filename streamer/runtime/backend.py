@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -76,6 +77,7 @@ from streamer.runtime.realtime import RealtimeRuntime
 from streamer.stop import ChangePlanner, make_emergency_planner, make_stop_planner
 
 FIFO_SIZE = 64
+log = logging.getLogger(__name__)
 CHANGE_ANSWER_S = 2.0  # how long change() waits for the SYNC thread's answer (it comes within a period or two)
 
 
@@ -130,6 +132,10 @@ class RuntimeBackend:
             # in this process (drives simulated here by a test): the adapter sends itself
             engine = None if bus.interface == "virtual" else EngineSpec(bus.interface, str(bus.channel), bus.bitrate)
             self.adapter = MasterAdapter(None, self.cell, engine=engine)
+            if self.adapter.engine is not None:  # said once: real-time priority, or best-effort and why
+                status = self.adapter.engine.realtime
+                (log.info if status.fifo else log.warning)("cycle engine on %s:%s: %s", bus.interface, bus.channel,
+                                                           status.message)
             self.adapter.on_event(self._on_adapter_event)
             self.adapter.configure_drives()
             self.runtime = RealtimeRuntime(self.cell, self.adapter)
