@@ -1,0 +1,327 @@
+"""Jerk-limited traversal of a geometric path: TOPP-RA, then a jerk-limited re-timing along s(t).
+
+Theory of operation. A path job with `jerk_limited` (planner/job.py) is planned in two stages per run
+(the rest-to-rest pieces between exact stops):
+
+1. The acceleration-only optimum, as for every path (planner/path.py): TOPP-RA's s_dot(s) under the
+   joints' velocity and acceleration limits, re-timed onto whole ms (`path.Profile`): a path
+   acceleration s_ddot(t) that is constant over each ms and steps where the optimum switches.
+2. The re-timing with bounded jerk (`fir_retime`): s_ddot(t) averaged over a sliding window of W ms
+   (the FIR filter of Biagiotti & Melchiorri, "FIR filters for online trajectory planning", 2012). A
+   step of s_ddot becomes a ramp of W ms, so the path jerk is (s_ddot(t) - s_ddot(t - W)) / W; the
+   motion still starts and ends at rest, goes exactly to the end of the path (the window's average of
+   s(t) there is the path's end) and takes W ms longer. On a straight run this is exactly the
+   double-S profile when W = A/J (the jerk-limited optimum of a move that reaches full acceleration).
+   W is the shortest window (of a ladder) for which every joint's share of the path jerk,
+   |q'_i| |s_ddot(t) - s_ddot(t - W)| / W, stays within `JERK_SHARE` of its limit; what is left is for
+   the terms the path's curvature adds in the blends (joint jerk = q' s''' + 3 q'' s' s'' + q''' s'^3).
+3. Verification at every ms of every joint, on the joint motion itself: velocity and acceleration
+   within their limits, and the jerk over every ms (the change of acceleration over the tick) within
+   `PLAN_JERK_SHARE` of the limit (the rest is the encoder's: knot quantisation). Averaging lets the
+   filtered motion arrive at a slow stretch (a blend) a little faster than the optimum did, and the
+   curvature terms grow with the speed: where a bound fails, the time-optimal solve's constraint rows
+   of those path intervals are tightened (as path.plan_run repairs a chain) and both stages run again;
+   a window that is itself too short for the jerk there is widened; what is left after
+   `REPAIR_ROUNDS` is removed by playing the run slower (velocity ~ 1/f, acceleration 1/f^2, jerk 1/f^3).
+
+Why this method (measured, docs/formats.md "jerk_limited"): a third-order time-optimal
+parametrisation (path jerk as the control) is a non-convex problem whose solvers need many iterations
+and fail on the blends' curvature; the filter keeps TOPP-RA's optimum where it is not limited by jerk,
+costs a known W per run, and is a linear operation whose bounds can be checked exactly at every ms.
+It is not the jerk-limited optimum: a bang-bang triangle (+A straight to -A) needs W = 2A/J, so its
+start and end ramps are twice as long as the optimum's.
+
+The plan is the joint motion q(s(t)) at every ms with a continuous acceleration (no steps, so no
+`breaks`), which the encoder (planner/encoder.py) places knots on like any smooth reference.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from planner import topp
+from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
+from planner.path import GeometricPath, Profile, solve_profile
+from planner.reference import FloatArray, IntArray, Reference
+
+JERK_SHARE = 0.7  # of each joint's jerk limit, for the path-jerk term q' s''' (the window's choice)
+PLAN_JERK_SHARE = 0.9  # the plan's jerk over every ms within this share of the limit (the rest: encoder)
+REPAIR_ROUNDS = 4
+ACC_SLACK = 1.0e-3
+VEL_SLACK = 1.0e-4
+MAX_WINDOW_MS = 2000
+_WINDOW_STEP = 1.04  # the ladder of windows tried: each 4 % longer than the one before
+
+
+@dataclass(frozen=True)
+class JerkRun:
+    """One run re-timed with bounded jerk: joint samples at every ms (user units, per ms)."""
+
+    q: FloatArray  # (n, M+1)
+    v: FloatArray
+    acc: FloatArray  # continuous: one value per ms
+    optimal_ms: float  # the acceleration-only optimum of this run (TOPP-RA, first solve)
+    window_ms: int
+    solves: int
+    time_scale: float  # the slow-down the repairs needed (1: none)
+
+
+def dip_caps(grid: FloatArray, sd: FloatArray, window_ms: float) -> FloatArray:
+    """Caps on s_dot at the gridpoints: around every interior local minimum of the optimum `sd` (where a
+    velocity or acceleration bound holds the path back: a blend, a slow stretch), its value over the
+    gridpoints within `window_ms` of it either side (in the optimum's time); inf elsewhere. The averaged
+    motion reaches a dip up to a window late and leaves it up to a window late: with the optimum held at
+    the dip's speed that long before and after, the average cannot exceed it there."""
+    vsum = sd[:-1] + sd[1:]
+    t = np.concatenate([[0.0], np.cumsum(2.0 * np.diff(grid) / np.maximum(vsum, 1e-300))]) * 1000.0
+    inner = np.arange(1, sd.size - 1)
+    dips = inner[(sd[inner] <= sd[inner - 1]) & (sd[inner] <= sd[inner + 1]) & (sd[inner] > 0.0)]
+    caps = np.full(sd.size, np.inf)
+    lo = np.searchsorted(t, t[dips] - window_ms, side="left")
+    hi = np.searchsorted(t, t[dips] + window_ms, side="right")
+    for d, a, b in zip(dips, lo, hi, strict=True):
+        np.minimum(caps[a:b], sd[d], out=caps[a:b])
+    return caps
+
+
+def solve_capped(
+    samples: topp.PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: FloatArray | None, caps: FloatArray
+) -> FloatArray:
+    """TOPP-RA's optimum (planner/topp.py) with s_dot at most `caps` at the gridpoints as well."""
+    a, b, g = topp.constraint_rows(samples.q1, samples.q2, samples.deltas, vlim, alim, row_scale)
+    xmax = np.minimum(topp.velocity_bound(samples.q1, vlim), caps * caps)
+    return topp.parametrize(a, b, g, xmax, samples.gridpoints)
+
+
+def fir_retime(acc_ms: FloatArray, s_end: float, window: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """s, s_dot, s_ddot at every ms 0..M+W of the path acceleration `acc_ms` (M,) (per ms^2, constant over
+    each ms, from rest) averaged over `window` ms: exact (the averaged acceleration is linear over each
+    ms), rescaled to end exactly at `s_end`."""
+    m = acc_ms.size
+    total = m + window
+    padded = np.concatenate([np.zeros(window), acc_ms, np.zeros(window)])
+    csum = np.concatenate([[0.0], np.cumsum(padded)])
+    # A_f(t) = (1/W) sum_{k=t-W}^{t-1} a[k], t = 0..M+W (index k of `padded` is k - W of acc_ms)
+    t = np.arange(total + 1)
+    acc = (csum[t + window] - csum[t]) / window
+    sd = np.concatenate([[0.0], np.cumsum(0.5 * (acc[:-1] + acc[1:]))])
+    s = np.concatenate([[0.0], np.cumsum(sd[:-1] + acc[:-1] / 3.0 + acc[1:] / 6.0)])
+    sig = s_end / s[-1] if s[-1] > 0 else 1.0
+    sd[-1] = 0.0
+    return s * sig, np.maximum(sd * sig, 0.0), acc * sig
+
+
+def choose_window(
+    acc_ms: FloatArray, q1_abs: FloatArray, jlim_ms: FloatArray, share: float = JERK_SHARE
+) -> int:
+    """The shortest window (ms, of a ladder 4 % apart) whose path jerk keeps every joint's q' s''' term
+    within `share` of its limit: `acc_ms` (M,) the path acceleration per ms, `q1_abs` (M, n) the
+    joints' |q'| at those ms, `jlim_ms` (n,) per ms^3. The averaged motion is on ms t about where the
+    optimum was within the window before: |q'| is taken as its largest over that window."""
+    lim = share * jlim_ms[None, :]
+    # a lower bound: a step of the path acceleration spread over the window
+    w = max(1, int(float((q1_abs.min(axis=0) * np.ptp(acc_ms) / (share * jlim_ms)).max()) / 4.0))
+    while w < MAX_WINDOW_MS:
+        padded = np.concatenate([np.zeros(w), acc_ms, np.zeros(w)])
+        steps = np.abs(padded[w:] - padded[:-w])  # t = 0..M+W-1: a[t] - a[t - W]
+        q1_pad = np.concatenate([q1_abs, np.repeat(q1_abs[-1:], w, axis=0)])
+        q1w = _sliding_max(q1_pad, w)[: steps.size]
+        if float((steps[:, None] * q1w / lim).max()) <= w:
+            return w
+        w = max(w + 1, int(np.ceil(w * _WINDOW_STEP)))
+    return MAX_WINDOW_MS
+
+
+def _sliding_max(x: FloatArray, window: int) -> FloatArray:
+    """The largest value of x (M, n) over the rows [m - window, m] for every m (clipped at row 0)."""
+    out = x.copy()
+    span = 1  # out[m] is the largest over [m - span + 1, m]
+    rows = out.shape[0]
+    while span < window + 1:
+        step = min(span, window + 1 - span, rows)
+        shifted = np.concatenate([np.repeat(out[:1], step, axis=0), out[: rows - step]])
+        out = np.maximum(out, shifted)
+        span += step
+        if step == rows:
+            break
+    return out
+
+
+def joint_motion(
+    geom: GeometricPath, s: FloatArray, sd: FloatArray, sdd: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """q, q_dot, q_ddot (n, M+1) per ms of the traversal s(t)."""
+    q = geom(s, 0).T
+    q1 = geom(s, 1).T
+    q2 = geom(s, 2).T
+    return q, q1 * sd, q2 * sd * sd + q1 * sdd
+
+
+def ratios(
+    v: FloatArray, acc: FloatArray, vlim_ms: FloatArray, alim_ms: FloatArray, jlim_ms: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per ms the largest velocity, acceleration and jerk ratio over the axes (jerk: the change of
+    acceleration over the tick before and after, each ms the larger)."""
+    vel_ratio = (np.abs(v) / vlim_ms[:, None]).max(axis=0)
+    acc_ratio = (np.abs(acc) / alim_ms[:, None]).max(axis=0)
+    jerk = (np.abs(np.diff(acc, axis=1)) / jlim_ms[:, None]).max(axis=0)
+    pad = np.concatenate([[0.0], jerk, [0.0]])
+    return vel_ratio, acc_ratio, np.maximum(pad[:-1], pad[1:])
+
+
+def plan_jerk_run(
+    geom: GeometricPath,
+    vlim: FloatArray,
+    alim: FloatArray,
+    jlim: FloatArray,
+    *,
+    time_scale: float = 1.0,
+    max_duration_ms: float = 900.0e3,
+) -> JerkRun:
+    """A rest-to-rest, jerk-limited traversal of one geometric path (module docstring)."""
+    grid = geom.gridpoints()
+    samples = topp.sample_path(geom, grid)
+    vlim_ms, alim_ms, jlim_ms = vlim / 1.0e3, alim / 1.0e6, jlim / 1.0e9
+    jplan = jlim_ms * PLAN_JERK_SHARE
+    row_scale: FloatArray | None = None
+    solves = 0
+    optimal_ms = 0.0
+    widen = 1.0
+    sd_topp = np.zeros(0)
+    best: tuple[float, FloatArray, float] | None = None  # (excess, solution, widen)
+
+    def evaluate(sol: FloatArray, scale: float, wid: float) -> tuple[FloatArray, ...]:
+        prof = Profile(grid, sol, geom, alim, scale)
+        s0, _sd0, _al, acc_r = prof.sample()
+        acc_ms = acc_r[:-1]
+        window = int(np.ceil(choose_window(acc_ms, np.abs(geom(s0[:-1], 1)), jlim_ms) * wid))
+        s, sd, sdd = fir_retime(acc_ms, geom.length, window)
+        q, v, acc = joint_motion(geom, s, sd, sdd)
+        vr, ar, jr = ratios(v, acc, vlim_ms, alim_ms, jplan)
+        # the share of the jerk that comes from the path jerk (the window) rather than the curvature
+        q1s = geom(s, 1).T
+        path_jerk = np.abs(np.diff(sdd))
+        pj = np.concatenate([[0.0], path_jerk])
+        pj = np.maximum(pj, np.concatenate([path_jerk, [0.0]]))
+        window_part = (np.abs(q1s) * pj[None, :] / jplan[:, None]).max(axis=0)
+        return q, v, acc, s, vr, ar, jr, window_part, np.array([float(window), float(prof.duration_ms)])
+
+    out: tuple[FloatArray, ...] | None = None
+    for attempt in range(REPAIR_ROUNDS + 1):
+        try:
+            sd_opt = solve_profile(samples, vlim, alim, row_scale)
+            solves += 1
+            opt = Profile(grid, sd_opt, geom, alim, time_scale)
+            s_opt, _sdo, _alo, acc_opt = opt.sample()
+            w_opt = choose_window(acc_opt[:-1], np.abs(geom(s_opt[:-1], 1)), jlim_ms) * widen
+            sd_new = solve_capped(samples, vlim, alim, row_scale, dip_caps(grid, sd_opt, w_opt / time_scale))
+            solves += 1
+        except PlanningError:
+            if out is None:
+                raise
+            break
+        sd_topp = sd_new
+        if attempt == 0:
+            first = Profile(grid, sd_opt, geom, alim, 1.0)
+            optimal_ms = first.optimal_ms
+            if first.duration_ms * time_scale > max_duration_ms:
+                raise PlanningError(
+                    TOO_LARGE,
+                    f"the path takes at least {first.duration_ms * time_scale / 1000:.1f} s, more than the "
+                    f"limit of {max_duration_ms / 1000:g} s",
+                    path="waypoints",
+                )
+        out = evaluate(sd_topp, time_scale, widen)
+        _q, _v, _a, s, vr, ar, jr, wpart, _meta = out
+        excess = max(float(vr.max()), float(np.sqrt(ar.max())), float(np.cbrt(jr.max())))
+        if vr.max() <= 1.0 + VEL_SLACK and ar.max() <= 1.0 + ACC_SLACK and jr.max() <= 1.0:
+            break
+        if best is None or excess < best[0]:
+            best = (excess, sd_topp, widen)
+        if attempt == REPAIR_ROUNDS:
+            break
+        # the window's own share too large where the jerk fails: widen it
+        bad = jr > 1.0
+        if bad.any() and float(wpart[bad].max()) > 0.8 * float(jr[bad].max()):
+            widen *= float(min(jr.max(), 1.5))
+        # tighten the rows of the path intervals where a bound fails (jerk ~ s_dot^3: as acc its 2/3 power)
+        worst = np.maximum(np.maximum(ar, vr**2), np.maximum(jr, 1.0) ** (2.0 / 3.0))
+        idx = np.clip(np.searchsorted(grid, s, side="right") - 1, 0, grid.size - 2)
+        ratio = np.ones(grid.size)
+        np.maximum.at(ratio, idx, worst)
+        np.maximum.at(ratio, idx + 1, worst)
+        # a neighbourhood: the averaging reaches back a window's worth of path
+        for _ in range(3):
+            ratio[1:] = np.maximum(ratio[1:], ratio[:-1])
+            ratio[:-1] = np.maximum(ratio[:-1], ratio[1:])
+        ratio = np.where(ratio > 1.0, ratio * (1.0 + 3 * ACC_SLACK), 1.0)
+        step = np.stack([ratio, ratio], axis=1)
+        row_scale = step if row_scale is None else row_scale * step
+    assert out is not None
+    scale = time_scale
+    q, v, acc, s, vr, ar, jr, _wp, meta = out
+    if not (vr.max() <= 1.0 + VEL_SLACK and ar.max() <= 1.0 + ACC_SLACK and jr.max() <= 1.0):
+        if best is not None and best[0] < max(float(vr.max()), float(np.sqrt(ar.max())), float(np.cbrt(jr.max()))):
+            sd_topp, widen = best[1], best[2]
+        for _ in range(12):
+            over = max(float(vr.max()) / (1.0 + VEL_SLACK), float(np.sqrt(ar.max() / (1.0 + ACC_SLACK))),
+                       float(np.cbrt(jr.max())), 1.0)
+            scale *= over * (1.0 + 1e-3)
+            q, v, acc, s, vr, ar, jr, _wp, meta = evaluate(sd_topp, scale, widen)
+            if vr.max() <= 1.0 + VEL_SLACK and ar.max() <= 1.0 + ACC_SLACK and jr.max() <= 1.0:
+                break
+        else:
+            raise PlanningError(
+                INFEASIBLE,
+                f"no jerk-limited traversal found within the limits (velocity {vr.max():.3f}, acceleration "
+                f"{ar.max():.3f}, jerk {jr.max():.3f} of the limits after slowing down {scale:.2f}x)",
+                detail={"stage": "jerk"},
+            )
+    return JerkRun(q, v, acc, optimal_ms, int(meta[0]), solves, scale / time_scale)
+
+
+def plan_jerk_path(
+    runs: Sequence[GeometricPath],
+    counts_per_unit: FloatArray,
+    vlim: FloatArray,
+    alim: FloatArray,
+    jlim: FloatArray,
+    *,
+    time_scale: float = 1.0,
+    max_duration_s: float = 900.0,
+) -> tuple[Reference, dict[str, float]]:
+    """Reference (counts) for the runs played one after the other, each rest to rest, jerk-limited.
+
+    Info: `optimal_s` (the acceleration-only optimum on the same grids, summed over the runs),
+    `jerk_window_ms` (the longest averaging window), `jerk_slowdown` (the largest slow-down a run's repairs
+    needed), `topp_solves`, `runs`."""
+    plans: list[JerkRun] = []
+    spent = 0.0
+    for geom in runs:
+        rp = plan_jerk_run(
+            geom, vlim, alim, jlim, time_scale=time_scale, max_duration_ms=max_duration_s * 1000.0 - spent
+        )
+        spent += rp.q.shape[1] - 1
+        plans.append(rp)
+    if spent > max_duration_s * 1000.0:
+        raise PlanningError(
+            TOO_LARGE,
+            f"the path takes {spent / 1000:.1f} s, more than the limit of {max_duration_s:g} s",
+            path="waypoints",
+        )
+    q = np.concatenate([plans[0].q] + [p.q[:, 1:] for p in plans[1:]], axis=1)
+    v = np.concatenate([plans[0].v] + [p.v[:, 1:] for p in plans[1:]], axis=1)
+    acc = np.concatenate([plans[0].acc] + [p.acc[:, 1:] for p in plans[1:]], axis=1)
+    cpu = counts_per_unit[:, None]
+    empty: IntArray = np.zeros(0, dtype=np.int64)
+    ref = Reference(q * cpu, v * cpu, acc * cpu, acc * cpu, empty, empty)
+    return ref, {
+        "optimal_s": sum(p.optimal_ms for p in plans) / 1000.0,
+        "jerk_window_ms": float(max(p.window_ms for p in plans)),
+        "jerk_slowdown": float(max(p.time_scale for p in plans)),
+        "topp_solves": float(sum(p.solves for p in plans)),
+        "runs": float(len(plans)),
+    }
