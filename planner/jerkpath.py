@@ -325,3 +325,40 @@ def plan_jerk_path(
         "topp_solves": float(sum(p.solves for p in plans)),
         "runs": float(len(plans)),
     }
+
+
+def stop_at_corners(
+    waypoints: FloatArray,
+    counts_per_unit: FloatArray,
+    vlim: FloatArray,
+    alim: FloatArray,
+    jlim: FloatArray,
+    *,
+    time_scale: float = 1.0,
+    max_duration_s: float = 900.0,
+) -> Reference:
+    """The jerk-limited moves along the straight line from waypoint to waypoint (planner/jerk.py, ruckig),
+    each from rest to rest, one after the other: the polyline exactly, with every axis' jerk limit, and
+    the alternative a lines path takes where it is faster than the blended traversal (`plan_job`).
+    `waypoints` in user units (already snapped at the ends)."""
+    from planner.jerk import move_reference
+
+    parts: list[Reference] = []
+    spent = 0.0
+    cpu = counts_per_unit
+    for a, b in zip(waypoints[:-1], waypoints[1:], strict=True):
+        ref = move_reference(a, b, vlim, alim, jlim, cpu, time_scale=time_scale,
+                             max_duration_s=max_duration_s - spent / 1000.0)
+        spent += ref.duration_ms
+        parts.append(ref)
+    starts = np.concatenate([[0], np.cumsum([r.duration_ms for r in parts])]).astype(np.int64)
+
+    def joined(name: str) -> FloatArray:
+        arrays = [getattr(parts[0], name)] + [getattr(r, name)[:, 1:] for r in parts[1:]]
+        return np.concatenate(arrays, axis=1)
+
+    acc_r = np.concatenate([r.acc_right[:, :-1] for r in parts] + [parts[-1].acc_right[:, -1:]], axis=1)
+    hints = np.concatenate([r.hints + starts[k] for k, r in enumerate(parts)] + [starts[1:-1]])
+    breaks = np.concatenate([r.breaks + starts[k] for k, r in enumerate(parts)])
+    return Reference(joined("positions"), joined("velocities"), joined("acc_left"), acc_r,
+                     breaks.astype(np.int64), hints.astype(np.int64))

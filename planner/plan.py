@@ -209,6 +209,16 @@ def plan_job(
                         max_duration_s=MAX_DURATION_S,
                     )
                     info.update(path_info)
+                    info["jerk_stops"] = 0.0
+                    if runs is not None:
+                        # along the segments: stopping at every corner with jerk-limited moves, where faster
+                        from planner.jerkpath import stop_at_corners
+
+                        stops = stop_at_corners(wp, cpu, limits["velocity"], limits["acceleration"],
+                                                limits["jerk"], time_scale=f, max_duration_s=MAX_DURATION_S)
+                        if stops.duration_ms < ref.duration_ms:
+                            info["jerk_stops"] = 1.0
+                            return stops
                     return ref
                 # the smooth retry (the encoder failed on short pieces): a chain without short segments
                 spec = None if chain is None else dataclasses.replace(chain, short=not smooth)

@@ -1,0 +1,142 @@
+"""Jerk-limited path jobs (`jerk_limited`, planner/jerkpath.py): the job field, the re-timing, and the
+bounds of the plan over random paths (Hypothesis) and the example jobs."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from planner_checks import CONFIGS, assert_invariants, assert_path_within
+
+import planner.job as job_module
+from planner import plan_job
+from planner.config import CellConfig
+from planner.errors import TYPE, PlanningError
+from planner.jerkpath import fir_retime
+from planner.job import job_from_dict, job_to_dict, jerk_limited, load_job
+
+SETTINGS = settings(max_examples=12, deadline=None)
+
+
+def _path(jerk: bool | None, **extra: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "kind": "path",
+        "axes": ["j1", "j2"],
+        "waypoints": [[0.0, 0.0], [0.6, 0.2], [0.9, -0.3], [0.2, 0.1]],
+        **extra,
+    }
+    if jerk is not None:
+        out["jerk_limited"] = jerk
+    return out
+
+
+def _check_jerk_plan(traj: Any, cell: CellConfig) -> None:
+    """The plan keeps every axis' jerk limit at every ms (its change of acceleration over each ms, no
+    steps), its velocity and acceleration limits, and starts and ends at rest."""
+    for s in traj.stats:
+        assert s.planned_peak_jerk <= s.jerk_limit * (1.0 + 1e-6), (s.name, s.planned_peak_jerk, s.jerk_limit)
+        assert s.planned_peak_acceleration <= s.acceleration_limit * (1.0 + 2e-3)
+    plan = traj.plan
+    # continuous: no step larger than the jerk limit allows over the tick (counts/ms^2)
+    jerk_counts = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    assert np.all(np.abs(plan.acc_right - plan.acc_left) <= jerk_counts[:, None] * (1.0 + 1e-6))
+    assert np.abs(plan.velocities[:, [0, -1]]).max() < 1e-9
+    assert np.abs(plan.acc_left[:, [0, -1]]).max() < 1e-6 * np.abs(plan.acc_left).max() + 1e-12
+    assert_invariants(traj, cell)
+
+
+def test_the_field_is_parsed_checked_and_kept(cell: CellConfig) -> None:
+    for value in (True, False):
+        job = job_from_dict(_path(value), cell)
+        assert job.data.jerk_limited is value  # type: ignore[union-attr]
+        assert job_to_dict(job)["jerk_limited"] is value
+        assert jerk_limited(job, cell) is value
+    assert "jerk_limited" not in job_to_dict(job_from_dict(_path(None), cell))
+    with pytest.raises(PlanningError) as e:
+        job_from_dict(_path(None, jerk_limited="yes"), cell)
+    assert e.value.code == TYPE and e.value.path == "jerk_limited"
+    with pytest.raises(PlanningError):  # a path field only
+        job_from_dict({"kind": "move", "axes": ["j1"], "target": [0.1], "jerk_limited": True}, cell)
+
+
+def test_the_default_follows_the_cells_jerk_limits(cell: CellConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    job = job_from_dict(_path(None), cell)
+    assert jerk_limited(job, cell) is job_module.JERK_LIMITED_DEFAULT
+    monkeypatch.setattr(job_module, "JERK_LIMITED_DEFAULT", True)
+    assert jerk_limited(job, cell) is True  # every axis of the cell has a jerk limit
+    monkeypatch.setattr(job_module, "JERK_LIMITED_DEFAULT", False)
+    assert jerk_limited(job, cell) is False
+
+
+def test_false_plans_the_acceleration_only_optimum(cell: CellConfig) -> None:
+    off = plan_job(job_from_dict(_path(False), cell), cell)
+    plain = plan_job(job_from_dict(_path(None), cell), cell) if not job_module.JERK_LIMITED_DEFAULT else off
+    assert np.array_equal(off.dt_ms, plain.dt_ms) and np.array_equal(off.positions, plain.positions)
+    assert "jerk_limited" not in off.info
+    on = plan_job(job_from_dict(_path(True), cell), cell)
+    assert on.info["jerk_limited"] == 1.0
+    # the acceleration-only plan steps its acceleration far beyond the jerk limit over a ms; this one does not
+    assert max(s.planned_peak_jerk / s.jerk_limit for s in off.stats) > 10.0
+    _check_jerk_plan(on, cell)
+    assert on.duration_s >= on.info["optimal_s"]
+
+
+def test_fir_retime_is_a_double_s_on_a_trapezoid() -> None:
+    """A trapezoid of path acceleration +a for 100 ms, 0 for 200, -a for 100 averaged over 40 ms: rest to
+    rest, the path's end exactly, 40 ms longer, the jerk a/40 over every ms."""
+    a = 1e-6
+    acc = np.concatenate([np.full(100, a), np.zeros(200), np.full(100, -a)])
+    length = 0.5 * a * 100**2 * 2 + a * 100 * 200
+    s, sd, sdd = fir_retime(acc, length, 40)
+    assert s.size == 400 + 40 + 1
+    assert s[-1] == pytest.approx(length, rel=1e-12) and sd[0] == 0.0 and sd[-1] == 0.0
+    assert np.all(np.diff(s) >= 0.0)
+    assert np.abs(np.diff(sdd)).max() == pytest.approx(a / 40, rel=1e-9)
+    assert abs(sdd[0]) < 1e-18 and abs(sdd[-1]) < 1e-18
+
+
+@st.composite
+def jerk_paths(draw: st.DrawFn, cell: CellConfig) -> dict[str, Any]:
+    n = draw(st.integers(1, 4))
+    axes = [a.name for a in cell.axes[:n]]
+    k = draw(st.integers(2, 6))
+    rows = []
+    for _ in range(k):
+        rows.append([draw(st.floats(0.3 * cell.axis(a).position_min, 0.3 * cell.axis(a).position_max,
+                                     allow_nan=False)) for a in axes])
+    geometry = draw(st.sampled_from(["lines", "lines", "spline"]))
+    jd: dict[str, Any] = {"kind": "path", "axes": axes, "waypoints": rows, "jerk_limited": True,
+                          "geometry": geometry}
+    if geometry == "lines" and draw(st.booleans()):
+        jd["path_tolerance"] = draw(st.floats(0.002, 0.05))
+    return jd
+
+
+@SETTINGS
+@given(st.data())
+def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObject) -> None:
+    jd = data.draw(jerk_paths(cell8))
+    wp = np.array(jd["waypoints"])
+    if np.abs(np.diff(wp, axis=0)).max() < 1e-3:
+        return
+    job = job_from_dict(jd, cell8)
+    traj = plan_job(job, cell8)
+    _check_jerk_plan(traj, cell8)
+    if jd["geometry"] == "lines":
+        assert_path_within(traj, job, cell8)
+    if "optimal_s" in traj.info:
+        assert traj.duration_s >= traj.info["optimal_s"] * 0.999
+
+
+@pytest.mark.parametrize("name", ["demo-path.toml", "rectangle.toml"])
+def test_example_jobs(cell: CellConfig, name: str) -> None:
+    job = load_job(CONFIGS / "jobs" / name, cell)
+    d = job_to_dict(job)
+    d["jerk_limited"] = True
+    on = job_from_dict(d, cell)
+    traj = plan_job(on, cell)
+    _check_jerk_plan(traj, cell)
+    assert_path_within(traj, on, cell)
