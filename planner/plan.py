@@ -39,6 +39,7 @@ from planner.encoder import (
     encode,
     load_kernels,
     planned_demand,
+    reconstruct,
     segment_bounds,
 )
 from planner.errors import ENCODING_RANGE, INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
@@ -342,6 +343,13 @@ def plan_job(
         _check_reference_positions(ref, cfg, job.axes)
     if isinstance(d, MoveData):
         info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
+    if info.get("jerk_limited", 0.0) == 1.0:
+        # the knot values re-chosen so that the drive's acceleration stays continuous (planner/continuity.py)
+        from planner.continuity import smooth_values
+
+        smoothed = smooth_values(ref, knots, scales, float(tol), limits["jerk"] * cpu / 1.0e9)
+        if smoothed is not knots:
+            knots, rec = smoothed, reconstruct(smoothed, scales)
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
     # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
     return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
