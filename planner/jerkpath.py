@@ -39,8 +39,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner import topp
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
@@ -301,9 +303,15 @@ def plan_jerk_path(
     plans: list[JerkRun] = []
     spent = 0.0
     for geom in runs:
-        rp = plan_jerk_run(
-            geom, vlim, alim, jlim, time_scale=time_scale, max_duration_ms=max_duration_s * 1000.0 - spent
-        )
+        corner = plan_corner_run(geom, vlim, alim, jlim, time_scale=time_scale)
+        if corner is not None:
+            grid = geom.gridpoints()
+            optimum = Profile(grid, solve_profile(topp.sample_path(geom, grid), vlim, alim), geom, alim).optimal_ms
+            rp = JerkRun(corner.q, corner.v, corner.acc, optimum, 0, 1, corner.time_scale)
+        else:
+            rp = plan_jerk_run(
+                geom, vlim, alim, jlim, time_scale=time_scale, max_duration_ms=max_duration_s * 1000.0 - spent
+            )
         spent += rp.q.shape[1] - 1
         plans.append(rp)
     if spent > max_duration_s * 1000.0:
@@ -362,3 +370,206 @@ def stop_at_corners(
     breaks = np.concatenate([r.breaks + starts[k] for k, r in enumerate(parts)])
     return Reference(joined("positions"), joined("velocities"), joined("acc_left"), acc_r,
                      breaks.astype(np.int64), hints.astype(np.int64))
+
+
+# ----------------------------------------------------------------------------------------------------
+# blended corners at constant speed, jerk-limited moves between them (`plan_corner_run`)
+
+CORNER_MARGIN = 0.98  # of each corner's speed bound (its curvature's q''' sampled, not exact)
+_CORNER_SAMPLES = 401
+
+
+def _change(dv: float, a: float, j: float) -> float:
+    """Time (s) of the fastest jerk-limited change of speed by `dv` from and to zero acceleration."""
+    dv = abs(dv)
+    return 2.0 * float(np.sqrt(dv / j)) if dv <= a * a / j else dv / a + a / j
+
+
+def _reach(v: float, length: float, vmax: float, a: float, j: float) -> float:
+    """The largest speed (at most `vmax`) a jerk-limited change from `v` reaches within `length`: the
+    change's velocity is symmetric in time, so it covers (v + v') / 2 times its duration."""
+    if 0.5 * (v + vmax) * _change(vmax - v, a, j) <= length:
+        return vmax
+    lo, hi = 0.0, vmax
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if 0.5 * (v + mid) * _change(mid - v, a, j) <= length:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def _line_move(length: float, v_in: float, v_out: float, vmax: float, a: float, j: float) -> Any:
+    """ruckig's time-optimal 1-DoF motion along a line piece, from speed `v_in` to `v_out` at zero acceleration."""
+    from planner.jerk import _ruckig, _solve
+
+    rk = _ruckig()
+    inp = rk.InputParameter(1)
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [v_in], [0.0]
+    inp.target_position, inp.target_velocity, inp.target_acceleration = [length], [v_out], [0.0]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [vmax], [a], [j]
+    return _solve(inp, 1)
+
+
+def _phases(traj: Any) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Start times and start states (p, v, a) and jerks of a 1-DoF ruckig profile's phases, then a hold."""
+    prof = traj.profiles[0][0]
+    durs = [prof.t[k] for k in range(7)]
+    starts = np.concatenate([[0.0], np.cumsum(durs)])
+    p = np.array([prof.p[k] for k in range(8)])
+    v = np.array([prof.v[k] for k in range(8)])
+    a = np.array([prof.a[k] for k in range(8)])
+    jj = np.array([prof.j[k] for k in range(7)] + [0.0])
+    return starts, p, v, a, jj
+
+
+def plan_corner_run(
+    geom: Any, vlim: FloatArray, alim: FloatArray, jlim: FloatArray, *, time_scale: float = 1.0
+) -> JerkRun | None:
+    """A rest-to-rest, jerk-limited traversal of one run of straight pieces and blends (planner/geometry.py):
+    every blend at a constant path speed (there the joints' acceleration is q'' s'^2 and their jerk
+    q''' s'^3: the speed is the largest that keeps both, and the joint velocity, within the limits), every
+    straight piece a time-optimal jerk-limited 1-DoF motion (ruckig) between the speeds of its two corners
+    at zero path acceleration, so the acceleration is continuous where a piece meets a blend (a blend's
+    q'' is 0 at its ends). Corner speeds no piece can connect are lowered by a forward and a backward pass
+    (the distance a jerk-limited change of speed needs, `_reach`). The whole run is played slower to end on
+    a whole ms and wherever the check at every ms (velocity, acceleration, jerk) needs it. None when `geom`
+    is not made of straight pieces and blends, or a piece's motion leaves it."""
+    blends = getattr(geom, "blends", None)
+    bp = getattr(geom, "breakpoints", None)
+    if blends is None or bp is None:
+        return None
+    n_pieces = int(blends.size)
+    kinds = blends != 0
+    jplan = jlim * PLAN_JERK_SHARE
+    # constant-speed groups: consecutive blends share one speed
+    cap = np.full(n_pieces, np.inf)
+    lines: dict[int, tuple[float, float, float]] = {}
+    for p in range(n_pieces):
+        s0, s1 = float(bp[p]), float(bp[p + 1])
+        if kinds[p]:
+            s = np.linspace(s0, s1, _CORNER_SAMPLES)
+            q1, q2 = np.abs(geom(s, 1)), geom(s, 2)
+            q3 = np.abs(np.gradient(q2, s, axis=0))
+            q2 = np.abs(q2)
+            with np.errstate(divide="ignore"):
+                bounds = [
+                    float(np.min(vlim[None, :] / q1)),
+                    float(np.sqrt(np.min(alim[None, :] / q2))),
+                    float(np.cbrt(np.min(jplan[None, :] / q3))),
+                ]
+            cap[p] = CORNER_MARGIN * min(bounds)
+        else:
+            u = np.abs(geom(np.array([0.5 * (s0 + s1)]), 1)[0])
+            moving = u > 0.0
+            if not moving.any():
+                return None
+            lines[p] = (
+                float(np.min(vlim[moving] / u[moving])),
+                float(np.min(alim[moving] / u[moving])),
+                float(np.min(jplan[moving] / u[moving])),
+            )
+    # speeds at the piece boundaries: 0 at the ends, a blend group's cap at its boundaries (two straight
+    # pieces in a row go on in the same direction: any speed both allow)
+    speed = np.full(n_pieces + 1, np.inf)
+    for p in range(n_pieces):
+        if kinds[p]:
+            speed[p] = min(speed[p], cap[p])
+            speed[p + 1] = min(speed[p + 1], cap[p])
+    # a group of blends: one speed across it
+    p = 0
+    while p < n_pieces:
+        if kinds[p]:
+            q = p
+            while q + 1 < n_pieces and kinds[q + 1]:
+                q += 1
+            v = float(speed[p : q + 2].min())
+            speed[p : q + 2] = v
+            p = q + 1
+        else:
+            p += 1
+    speed[0] = speed[-1] = 0.0
+    for p, (vmax, _a, _j) in lines.items():
+        speed[p] = min(speed[p], vmax)
+        speed[p + 1] = min(speed[p + 1], vmax)
+    # forward and backward: every line can connect its two speeds (a blend group keeps one speed)
+    order = sorted(lines)
+    for sweep in (order, order[::-1]):
+        for p in sweep:
+            vmax, a, j = lines[p]
+            length = float(bp[p + 1] - bp[p])
+            if sweep is order:
+                speed[p + 1] = min(speed[p + 1], _reach(float(speed[p]), length, vmax, a, j))
+                _spread(speed, kinds, p + 1)
+            else:
+                speed[p] = min(speed[p], _reach(float(speed[p + 1]), length, vmax, a, j))
+                _spread(speed, kinds, p, backward=True)
+    # the pieces in time
+    pieces: list[tuple[float, float, Any]] = []  # (duration s, s at start, ruckig phases or the speed)
+    for p in range(n_pieces):
+        s0, s1 = float(bp[p]), float(bp[p + 1])
+        if kinds[p]:
+            v = float(speed[p])
+            if v <= 0.0:
+                return None
+            pieces.append(((s1 - s0) / v, s0, v))
+        else:
+            vmax, a, j = lines[p]
+            traj = _line_move(s1 - s0, float(speed[p]), float(speed[p + 1]), vmax, a, j)
+            pieces.append((float(traj.duration), s0, _phases(traj)))
+    total = sum(d for d, _s, _x in pieces)
+    starts = np.concatenate([[0.0], np.cumsum([d for d, _s, _x in pieces])])
+    vlim_ms, alim_ms, jlim_ms = vlim / 1.0e3, alim / 1.0e6, jlim / 1.0e9
+    scale = time_scale
+    for _ in range(12):
+        m = max(int(np.ceil(total * 1000.0 * scale - 1e-6)), 1)
+        lam = m / (total * 1000.0)  # >= scale: the run played lam times slower, on whole ms
+        t = np.arange(m + 1) / (lam * 1000.0)  # the unscaled time of every ms (s)
+        t[-1] = total
+        s = np.empty(m + 1)
+        sd = np.empty(m + 1)
+        sdd = np.empty(m + 1)
+        idx = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(pieces) - 1)
+        for k, (dur, s0, data) in enumerate(pieces):
+            sel = idx == k
+            if not sel.any():
+                continue
+            dt = np.minimum(t[sel] - starts[k], dur)
+            if isinstance(data, float):
+                s[sel], sd[sel], sdd[sel] = s0 + data * dt, data, 0.0
+            else:
+                ps, p0, v0, a0, j0 = data
+                ph = np.clip(np.searchsorted(ps, dt, side="right") - 1, 0, 7)
+                x = dt - ps[ph]
+                s[sel] = s0 + p0[ph] + x * (v0[ph] + x * (a0[ph] / 2.0 + x * j0[ph] / 6.0))
+                sd[sel] = v0[ph] + x * (a0[ph] + x * j0[ph] / 2.0)
+                sdd[sel] = a0[ph] + x * j0[ph]
+        s = np.clip(s, 0.0, geom.length)
+        s[-1], sd[-1], sdd[-1] = geom.length, 0.0, 0.0
+        if np.any(np.diff(s) < -1e-12):
+            return None  # a piece's motion went back along the path
+        sd_ms, sdd_ms = sd / (lam * 1000.0), sdd / (lam * 1000.0) ** 2
+        q, v, acc = joint_motion(geom, s, sd_ms, sdd_ms)
+        vr, ar, jr = ratios(v, acc, vlim_ms, alim_ms, jlim_ms * PLAN_JERK_SHARE)
+        over = max(float(vr.max()) / (1.0 + VEL_SLACK), float(np.sqrt(ar.max() / (1.0 + ACC_SLACK))),
+                   float(np.cbrt(jr.max())))
+        if over <= 1.0:
+            return JerkRun(q, v, acc, 0.0, 0, 0, lam / time_scale)
+        scale = lam * over * (1.0 + 1e-3)
+    return None
+
+
+def _spread(speed: FloatArray, kinds: NDArray[np.bool_], boundary: int, backward: bool = False) -> None:
+    """A blend group keeps one speed: a lowered boundary speed lowers the group it starts (or ends)."""
+    n = kinds.size
+    if not backward:
+        p = boundary
+        while p < n and kinds[p]:
+            speed[p + 1] = min(speed[p + 1], speed[p])
+            p += 1
+    else:
+        p = boundary - 1
+        while p >= 0 and kinds[p]:
+            speed[p] = min(speed[p], speed[p + 1])
+            p -= 1

@@ -140,3 +140,81 @@ def test_example_jobs(cell: CellConfig, name: str) -> None:
     traj = plan_job(on, cell)
     _check_jerk_plan(traj, cell)
     assert_path_within(traj, on, cell)
+
+
+def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfig) -> None:
+    """planner/continuity.py: on the encoder's own knot times, the re-chosen values keep every promise of
+    the encoding and make the largest acceleration step at a knot (and in-segment jerk) smaller: on the
+    example path from 2-3x the jerk limit over the tick where the encoder's values leave 8-12x."""
+    from planner.continuity import knot_steps, smooth_values, worst_ratio
+    from planner.encoder import encode, within_contract
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+
+    job = load_job(CONFIGS / "jobs" / "demo-path.toml", cell)
+    d = job_to_dict(job)
+    d["jerk_limited"] = True
+    job = job_from_dict(d, cell)
+    traj = plan_job(job, cell)
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    smooth = smooth_values(traj.plan, raw, scales, float(job.tolerance_counts), jerk)
+    assert smooth is not raw and np.array_equal(smooth.times_ms, raw.times_ms)
+    assert within_contract(traj.plan, smooth, scales, float(job.tolerance_counts))
+    before, after = worst_ratio(raw, scales, jerk), worst_ratio(smooth, scales, jerk)
+    assert after < 0.5 * before, (before, after)
+    # what plan_job returns is that encoding, and its statistics say so
+    steps = np.abs(knot_steps(smooth, scales)[1]).max(axis=1) / jerk
+    np.testing.assert_allclose([s.knot_acceleration_step * 1000.0 / s.jerk_limit for s in traj.stats], steps,
+                               rtol=1e-9)
+
+
+def test_speed_changes_match_ruckig() -> None:
+    """jerkpath._change, the time of a jerk-limited change of speed that the corner speeds' passes use, is
+    ruckig's own time for it (velocity control from and to zero acceleration), with and without a phase
+    at full acceleration."""
+    import ruckig
+
+    from planner.jerkpath import _change
+
+    for dv, a, j in ((0.5, 2.0, 20.0), (3.0, 2.0, 20.0), (0.01, 8.0, 80.0)):
+        otg = ruckig.Ruckig(1, 0.001)
+        inp = ruckig.InputParameter(1)
+        inp.control_interface = ruckig.ControlInterface.Velocity
+        inp.current_velocity, inp.target_velocity = [0.0], [dv]
+        inp.max_acceleration, inp.max_jerk, inp.max_velocity = [a], [j], [10.0]
+        out = ruckig.Trajectory(1)
+        otg.calculate(inp, out)
+        assert _change(dv, a, j) == pytest.approx(out.duration, rel=1e-9)
+
+
+def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
+    """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
+    every ms, and through the blend at one constant speed (no path acceleration there)."""
+    from planner.jerkpath import PLAN_JERK_SHARE, plan_corner_run
+    from planner.job import effective_limits, path_tolerance
+    from planner.plan import axis_configs, axis_scales, lines_geometry
+    from planner.encoder import segment_bounds
+
+    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
+                         "path_tolerance": 0.05, "jerk_limited": True}, cell)
+    cfg = axis_configs(job.axes, cell)
+    lim = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+                                  path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
+                                  (np.full(2, -3.0), np.full(2, 3.0)), {})
+    assert len(runs) == 1 and runs[0].blends.tolist() == [0, 1, 0]
+    run = plan_corner_run(runs[0], lim["velocity"], lim["acceleration"], lim["jerk"])
+    assert run is not None
+    vl, al, jl = lim["velocity"] / 1e3, lim["acceleration"] / 1e6, lim["jerk"] / 1e9
+    assert np.all(np.abs(run.v) <= vl[:, None] * (1 + 1e-4))
+    assert np.all(np.abs(run.acc) <= al[:, None] * (1 + 1e-3))
+    assert np.all(np.abs(np.diff(run.acc, axis=1)) <= jl[:, None] * PLAN_JERK_SHARE * (1 + 1e-9))
+    assert np.abs(run.v[:, [0, -1]]).max() == 0.0
+    # in the blend (both axes moving, j2 not yet at its line's direction) the speed along the path is constant
+    both = (np.abs(run.v[0]) > 1e-9) & (np.abs(run.v[1]) > 1e-9)
+    speed = np.hypot(run.v[0] / vl[0], run.v[1] / vl[1])
+    inner = np.nonzero(both)[0][5:-5]
+    assert inner.size > 10
