@@ -38,7 +38,7 @@ The plan is the joint motion q(s(t)) at every ms with a continuous acceleration 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -69,6 +69,7 @@ class JerkRun:
     window_ms: int
     solves: int
     time_scale: float  # the slow-down the repairs needed (1: none)
+    hints: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # ms where a cubic piece ends
 
 
 def dip_caps(grid: FloatArray, sd: FloatArray, window_ms: float) -> FloatArray:
@@ -307,7 +308,7 @@ def plan_jerk_path(
         if corner is not None:
             grid = geom.gridpoints()
             optimum = Profile(grid, solve_profile(topp.sample_path(geom, grid), vlim, alim), geom, alim).optimal_ms
-            rp = JerkRun(corner.q, corner.v, corner.acc, optimum, 0, 1, corner.time_scale)
+            rp = JerkRun(corner.q, corner.v, corner.acc, optimum, 0, 1, corner.time_scale, corner.hints)
         else:
             rp = plan_jerk_run(
                 geom, vlim, alim, jlim, time_scale=time_scale, max_duration_ms=max_duration_s * 1000.0 - spent
@@ -324,8 +325,10 @@ def plan_jerk_path(
     v = np.concatenate([plans[0].v] + [p.v[:, 1:] for p in plans[1:]], axis=1)
     acc = np.concatenate([plans[0].acc] + [p.acc[:, 1:] for p in plans[1:]], axis=1)
     cpu = counts_per_unit[:, None]
+    starts = np.concatenate([[0], np.cumsum([p.q.shape[1] - 1 for p in plans])]).astype(np.int64)
+    hints = np.concatenate([p.hints + starts[k] for k, p in enumerate(plans)] + [starts[1:-1]])
     empty: IntArray = np.zeros(0, dtype=np.int64)
-    ref = Reference(q * cpu, v * cpu, acc * cpu, acc * cpu, empty, empty)
+    ref = Reference(q * cpu, v * cpu, acc * cpu, acc * cpu, empty, hints.astype(np.int64))
     return ref, {
         "optimal_s": sum(p.optimal_ms for p in plans) / 1000.0,
         "jerk_window_ms": float(max(p.window_ms for p in plans)),
@@ -424,140 +427,329 @@ def _phases(traj: Any) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, 
     return starts, p, v, a, jj
 
 
-def plan_corner_run(
-    geom: Any, vlim: FloatArray, alim: FloatArray, jlim: FloatArray, *, time_scale: float = 1.0
-) -> JerkRun | None:
-    """A rest-to-rest, jerk-limited traversal of one run of straight pieces and blends (planner/geometry.py):
-    every blend at a constant path speed (there the joints' acceleration is q'' s'^2 and their jerk
-    q''' s'^3: the speed is the largest that keeps both, and the joint velocity, within the limits), every
-    straight piece a time-optimal jerk-limited 1-DoF motion (ruckig) between the speeds of its two corners
-    at zero path acceleration, so the acceleration is continuous where a piece meets a blend (a blend's
-    q'' is 0 at its ends). Corner speeds no piece can connect are lowered by a forward and a backward pass
-    (the distance a jerk-limited change of speed needs, `_reach`). The whole run is played slower to end on
-    a whole ms and wherever the check at every ms (velocity, acceleration, jerk) needs it. None when `geom`
-    is not made of straight pieces and blends, or a piece's motion leaves it."""
+@dataclass(frozen=True, eq=False)
+class _Line:
+    """A straight piece: q = start + direction * x for x in [0, length] (direction: dq/ds of the path)."""
+
+    start: FloatArray
+    direction: FloatArray
+    length: float
+
+
+@dataclass(frozen=True, eq=False)
+class _Blend:
+    """A blend of the geometry, s in [s0, s1], crossed at the constant path speed `cap` at most."""
+
+    geom: Any
+    s0: float
+    s1: float
+    cap: float
+
+
+def _line_limits(u: FloatArray, vlim: FloatArray, alim: FloatArray, jplan: FloatArray) -> tuple[float, float, float]:
+    moving = np.abs(u) > 0.0
+    au = np.abs(u[moving])
+    return (float(np.min(vlim[moving] / au)), float(np.min(alim[moving] / au)), float(np.min(jplan[moving] / au)))
+
+
+def _blend_cap(geom: Any, s0: float, s1: float, vlim: FloatArray, alim: FloatArray, jplan: FloatArray) -> float:
+    """The constant path speed at which every joint keeps its velocity, acceleration (q'' s'^2) and jerk
+    (q''' s'^3, q''' from q'' sampled densely) limits along the blend, less `CORNER_MARGIN`."""
+    s = np.linspace(s0, s1, _CORNER_SAMPLES)
+    q1, q2 = np.abs(geom(s, 1)), geom(s, 2)
+    q3 = np.abs(np.gradient(q2, s, axis=0))
+    q2 = np.abs(q2)
+    with np.errstate(divide="ignore"):
+        bounds = (
+            float(np.min(vlim[None, :] / q1)),
+            float(np.sqrt(np.min(alim[None, :] / q2))),
+            float(np.cbrt(np.min(jplan[None, :] / q3))),
+        )
+    return CORNER_MARGIN * min(bounds)
+
+
+def _geometry_pieces(geom: Any, vlim: FloatArray, alim: FloatArray, jplan: FloatArray) -> list[_Line | _Blend] | None:
+    """The pieces of a run of straight pieces and blends (planner/geometry.py), None for other geometries."""
     blends = getattr(geom, "blends", None)
     bp = getattr(geom, "breakpoints", None)
     if blends is None or bp is None:
         return None
-    n_pieces = int(blends.size)
-    kinds = blends != 0
-    jplan = jlim * PLAN_JERK_SHARE
-    # constant-speed groups: consecutive blends share one speed
-    cap = np.full(n_pieces, np.inf)
-    lines: dict[int, tuple[float, float, float]] = {}
-    for p in range(n_pieces):
+    out: list[_Line | _Blend] = []
+    for p in range(int(blends.size)):
         s0, s1 = float(bp[p]), float(bp[p + 1])
-        if kinds[p]:
-            s = np.linspace(s0, s1, _CORNER_SAMPLES)
-            q1, q2 = np.abs(geom(s, 1)), geom(s, 2)
-            q3 = np.abs(np.gradient(q2, s, axis=0))
-            q2 = np.abs(q2)
-            with np.errstate(divide="ignore"):
-                bounds = [
-                    float(np.min(vlim[None, :] / q1)),
-                    float(np.sqrt(np.min(alim[None, :] / q2))),
-                    float(np.cbrt(np.min(jplan[None, :] / q3))),
-                ]
-            cap[p] = CORNER_MARGIN * min(bounds)
+        if blends[p]:
+            out.append(_Blend(geom, s0, s1, _blend_cap(geom, s0, s1, vlim, alim, jplan)))
         else:
-            u = np.abs(geom(np.array([0.5 * (s0 + s1)]), 1)[0])
-            moving = u > 0.0
-            if not moving.any():
+            u = geom(np.array([0.5 * (s0 + s1)]), 1)[0]
+            if not np.any(u != 0.0):
                 return None
-            lines[p] = (
-                float(np.min(vlim[moving] / u[moving])),
-                float(np.min(alim[moving] / u[moving])),
-                float(np.min(jplan[moving] / u[moving])),
-            )
-    # speeds at the piece boundaries: 0 at the ends, a blend group's cap at its boundaries (two straight
-    # pieces in a row go on in the same direction: any speed both allow)
-    speed = np.full(n_pieces + 1, np.inf)
-    for p in range(n_pieces):
-        if kinds[p]:
-            speed[p] = min(speed[p], cap[p])
-            speed[p + 1] = min(speed[p + 1], cap[p])
-    # a group of blends: one speed across it
+            out.append(_Line(geom(np.array([s0]), 0)[0], u, s1 - s0))
+    return out
+
+
+def _corner_point(before: _Line, after: _Line) -> tuple[float, float]:
+    """Where two straight pieces meet (their corner, the waypoint): the length of `before` to it and where
+    `after` starts from it (negative: before its start), by least squares of their two lines."""
+    m = np.stack([before.direction, -after.direction], axis=1)
+    x, *_ = np.linalg.lstsq(m, after.start - before.start, rcond=None)
+    return float(x[0]), float(x[1])
+
+
+def _with_stops(pieces: list[_Line | _Blend], stops: Sequence[bool]) -> tuple[list[_Line | _Blend], list[int]]:
+    """The pieces with the blends flagged in `stops` (one flag per blend, in order) replaced by the corner
+    itself: the straight piece before goes on to the waypoint, the one after starts there. Returns the
+    pieces and the boundaries (indices into the pieces' boundaries) where the motion stops."""
+    out: list[_Line | _Blend] = []
+    at_rest: list[int] = []
+    b = 0
+    k = 0
+    while k < len(pieces):
+        piece = pieces[k]
+        if isinstance(piece, _Blend):
+            stop = stops[b]
+            b += 1
+            prev, nxt = out[-1], pieces[k + 1]
+            if stop and isinstance(prev, _Line) and isinstance(nxt, _Line):
+                to_corner, from_corner = _corner_point(prev, nxt)
+                out[-1] = _Line(prev.start, prev.direction, to_corner)
+                corner = prev.start + prev.direction * to_corner
+                out.append(_Line(corner, nxt.direction, nxt.length - from_corner))
+                at_rest.append(len(out) - 1)
+                k += 2
+                continue
+        out.append(piece)
+        k += 1
+    return out, at_rest
+
+
+def _speeds(
+    pieces: list[_Line | _Blend], at_rest: Sequence[int], vlim: FloatArray, alim: FloatArray, jplan: FloatArray
+) -> FloatArray:
+    """The path speed at every boundary of the pieces: 0 at the ends and at the stops, a blend's speed at
+    its boundaries, lowered by a forward and a backward pass until every straight piece can connect its
+    two speeds (`_reach`: a jerk-limited change of speed is symmetric in time)."""
+    n = len(pieces)
+    speed = np.full(n + 1, np.inf)
+    speed[0] = speed[-1] = 0.0
+    speed[list(at_rest)] = 0.0
+    lines: dict[int, tuple[float, float, float]] = {}
+    for p, piece in enumerate(pieces):
+        if isinstance(piece, _Blend):
+            speed[p] = min(speed[p], piece.cap)
+            speed[p + 1] = min(speed[p + 1], piece.cap)
+        else:
+            lines[p] = _line_limits(piece.direction, vlim, alim, jplan)
+            speed[p] = min(speed[p], lines[p][0])
+            speed[p + 1] = min(speed[p + 1], lines[p][0])
+    kinds = np.array([isinstance(x, _Blend) for x in pieces])
+    # a group of blends in a row: one speed
     p = 0
-    while p < n_pieces:
+    while p < n:
         if kinds[p]:
             q = p
-            while q + 1 < n_pieces and kinds[q + 1]:
+            while q + 1 < n and kinds[q + 1]:
                 q += 1
-            v = float(speed[p : q + 2].min())
-            speed[p : q + 2] = v
+            speed[p : q + 2] = speed[p : q + 2].min()
             p = q + 1
         else:
             p += 1
-    speed[0] = speed[-1] = 0.0
-    for p, (vmax, _a, _j) in lines.items():
-        speed[p] = min(speed[p], vmax)
-        speed[p + 1] = min(speed[p + 1], vmax)
-    # forward and backward: every line can connect its two speeds (a blend group keeps one speed)
     order = sorted(lines)
-    for sweep in (order, order[::-1]):
-        for p in sweep:
-            vmax, a, j = lines[p]
-            length = float(bp[p + 1] - bp[p])
-            if sweep is order:
-                speed[p + 1] = min(speed[p + 1], _reach(float(speed[p]), length, vmax, a, j))
-                _spread(speed, kinds, p + 1)
-            else:
-                speed[p] = min(speed[p], _reach(float(speed[p + 1]), length, vmax, a, j))
-                _spread(speed, kinds, p, backward=True)
-    # the pieces in time
-    pieces: list[tuple[float, float, Any]] = []  # (duration s, s at start, ruckig phases or the speed)
-    for p in range(n_pieces):
-        s0, s1 = float(bp[p]), float(bp[p + 1])
-        if kinds[p]:
+    for p in order:
+        vmax, a, j = lines[p]
+        speed[p + 1] = min(speed[p + 1], _reach(float(speed[p]), pieces[p].length, vmax, a, j))  # type: ignore[union-attr]
+        _spread(speed, kinds, p + 1)
+    for p in order[::-1]:
+        vmax, a, j = lines[p]
+        speed[p] = min(speed[p], _reach(float(speed[p + 1]), pieces[p].length, vmax, a, j))  # type: ignore[union-attr]
+        _spread(speed, kinds, p, backward=True)
+    return speed
+
+
+def _corner_motion(
+    pieces: list[_Line | _Blend],
+    at_rest: Sequence[int],
+    vlim: FloatArray,
+    alim: FloatArray,
+    jlim: FloatArray,
+    time_scale: float,
+) -> JerkRun | None:
+    """The motion through `pieces` (module docstring of `plan_corner_run`), sampled at every ms and checked."""
+    jplan = jlim * PLAN_JERK_SHARE
+    speed = _speeds(pieces, at_rest, vlim, alim, jplan)
+    timed: list[tuple[float, Any]] = []  # (duration s, ruckig phases or the blend's speed)
+    for p, piece in enumerate(pieces):
+        if isinstance(piece, _Blend):
             v = float(speed[p])
             if v <= 0.0:
                 return None
-            pieces.append(((s1 - s0) / v, s0, v))
+            timed.append(((piece.s1 - piece.s0) / v, v))
         else:
-            vmax, a, j = lines[p]
-            traj = _line_move(s1 - s0, float(speed[p]), float(speed[p + 1]), vmax, a, j)
-            pieces.append((float(traj.duration), s0, _phases(traj)))
-    total = sum(d for d, _s, _x in pieces)
-    starts = np.concatenate([[0.0], np.cumsum([d for d, _s, _x in pieces])])
+            if piece.length <= 0.0:
+                if speed[p] > 0.0 or speed[p + 1] > 0.0:
+                    return None
+                timed.append((0.0, None))
+                continue
+            vmax, a, j = _line_limits(piece.direction, vlim, alim, jplan)
+            traj = _line_move(piece.length, float(speed[p]), float(speed[p + 1]), vmax, a, j)
+            timed.append((float(traj.duration), _phases(traj)))
+    total = sum(d for d, _x in timed)
+    if total <= 0.0:
+        return None
+    starts = np.concatenate([[0.0], np.cumsum([d for d, _x in timed])])
     vlim_ms, alim_ms, jlim_ms = vlim / 1.0e3, alim / 1.0e6, jlim / 1.0e9
+    n_axes = vlim.size
     scale = time_scale
     for _ in range(12):
         m = max(int(np.ceil(total * 1000.0 * scale - 1e-6)), 1)
         lam = m / (total * 1000.0)  # >= scale: the run played lam times slower, on whole ms
         t = np.arange(m + 1) / (lam * 1000.0)  # the unscaled time of every ms (s)
         t[-1] = total
-        s = np.empty(m + 1)
-        sd = np.empty(m + 1)
-        sdd = np.empty(m + 1)
+        q = np.empty((n_axes, m + 1))
+        v = np.empty((n_axes, m + 1))
+        acc = np.empty((n_axes, m + 1))
         idx = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(pieces) - 1)
-        for k, (dur, s0, data) in enumerate(pieces):
+        while True:  # a zero-length piece takes no ms: its ms belong to the next one
+            empty = np.array([timed[k][0] <= 0.0 for k in idx]) & (idx < len(pieces) - 1)
+            if not empty.any():
+                break
+            idx[empty] += 1
+        f1, f2 = 1.0 / (lam * 1000.0), 1.0 / (lam * 1000.0) ** 2
+        for k, (dur, data) in enumerate(timed):
             sel = idx == k
             if not sel.any():
                 continue
             dt = np.minimum(t[sel] - starts[k], dur)
-            if isinstance(data, float):
-                s[sel], sd[sel], sdd[sel] = s0 + data * dt, data, 0.0
+            piece = pieces[k]
+            if isinstance(piece, _Blend):
+                x = np.minimum(piece.s0 + data * dt, piece.s1)
+                qb, q1b, q2b = (piece.geom(x, o).T for o in range(3))
+                q[:, sel], v[:, sel], acc[:, sel] = qb, q1b * data * f1, q2b * (data * f1) ** 2
             else:
                 ps, p0, v0, a0, j0 = data
                 ph = np.clip(np.searchsorted(ps, dt, side="right") - 1, 0, 7)
                 x = dt - ps[ph]
-                s[sel] = s0 + p0[ph] + x * (v0[ph] + x * (a0[ph] / 2.0 + x * j0[ph] / 6.0))
-                sd[sel] = v0[ph] + x * (a0[ph] + x * j0[ph] / 2.0)
-                sdd[sel] = a0[ph] + x * j0[ph]
-        s = np.clip(s, 0.0, geom.length)
-        s[-1], sd[-1], sdd[-1] = geom.length, 0.0, 0.0
-        if np.any(np.diff(s) < -1e-12):
-            return None  # a piece's motion went back along the path
-        sd_ms, sdd_ms = sd / (lam * 1000.0), sdd / (lam * 1000.0) ** 2
-        q, v, acc = joint_motion(geom, s, sd_ms, sdd_ms)
+                xs = np.clip(p0[ph] + x * (v0[ph] + x * (a0[ph] / 2.0 + x * j0[ph] / 6.0)), 0.0, piece.length)
+                xd = v0[ph] + x * (a0[ph] + x * j0[ph] / 2.0)
+                xdd = a0[ph] + x * j0[ph]
+                u = piece.direction[:, None]
+                q[:, sel], v[:, sel], acc[:, sel] = piece.start[:, None] + u * xs, u * xd * f1, u * xdd * f2
+        last = pieces[-1]
+        q[:, -1] = last.start + last.direction * last.length if isinstance(last, _Line) else last.geom(
+            np.array([last.s1]), 0)[0]
+        v[:, -1] = 0.0
+        acc[:, -1] = 0.0
         vr, ar, jr = ratios(v, acc, vlim_ms, alim_ms, jlim_ms * PLAN_JERK_SHARE)
         over = max(float(vr.max()) / (1.0 + VEL_SLACK), float(np.sqrt(ar.max() / (1.0 + ACC_SLACK))),
                    float(np.cbrt(jr.max())))
         if over <= 1.0:
-            return JerkRun(q, v, acc, 0.0, 0, 0, lam / time_scale)
+            # where the jerk changes: the pieces' ends and the ruckig phases' (on the nearest ms)
+            switch = [starts[k] + (data[0][1:-1] if isinstance(data, tuple) else np.zeros(0))
+                      for k, (_d, data) in enumerate(timed)]
+            at = np.round(np.concatenate([starts[1:-1], *switch]) * lam * 1000.0).astype(np.int64)
+            hints = np.unique(at[(at > 0) & (at < m)])
+            return JerkRun(q, v, acc, 0.0, 0, 0, lam / time_scale, hints)
         scale = lam * over * (1.0 + 1e-3)
     return None
+
+
+def _choose_stops(
+    pieces: list[_Line | _Blend], vlim: FloatArray, alim: FloatArray, jplan: FloatArray
+) -> list[bool]:
+    """Which blended corners are faster as stops: a Viterbi pass over the corners, each blended (crossed at
+    its speed) or a stop at the waypoint, costed by the time of the straight pieces between them (ruckig,
+    their end speeds each limited by what the piece can reach from the other) and of the blends."""
+    blends = [k for k, x in enumerate(pieces) if isinstance(x, _Blend)]
+    if not blends or any(not isinstance(pieces[k - 1], _Line) or not isinstance(pieces[k + 1], _Line)
+                         for k in blends):
+        return [False] * len(blends)
+    corners = [_corner_point(pieces[k - 1], pieces[k + 1]) for k in blends]  # type: ignore[arg-type]
+
+    def line_time(k: int, stop_before: bool | None, stop_after: bool | None) -> float:
+        """Time of straight piece k with the corner before it (None: the run's start) and after it."""
+        line = pieces[k]
+        assert isinstance(line, _Line)
+        length = line.length
+        v_in = v_out = 0.0
+        if stop_before is not None:
+            c = blends.index(k - 1)
+            if stop_before:
+                length -= corners[c][1]
+            else:
+                v_in = pieces[k - 1].cap  # type: ignore[union-attr]
+        if stop_after is not None:
+            c = blends.index(k + 1)
+            if stop_after:
+                length += corners[c][0] - line.length
+            else:
+                v_out = pieces[k + 1].cap  # type: ignore[union-attr]
+        vmax, a, j = _line_limits(line.direction, vlim, alim, jplan)
+        v_in, v_out = min(v_in, vmax), min(v_out, vmax)
+        if length <= 0.0:
+            return np.inf if (v_in > 0 or v_out > 0) else 0.0
+        v_out = min(v_out, _reach(v_in, length, vmax, a, j))
+        v_in = min(v_in, _reach(v_out, length, vmax, a, j))
+        try:
+            return float(_line_move(length, v_in, v_out, vmax, a, j).duration)
+        except PlanningError:
+            return np.inf
+
+    def blend_time(c: int) -> float:
+        b = pieces[blends[c]]
+        assert isinstance(b, _Blend)
+        return (b.s1 - b.s0) / b.cap
+
+    nc = len(blends)
+    # cost[c][choice]: the best time up to corner c with that choice (0 blend, 1 stop), back pointers
+    cost = np.array([line_time(blends[0] - 1, None, False) + blend_time(0), line_time(blends[0] - 1, None, True)])
+    back: list[IntArray] = []
+    for c in range(1, nc):
+        k = blends[c] - 1
+        new = np.empty(2)
+        arg = np.zeros(2, dtype=np.int64)
+        for choice in (0, 1):
+            options = [cost[prev] + line_time(k, bool(prev), bool(choice)) for prev in (0, 1)]
+            arg[choice] = int(np.argmin(options))
+            new[choice] = options[arg[choice]] + (blend_time(c) if choice == 0 else 0.0)
+        back.append(arg)
+        cost = new
+    last = blends[-1] + 1
+    final = [cost[ch] + line_time(last, bool(ch), None) for ch in (0, 1)]
+    choice = int(np.argmin(final))
+    out = [choice]
+    for arg in reversed(back):
+        choice = int(arg[choice])
+        out.append(choice)
+    out.reverse()
+    return [bool(x) for x in out]
+
+
+def plan_corner_run(
+    geom: Any, vlim: FloatArray, alim: FloatArray, jlim: FloatArray, *, time_scale: float = 1.0
+) -> JerkRun | None:
+    """A rest-to-rest, jerk-limited traversal of one run of straight pieces and blends (planner/geometry.py).
+
+    Every blend is crossed at a constant path speed (there the joints' acceleration is q'' s'^2 and their
+    jerk q''' s'^3: the speed is the largest that keeps both, and the joint velocity, within the limits),
+    or, where that is faster, the corner is a stop on its waypoint instead (`_choose_stops`); every
+    straight piece is a time-optimal jerk-limited 1-DoF motion (ruckig) between the speeds at its two
+    ends at zero path acceleration, so the acceleration is continuous where a piece meets a blend (a
+    blend's q'' is 0 at its ends). Speeds no piece can connect are lowered by a forward and a backward
+    pass (`_speeds`). The run is played slower to end on a whole ms and wherever the check at every ms
+    (velocity, acceleration, jerk within `PLAN_JERK_SHARE`) needs it. Of the plan with the chosen stops and
+    the one blending every corner, the shorter. None when `geom` is not made of straight pieces and blends."""
+    jplan = jlim * PLAN_JERK_SHARE
+    pieces = _geometry_pieces(geom, vlim, alim, jplan)
+    if pieces is None:
+        return None
+    candidates = [_corner_motion(pieces, [], vlim, alim, jlim, time_scale)]
+    stops = _choose_stops(pieces, vlim, alim, jplan)
+    if any(stops):
+        mixed, at_rest = _with_stops(pieces, stops)
+        candidates.append(_corner_motion(mixed, at_rest, vlim, alim, jlim, time_scale))
+    found = [c for c in candidates if c is not None]
+    if not found:
+        return None
+    return min(found, key=lambda c: c.q.shape[1])
 
 
 def _spread(speed: FloatArray, kinds: NDArray[np.bool_], boundary: int, backward: bool = False) -> None:

@@ -191,7 +191,7 @@ def test_speed_changes_match_ruckig() -> None:
 
 def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
-    every ms, and through the blend at one constant speed (no path acceleration there)."""
+    every ms."""
     from planner.jerkpath import PLAN_JERK_SHARE, plan_corner_run
     from planner.job import effective_limits, path_tolerance
     from planner.plan import axis_configs, axis_scales, lines_geometry
@@ -213,8 +213,5 @@ def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     assert np.all(np.abs(run.acc) <= al[:, None] * (1 + 1e-3))
     assert np.all(np.abs(np.diff(run.acc, axis=1)) <= jl[:, None] * PLAN_JERK_SHARE * (1 + 1e-9))
     assert np.abs(run.v[:, [0, -1]]).max() == 0.0
-    # in the blend (both axes moving, j2 not yet at its line's direction) the speed along the path is constant
-    both = (np.abs(run.v[0]) > 1e-9) & (np.abs(run.v[1]) > 1e-9)
-    speed = np.hypot(run.v[0] / vl[0], run.v[1] / vl[1])
-    inner = np.nonzero(both)[0][5:-5]
-    assert inner.size > 10
+    # the blend's speed is the largest its curvature allows: its jerk bound is reached in it
+    assert np.abs(np.diff(run.acc, axis=1)).max() / (jl.max() * PLAN_JERK_SHARE) > 0.5
