@@ -24,6 +24,7 @@ and small paths: 2-200 counts between waypoints, as in fine positioning).
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import statistics
 import time
@@ -337,7 +338,7 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     cpu = np.array([c.counts_per_unit for c in axis_configs(job.axes, cell)])
     wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)  # type: ignore[union-attr]
     total = 0
-    for a, b in zip(wp[:-1], wp[1:], strict=True):
+    for a, b in itertools.pairwise(wp):
         total += move_reference(snap(a, cpu), snap(b, cpu), lim["velocity"], lim["acceleration"], lim["jerk"],
                                 cpu).duration_ms
     return total / 1000.0
@@ -355,7 +356,7 @@ def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
         plans[flag] = (traj, time.thread_time() - t0, j)
     acc_traj, _acc_s, _ = plans[False]
     traj, elapsed, jjob = plans[True]
-    dt, uniform = uniform_points(jjob, cell, traj)
+    _dt, uniform = uniform_points(jjob, cell, traj)
     raw_s, _ = raw_toppra(job, cell, refine=False)
     return {
         "duration_s": traj.duration_s,
@@ -432,7 +433,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_planner", description=__doc__.split("\n")[0])
     parser.add_argument("--jobs", type=int, default=200, help="random jobs per kind (default 200)")
     parser.add_argument("--seed", type=int, default=13)
-    parser.add_argument("--jerk-jobs", type=int, default=40, help="random paths per kind for the jerk rows (default 40)")
+    parser.add_argument("--jerk-jobs", type=int, default=40,
+                        help="random paths per kind for the jerk rows (default 40)")
     args = parser.parse_args(list(argv) if argv is not None else [])
     logging.getLogger("toppra").setLevel(logging.CRITICAL)
     warm_up()  # the solvers' first import (~0.7 s) would otherwise count as the first path's planning

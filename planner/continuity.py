@@ -164,7 +164,8 @@ def smooth_values(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
     env = segment_envelope(ref, knots.times_ms)
     quantum = scales.counts_per_ms_per_rpm
     vlim = np.minimum(
-        scales.drive_velocity, np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum)
+        scales.drive_velocity,
+        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
     )
     pos = knots.positions.copy()
     vel = knots.velocities_rpm.copy()

@@ -37,6 +37,7 @@ The plan is the joint motion q(s(t)) at every ms with a continuous acceleration 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -357,7 +358,7 @@ def stop_at_corners(
     parts: list[Reference] = []
     spent = 0.0
     cpu = counts_per_unit
-    for a, b in zip(waypoints[:-1], waypoints[1:], strict=True):
+    for a, b in itertools.pairwise(waypoints):
         ref = move_reference(a, b, vlim, alim, jlim, cpu, time_scale=time_scale,
                              max_duration_s=max_duration_s - spent / 1000.0)
         spent += ref.duration_ms
@@ -579,10 +580,10 @@ def _corner_motion(
     timed: list[tuple[float, Any]] = []  # (duration s, ruckig phases or the blend's speed)
     for p, piece in enumerate(pieces):
         if isinstance(piece, _Blend):
-            v = float(speed[p])
-            if v <= 0.0:
+            cross = float(speed[p])
+            if cross <= 0.0:
                 return None
-            timed.append(((piece.s1 - piece.s0) / v, v))
+            timed.append(((piece.s1 - piece.s0) / cross, cross))
         else:
             if piece.length <= 0.0:
                 if speed[p] > 0.0 or speed[p + 1] > 0.0:

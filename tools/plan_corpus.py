@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_planner import KINDS, benchmark_path, random_job  # noqa: E402
 from planner.config import load_cell  # noqa: E402
 from planner.errors import PlanningError  # noqa: E402
-from planner.job import PathData, Job, job_from_dict, job_to_dict, load_job  # noqa: E402
+from planner.job import Job, PathData, job_from_dict, job_to_dict, load_job  # noqa: E402
 from planner.plan import plan_job, warm_up  # noqa: E402
 
 

@@ -16,7 +16,7 @@ from planner import plan_job
 from planner.config import CellConfig
 from planner.errors import TYPE, PlanningError
 from planner.jerkpath import fir_retime
-from planner.job import job_from_dict, job_to_dict, jerk_limited, load_job
+from planner.job import jerk_limited, job_from_dict, job_to_dict, load_job
 
 SETTINGS = settings(max_examples=12, deadline=None)
 
@@ -192,10 +192,10 @@ def test_speed_changes_match_ruckig() -> None:
 def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
     every ms."""
+    from planner.encoder import segment_bounds
     from planner.jerkpath import PLAN_JERK_SHARE, plan_corner_run
     from planner.job import effective_limits, path_tolerance
     from planner.plan import axis_configs, axis_scales, lines_geometry
-    from planner.encoder import segment_bounds
 
     job = job_from_dict({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
                          "path_tolerance": 0.05, "jerk_limited": True}, cell)
