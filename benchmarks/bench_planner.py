@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from planner.config import CellConfig, load_cell
-from planner.encoder import Knots
+from planner.encoder import Knots, planned_demand, reconstruct
 from planner.errors import PlanningError
 from planner.job import Job, PathData, effective_limits, job_from_dict, job_to_dict, load_job, path_tolerance
 from planner.plan import _merge_close, axis_configs, axis_scales, lines_geometry, plan_job, snap, warm_up
@@ -344,6 +344,34 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     return total / 1000.0
 
 
+def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 60) -> int | None:
+    """Points of the coarsest uniform grid that meets the tolerance and keeps the same jerk bound as the
+    encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/continuity.py's
+    `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`);
+    None when none of the `tries` coarsest grids that meet the tolerance does."""
+    from planner.continuity import smooth_values, worst_ratio
+    from planner.uniform import uniform_knots
+
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    ours = worst_ratio(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales, jerk)
+    first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
+    ref = traj.plan
+    m = ref.duration_ms
+    want = planned_demand(ref, scales.toward_zero)
+    for dt in range(min(255, max(m, 1)), 0, -1):
+        knots = uniform_knots(ref, scales, dt, first)
+        if (np.abs(reconstruct(knots, scales).demand - want) > traj.tolerance_counts).any():
+            continue
+        tries -= 1
+        smooth = smooth_values(ref, knots, scales, float(traj.tolerance_counts), jerk)
+        if worst_ratio(smooth, scales, jerk) <= ours * (1.0 + 1e-9):
+            return int(knots.times_ms.size)
+        if tries == 0:
+            break
+    return None
+
+
 def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
     """One path job planned both ways: duration, points and CPU time; the jerk bounds of the drive's motion."""
     d = job_to_dict(job)
@@ -357,6 +385,7 @@ def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
     acc_traj, _acc_s, _ = plans[False]
     traj, elapsed, jjob = plans[True]
     _dt, uniform = uniform_points(jjob, cell, traj)
+    same_jerk = uniform_jerk_points(jjob, cell, traj)
     raw_s, _ = raw_toppra(job, cell, refine=False)
     return {
         "duration_s": traj.duration_s,
@@ -365,6 +394,8 @@ def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
         "points": traj.n_points,
         "uniform_points": uniform,
         "efficiency": traj.n_points / uniform,
+        "jerk_efficiency": traj.n_points / same_jerk if same_jerk else 0.0,
+        "no_uniform": same_jerk is None,
         "time_ratio": elapsed / raw_s,
         "plan_jerk": max(s.planned_peak_jerk / s.jerk_limit for s in traj.stats),
         "drive_jerk": max(s.peak_jerk / s.jerk_limit for s in traj.stats),
@@ -389,20 +420,23 @@ def jerk_corpus(cell: CellConfig, jobs: Sequence[tuple[str, Job]]) -> dict[str, 
         return max((r[key] for r in rows), default=float("nan"))
 
     out: dict[str, Any] = {"jobs": len(jobs), "refused": len(refused), "refusals": refused[:3], "rows": rows}
-    for key in ("acc_ratio", "stop_ratio", "efficiency", "time_ratio", "plan_jerk", "drive_jerk", "knot_step",
-                "acc_knot_step"):
+    out["no_uniform"] = sum(1 for r in rows if r["no_uniform"])
+    for key in ("acc_ratio", "stop_ratio", "efficiency", "jerk_efficiency", "time_ratio", "plan_jerk", "drive_jerk",
+                "knot_step", "acc_knot_step"):
         out[key] = (med(key), worst(key))
     return out
 
 
 def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int, seed: int) -> list[dict[str, Any]]:
     head = (f"{'corpus':12} {'jobs':>4} {'ref.':>4} {'dur/acc-opt med':>15} {'worst':>6} {'dur/stops med':>13} "
-            f"{'worst':>6} {'pts/unif med':>12} {'worst':>6} {'plan/toppra med':>15} {'worst':>6} "
+            f"{'worst':>6} {'pts/unif med':>12} {'worst':>6} {'pts/unif-jerk med':>17} {'worst':>6} {'none':>4} "
+            f"{'plan/toppra med':>15} {'worst':>6} "
             f"{'plan jerk':>9} {'drive jerk':>10} {'knot step':>9} {'(acc-only)':>10}")
     print("jerk-limited paths (jerk_limited = true) against, in the same run: the acceleration-only plan of the same "
           "job, jerk-limited moves stopping at every corner, the coarsest uniform grid meeting the tolerance on the "
-          "same plan, raw toppra's solve; jerk columns: worst peak / limit (knot step: the largest acceleration step "
-          "at a knot over the 1 ms tick / limit)")
+          "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: no uniform grid of "
+          "the 60 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
+          "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit)")
     print(head)
     print("-" * len(head))
     out = []
@@ -415,7 +449,8 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
         out.append({"corpus": name, **s})
         print(f"{name:12} {s['jobs']:4d} {s['refused']:4d} {s['acc_ratio'][0]:15.3f} {s['acc_ratio'][1]:6.3f} "
               f"{s['stop_ratio'][0]:13.3f} {s['stop_ratio'][1]:6.3f} {s['efficiency'][0]:12.3f} "
-              f"{s['efficiency'][1]:6.3f} {s['time_ratio'][0]:15.2f} {s['time_ratio'][1]:6.2f} "
+              f"{s['efficiency'][1]:6.3f} {s['jerk_efficiency'][0]:17.3f} {s['jerk_efficiency'][1]:6.3f} "
+              f"{s['no_uniform']:4d} {s['time_ratio'][0]:15.2f} {s['time_ratio'][1]:6.2f} "
               f"{s['plan_jerk'][1]:9.3f} {s['drive_jerk'][1]:10.3f} {s['knot_step'][1]:9.1f} "
               f"{s['acc_knot_step'][1]:10.1f}")
         for r in s["refusals"]:

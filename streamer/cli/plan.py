@@ -192,6 +192,11 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
         how = "jerk-limited" if info.get("jerk_limited", 0.0) == 1.0 else "acceleration-only"
         console.print(Text(f"{how}: {s['duration_s']:.3f} s = {s['duration_s'] / info['optimal_s']:.3f} x the "
                            f"acceleration-only optimum ({info['optimal_s']:.3f} s)"))
+    if info.get("jerk_limited", 0.0) == 1.0:
+        # the drive's jerk inside its segments, and its acceleration steps at the knots over the 1 ms tick
+        parts = [f"{a['name']} {a['peak_jerk'] / a['jerk_limit']:.2f}/"
+                 f"{a['knot_acceleration_step'] * 1000.0 / a['jerk_limit']:.2f}" for a in s["axes"]]
+        console.print(Text("drive jerk / limit (in segments / at knots over 1 ms): " + ", ".join(parts)))
     same = units[0] if len(set(units)) == 1 else None
     u = f" [{same}/s]" if same else ""
     u2 = f" [{same}/s²]" if same else ""

@@ -214,4 +214,4 @@ def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     assert np.all(np.abs(np.diff(run.acc, axis=1)) <= jl[:, None] * PLAN_JERK_SHARE * (1 + 1e-9))
     assert np.abs(run.v[:, [0, -1]]).max() == 0.0
     # the blend's speed is the largest its curvature allows: its jerk bound is reached in it
-    assert np.abs(np.diff(run.acc, axis=1)).max() / (jl.max() * PLAN_JERK_SHARE) > 0.5
+    assert (np.abs(np.diff(run.acc, axis=1)) / (jl[:, None] * PLAN_JERK_SHARE)).max() > 0.5
