@@ -344,7 +344,7 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     return total / 1000.0
 
 
-def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 60) -> int | None:
+def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> int | None:
     """Points of the coarsest uniform grid that meets the tolerance and keeps the same jerk bound as the
     encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/continuity.py's
     `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`);
@@ -435,7 +435,7 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
     print("jerk-limited paths (jerk_limited = true) against, in the same run: the acceleration-only plan of the same "
           "job, jerk-limited moves stopping at every corner, the coarsest uniform grid meeting the tolerance on the "
           "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: no uniform grid of "
-          "the 60 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
+          "the 20 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
           "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit)")
     print(head)
     print("-" * len(head))

@@ -1,38 +1,42 @@
-"""Jerk-limited traversal of a geometric path: TOPP-RA, then a jerk-limited re-timing along s(t).
+"""Jerk-limited traversal of a path (`jerk_limited` path jobs): what plan_job plans instead of the
+acceleration-only optimum of planner/path.py when every axis' jerk limit must hold too.
 
-Theory of operation. A path job with `jerk_limited` (planner/job.py) is planned in two stages per run
-(the rest-to-rest pieces between exact stops):
+Theory of operation. Fed the runs of a path (rest to rest, between exact stops) and the joints' velocity,
+acceleration and jerk limits; emits the plan at every ms (a `Reference` in counts whose acceleration is
+continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per run:
 
-1. The acceleration-only optimum, as for every path (planner/path.py): TOPP-RA's s_dot(s) under the
-   joints' velocity and acceleration limits, re-timed onto whole ms (`path.Profile`): a path
-   acceleration s_ddot(t) that is constant over each ms and steps where the optimum switches.
-2. The re-timing with bounded jerk (`fir_retime`): s_ddot(t) averaged over a sliding window of W ms
-   (the FIR filter of Biagiotti & Melchiorri, "FIR filters for online trajectory planning", 2012). A
-   step of s_ddot becomes a ramp of W ms, so the path jerk is (s_ddot(t) - s_ddot(t - W)) / W; the
-   motion still starts and ends at rest, goes exactly to the end of the path (the window's average of
-   s(t) there is the path's end) and takes W ms longer. On a straight run this is exactly the
-   double-S profile when W = A/J (the jerk-limited optimum of a move that reaches full acceleration).
-   W is the shortest window (of a ladder) for which every joint's share of the path jerk,
-   |q'_i| |s_ddot(t) - s_ddot(t - W)| / W, stays within `JERK_SHARE` of its limit; what is left is for
-   the terms the path's curvature adds in the blends (joint jerk = q' s''' + 3 q'' s' s'' + q''' s'^3).
-3. Verification at every ms of every joint, on the joint motion itself: velocity and acceleration
-   within their limits, and the jerk over every ms (the change of acceleration over the tick) within
-   `PLAN_JERK_SHARE` of the limit (the rest is the encoder's: knot quantisation). Averaging lets the
-   filtered motion arrive at a slow stretch (a blend) a little faster than the optimum did, and the
-   curvature terms grow with the speed: where a bound fails, the time-optimal solve's constraint rows
-   of those path intervals are tightened (as path.plan_run repairs a chain) and both stages run again;
-   a window that is itself too short for the jerk there is widened; what is left after
-   `REPAIR_ROUNDS` is removed by playing the run slower (velocity ~ 1/f, acceleration 1/f^2, jerk 1/f^3).
+1. Along straight pieces and blends (`plan_corner_run`, planner/geometry.py's runs): every blend crossed
+   at one constant path speed, the largest at which every joint's velocity q' s', acceleration q'' s'^2
+   and jerk q''' s'^3 stay within their limits (the jerk within `PLAN_JERK_SHARE`); every straight piece
+   a time-optimal jerk-limited 1-DoF motion (ruckig, along the line) between the speeds at its two
+   ends at zero path acceleration: where a piece meets a blend, q'' is 0, so the acceleration is
+   continuous. A forward and a backward pass lower the speeds no straight piece can connect (a
+   jerk-limited change of speed is symmetric in time: `_change`, `_reach`). A corner whose blend is
+   slower than stopping on its waypoint becomes a stop (`_choose_stops`, a Viterbi pass over the
+   corners). plan_job also compares the whole path with jerk-limited moves stopping at every waypoint
+   (`stop_at_corners`) and keeps the faster.
+2. Any other geometry (a spline: `plan_jerk_run`): TOPP-RA's acceleration-only optimum re-timed onto
+   whole ms (path.Profile), then its path acceleration averaged over a sliding window of W ms
+   (`fir_retime`: the FIR filter of Biagiotti & Melchiorri, "FIR filters for online trajectory
+   planning", 2012): a step of s_ddot becomes a ramp of W ms, the path jerk is (s_ddot(t) -
+   s_ddot(t - W)) / W, the motion ends exactly at rest at the path's end, W ms later. W is the
+   shortest (of a ladder) that keeps every joint's share |q'| |s'''| within `JERK_SHARE` of its limit.
+   The averaged motion would arrive at the optimum's dips (where a bound holds it back) faster than the
+   optimum does: the solve is repeated with the optimum's speed at each dip imposed for a window before
+   and after it (`dip_caps`). Whatever still fails at some ms tightens the solver's constraint rows of
+   those path intervals and solves again (`REPAIR_ROUNDS`), then the run is played slower.
+3. Every run is checked at every ms on the joint motion itself (`ratios`): velocity and acceleration
+   within their limits, the change of acceleration over every ms within `PLAN_JERK_SHARE` of the jerk
+   limit (the rest is left to the drive's quantisation: planner/continuity.py), and slowed down where
+   it is not.
 
-Why this method (measured, docs/formats.md "jerk_limited"): a third-order time-optimal
-parametrisation (path jerk as the control) is a non-convex problem whose solvers need many iterations
-and fail on the blends' curvature; the filter keeps TOPP-RA's optimum where it is not limited by jerk,
-costs a known W per run, and is a linear operation whose bounds can be checked exactly at every ms.
-It is not the jerk-limited optimum: a bang-bang triangle (+A straight to -A) needs W = 2A/J, so its
-start and end ramps are twice as long as the optimum's.
-
-The plan is the joint motion q(s(t)) at every ms with a continuous acceleration (no steps, so no
-`breaks`), which the encoder (planner/encoder.py) places knots on like any smooth reference.
+Why (measured on benchmarks/bench_planner.py's path corpora, docs/formats.md "jerk_limited"): the filter
+after TOPP-RA alone was 1.25-1.8x slower than stopping at every corner on random paths (2.5x on the demo
+path): the time-optimal profile in a blend is a chatter of switches and narrow dips, the window that
+bounds its path jerk is long (150-460 ms), and a blend of a few mrad has a q''' that only a crawl keeps
+within the jerk limit. Constant-speed blends with ruckig between them are exact and never slower than
+stopping; a third-order time-optimal parametrisation (jerk as the control) is non-convex and was not
+attempted.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@ bounds of the plan over random paths (Hypothesis) and the example jobs."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import numpy as np
@@ -18,7 +19,7 @@ from planner.errors import TYPE, PlanningError
 from planner.jerkpath import fir_retime
 from planner.job import jerk_limited, job_from_dict, job_to_dict, load_job
 
-SETTINGS = settings(max_examples=12, deadline=None)
+SETTINGS = settings(max_examples=int(os.environ.get("JERK_EXAMPLES", "12")), deadline=None)
 
 
 def _path(jerk: bool | None, **extra: Any) -> dict[str, Any]:
