@@ -31,8 +31,8 @@ continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per ru
    it is not.
 
 Why (measured on benchmarks/bench_planner.py's path corpora, docs/formats.md "jerk_limited"): the filter
-after TOPP-RA alone was 1.25-1.8x slower than stopping at every corner on random paths (2.5x on the demo
-path): the time-optimal profile in a blend is a chatter of switches and narrow dips, the window that
+after TOPP-RA alone was 1.2-1.6x slower than stopping at every corner in median on random paths (2.5x on
+the demo path): the time-optimal profile in a blend is a chatter of switches and narrow dips, the window that
 bounds its path jerk is long (150-460 ms), and a blend of a few mrad has a q''' that only a crawl keeps
 within the jerk limit. Constant-speed blends with ruckig between them are exact and never slower than
 stopping; a third-order time-optimal parametrisation (jerk as the control) is non-convex and was not
