@@ -201,11 +201,11 @@ def plan_jerk_run(
     sd_topp = np.zeros(0)
     best: tuple[float, FloatArray, float] | None = None  # (excess, solution, widen)
 
-    def evaluate(sol: FloatArray, scale: float, wid: float) -> tuple[FloatArray, ...]:
+    def evaluate(sol: FloatArray, scale: float, wid: float, min_window: int = 0) -> tuple[FloatArray, ...]:
         prof = Profile(grid, sol, geom, alim, scale)
         s0, _sd0, _al, acc_r = prof.sample()
         acc_ms = acc_r[:-1]
-        window = int(np.ceil(choose_window(acc_ms, np.abs(geom(s0[:-1], 1)), jlim_ms) * wid))
+        window = max(int(np.ceil(choose_window(acc_ms, np.abs(geom(s0[:-1], 1)), jlim_ms) * wid)), min_window)
         s, sd, sdd = fir_retime(acc_ms, geom.length, window)
         q, v, acc = joint_motion(geom, s, sd, sdd)
         vr, ar, jr = ratios(v, acc, vlim_ms, alim_ms, jplan)
@@ -277,8 +277,12 @@ def plan_jerk_run(
         for _ in range(12):
             over = max(float(vr.max()) / (1.0 + VEL_SLACK), float(np.sqrt(ar.max() / (1.0 + ACC_SLACK))),
                        float(np.cbrt(jr.max())), 1.0)
-            scale *= over * (1.0 + 1e-3)
-            q, v, acc, s, vr, ar, jr, _wp, meta = evaluate(sd_topp, scale, widen)
+            # the same motion played slower: its window stretched with it (a window chosen anew on the
+            # slower profile's smaller accelerations would be shorter, and the jerk would not fall)
+            factor = over * (1.0 + 1e-3)
+            scale *= factor
+            stretched = int(np.ceil(meta[0] * factor))
+            q, v, acc, s, vr, ar, jr, _wp, meta = evaluate(sd_topp, scale, widen, stretched)
             if vr.max() <= 1.0 + VEL_SLACK and ar.max() <= 1.0 + ACC_SLACK and jr.max() <= 1.0:
                 break
         else:
@@ -452,7 +456,7 @@ class _Blend:
 
 
 def _line_limits(u: FloatArray, vlim: FloatArray, alim: FloatArray, jplan: FloatArray) -> tuple[float, float, float]:
-    moving = np.abs(u) > 0.0
+    moving = np.abs(u) > 1.0e-12 * float(np.abs(u).max())  # an axis that barely moves limits nothing
     au = np.abs(u[moving])
     return (float(np.min(vlim[moving] / au)), float(np.min(alim[moving] / au)), float(np.min(jplan[moving] / au)))
 

@@ -128,6 +128,18 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
     _check_jerk_plan(traj, cell8)
     if jd["geometry"] == "lines":
         assert_path_within(traj, job, cell8)
+        # never slower than jerk-limited moves stopping at every waypoint (but for the encoder's slow-down)
+        from planner.jerkpath import stop_at_corners
+        from planner.job import effective_limits
+        from planner.plan import _merge_close, snap
+
+        cpu = traj.counts_per_unit
+        lim = effective_limits(job, cell8)
+        merged = _merge_close(wp.copy(), cpu)
+        merged[0], merged[-1] = snap(merged[0], cpu), snap(merged[-1], cpu)
+        if merged.shape[0] >= 2 and "jerk_stops" in traj.info:
+            stops = stop_at_corners(merged, cpu, lim["velocity"], lim["acceleration"], lim["jerk"])
+            assert traj.duration_ms <= np.ceil(stops.duration_ms * traj.info["time_scale"]) + 1
     if "optimal_s" in traj.info:
         assert traj.duration_s >= traj.info["optimal_s"] * 0.999
 
@@ -216,3 +228,40 @@ def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     assert np.abs(run.v[:, [0, -1]]).max() == 0.0
     # the blend's speed is the largest its curvature allows: its jerk bound is reached in it
     assert (np.abs(np.diff(run.acc, axis=1)) / (jl[:, None] * PLAN_JERK_SHARE)).max() > 0.5
+
+
+def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
+    """_choose_stops: a blend of a tight tolerance at a sharp corner is crossed so slowly (its third
+    derivative is large) that stopping on the waypoint is faster: the plan stops there, and is faster than the plan
+    that blends every corner."""
+    from planner.encoder import segment_bounds
+    from planner.jerkpath import PLAN_JERK_SHARE, _choose_stops, _corner_motion, _geometry_pieces, _with_stops
+    from planner.job import effective_limits, path_tolerance
+    from planner.plan import axis_configs, axis_scales, lines_geometry
+
+    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"],
+                         "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.2, 0.5], [2.0, 0.6]],
+                         "path_tolerance": 0.004, "jerk_limited": True}, cell)
+    cfg = axis_configs(job.axes, cell)
+    lim = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+                                  path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
+                                  (np.full(2, -3.0), np.full(2, 3.0)), {})
+    assert len(runs) == 1
+    jplan = lim["jerk"] * PLAN_JERK_SHARE
+    pieces = _geometry_pieces(runs[0], lim["velocity"], lim["acceleration"], jplan)
+    assert pieces is not None
+    stops = _choose_stops(pieces, lim["velocity"], lim["acceleration"], jplan)
+    assert any(stops)
+    mixed, at_rest = _with_stops(pieces, stops)
+    assert len(at_rest) == sum(stops)
+    blended = _corner_motion(pieces, [], lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
+    chosen = _corner_motion(mixed, at_rest, lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
+    assert blended is not None and chosen is not None
+    assert chosen.q.shape[1] < blended.q.shape[1]
+    # at a stop the motion is at rest on the waypoint
+    for k in at_rest:
+        corner = mixed[k].start  # type: ignore[union-attr]
+        near = np.abs(chosen.q - corner[:, None]).max(axis=0).argmin()
+        assert np.abs(chosen.q[:, near] - corner).max() < 1e-6 and np.abs(chosen.v[:, near]).max() < 1e-6
