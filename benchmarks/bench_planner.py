@@ -24,6 +24,7 @@ and small paths: 2-200 counts between waypoints, as in fine positioning).
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import statistics
 import time
@@ -34,9 +35,9 @@ from typing import Any
 import numpy as np
 
 from planner.config import CellConfig, load_cell
-from planner.encoder import Knots
+from planner.encoder import Knots, planned_demand, reconstruct
 from planner.errors import PlanningError
-from planner.job import Job, PathData, effective_limits, job_from_dict, load_job, path_tolerance
+from planner.job import Job, PathData, effective_limits, job_from_dict, job_to_dict, load_job, path_tolerance
 from planner.plan import _merge_close, axis_configs, axis_scales, lines_geometry, plan_job, snap, warm_up
 from planner.trajectory import PvtTrajectory
 from planner.uniform import coarsest_uniform
@@ -324,6 +325,141 @@ def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]
     }
 
 
+# ----------------------------------------------------------------------------------------------------
+# jerk-limited paths (issue 26): each ratio against its baseline, measured in the same run
+
+
+def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
+    """Duration (s) of the jerk-limited moves (ruckig, along the line) from waypoint to waypoint, stopping at
+    every corner: what a user gets today who wants the jerk limits kept along a path."""
+    from planner.jerk import move_reference
+
+    lim = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in axis_configs(job.axes, cell)])
+    wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)  # type: ignore[union-attr]
+    total = 0
+    for a, b in itertools.pairwise(wp):
+        total += move_reference(snap(a, cpu), snap(b, cpu), lim["velocity"], lim["acceleration"], lim["jerk"],
+                                cpu).duration_ms
+    return total / 1000.0
+
+
+def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> int | None:
+    """Points of the coarsest uniform grid that meets the tolerance and keeps the same jerk bound as the
+    encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/continuity.py's
+    `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`);
+    None when none of the `tries` coarsest grids that meet the tolerance does."""
+    from planner.continuity import smooth_values, worst_ratio
+    from planner.uniform import uniform_knots
+
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    ours = worst_ratio(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales, jerk)
+    first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])
+    ref = traj.plan
+    m = ref.duration_ms
+    want = planned_demand(ref, scales.toward_zero)
+    for dt in range(min(255, max(m, 1)), 0, -1):
+        knots = uniform_knots(ref, scales, dt, first)
+        if (np.abs(reconstruct(knots, scales).demand - want) > traj.tolerance_counts).any():
+            continue
+        tries -= 1
+        smooth = smooth_values(ref, knots, scales, float(traj.tolerance_counts), jerk)
+        if worst_ratio(smooth, scales, jerk) <= ours * (1.0 + 1e-9):
+            return int(knots.times_ms.size)
+        if tries == 0:
+            break
+    return None
+
+
+def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
+    """One path job planned both ways: duration, points and CPU time; the jerk bounds of the drive's motion."""
+    d = job_to_dict(job)
+    plans = {}
+    for flag in (False, True):
+        d["jerk_limited"] = flag
+        j = job_from_dict(d, cell)
+        t0 = time.thread_time()
+        traj = plan_job(j, cell)
+        plans[flag] = (traj, time.thread_time() - t0, j)
+    acc_traj, _acc_s, _ = plans[False]
+    traj, elapsed, jjob = plans[True]
+    _dt, uniform = uniform_points(jjob, cell, traj)
+    same_jerk = uniform_jerk_points(jjob, cell, traj)
+    raw_s, _ = raw_toppra(job, cell, refine=False)
+    return {
+        "duration_s": traj.duration_s,
+        "acc_ratio": traj.duration_s / acc_traj.duration_s,
+        "stop_ratio": traj.duration_s / stop_at_corners_s(job, cell),
+        "points": traj.n_points,
+        "uniform_points": uniform,
+        "efficiency": traj.n_points / uniform,
+        "jerk_efficiency": traj.n_points / same_jerk if same_jerk else 0.0,
+        "no_uniform": same_jerk is None,
+        "time_ratio": elapsed / raw_s,
+        "plan_jerk": max(s.planned_peak_jerk / s.jerk_limit for s in traj.stats),
+        "drive_jerk": max(s.peak_jerk / s.jerk_limit for s in traj.stats),
+        "knot_step": max(s.knot_acceleration_step * 1000.0 / s.jerk_limit for s in traj.stats),
+        "acc_knot_step": max(s.knot_acceleration_step * 1000.0 / s.jerk_limit for s in acc_traj.stats),
+    }
+
+
+def jerk_corpus(cell: CellConfig, jobs: Sequence[tuple[str, Job]]) -> dict[str, Any]:
+    rows: list[dict[str, Any]] = []
+    refused: list[str] = []
+    for _name, job in jobs:
+        try:
+            rows.append(jerk_measure(job, cell))
+        except PlanningError as e:
+            refused.append(f"{e.code}: {e.message[:100]}")
+
+    def med(key: str) -> float:
+        return statistics.median(r[key] for r in rows) if rows else float("nan")
+
+    def worst(key: str) -> float:
+        return max((r[key] for r in rows), default=float("nan"))
+
+    out: dict[str, Any] = {"jobs": len(jobs), "refused": len(refused), "refusals": refused[:3], "rows": rows}
+    out["no_uniform"] = sum(1 for r in rows if r["no_uniform"])
+    for key in ("acc_ratio", "stop_ratio", "efficiency", "jerk_efficiency", "time_ratio", "plan_jerk", "drive_jerk",
+                "knot_step", "acc_knot_step"):
+        out[key] = (med(key), worst(key))
+    return out
+
+
+def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int, seed: int) -> list[dict[str, Any]]:
+    head = (f"{'corpus':12} {'jobs':>4} {'ref.':>4} {'dur/acc-opt med':>15} {'worst':>6} {'dur/stops med':>13} "
+            f"{'worst':>6} {'pts/unif med':>12} {'worst':>6} {'pts/unif-jerk med':>17} {'worst':>6} {'none':>4} "
+            f"{'plan/toppra med':>15} {'worst':>6} "
+            f"{'plan jerk':>9} {'drive jerk':>10} {'knot step':>9} {'(acc-only)':>10}")
+    print("jerk-limited paths (jerk_limited = true) against, in the same run: the acceleration-only plan of the same "
+          "job, jerk-limited moves stopping at every corner, the coarsest uniform grid meeting the tolerance on the "
+          "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: no uniform grid of "
+          "the 20 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
+          "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit)")
+    print(head)
+    print("-" * len(head))
+    out = []
+    sets: list[tuple[str, Sequence[tuple[str, Job]]]] = [("examples", examples)]
+    for k, kind in enumerate(("path", "path-sharp", "path-small")):
+        rng = np.random.default_rng(seed + k)
+        sets.append((kind, [(str(i), job_from_dict(random_job(kind, rng, cell), cell)) for i in range(count)]))
+    for name, jobs in sets:
+        s = jerk_corpus(cell, jobs)
+        out.append({"corpus": name, **s})
+        print(f"{name:12} {s['jobs']:4d} {s['refused']:4d} {s['acc_ratio'][0]:15.3f} {s['acc_ratio'][1]:6.3f} "
+              f"{s['stop_ratio'][0]:13.3f} {s['stop_ratio'][1]:6.3f} {s['efficiency'][0]:12.3f} "
+              f"{s['efficiency'][1]:6.3f} {s['jerk_efficiency'][0]:17.3f} {s['jerk_efficiency'][1]:6.3f} "
+              f"{s['no_uniform']:4d} {s['time_ratio'][0]:15.2f} {s['time_ratio'][1]:6.2f} "
+              f"{s['plan_jerk'][1]:9.3f} {s['drive_jerk'][1]:10.3f} {s['knot_step'][1]:9.1f} "
+              f"{s['acc_knot_step'][1]:10.1f}")
+        for r in s["refusals"]:
+            print(f"    refused: {r}")
+    print("targets (issue 26): dur/acc-opt median <= 1.10, dur/stops < 1, pts/unif <= 0.5, jerk <= 1.05, knot step "
+          "<= 1.05")
+    return out
+
+
 def _mark(ok: bool | None) -> str:
     return "n/a" if ok is None else ("ok" if ok else "MISS")
 
@@ -332,6 +468,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_planner", description=__doc__.split("\n")[0])
     parser.add_argument("--jobs", type=int, default=200, help="random jobs per kind (default 200)")
     parser.add_argument("--seed", type=int, default=13)
+    parser.add_argument("--jerk-jobs", type=int, default=40,
+                        help="random paths per kind for the jerk rows (default 40)")
     args = parser.parse_args(list(argv) if argv is not None else [])
     logging.getLogger("toppra").setLevel(logging.CRITICAL)
     warm_up()  # the solvers' first import (~0.7 s) would otherwise count as the first path's planning
@@ -395,7 +533,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                     parts.append(f"{label}: {statistics.median(band):.2f} (p90 "
                                  f"{float(np.quantile(band, 0.9)):.2f}, {len(band)} paths)")
             print("plan/toppra by the motion's duration (path, path-sharp), medians: " + "; ".join(parts))
-    return {"rows": rows, "latency": lat, "corpus": stats}
+    jerk_rows = []
+    if args.jerk_jobs >= 0:
+        print()
+        examples = [(n, j) for n, j in jobs if j.kind == "path"]
+        jerk_rows = print_jerk(cell, examples, args.jerk_jobs, args.seed + 100)
+    return {"rows": rows, "latency": lat, "corpus": stats, "jerk": jerk_rows}
 
 
 if __name__ == "__main__":

@@ -84,6 +84,9 @@ MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
 MAX_TOLERANCE_COUNTS = 1_000_000
 MAX_TEXT = 1000
 GEOMETRIES: tuple[str, ...] = ("lines", "spline")
+# a path job without `jerk_limited` keeps the jerk limits when every axis of the job has one (every axis
+# of a cell states one: planner/config.py); False plans the acceleration-only optimum
+JERK_LIMITED_DEFAULT = False
 DEFAULT_PATH_TOLERANCE_SHARE = 1.0e-2  # of the axis' travel (position_max - position_min)
 
 _COMMON = {
@@ -97,7 +100,7 @@ _COMMON = {
     "limits",
 }
 _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) besides the common ones
-    "path": ({"waypoints"}, {"path_tolerance", "geometry"}),
+    "path": ({"waypoints"}, {"path_tolerance", "geometry", "jerk_limited"}),
     "move": (set(), {"target", "mode", "start", "velocity", "ramps"}),  # target or velocity: by mode
     "timed": ({"times", "positions"}, set()),
     "pvt": ({"times", "positions", "velocities"}, set()),
@@ -128,6 +131,8 @@ class PathData:
     geometry: Literal["lines", "spline"] = "lines"
     path_tolerance: tuple[float, ...] | None = None  # per axis, user units; None = the default
     scalar_tolerance: bool = False  # given as one number (kept for job_to_dict)
+    # keep every axis' jerk limit (planner/jerkpath.py); None: the default (`jerk_limited_default`)
+    jerk_limited: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -526,8 +531,13 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             else:
                 tol = (_number(value, "path_tolerance"),) * len(axes)
                 tol_scalar = True
+        jerk_limited = data.get("jerk_limited")
+        if jerk_limited is not None and not isinstance(jerk_limited, bool):
+            raise PlanningError(
+                TYPE, f"jerk_limited must be true or false, got {_show(jerk_limited)}", path="jerk_limited"
+            )
         job_data = PathData(
-            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar
+            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar, jerk_limited
         )
     elif kind == "move":
         job_data = _move_data(data, axes, axis_cfg, limits, vscale, "acceleration_scale" in data)
@@ -962,6 +972,8 @@ def job_to_dict(job: Job) -> dict[str, Any]:
             out["geometry"] = d.geometry
         if d.path_tolerance is not None:
             out["path_tolerance"] = d.path_tolerance[0] if d.scalar_tolerance else list(d.path_tolerance)
+        if d.jerk_limited is not None:
+            out["jerk_limited"] = d.jerk_limited
     elif isinstance(d, MoveData):
         if d.velocity is not None:
             out["velocity"] = d.velocity.tolist()
@@ -1042,6 +1054,18 @@ def path_tolerance(job: Job, cell: CellConfig) -> FloatArray:
         return np.array(d.path_tolerance, dtype=np.float64)
     cfg = [cell.axis(a) for a in job.axes]
     return np.array([DEFAULT_PATH_TOLERANCE_SHARE * (c.position_max - c.position_min) for c in cfg])
+
+
+def jerk_limited(job: Job, cell: CellConfig) -> bool:
+    """Whether a path job is planned with every axis' jerk limit: its `jerk_limited`, else
+    `JERK_LIMITED_DEFAULT` when every axis of the job has a jerk limit (a finite one above 0)."""
+    d = job.data
+    if not isinstance(d, PathData):
+        return False
+    if d.jerk_limited is not None:
+        return d.jerk_limited
+    jerk = effective_limits(job, cell)["jerk"]
+    return JERK_LIMITED_DEFAULT and bool(np.all(np.isfinite(jerk) & (jerk > 0.0)))
 
 
 def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:

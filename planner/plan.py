@@ -39,6 +39,7 @@ from planner.encoder import (
     encode,
     load_kernels,
     planned_demand,
+    reconstruct,
     segment_bounds,
 )
 from planner.errors import ENCODING_RANGE, INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
@@ -51,6 +52,7 @@ from planner.job import (
     TimedData,
     check_relative_target,
     effective_limits,
+    jerk_limited,
     path_tolerance,
 )
 from planner.reference import FloatArray, IntArray, Reference
@@ -172,7 +174,6 @@ def plan_job(
                     max_duration_s=MAX_DURATION_S,
                 )
         else:
-            smooth_differs = True
             runs = None
             chain = None
             if d.geometry == "lines":
@@ -188,9 +189,38 @@ def plan_job(
                     info,
                 )
 
+            jerk = jerk_limited(job, cell)
+            if jerk:
+                info["jerk_limited"] = 1.0
+            smooth_differs = not jerk  # a jerk-limited plan has no smoother variant
+
             def build(f: float, smooth: bool = False) -> Reference:
                 from planner.path import SplineGeometry, plan_path
 
+                if jerk:
+                    from planner.jerkpath import plan_jerk_path
+
+                    ref, path_info = plan_jerk_path(
+                        runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
+                        cpu,
+                        limits["velocity"],
+                        limits["acceleration"],
+                        limits["jerk"],
+                        time_scale=f,
+                        max_duration_s=MAX_DURATION_S,
+                    )
+                    info.update(path_info)
+                    info["jerk_stops"] = 0.0
+                    if runs is not None:
+                        # along the segments: stopping at every corner with jerk-limited moves, where faster
+                        from planner.jerkpath import stop_at_corners
+
+                        stops = stop_at_corners(wp, cpu, limits["velocity"], limits["acceleration"],
+                                                limits["jerk"], time_scale=f, max_duration_s=MAX_DURATION_S)
+                        if stops.duration_ms < ref.duration_ms:
+                            info["jerk_stops"] = 1.0
+                            return stops
+                    return ref
                 # the smooth retry (the encoder failed on short pieces): a chain without short segments
                 spec = None if chain is None else dataclasses.replace(chain, short=not smooth)
                 ref, path_info = plan_path(
@@ -313,6 +343,13 @@ def plan_job(
         _check_reference_positions(ref, cfg, job.axes)
     if isinstance(d, MoveData):
         info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
+    if info.get("jerk_limited", 0.0) == 1.0:
+        # the knot values re-chosen so that the drive's acceleration stays continuous (planner/continuity.py)
+        from planner.continuity import smooth_values
+
+        smoothed = smooth_values(ref, knots, scales, float(tol), limits["jerk"] * cpu / 1.0e9)
+        if smoothed is not knots:
+            knots, rec = smoothed, reconstruct(smoothed, scales)
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
     # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
     return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
@@ -418,6 +455,31 @@ def encode_with_retries(
     )
 
 
+def reconstruction_jerk(knots: Knots, rec: Reconstruction) -> tuple[FloatArray, FloatArray]:
+    """Per axis the largest |jerk| inside the drive's segments (each cubic's constant jerk, counts/ms^3)
+    and the largest |step| of its acceleration at an interior knot (counts/ms^2)."""
+    n = rec.acc_start.shape[0]
+    if rec.acc_start.shape[1] == 0:
+        return np.zeros(n), np.zeros(n)
+    dt = np.diff(knots.times_ms).astype(np.float64)
+    jerk = np.abs(rec.acc_end - rec.acc_start) / dt[None, :]
+    steps = np.abs(rec.acc_start[:, 1:] - rec.acc_end[:, :-1])
+    step_max = steps.max(axis=1) if steps.shape[1] else np.zeros(n)
+    out: tuple[FloatArray, FloatArray] = (jerk.max(axis=1), step_max)
+    return out
+
+
+def planned_jerk(ref: Reference) -> FloatArray:
+    """Per axis the plan's largest |jerk| (counts/ms^3): its change of acceleration over every ms, steps
+    included (a step is a jerk over the tick)."""
+    if ref.positions.shape[1] < 2:
+        return np.zeros(ref.n_axes)
+    over_ms = np.abs(ref.acc_left[:, 1:] - ref.acc_right[:, :-1])
+    at_ms = np.abs(ref.acc_right - ref.acc_left)
+    out: FloatArray = np.maximum(over_ms.max(axis=1), at_ms.max(axis=1))
+    return out
+
+
 def build_trajectory(
     kind: str,
     axes: Sequence[str],
@@ -439,6 +501,8 @@ def build_trajectory(
     peak_acc = np.maximum(np.abs(rec.acc_start), np.abs(rec.acc_end))
     env = ref.acc_envelope()
     conv = scales.counts_per_ms_per_rpm
+    seg_jerk, knot_step = reconstruction_jerk(knots, rec)
+    plan_jerk = planned_jerk(ref)
     stats = []
     for i, c in enumerate(cfg):
         vpk = float(np.abs(rec.velocity[i]).max())
@@ -460,6 +524,10 @@ def build_trajectory(
                 drive_acceleration_limit=float(c.max_acceleration),
                 acceleration_excess=ex * 1.0e6 / cpu[i],
                 acceleration_excess_share=ex / float(scales.acceleration_axis[i]),
+                jerk_limit=float(limits["jerk"][i]),
+                planned_peak_jerk=float(plan_jerk[i]) * 1.0e9 / cpu[i],
+                peak_jerk=float(seg_jerk[i]) * 1.0e9 / cpu[i],
+                knot_acceleration_step=float(knot_step[i]) * 1.0e6 / cpu[i],
             )
         )
     return PvtTrajectory(

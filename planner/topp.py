@@ -110,6 +110,12 @@ def _velocity_bound(q1: FloatArray, vlim: FloatArray) -> FloatArray:
     return out
 
 
+def velocity_bound(q1: FloatArray, vlim: FloatArray) -> FloatArray:
+    """The largest x = s_dot^2 at every gridpoint that keeps every joint within `vlim` (`_velocity_bound`)."""
+    out: FloatArray = _velocity_bound(np.ascontiguousarray(q1, dtype=np.float64), vlim)
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class PathSamples:
     """A path's derivatives where the constraints are imposed: q1, q2 (N+1, k, d) at the `THETAS` of

@@ -63,6 +63,13 @@ class AxisStats:
     # `interpolation_alternatives` the deviation the other sub-modes would make)
     interpolation: str = "pvt"
     setpoint_period_ms: int = 0
+    # jerk (user units/s^3): the axis' limit, the plan's peak (its change of acceleration over every ms),
+    # the reconstruction's peak inside its segments (a cubic's constant jerk), and the largest step of the
+    # reconstruction's acceleration at a knot (user units/s^2; over the 1 ms tick: step * 1000 /s^3)
+    jerk_limit: float = 0.0
+    planned_peak_jerk: float = 0.0
+    peak_jerk: float = 0.0
+    knot_acceleration_step: float = 0.0
     interpolation_alternatives: dict[str, int] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:

@@ -27,17 +27,28 @@ sys.path.insert(0, str(ROOT))
 from benchmarks.bench_planner import KINDS, benchmark_path, random_job  # noqa: E402
 from planner.config import load_cell  # noqa: E402
 from planner.errors import PlanningError  # noqa: E402
-from planner.job import job_from_dict, load_job  # noqa: E402
+from planner.job import Job, PathData, job_from_dict, job_to_dict, load_job  # noqa: E402
 from planner.plan import plan_job, warm_up  # noqa: E402
 
 
-def plan_all(per_kind: int) -> tuple[dict[str, Any], float]:
+def with_jerk_limited(job: Job, value: bool | None, cell: Any) -> Job:
+    """A path job with its `jerk_limited` field set to `value` (None: as the job file has it)."""
+    if value is None or not isinstance(job.data, PathData):
+        return job
+    d = job_to_dict(job)
+    d["jerk_limited"] = value
+    return job_from_dict(d, cell)
+
+
+def plan_all(per_kind: int, jerk_limited: bool | None = None) -> tuple[dict[str, Any], float]:
+    """Plan the corpus; `jerk_limited` forces the path jobs' field (None: the jobs' own, or the default)."""
     cell = load_cell(ROOT / "configs" / "demo.toml")
     jobs = [(p.name, load_job(p, cell)) for p in sorted((ROOT / "configs" / "jobs").iterdir())]
     jobs.append(("bench-20", benchmark_path(cell)))
     for k, kind in enumerate(KINDS):
         rng = np.random.default_rng(1000 + k)
         jobs += [(f"{kind}-{i}", job_from_dict(random_job(kind, rng, cell), cell)) for i in range(per_kind)]
+    jobs = [(name, with_jerk_limited(job, jerk_limited, cell)) for name, job in jobs]
     plans: dict[str, Any] = {}
     cpu = 0.0
     for name, job in jobs:
@@ -72,9 +83,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("action", choices=("save", "compare"))
     parser.add_argument("file", type=Path)
     parser.add_argument("--per-kind", type=int, default=40, help="random jobs per kind (default 40)")
+    parser.add_argument("--jerk-limited", choices=("job", "true", "false"), default="job",
+                        help="the path jobs' jerk_limited: as the job has it (default), or forced true/false")
     args = parser.parse_args(argv)
     warm_up()
-    plans, cpu = plan_all(args.per_kind)
+    forced = None if args.jerk_limited == "job" else args.jerk_limited == "true"
+    plans, cpu = plan_all(args.per_kind, forced)
     print(f"{len(plans)} jobs planned in {cpu:.2f} s of CPU")
     if args.action == "save":
         args.file.write_bytes(pickle.dumps(plans))

@@ -187,14 +187,26 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
     console.print(Text(f"job file {s['job']}"))
     if s.get("geometry"):
         console.print(Text(f"geometry: {s['geometry']}"))
+    info = s.get("info", {})
+    if info.get("optimal_s", 0.0) > 0.0:
+        how = "jerk-limited" if info.get("jerk_limited", 0.0) == 1.0 else "acceleration-only"
+        console.print(Text(f"{how}: {s['duration_s']:.3f} s = {s['duration_s'] / info['optimal_s']:.3f} x the "
+                           f"acceleration-only optimum ({info['optimal_s']:.3f} s)"))
+    if info.get("jerk_limited", 0.0) == 1.0:
+        # the drive's jerk inside its segments, and its acceleration steps at the knots over the 1 ms tick
+        parts = [f"{a['name']} {a['peak_jerk'] / a['jerk_limit']:.2f}/"
+                 f"{a['knot_acceleration_step'] * 1000.0 / a['jerk_limit']:.2f}" for a in s["axes"]]
+        console.print(Text("drive jerk / limit (in segments / at knots over 1 ms): " + ", ".join(parts)))
     same = units[0] if len(set(units)) == 1 else None
     u = f" [{same}/s]" if same else ""
     u2 = f" [{same}/s²]" if same else ""
+    u3 = f" [{same}/s³]" if same else ""
     columns = [
         Col("axis"), Col("node", justify="right", drop=3), Col("max dev [counts]", justify="right"),
         Col(f"velocity{u} peak/limit", justify="right"), Col("rpm peak/0x607F", justify="right", drop=2),
         Col(f"acceleration{u2} plan/drive/limit", justify="right"),
         Col(f"0x60C5{u2}", justify="right", drop=1), Col("acc. excess [% of limit]", justify="right"),
+        Col(f"jerk{u3} plan/drive/limit", justify="right", drop=4),
     ]
     rows = []
     for a, unit in zip(s["axes"], units, strict=True):
@@ -209,6 +221,8 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
             f"{number(a['acceleration_limit'])}{tail + '²' if tail else ''}",
             f"{number(a['drive_acceleration_limit'])}",
             f"{100 * a['acceleration_excess_share']:.1f}",
+            f"{number(a['planned_peak_jerk'])}/{number(a['peak_jerk'])}/{number(a['jerk_limit'])}"
+            f"{tail + '³' if tail else ''}",
         ])
     console.print(fit_table(columns, rows, console.width), highlight=False)
     for key in ("csv", "plot"):

@@ -124,3 +124,24 @@ def test_velocity_job_summary(capsys: pytest.CaptureFixture[str]) -> None:
     summary = json.loads(capsys.readouterr().out)
     assert summary["open_ended"] is True and summary["info"]["velocity_ramp_ms"] > 0
     assert summary["geometry"].startswith("endless travel") and "open-ended" in summary["geometry"]
+
+
+def test_plan_shows_the_jerk_against_its_limit_and_the_duration_against_the_optimum(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`pvt plan` of a jerk-limited path (issue 26): the duration against the acceleration-only optimum, the
+    drive's jerk per axis against its limit (inside segments and at the knots), and in --json every axis'
+    jerk figures."""
+    job = tmp_path / "jerk.toml"
+    job.write_text('kind = "path"\naxes = ["j1", "j2"]\nwaypoints = [[0.0, 0.0], [0.6, 0.2], [0.9, -0.3]]\n'
+                   "jerk_limited = true\n")
+    assert main(["plan", str(job), "--config", DEMO]) == 0
+    out = capsys.readouterr().out
+    assert "jerk-limited:" in out and "x the acceleration-only optimum" in out
+    assert "drive jerk / limit (in segments / at knots over 1 ms): j1 " in out
+    assert main(["plan", str(job), "--config", DEMO, "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["info"]["jerk_limited"] == 1.0 and summary["duration_s"] >= summary["info"]["optimal_s"]
+    for axis in summary["axes"]:
+        assert axis["jerk_limit"] > 0 and 0 < axis["planned_peak_jerk"] <= axis["jerk_limit"] * (1 + 1e-6)
+        assert axis["peak_jerk"] > 0 and axis["knot_acceleration_step"] >= 0

@@ -1,0 +1,267 @@
+"""Jerk-limited path jobs (`jerk_limited`, planner/jerkpath.py): the job field, the re-timing, and the
+bounds of the plan over random paths (Hypothesis) and the example jobs."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from planner_checks import CONFIGS, assert_invariants, assert_path_within
+
+import planner.job as job_module
+from planner import plan_job
+from planner.config import CellConfig
+from planner.errors import TYPE, PlanningError
+from planner.jerkpath import fir_retime
+from planner.job import jerk_limited, job_from_dict, job_to_dict, load_job
+
+SETTINGS = settings(max_examples=int(os.environ.get("JERK_EXAMPLES", "12")), deadline=None)
+
+
+def _path(jerk: bool | None, **extra: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "kind": "path",
+        "axes": ["j1", "j2"],
+        "waypoints": [[0.0, 0.0], [0.6, 0.2], [0.9, -0.3], [0.2, 0.1]],
+        **extra,
+    }
+    if jerk is not None:
+        out["jerk_limited"] = jerk
+    return out
+
+
+def _check_jerk_plan(traj: Any, cell: CellConfig) -> None:
+    """The plan keeps every axis' jerk limit at every ms (its change of acceleration over each ms, no
+    steps), its velocity and acceleration limits, and starts and ends at rest."""
+    for s in traj.stats:
+        assert s.planned_peak_jerk <= s.jerk_limit * (1.0 + 1e-6), (s.name, s.planned_peak_jerk, s.jerk_limit)
+        assert s.planned_peak_acceleration <= s.acceleration_limit * (1.0 + 2e-3)
+    plan = traj.plan
+    # continuous: no step larger than the jerk limit allows over the tick (counts/ms^2)
+    jerk_counts = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    assert np.all(np.abs(plan.acc_right - plan.acc_left) <= jerk_counts[:, None] * (1.0 + 1e-6))
+    assert np.abs(plan.velocities[:, [0, -1]]).max() < 1e-9
+    assert np.abs(plan.acc_left[:, [0, -1]]).max() < 1e-6 * np.abs(plan.acc_left).max() + 1e-12
+    assert_invariants(traj, cell)
+
+
+def test_the_field_is_parsed_checked_and_kept(cell: CellConfig) -> None:
+    for value in (True, False):
+        job = job_from_dict(_path(value), cell)
+        assert job.data.jerk_limited is value  # type: ignore[union-attr]
+        assert job_to_dict(job)["jerk_limited"] is value
+        assert jerk_limited(job, cell) is value
+    assert "jerk_limited" not in job_to_dict(job_from_dict(_path(None), cell))
+    with pytest.raises(PlanningError) as e:
+        job_from_dict(_path(None, jerk_limited="yes"), cell)
+    assert e.value.code == TYPE and e.value.path == "jerk_limited"
+    with pytest.raises(PlanningError):  # a path field only
+        job_from_dict({"kind": "move", "axes": ["j1"], "target": [0.1], "jerk_limited": True}, cell)
+
+
+def test_the_default_follows_the_cells_jerk_limits(cell: CellConfig, monkeypatch: pytest.MonkeyPatch) -> None:
+    job = job_from_dict(_path(None), cell)
+    assert jerk_limited(job, cell) is job_module.JERK_LIMITED_DEFAULT
+    monkeypatch.setattr(job_module, "JERK_LIMITED_DEFAULT", True)
+    assert jerk_limited(job, cell) is True  # every axis of the cell has a jerk limit
+    monkeypatch.setattr(job_module, "JERK_LIMITED_DEFAULT", False)
+    assert jerk_limited(job, cell) is False
+
+
+def test_false_plans_the_acceleration_only_optimum(cell: CellConfig) -> None:
+    off = plan_job(job_from_dict(_path(False), cell), cell)
+    plain = plan_job(job_from_dict(_path(None), cell), cell) if not job_module.JERK_LIMITED_DEFAULT else off
+    assert np.array_equal(off.dt_ms, plain.dt_ms) and np.array_equal(off.positions, plain.positions)
+    assert "jerk_limited" not in off.info
+    on = plan_job(job_from_dict(_path(True), cell), cell)
+    assert on.info["jerk_limited"] == 1.0
+    # the acceleration-only plan steps its acceleration far beyond the jerk limit over a ms; this one does not
+    assert max(s.planned_peak_jerk / s.jerk_limit for s in off.stats) > 10.0
+    _check_jerk_plan(on, cell)
+    assert on.duration_s >= on.info["optimal_s"]
+
+
+def test_fir_retime_is_a_double_s_on_a_trapezoid() -> None:
+    """A trapezoid of path acceleration +a for 100 ms, 0 for 200, -a for 100 averaged over 40 ms: rest to
+    rest, the path's end exactly, 40 ms longer, the jerk a/40 over every ms."""
+    a = 1e-6
+    acc = np.concatenate([np.full(100, a), np.zeros(200), np.full(100, -a)])
+    length = 0.5 * a * 100**2 * 2 + a * 100 * 200
+    s, sd, sdd = fir_retime(acc, length, 40)
+    assert s.size == 400 + 40 + 1
+    assert s[-1] == pytest.approx(length, rel=1e-12) and sd[0] == 0.0 and sd[-1] == 0.0
+    assert np.all(np.diff(s) >= 0.0)
+    assert np.abs(np.diff(sdd)).max() == pytest.approx(a / 40, rel=1e-9)
+    assert abs(sdd[0]) < 1e-18 and abs(sdd[-1]) < 1e-18
+
+
+@st.composite
+def jerk_paths(draw: st.DrawFn, cell: CellConfig) -> dict[str, Any]:
+    n = draw(st.integers(1, 4))
+    axes = [a.name for a in cell.axes[:n]]
+    k = draw(st.integers(2, 6))
+    rows = []
+    for _ in range(k):
+        rows.append([draw(st.floats(0.3 * cell.axis(a).position_min, 0.3 * cell.axis(a).position_max,
+                                     allow_nan=False)) for a in axes])
+    geometry = draw(st.sampled_from(["lines", "lines", "spline"]))
+    jd: dict[str, Any] = {"kind": "path", "axes": axes, "waypoints": rows, "jerk_limited": True,
+                          "geometry": geometry}
+    if geometry == "lines" and draw(st.booleans()):
+        jd["path_tolerance"] = draw(st.floats(0.002, 0.05))
+    return jd
+
+
+@SETTINGS
+@given(st.data())
+def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObject) -> None:
+    jd = data.draw(jerk_paths(cell8))
+    wp = np.array(jd["waypoints"])
+    if np.abs(np.diff(wp, axis=0)).max() < 1e-3:
+        return
+    job = job_from_dict(jd, cell8)
+    traj = plan_job(job, cell8)
+    _check_jerk_plan(traj, cell8)
+    if jd["geometry"] == "lines":
+        assert_path_within(traj, job, cell8)
+        # never slower than jerk-limited moves stopping at every waypoint (but for the encoder's slow-down)
+        from planner.jerkpath import stop_at_corners
+        from planner.job import effective_limits
+        from planner.plan import _merge_close, snap
+
+        cpu = traj.counts_per_unit
+        lim = effective_limits(job, cell8)
+        merged = _merge_close(wp.copy(), cpu)
+        merged[0], merged[-1] = snap(merged[0], cpu), snap(merged[-1], cpu)
+        if merged.shape[0] >= 2 and "jerk_stops" in traj.info:
+            stops = stop_at_corners(merged, cpu, lim["velocity"], lim["acceleration"], lim["jerk"])
+            assert traj.duration_ms <= np.ceil(stops.duration_ms * traj.info["time_scale"]) + 1
+    if "optimal_s" in traj.info:
+        assert traj.duration_s >= traj.info["optimal_s"] * 0.999
+
+
+@pytest.mark.parametrize("name", ["demo-path.toml", "rectangle.toml"])
+def test_example_jobs(cell: CellConfig, name: str) -> None:
+    job = load_job(CONFIGS / "jobs" / name, cell)
+    d = job_to_dict(job)
+    d["jerk_limited"] = True
+    on = job_from_dict(d, cell)
+    traj = plan_job(on, cell)
+    _check_jerk_plan(traj, cell)
+    assert_path_within(traj, on, cell)
+
+
+def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfig) -> None:
+    """planner/continuity.py: on the encoder's own knot times, the re-chosen values keep every promise of
+    the encoding and make the largest acceleration step at a knot (and in-segment jerk) smaller: on the
+    example path from 2-3x the jerk limit over the tick where the encoder's values leave 8-12x."""
+    from planner.continuity import knot_steps, smooth_values, worst_ratio
+    from planner.encoder import encode, within_contract
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+
+    job = load_job(CONFIGS / "jobs" / "demo-path.toml", cell)
+    d = job_to_dict(job)
+    d["jerk_limited"] = True
+    job = job_from_dict(d, cell)
+    traj = plan_job(job, cell)
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    smooth = smooth_values(traj.plan, raw, scales, float(job.tolerance_counts), jerk)
+    assert smooth is not raw and np.array_equal(smooth.times_ms, raw.times_ms)
+    assert within_contract(traj.plan, smooth, scales, float(job.tolerance_counts))
+    before, after = worst_ratio(raw, scales, jerk), worst_ratio(smooth, scales, jerk)
+    assert after < 0.5 * before, (before, after)
+    # what plan_job returns is that encoding, and its statistics say so
+    steps = np.abs(knot_steps(smooth, scales)[1]).max(axis=1) / jerk
+    np.testing.assert_allclose([s.knot_acceleration_step * 1000.0 / s.jerk_limit for s in traj.stats], steps,
+                               rtol=1e-9)
+
+
+def test_speed_changes_match_ruckig() -> None:
+    """jerkpath._change, the time of a jerk-limited change of speed that the corner speeds' passes use, is
+    ruckig's own time for it (velocity control from and to zero acceleration), with and without a phase
+    at full acceleration."""
+    import ruckig
+
+    from planner.jerkpath import _change
+
+    for dv, a, j in ((0.5, 2.0, 20.0), (3.0, 2.0, 20.0), (0.01, 8.0, 80.0)):
+        otg = ruckig.Ruckig(1, 0.001)
+        inp = ruckig.InputParameter(1)
+        inp.control_interface = ruckig.ControlInterface.Velocity
+        inp.current_velocity, inp.target_velocity = [0.0], [dv]
+        inp.max_acceleration, inp.max_jerk, inp.max_velocity = [a], [j], [10.0]
+        out = ruckig.Trajectory(1)
+        otg.calculate(inp, out)
+        assert _change(dv, a, j) == pytest.approx(out.duration, rel=1e-9)
+
+
+def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
+    """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
+    every ms."""
+    from planner.encoder import segment_bounds
+    from planner.jerkpath import PLAN_JERK_SHARE, plan_corner_run
+    from planner.job import effective_limits, path_tolerance
+    from planner.plan import axis_configs, axis_scales, lines_geometry
+
+    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
+                         "path_tolerance": 0.05, "jerk_limited": True}, cell)
+    cfg = axis_configs(job.axes, cell)
+    lim = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+                                  path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
+                                  (np.full(2, -3.0), np.full(2, 3.0)), {})
+    assert len(runs) == 1 and runs[0].blends.tolist() == [0, 1, 0]
+    run = plan_corner_run(runs[0], lim["velocity"], lim["acceleration"], lim["jerk"])
+    assert run is not None
+    vl, al, jl = lim["velocity"] / 1e3, lim["acceleration"] / 1e6, lim["jerk"] / 1e9
+    assert np.all(np.abs(run.v) <= vl[:, None] * (1 + 1e-4))
+    assert np.all(np.abs(run.acc) <= al[:, None] * (1 + 1e-3))
+    assert np.all(np.abs(np.diff(run.acc, axis=1)) <= jl[:, None] * PLAN_JERK_SHARE * (1 + 1e-9))
+    assert np.abs(run.v[:, [0, -1]]).max() == 0.0
+    # the blend's speed is the largest its curvature allows: its jerk bound is reached in it
+    assert (np.abs(np.diff(run.acc, axis=1)) / (jl[:, None] * PLAN_JERK_SHARE)).max() > 0.5
+
+
+def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
+    """_choose_stops: a blend of a tight tolerance at a sharp corner is crossed so slowly (its third
+    derivative is large) that stopping on the waypoint is faster: the plan stops there, and is faster than the plan
+    that blends every corner."""
+    from planner.encoder import segment_bounds
+    from planner.jerkpath import PLAN_JERK_SHARE, _choose_stops, _corner_motion, _geometry_pieces, _with_stops
+    from planner.job import effective_limits, path_tolerance
+    from planner.plan import axis_configs, axis_scales, lines_geometry
+
+    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"],
+                         "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.2, 0.5], [2.0, 0.6]],
+                         "path_tolerance": 0.004, "jerk_limited": True}, cell)
+    cfg = axis_configs(job.axes, cell)
+    lim = effective_limits(job, cell)
+    cpu = np.array([c.counts_per_unit for c in cfg])
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+                                  path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
+                                  (np.full(2, -3.0), np.full(2, 3.0)), {})
+    assert len(runs) == 1
+    jplan = lim["jerk"] * PLAN_JERK_SHARE
+    pieces = _geometry_pieces(runs[0], lim["velocity"], lim["acceleration"], jplan)
+    assert pieces is not None
+    stops = _choose_stops(pieces, lim["velocity"], lim["acceleration"], jplan)
+    assert any(stops)
+    mixed, at_rest = _with_stops(pieces, stops)
+    assert len(at_rest) == sum(stops)
+    blended = _corner_motion(pieces, [], lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
+    chosen = _corner_motion(mixed, at_rest, lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
+    assert blended is not None and chosen is not None
+    assert chosen.q.shape[1] < blended.q.shape[1]
+    # at a stop the motion is at rest on the waypoint
+    for k in at_rest:
+        corner = mixed[k].start  # type: ignore[union-attr]
+        near = np.abs(chosen.q - corner[:, None]).max(axis=0).argmin()
+        assert np.abs(chosen.q[:, near] - corner).max() < 1e-6 and np.abs(chosen.v[:, near]).max() < 1e-6
