@@ -11,8 +11,9 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
-	@echo "compiling the planner's kernels (once per machine, about half a minute)"
-	$(PY) -c 'from planner.plan import warm_up; warm_up()'
+	@echo "compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)"
+	@$(PY) -c 'import time; from planner.plan import warm_up; t = time.monotonic(); \
+	  warm_up(lambda done, total, what: print(f"  kernels {done}/{total} after {time.monotonic() - t:.0f} s: {what}", flush=True))'
 	touch $(STAMP)
 
 demo: $(STAMP)

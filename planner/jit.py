@@ -7,8 +7,11 @@ interpreter overhead whatever its size; compiled, the whole loop costs about wha
 (planning a 7 s 6-axis path went from ~100 ms to a few ms, benchmarks/bench_planner.py).
 
 - `cache=True`: the machine code is kept beside the module (`__pycache__`, or numba's cache directory
-  where that is not writable), so only the first process on a machine compiles (a few seconds, once;
-  `planner.plan.warm_up` does it when a service starts).
+  where that is not writable), so only the first process on a machine compiles (once; about 2 minutes on
+  a busy 2-core machine, nearly all of it in the first plan, which reaches almost every kernel, so
+  compiling only what the demo needs would not save much; `make`'s install step runs
+  `planner.plan.warm_up`, a service runs it when it starts). The demo's child processes (bus/sim/process.py,
+  bus/engine.py) import no kernel, so they never compile (tests/cli/test_first_run.py).
 - `nogil=True`: a kernel releases the GIL, so planning on one thread does not stall the streaming
   thread's SYNC handling (DEVELOPERS.md: a busy Python thread in the same process raised its jitter
   from 0.6 to 6 ms).

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -701,11 +701,12 @@ _WARM_JOBS = (
 )
 
 
-def warm_up() -> None:
+def warm_up(progress: Callable[[int, int, str], None] | None = None) -> None:
     """Load the compiled kernels (planner/jit.py: compiled once per machine, a few seconds, then loaded from
     the cache in about a second) and import the solvers, by planning a few small jobs, and keep freed heap
     memory for the next plans (`jit.keep_heap`): e.g. when a service starts, so that the first job's
-    planning time is the planning."""
+    planning time is the planning. `progress(done, total, what)`, when given, is called before each step
+    and once at the end (done == total), e.g. to show a first run's compiling as it goes."""
     from planner.config import cell_from_dict
     from planner.jit import keep_heap
     from planner.job import job_from_dict
@@ -714,6 +715,14 @@ def warm_up() -> None:
 
     cell = cell_from_dict({"cell": {"name": "warm-up"},
                            "axis": [{"name": "a", **_WARM_AXIS}, {"name": "b", **_WARM_AXIS, "node_id": 2}]})
-    for job in _WARM_JOBS:
+    jobs: tuple[dict[str, Any], ...] = _WARM_JOBS
+    total = len(jobs) + 1
+    for k, job in enumerate(jobs):
+        if progress is not None:
+            progress(k, total, f"{job['kind']} job, {len(job['axes'])} axes")
         traj = plan_job(job_from_dict(job, cell), cell)
+    if progress is not None:
+        progress(total - 1, total, "the kernels a small plan does not reach")
     load_kernels(traj.plan)
+    if progress is not None:
+        progress(total, total, "done")

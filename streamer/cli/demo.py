@@ -59,6 +59,10 @@ def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
     return problems
 
 
+PLANNING_LINE = ("pvt demo: planning the job (the first run on a machine compiles the planner's kernels first, "
+                 "once, then they load from the cache in about a second)")
+
+
 def job_kind(path: Path) -> str | None:
     """The `kind` of a job file (TOML for .toml, else JSON, as planner.job.load_job reads it), or None when
     the file cannot be read as one (the demo's own validation then says why)."""
@@ -92,6 +96,9 @@ def run(args: argparse.Namespace) -> int:
                       "mode). `pvt plan JOB` shows what it will do; run it through the job service: `pvt serve --sim` "
                       "and `pvt submit JOB --wait` (docs/api.md).", highlight=False)
         return 2
+    # shown before planning: a machine's first plan compiles the planner's kernels (planner/jit.py), which
+    # takes minutes on a loaded machine, and nothing else would be shown meanwhile
+    console.print(PLANNING_LINE, highlight=False)
     try:
         # virtual time measures its own simulated drives; in real time the drives on the bus are measured
         # (demo.run_realtime), and the job is planned again when they round otherwise
