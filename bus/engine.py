@@ -94,7 +94,7 @@ class EngineSpec:
     # late by up to a few hundred us here even at SCHED_FIFO (measured: p99 190 us) and by milliseconds
     # while another task runs in the kernel (this kernel preempts only at user level); a running engine is
     # not held up by either
-    spin_us: int = 1000
+    spin_us: int = 300
 
 
 @dataclass(frozen=True)
