@@ -258,11 +258,12 @@ def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
                 underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
-                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints)
+                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints,
+                feedback=core_report.feedback)
     recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
                                 sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
                                 underflow_watermark=cell.drive.underflow_warning,
-                                overflow_watermark=cell.drive.overflow_warning)
+                                overflow_watermark=cell.drive.overflow_warning, feedback=core_report.feedback)
     write_mcap(recording, out / "job.mcap")
     return report, trace
 

@@ -239,3 +239,26 @@ class JobTrace:
     def final_demand(self, node: int) -> int | None:
         ax = self.axes[node]
         return ax.demand[-1] if ax.demand else None
+
+
+def positions_by_sync(axis: AxisTrace | None, log: Any = None) -> tuple[list[int], list[int], list[int]]:
+    """(sync, actual, demand) of one axis' TPDO2 samples, each at the SYNC it answers: within the span the
+    streamer core attributed (`log`, its `FeedbackLog` for the node: `JobReport.feedback`) as the core
+    attributed them; outside it (before the core's first, after its last: the core stopped at the job's end,
+    the runtime goes on tracing the settling) and for a node without a log, by their arrival tag (`axis`):
+    after a job that ended at rest a late answer one SYNC off shows the same position."""
+    if log is None or len(log.sync) == 0:
+        if axis is None:
+            return [], [], []
+        return list(axis.pos_sync), list(axis.actual), list(axis.demand)
+    lo, hi = log.sync[0], log.sync[-1]
+    before: list[tuple[int, int, int]] = []
+    after: list[tuple[int, int, int]] = []
+    if axis is not None:
+        for s, a, d in zip(axis.pos_sync, axis.actual, axis.demand, strict=True):
+            if s < lo:
+                before.append((s, a, d))
+            elif s > hi:  # after the job, at rest: a late answer to hi tagged hi + 1 shows the same
+                after.append((s, a, d))
+    rows = before + list(zip(log.sync, log.actual, log.demand, strict=True)) + after
+    return [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows]
