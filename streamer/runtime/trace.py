@@ -149,7 +149,10 @@ class JobTrace:
         self.sync_period_s = sync_period_s
         self.bitrate = bitrate
         self.frames = 0
-        self._cycle_bits: dict[int, int] = {}
+        # bus load: the bits of the open cycle and the most of any closed one (a frame counts in the cycle open
+        # when it is seen, so a closed cycle never changes): constant memory however long the job runs
+        self._cycle_bits = 0
+        self._peak_bits = 0
         self._sync = -1
         self._cycle = 0
         self.sync_times: dict[int, float] = {}
@@ -170,7 +173,9 @@ class JobTrace:
         self.frames += 1
         if cob_id == SYNC_COB_ID:
             self._cycle += 1
-        self._cycle_bits[self._cycle] = self._cycle_bits.get(self._cycle, 0) + frame_bits(dlc)
+            self._peak_bits = max(self._peak_bits, self._cycle_bits)
+            self._cycle_bits = 0
+        self._cycle_bits += frame_bits(dlc)
         if self.record and data is not None and t is not None:
             self.frame_log.add(t, cob_id, dlc, data)
 
@@ -230,7 +235,7 @@ class JobTrace:
     def bus_load_peak(self) -> float:
         """Largest share of one SYNC cycle's bit time used by all frames of that cycle (worst-case stuffing)."""
         cycle = self.bitrate * self.sync_period_s
-        return max(self._cycle_bits.values(), default=0) / cycle if cycle > 0 else 0.0
+        return max(self._peak_bits, self._cycle_bits) / cycle if cycle > 0 else 0.0
 
     def final_actual(self, node: int) -> int | None:
         ax = self.axes[node]
