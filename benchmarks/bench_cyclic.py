@@ -129,7 +129,7 @@ def timing(jobs: int) -> None:
           "drives in this process, python-can virtual bus)")
     for period, n_axes in ((2, 3), (10, 6)):  # 2 ms: the 3 axes the bus carries (capacity above)
         cell = dataclasses.replace(load_cell(XTRAPULS).with_axes(n_axes), sync_period_ms=period)
-        job = demo.fit_job_to_cell(load_job(DEMO_JOB, load_cell(XTRAPULS)), cell)
+        job = demo.fit_job_to_cell(load_job(DEMO_JOB, load_cell(XTRAPULS)), cell, repeat=True)
         try:
             traj = plan_job(job, cell)
         except Exception as e:  # the drives' interpolation at 2 ms is finer, never coarser

@@ -297,7 +297,7 @@ def capacity(max_axes: int) -> None:
         if n > max_axes:
             break
         cell = load_cell(DEMO).with_axes(n)
-        job = demo.fit_job_to_cell(load_job(DEMO_JOB, load_cell(DEMO)), cell)
+        job = demo.fit_job_to_cell(load_job(DEMO_JOB, load_cell(DEMO)), cell, repeat=True)
         traj = plan_job(job, cell)
         with tempfile.TemporaryDirectory() as d:
             try:

@@ -43,13 +43,17 @@ class DemoResult:
     out_dir: Path
 
 
-def fit_job_to_cell(job: Job, cell: CellConfig) -> Job:
-    """The job on the cell's axes: a job for fewer axes than the cell keeps its axes; a 6-axis demo job
-    run on N axes drives axis i like the job's axis (i mod 6), clipped to that axis' position limits."""
-    if set(job.axes) <= set(cell.axis_names()) and len(job.axes) == len(cell.axes):
+def fit_job_to_cell(job: Job, cell: CellConfig, *, repeat: bool = False) -> Job:
+    """The job on the cell's axes. A job whose axes the cell has keeps them (a job for j5 and j6 moves j5 and
+    j6 of a 6-axis cell, the others stand), unless `repeat` (`pvt demo --axes N`) asks for every axis of the
+    cell to move. Else, or when the cell lacks one of the job's axes, the job is run on all N axes of the
+    cell: axis i like the job's axis (i mod len(job.axes)), positions clipped to that axis' position limits,
+    and every per-axis list of the job (scales, tolerances, limits, a velocity move's velocities, ramp times)
+    taken from that same axis of the job."""
+    names = cell.axis_names()
+    if set(job.axes) <= set(names) and (not repeat or len(job.axes) == len(names)):
         return job
     body = job_to_dict(job)
-    names = cell.axis_names()
     src = list(job.axes)
 
     def column(rows: list[list[float]]) -> list[list[float]]:
@@ -62,22 +66,89 @@ def fit_job_to_cell(job: Job, cell: CellConfig) -> Job:
             out.append(new)
         return out
 
+    def per_axis(values: Any) -> Any:
+        """A per-axis list fitted to the cell's axes; a scalar (one value for every axis) as it is."""
+        if isinstance(values, list):
+            return [values[i % len(src)] for i in range(len(names))]
+        return values
+
     body["axes"] = list(names)
     for key in ("waypoints", "positions"):
         if key in body:
             body[key] = column(body[key])
     for key in ("target", "start"):  # a move's target and its assumed start: one position per axis
-        if key in body:
+        if isinstance(body.get(key), list):
             body[key] = column([body[key]])[0]
     if "velocities" in body:
         body["velocities"] = column(body["velocities"])
-    for key in ("velocity_scale", "acceleration_scale", "path_tolerance"):
-        if isinstance(body.get(key), list):
-            body[key] = [body[key][i % len(src)] for i in range(len(names))]
-    for key, values in body.get("limits", {}).items():
-        body["limits"][key] = [values[i % len(src)] for i in range(len(names))]
+    for key in ("velocity_scale", "acceleration_scale", "path_tolerance", "velocity"):
+        if key in body:
+            body[key] = per_axis(body[key])
+    for group in ("limits", "ramps"):  # {name: one value or a per-axis list}
+        if isinstance(body.get(group), dict):
+            body[group] = {key: per_axis(values) for key, values in body[group].items()}
     body.pop("job_id", None)
     return job_from_dict(body, cell)
+
+
+class KeptChunks:
+    """An extender (the next chunk of an open-ended velocity stream) that keeps every chunk it gave the core,
+    in order: the demo judges, plots and records the whole stream the core sent (`whole_stream`), not only
+    its first chunk. A demo's velocity job ends by itself (the chunk that brakes before the software position
+    limits), so what it keeps is bounded by the axes' travel."""
+
+    def __init__(self, extend: Any) -> None:
+        self.extend = extend
+        self.chunks: list[PvtTrajectory] = []
+
+    def __call__(self, traj: Any) -> Any:
+        chunk = self.extend(traj)
+        if chunk is not None:
+            self.chunks.append(chunk)
+        return chunk
+
+
+def whole_stream(first: PvtTrajectory, chunks: list[PvtTrajectory], core: Coordinator) -> PvtTrajectory:
+    """The stream the core sent as one trajectory: the job's plan, then every chunk the core appended
+    (`core.pieces`: (start ms, plan) each), knot 0 of a chunk being the last knot before it. The plan at every
+    ms and the knots are joined; the stats are the worst of the pieces'. `first` alone for a closed job."""
+    pieces = core.pieces
+    used = chunks[:max(0, len(pieces) - 1)]
+    if not used:
+        return first
+    import numpy as np
+
+    from planner.reference import Reference
+
+    parts = [first, *used]
+    at = first.duration_ms
+    for (offset, _plan), part, before in zip(pieces[1:], used, parts, strict=False):
+        if offset != at or not np.array_equal(part.positions[:, 0], before.positions[:, -1]):
+            raise ValueError(f"the core appended a piece at {offset} ms; the chunk kept there does not follow the "
+                             f"stream before it (ends at {at} ms, last knot {before.positions[:, -1].tolist()})")
+        at += part.duration_ms
+    refs = [p.plan for p in parts]
+    plan = Reference(
+        positions=np.concatenate([refs[0].positions] + [r.positions[:, 1:] for r in refs[1:]], axis=1),
+        velocities=np.concatenate([refs[0].velocities] + [r.velocities[:, 1:] for r in refs[1:]], axis=1),
+        acc_left=np.concatenate([refs[0].acc_left] + [r.acc_left[:, 1:] for r in refs[1:]], axis=1),
+        acc_right=np.concatenate([refs[0].acc_right] + [r.acc_right[:, 1:] for r in refs[1:]], axis=1),
+        breaks=np.array([p.duration_ms for p in parts[:-1]], dtype=np.int64).cumsum(),
+    )
+    stats = tuple(
+        replace(max((p.stats[i] for p in parts), key=lambda st: st.max_deviation_counts),
+                peak_velocity=max(p.stats[i].peak_velocity for p in parts),
+                peak_velocity_rpm=max(p.stats[i].peak_velocity_rpm for p in parts))
+        for i in range(first.n_axes))
+    last = parts[-1]
+    return PvtTrajectory(
+        kind=first.kind, axis_names=first.axis_names, node_ids=first.node_ids,
+        dt_ms=np.concatenate([p.dt_ms for p in parts]),
+        positions=np.concatenate([first.positions] + [p.positions[:, 1:] for p in parts[1:]], axis=1),
+        velocities=np.concatenate([first.velocities] + [p.velocities[:, 1:] for p in parts[1:]], axis=1),
+        counts_per_unit=first.counts_per_unit, counts_per_rev=first.counts_per_rev,
+        tolerance_counts=max(p.tolerance_counts for p in parts), plan=plan, stats=stats,
+        info={**first.info, "chunks": float(len(parts))}, open_end=last.open_end)
 
 
 def prepare(
@@ -115,7 +186,7 @@ def prepare(
         cell = replace(cell, bus=cell.bus.with_spec(bus, bitrate))
     if commissioned:
         cell = commission(cell)
-    job = fit_job_to_cell(loaded, cell)
+    job = fit_job_to_cell(loaded, cell, repeat=axes is not None)
     traj = plan_job(job, cell)
     return cell, job, traj
 
@@ -165,7 +236,11 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
 
         rt = VirtualRuntime(cell, vcell=vcell, log=log)
         wall0 = time.time()  # virtual time starts at 0: the recording's wall clock is the run's start
-        result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync)
+        from planner.travel import extend_velocity
+
+        kept = KeptChunks(extend_velocity)
+        result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync, extender=kept)
+        traj = whole_stream(traj, kept.chunks, result.coordinator)
     if readings_out is not None:
         readings_out.update(rt.settings.readings)
     epoch = wall0 + result.trace.sync_times.get(result.first_sync, 0.0)
@@ -183,11 +258,12 @@ def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any
     write_report(report, out / "report.json")
     plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
                 underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
-                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints)
+                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints,
+                feedback=core_report.feedback)
     recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
                                 sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
                                 underflow_watermark=cell.drive.underflow_warning,
-                                overflow_watermark=cell.drive.overflow_warning)
+                                overflow_watermark=cell.drive.overflow_warning, feedback=core_report.feedback)
     write_mcap(recording, out / "job.mcap")
     return report, trace
 
@@ -222,6 +298,7 @@ def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_d
     the cycle engine in another, the core here. The drives' readings are measured first (the standstill
     probe); when `job` is given and a drive rounds its demand otherwise than the plan assumed, the job is
     planned again for the drives on the bus (whatever the master learns about a drive, it learns from it)."""
+    from streamer.runtime.extension import PrefetchExtender
     from streamer.runtime.realtime import RealtimeRuntime
 
     out.mkdir(parents=True, exist_ok=True)
@@ -238,9 +315,17 @@ def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_d
                     traj = plan_job(job, cell)
             if on_engine is not None:
                 on_engine(adapter)
-            result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_change=on_change, cancel=cancel)
+            prefetch = PrefetchExtender()
+            prefetch.prefetch(traj)  # the first chunk's successor, while the drives are primed
+            kept = KeptChunks(prefetch)
+            try:
+                result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_change=on_change,
+                                cancel=cancel, extender=kept)
+            finally:
+                prefetch.close()
         finally:
             rt.close()
+    traj = whole_stream(traj, kept.chunks, result.coordinator)
     time.sleep(0.05)
     return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
                    rt.settings.readings)

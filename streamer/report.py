@@ -34,7 +34,7 @@ from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import JobReport
 from streamer.core.settings import REFERENCE_READINGS
-from streamer.runtime.trace import JobTrace
+from streamer.runtime.trace import JobTrace, positions_by_sync
 
 
 def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: int) -> int:
@@ -215,10 +215,13 @@ def plot_motion(
     overflow_watermark: int,
     units: Sequence[str] | None = None,
     setpoints: Mapping[int, cyclic.Setpoints | None] | None = None,
+    feedback: Mapping[int, Any] | None = None,
 ) -> None:
     """Per axis: commanded vs actual position and their difference; FIFO fill with both watermarks, or for
     an axis fed one set point per SYNC, its drive's interpolation minus the plan at every ms. `units`: each
-    axis' user unit (the cell's `unit`, default rad) for the position labels."""
+    axis' user unit (the cell's `unit`, default rad) for the position labels. `feedback`: per node, the
+    TPDO2 samples at the SYNC the core attributed them to (`JobReport.feedback`, as the report measures);
+    a node without one is plotted by the samples' arrival tags (the trace)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -234,10 +237,11 @@ def plot_motion(
         ax = trace.axes[node]
         cpu = float(traj.counts_per_unit[i])
         left, right = grid[i][0], grid[i][1]
-        ts = np.array([(s - sync0) * period_s for s in ax.pos_sync])
-        actual = np.array(ax.actual, dtype=float)
-        demand = np.array(ax.demand, dtype=float)
-        idx = [_plan_index(s, start, sync_period_ms, traj.duration_ms) for s in ax.pos_sync]
+        pos_sync, actual_in, demand_in = positions_by_sync(ax, (feedback or {}).get(node))
+        ts = np.array([(s - sync0) * period_s for s in pos_sync])
+        actual = np.array(actual_in, dtype=float)
+        demand = np.array(demand_in, dtype=float)
+        idx = [_plan_index(s, start, sync_period_ms, traj.duration_ms) for s in pos_sync]
         commanded = planned[i, idx].astype(float) if len(idx) else np.array([])
         left.plot(ts, commanded / cpu, color="#1f77b4", lw=1.6, label="commanded (plan)")
         left.plot(ts, actual / cpu, color="#ff7f0e", lw=1.0, ls="--", label="actual 0x6064")

@@ -4,7 +4,13 @@ With no arguments: python-can `virtual` bus, the cell's simulated EPOS-style dri
 real time at the cell's SYNC period (10 ms). A live progress bar shows every axis' FIFO fill. Writes
 report.json, motion.png, bus.log (candump -L) and job.mcap (the job's recording) to --out (default
 demo-out/). Exit status 0 when the job is done with every guarantee met, 1 when the job failed or a
-guarantee was missed, 2 when the job or config was rejected. A home job (kind "home") is refused
+guarantee was missed, 2 when the job or config was rejected. A job for some of the cell's axes moves those
+(the others stand); --axes N runs the job on N axes, axis i like the job's axis (i mod its axes).
+
+A velocity job (mode "velocity", endless) runs until the chunk that brakes by itself before the software
+position limits ends it, at rest (as `pvt serve` would without a change or a stop): its ramp, its cruise
+extended chunk after chunk, its braking. The report, motion.png and job.mcap cover that whole stream, and its
+final position is where that braking chunk stops. A home job (kind "home") is refused
 (status 2): it plans no motion to stream; `pvt serve --sim` and `pvt submit` run it.
 """
 
@@ -114,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     console.print(
         f"[bold]pvt demo[/bold]: {traj.n_axes} axes, {traj.duration_s:.2f} s, {traj.n_points} points/axis, "
         f"SYNC {cell.sync_period_ms} ms, {mode}"
+        + (" (the first chunk of an endless velocity move: it goes on until it brakes before the position "
+           "limits)" if traj.open_ended else "")
     )
     display = _Display(console, traj, cell, enabled=not args.quiet)
     try:

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from streamer.recording.drive import DriveRecording
+from streamer.runtime.trace import positions_by_sync
 
 FORMAT_VERSION = 1
 
@@ -275,8 +276,14 @@ def build_recording(
     underflow_watermark: int | None = None,
     overflow_watermark: int | None = None,
     drive: DriveRecording | None = None,
+    feedback: Mapping[int, Any] | None = None,
 ) -> JobRecording:
     """The recording of one finished job from its plan (`PvtTrajectory`), its `JobTrace` and report.
+
+    `feedback`: per node, what its drive reported as the streamer core attributed it (`JobReport.feedback`,
+    streamer/core/attribution.py): each TPDO2's actual and demand are recorded at the SYNC it answers, as the
+    report measures them; a drive that answers late has its answer arrive after the next SYNC, so by its
+    arrival tag (the trace, used for a node with no log) it would be one SYNC off its plan.
 
     `epoch_s`: wall-clock time of the job's first SYNC; None when the runtime's clock is the wall clock
     (the real-time runtime's python-can timestamps), so the first SYNC's own time is used."""
@@ -307,9 +314,10 @@ def build_recording(
                 if recorded_status:
                     row["statusword"] = ax.statusword[k]
                     row["buffer_status"] = ax.buffer_status[k]
-            for s, actual, demand in zip(ax.pos_sync, ax.actual, ax.demand, strict=True):
-                row = rows.setdefault(s, {})
-                row["actual"], row["demand"], row["following_error"] = actual, demand, actual - demand
+        for s, actual, demand in zip(*positions_by_sync(ax, (feedback or {}).get(int(node))), strict=True):
+            row = rows.setdefault(int(s), {})
+            row["actual"], row["demand"], row["following_error"] = actual, demand, actual - demand
+        if ax is not None:
             for s, sp in zip(ax.setpoint_sync, ax.setpoint, strict=True):
                 rows.setdefault(s, {})["setpoint"] = sp
         series = AxisSamples()

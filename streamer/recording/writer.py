@@ -71,13 +71,16 @@ class RecordingInputs:
     underflow_watermark: int | None = None
     overflow_watermark: int | None = None
     drive: Any = None  # streamer.recording.drive.DriveRecording: the drives' own recorders (a `record` section)
+    # per node, the TPDO2 samples at the SYNC the core attributed them to (`JobReport.feedback`); None: by arrival
+    feedback: Mapping[int, Any] | None = None
 
     def build(self, job_id: str = "", cell: str | None = None) -> JobRecording:
         return build_recording(self.plan, self.trace, self.report, first_sync=self.first_sync,
                                start_sync=self.start_sync, sync_period_ms=self.sync_period_ms, job_id=job_id,
                                cell=self.cell if cell is None else cell, epoch_s=self.epoch_s,
                                underflow_watermark=self.underflow_watermark,
-                               overflow_watermark=self.overflow_watermark, drive=self.drive)
+                               overflow_watermark=self.overflow_watermark, drive=self.drive,
+                               feedback=self.feedback)
 
 
 def as_recording(item: JobRecording | RecordingInputs, job_id: str, cell: str) -> JobRecording:

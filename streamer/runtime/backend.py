@@ -384,7 +384,8 @@ class RuntimeBackend:
         recording = RecordingInputs(PlanView.of(traj), result.trace, dict(report), result.first_sync,
                                     core.start_sync, self.cell.sync_period_ms, cell=self.cell.name,
                                     underflow_watermark=self.cell.drive.underflow_warning,
-                                    overflow_watermark=self.cell.drive.overflow_warning, drive=drive)
+                                    overflow_watermark=self.cell.drive.overflow_warning, drive=drive,
+                                    feedback=core.report().feedback)
         with self._lock:
             self._recording = recording
         return report

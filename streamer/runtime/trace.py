@@ -149,7 +149,10 @@ class JobTrace:
         self.sync_period_s = sync_period_s
         self.bitrate = bitrate
         self.frames = 0
-        self._cycle_bits: dict[int, int] = {}
+        # bus load: the bits of the open cycle and the most of any closed one (a frame counts in the cycle open
+        # when it is seen, so a closed cycle never changes): constant memory however long the job runs
+        self._cycle_bits = 0
+        self._peak_bits = 0
         self._sync = -1
         self._cycle = 0
         self.sync_times: dict[int, float] = {}
@@ -170,7 +173,9 @@ class JobTrace:
         self.frames += 1
         if cob_id == SYNC_COB_ID:
             self._cycle += 1
-        self._cycle_bits[self._cycle] = self._cycle_bits.get(self._cycle, 0) + frame_bits(dlc)
+            self._peak_bits = max(self._peak_bits, self._cycle_bits)
+            self._cycle_bits = 0
+        self._cycle_bits += frame_bits(dlc)
         if self.record and data is not None and t is not None:
             self.frame_log.add(t, cob_id, dlc, data)
 
@@ -230,7 +235,7 @@ class JobTrace:
     def bus_load_peak(self) -> float:
         """Largest share of one SYNC cycle's bit time used by all frames of that cycle (worst-case stuffing)."""
         cycle = self.bitrate * self.sync_period_s
-        return max(self._cycle_bits.values(), default=0) / cycle if cycle > 0 else 0.0
+        return max(self._peak_bits, self._cycle_bits) / cycle if cycle > 0 else 0.0
 
     def final_actual(self, node: int) -> int | None:
         ax = self.axes[node]
@@ -239,3 +244,26 @@ class JobTrace:
     def final_demand(self, node: int) -> int | None:
         ax = self.axes[node]
         return ax.demand[-1] if ax.demand else None
+
+
+def positions_by_sync(axis: AxisTrace | None, log: Any = None) -> tuple[list[int], list[int], list[int]]:
+    """(sync, actual, demand) of one axis' TPDO2 samples, each at the SYNC it answers: within the span the
+    streamer core attributed (`log`, its `FeedbackLog` for the node: `JobReport.feedback`) as the core
+    attributed them; outside it (before the core's first, after its last: the core stopped at the job's end,
+    the runtime goes on tracing the settling) and for a node without a log, by their arrival tag (`axis`):
+    after a job that ended at rest a late answer one SYNC off shows the same position."""
+    if log is None or len(log.sync) == 0:
+        if axis is None:
+            return [], [], []
+        return list(axis.pos_sync), list(axis.actual), list(axis.demand)
+    lo, hi = log.sync[0], log.sync[-1]
+    before: list[tuple[int, int, int]] = []
+    after: list[tuple[int, int, int]] = []
+    if axis is not None:
+        for s, a, d in zip(axis.pos_sync, axis.actual, axis.demand, strict=True):
+            if s < lo:
+                before.append((s, a, d))
+            elif s > hi:  # after the job, at rest: a late answer to hi tagged hi + 1 shows the same
+                after.append((s, a, d))
+    rows = before + list(zip(log.sync, log.actual, log.demand, strict=True)) + after
+    return [r[0] for r in rows], [r[1] for r in rows], [r[2] for r in rows]

@@ -69,11 +69,11 @@ def test_demo_fits_every_per_axis_field_to_the_axes(tmp_path: Path) -> None:
     cell = load_cell(DEMO)
     body = {"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [0.5, 0.2], [0.1, 0.3]],
             "path_tolerance": [0.01, 0.02], "limits": {"velocity": [1.0, 1.5]}}
-    fitted = fit_job_to_cell(job_from_dict(body, cell), cell.with_axes(3))
+    fitted = fit_job_to_cell(job_from_dict(body, cell), cell.with_axes(3), repeat=True)
     assert fitted.axes == ("j1", "j2", "j3") and fitted.velocity_limit == (1.0, 1.5, 1.0)
     assert isinstance(fitted.data, PathData) and fitted.data.path_tolerance == (0.01, 0.02, 0.01)
     moved = fit_job_to_cell(job_from_dict({"kind": "move", "axes": ["j1"], "start": [0.2], "target": [0.4]}, cell),
-                            cell.with_axes(2))
+                            cell.with_axes(2), repeat=True)
     assert isinstance(moved.data, MoveData) and moved.data.start is not None and moved.data.start.size == 2
 
 
