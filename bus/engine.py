@@ -122,6 +122,15 @@ class EngineStats:
     wake_delay_us: list[int] = field(default_factory=list)  # the loop saw the SYNC due this late
 
 
+def engine_spec(interface: str, channel: str, bitrate: int) -> EngineSpec | None:
+    """The cycle engine for a bus, or None where the master sends itself: python-can's `virtual` bus (it does not
+    leave this process), or PVT_ENGINE=0 in the environment (tools/vcan-vm: one emulated CPU cannot carry the
+    engine, the master and the drives as three processes; the engine's function is tested on the ipc bus)."""
+    if interface == "virtual" or os.environ.get("PVT_ENGINE", "1") == "0":
+        return None
+    return EngineSpec(interface, str(channel), bitrate)
+
+
 def request_realtime(priority: int | None, lock_memory: bool) -> RealtimeStatus:
     """SCHED_FIFO for the calling thread and mlockall for the process, where the system permits."""
     notes: list[str] = []

@@ -274,7 +274,7 @@ def realtime_cell(cell: CellConfig, traj: PvtTrajectory | None = None, *,
     """The simulated drives in a process of their own (`pvt sim`, unless `external_drives`: they run
     elsewhere on the cell's bus; bus/sim/process.py) and a configured master adapter whose cycle engine owns
     the bus (bus/engine.py). Yields the adapter; its `cell` is the cell on the bus actually used."""
-    from bus.engine import EngineSpec
+    from bus.engine import engine_spec
     from bus.network import MasterAdapter
     from bus.sim.process import drives_process, joining_bus
 
@@ -283,7 +283,7 @@ def realtime_cell(cell: CellConfig, traj: PvtTrajectory | None = None, *,
         run_cell, positions=start_positions(run_cell, traj) if traj is not None else None)
     with drives:
         bus = run_cell.bus
-        adapter = MasterAdapter(None, run_cell, engine=EngineSpec(bus.interface, str(bus.channel), bus.bitrate))
+        adapter = MasterAdapter(None, run_cell, engine=engine_spec(bus.interface, str(bus.channel), bus.bitrate))
         try:
             adapter.configure_drives()
             yield adapter

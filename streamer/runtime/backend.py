@@ -54,7 +54,7 @@ from typing import Any
 
 from bus import codec
 from bus.cob import pack_controlword, rpdo1_id
-from bus.engine import EngineSpec
+from bus.engine import engine_spec
 from bus.errors import BusError, ProtocolError
 from bus.events import AdapterError, Bootup, Event
 from bus.network import MasterAdapter
@@ -130,8 +130,8 @@ class RuntimeBackend:
             bus = self.cell.bus
             # the cycle engine owns every bus that joins processes (bus/engine.py); python-can's virtual bus stays
             # in this process (drives simulated here by a test): the adapter sends itself
-            engine = None if bus.interface == "virtual" else EngineSpec(bus.interface, str(bus.channel), bus.bitrate)
-            self.adapter = MasterAdapter(None, self.cell, engine=engine)
+            self.adapter = MasterAdapter(None, self.cell,
+                                         engine=engine_spec(bus.interface, str(bus.channel), bus.bitrate))
             if self.adapter.engine is not None:  # said once: real-time priority, or best-effort and why
                 status = self.adapter.engine.realtime
                 (log.info if status.fifo else log.warning)("cycle engine on %s:%s: %s", bus.interface, bus.channel,
