@@ -108,7 +108,7 @@ def open_engine(spec: EngineSpec) -> EngineBus:
                        detail={"interface": spec.interface, "channel": str(spec.channel)}) from e
 
 
-RECEIVE_PRIORITY = 60  # `MasterAdapter(receive_priority=RECEIVE_PRIORITY)`: SCHED_FIFO below the engine's 80 (opt-in)
+RECEIVE_PRIORITY = 60  # with the cycle engine: the receive thread's SCHED_FIFO priority (below the engine's 80)
 
 
 class _MasterListener(can.Listener):
@@ -167,6 +167,8 @@ class MasterAdapter:
         self.engine: EngineBus | None = None
         if bus is None and engine is not None:
             self.engine = open_engine(engine)
+            if receive_priority is None:
+                receive_priority = RECEIVE_PRIORITY  # the way in of the cycle's answers
             bus = self.engine
             self._own_bus = True
         self._bus = bus if bus is not None else open_bus(self.bus_config, receive_own_messages=True)

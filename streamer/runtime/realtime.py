@@ -59,10 +59,8 @@ CYCLIC_AHEAD_MS = 50.0  # cells with drives fed one set point per SYNC: what a s
 FIFO_AHEAD_MS = 0.0  # EPOS-only cells: one period (a FIFO rides out a late record; feedback stays fresh)
 
 
-# `RealtimeRuntime(streaming_priority=STREAMING_PRIORITY)`: SCHED_FIFO for the streaming thread while a job or the
-# probe runs with the engine. Off by default: the thread does unbounded work (the core, a change's plan), and with
-# the engine and the drives at SCHED_FIFO too the kernel's real-time budget (95 %) ran out on a saturated CPU (the
-# emulated vcan VM: the drives fell silent for 3 SYNCs); fed ahead, the core rides out its stalls anyway
+# with the cycle engine: SCHED_FIFO of the streaming thread while a job or the probe runs (it paces the probe's
+# SYNCs and feeds the engine ahead); below the engine (80), the drives (70) and the receive thread (60)
 STREAMING_PRIORITY = 50
 SWITCH_INTERVAL_S = 0.0005  # while a job streams: a thread holding the GIL gives it up this soon (default 5 ms)
 
@@ -180,7 +178,7 @@ class RealtimeRuntime:
         # with the cycle engine: how long before its SYNC the core is fed it (see `_Announcer`)
         self.ahead_ms = float(ahead_ms) if ahead_ms is not None else default_ahead_ms(cell)
         # SCHED_FIFO of the streaming thread while a job or the probe runs with the engine, where permitted
-        self.streaming_priority = streaming_priority
+        self.streaming_priority = streaming_priority if streaming_priority is not None else STREAMING_PRIORITY
         # settings given by the caller are taken as they are; else the cell's, with what the master knows
         # of each drive ([axis.probed]) completed by the standstill probe before the first job
         self._settings_given = settings is not None
