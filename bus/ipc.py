@@ -22,9 +22,9 @@ instance's own file first, then closes its socket.
 Datagram: a fixed 28-byte header (magic b"PVTC", version, flags extended/remote/error/fd/brs/esi, dlc,
 the sender's random instance id, its sequence number, arbitration id, sender stamp float64) followed by
 the data bytes. On receive `msg.timestamp` is the sender's stamp: a frame's time never depends on when
-the receiving thread got to run, so a starved receiver still sees when each frame was on the wire (the
-master attributes feedback to SYNCs by these stamps). `msg.channel` is the channel name; `msg.is_rx` is
-False only for own frames received back.
+the receiving thread got to run, so a starved receiver still sees when each frame was on the wire (SYNC
+intervals, TPDO latencies and bus load are measured from these stamps). `msg.channel` is the channel
+name; `msg.is_rx` is False only for own frames received back.
 
 Guarantees:
 - per-sender order is preserved: one socket per sender and loopback delivery keep a sender's datagrams
@@ -40,11 +40,14 @@ Guarantees:
   arrival order, which differs from stamp order only for frames of different senders sent within the
   time one sender takes from its stamp to its sendto (microseconds; longer if it is preempted there), as
   on python-can's `virtual` bus, which stamps in `send` too;
-- loss happens only when a receiver's socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB;
-  the kernel caps them at net.core.rmem_max/wmem_max): the receiver counts the gaps in each sender's
-  sequence (`stats.rx_lost`), a sender counts the datagrams a peer could not take at once
-  (`stats.tx_dropped`: EAGAIN/ENOBUFS); each logs one warning the first time. Sends never block: a
-  real-time loop sends on this bus.
+- loss happens only when a socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB; the
+  kernel caps them at net.core.rmem_max/wmem_max and doubles them: 8 MiB hold about 10,000 frames of
+  ~800 bytes of kernel memory each, the common 208 KiB cap about 500). On loopback the kernel drops a
+  datagram for a full receive buffer at the receiver (the sender's sendto succeeds): the receiver counts
+  the gaps in each sender's sequence (`stats.rx_lost`). A sender counts the datagrams the kernel would not
+  take from it (`stats.tx_dropped`: EAGAIN/ENOBUFS, its own send buffer full), for that peer only. Each
+  logs one warning the first time; `dropped` sums them. Sends never block: a real-time loop sends on
+  this bus.
 
 Like a real CAN bus and unlike `virtual`, a frame nobody listens to is simply gone; there is no
 arbitration, no error frames, no bit timing (`bitrate` is kept for callers' bus-load accounting).
@@ -124,7 +127,7 @@ class IpcStats:
     receiving thread (python-can reads a bus from one thread)."""
 
     sent: int = 0  # frames sent (each to every peer)
-    tx_dropped: int = 0  # datagrams a peer could not take (its buffer or ours full): lost for that peer
+    tx_dropped: int = 0  # datagrams the kernel would not take for a peer (our send buffer full): lost for it
     peers_dropped: int = 0  # registry entries removed: dead pid, or nothing bound to the port any more
     received: int = 0  # frames delivered by recv
     rx_lost: int = 0  # gaps in a sender's sequence: frames that never arrived (this receiver's buffer was full)
