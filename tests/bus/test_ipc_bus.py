@@ -162,8 +162,7 @@ def test_the_receive_stamp_is_the_senders_not_the_readers(open_bus: OpenBus) -> 
     read_at = time.time()
 
     assert got is not None
-    assert before <= got.timestamp <= after
-    assert got.timestamp - before < 1e-3
+    assert before <= got.timestamp <= after  # the send time (within the time send took, microseconds)
     assert read_at - got.timestamp >= 0.049
 
 
