@@ -17,7 +17,8 @@ the directory: it re-reads it when the directory's mtime changes (checked at mos
 same clock tick leaves the mtime as it was), when a peer refuses a datagram (ECONNREFUSED: nothing is
 bound to its port any more; the socket has IP_RECVERR so the kernel says which port, and that peer's
 stale file is removed), and it removes the files of dead pids it finds there. `shutdown()` removes the
-instance's own file first, then closes its socket.
+instance's own file first (and the channel's directory when it was the last entry), then closes its
+socket.
 
 Datagram: a fixed 28-byte header (magic b"PVTC", version, flags extended/remote/error/fd/brs/esi, dlc,
 the sender's random instance id, its sequence number, arbitration id, sender stamp float64) followed by
@@ -91,6 +92,7 @@ MAX_DATA = 64  # CAN FD
 BUFFER_BYTES = 4 * 1024 * 1024  # asked for; the kernel caps it at net.core.rmem_max / wmem_max
 RESCAN_CHECK_S = 0.002  # how often a sender looks at the directory's mtime
 RACY_S = 0.1  # a listing taken this close to the directory's mtime may miss a change in the same tick
+REGISTER_ATTEMPTS = 5  # the directory may vanish between its mkdir and our entry (its last instance left)
 MAX_SENDERS_TRACKED = 1024  # sequence state kept for this many senders (reset beyond: closed senders pile up)
 CHANNEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 ENTRY_RE = re.compile(r"(\d+)-(\d+)")
@@ -225,9 +227,15 @@ class IpcBus(can.BusABC):
             self._port: int = self._sock.getsockname()[1]
             self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
             self.sndbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF)
-            _make_private_dir(self.directory)
             entry = self.directory / f"{self._pid}-{self._port}"
-            os.close(os.open(entry, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            for attempt in range(REGISTER_ATTEMPTS):
+                _make_private_dir(self.directory)
+                try:
+                    os.close(os.open(entry, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+                    break
+                except FileNotFoundError:  # the channel's last instance removed the empty directory just now
+                    if attempt == REGISTER_ATTEMPTS - 1:
+                        raise
             self._entry = entry
             self._rescan()
         except BaseException:
@@ -467,6 +475,8 @@ class IpcBus(can.BusABC):
                 with contextlib.suppress(FileNotFoundError):  # removed by someone who thought we were gone
                     os.unlink(self._entry)
                 self._entry = None
+                with contextlib.suppress(OSError):  # the last one out removes the channel (ENOTEMPTY otherwise)
+                    os.rmdir(self.directory)
             self._sock.close()
 
     @staticmethod
