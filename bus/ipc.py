@@ -17,14 +17,15 @@ the directory: it re-reads it when the directory's mtime changes (checked at mos
 same clock tick leaves the mtime as it was), when a peer refuses a datagram (ECONNREFUSED: nothing is
 bound to its port any more; the socket has IP_RECVERR so the kernel says which port, and that peer's
 stale file is removed), and it removes the files of dead pids it finds there. `shutdown()` removes the
-instance's own file first, then closes its socket.
+instance's own file first (and the channel's directory when it was the last entry), then closes its
+socket.
 
 Datagram: a fixed 28-byte header (magic b"PVTC", version, flags extended/remote/error/fd/brs/esi, dlc,
 the sender's random instance id, its sequence number, arbitration id, sender stamp float64) followed by
 the data bytes. On receive `msg.timestamp` is the sender's stamp: a frame's time never depends on when
-the receiving thread got to run, so a starved receiver still sees when each frame was on the wire (the
-master attributes feedback to SYNCs by these stamps). `msg.channel` is the channel name; `msg.is_rx` is
-False only for own frames received back.
+the receiving thread got to run, so a starved receiver still sees when each frame was on the wire (SYNC
+intervals, TPDO latencies and bus load are measured from these stamps). `msg.channel` is the channel
+name; `msg.is_rx` is False only for own frames received back.
 
 Guarantees:
 - per-sender order is preserved: one socket per sender and loopback delivery keep a sender's datagrams
@@ -40,11 +41,14 @@ Guarantees:
   arrival order, which differs from stamp order only for frames of different senders sent within the
   time one sender takes from its stamp to its sendto (microseconds; longer if it is preempted there), as
   on python-can's `virtual` bus, which stamps in `send` too;
-- loss happens only when a receiver's socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB;
-  the kernel caps them at net.core.rmem_max/wmem_max): the receiver counts the gaps in each sender's
-  sequence (`stats.rx_lost`), a sender counts the datagrams a peer could not take at once
-  (`stats.tx_dropped`: EAGAIN/ENOBUFS); each logs one warning the first time. Sends never block: a
-  real-time loop sends on this bus.
+- loss happens only when a socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB; the
+  kernel caps them at net.core.rmem_max/wmem_max and doubles them: 8 MiB hold about 10,000 frames of
+  ~800 bytes of kernel memory each, the common 208 KiB cap about 500). On loopback the kernel drops a
+  datagram for a full receive buffer at the receiver (the sender's sendto succeeds): the receiver counts
+  the gaps in each sender's sequence (`stats.rx_lost`). A sender counts the datagrams the kernel would not
+  take from it (`stats.tx_dropped`: EAGAIN/ENOBUFS, its own send buffer full), for that peer only. Each
+  logs one warning the first time; `dropped` sums them. Sends never block: a real-time loop sends on
+  this bus.
 
 Like a real CAN bus and unlike `virtual`, a frame nobody listens to is simply gone; there is no
 arbitration, no error frames, no bit timing (`bitrate` is kept for callers' bus-load accounting).
@@ -88,6 +92,7 @@ MAX_DATA = 64  # CAN FD
 BUFFER_BYTES = 4 * 1024 * 1024  # asked for; the kernel caps it at net.core.rmem_max / wmem_max
 RESCAN_CHECK_S = 0.002  # how often a sender looks at the directory's mtime
 RACY_S = 0.1  # a listing taken this close to the directory's mtime may miss a change in the same tick
+REGISTER_ATTEMPTS = 5  # the directory may vanish between its mkdir and our entry (its last instance left)
 MAX_SENDERS_TRACKED = 1024  # sequence state kept for this many senders (reset beyond: closed senders pile up)
 CHANNEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 ENTRY_RE = re.compile(r"(\d+)-(\d+)")
@@ -124,7 +129,7 @@ class IpcStats:
     receiving thread (python-can reads a bus from one thread)."""
 
     sent: int = 0  # frames sent (each to every peer)
-    tx_dropped: int = 0  # datagrams a peer could not take (its buffer or ours full): lost for that peer
+    tx_dropped: int = 0  # datagrams the kernel would not take for a peer (our send buffer full): lost for it
     peers_dropped: int = 0  # registry entries removed: dead pid, or nothing bound to the port any more
     received: int = 0  # frames delivered by recv
     rx_lost: int = 0  # gaps in a sender's sequence: frames that never arrived (this receiver's buffer was full)
@@ -222,9 +227,15 @@ class IpcBus(can.BusABC):
             self._port: int = self._sock.getsockname()[1]
             self.rcvbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
             self.sndbuf_bytes = self._sock.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF)
-            _make_private_dir(self.directory)
             entry = self.directory / f"{self._pid}-{self._port}"
-            os.close(os.open(entry, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            for attempt in range(REGISTER_ATTEMPTS):
+                _make_private_dir(self.directory)
+                try:
+                    os.close(os.open(entry, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+                    break
+                except FileNotFoundError:  # the channel's last instance removed the empty directory just now
+                    if attempt == REGISTER_ATTEMPTS - 1:
+                        raise
             self._entry = entry
             self._rescan()
         except BaseException:
@@ -464,6 +475,8 @@ class IpcBus(can.BusABC):
                 with contextlib.suppress(FileNotFoundError):  # removed by someone who thought we were gone
                     os.unlink(self._entry)
                 self._entry = None
+                with contextlib.suppress(OSError):  # the last one out removes the channel (ENOTEMPTY otherwise)
+                    os.rmdir(self.directory)
             self._sock.close()
 
     @staticmethod
