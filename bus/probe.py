@@ -208,15 +208,33 @@ class StandstillProbe:
 
     def next_sync_time(self) -> float:
         """When the driver sends the next SYNC."""
+        return self._t + self._interval_s(self._step, self._sync + 1)
+
+    def next_sync_times(self) -> list[float]:
+        """The next SYNC's time and those of every SYNC after it that the probe already knows and that
+        needs no frame of the driver in between: the rest of the latency phase, or the rest of an experiment
+        once its interpolation was started. A driver with a cycle engine hands them over at once, so a
+        stalled master thread cannot stretch a SYNC interval while a drive interpolates (the drive would
+        report SYNC lost); the SYNCs' echoes are fed to `on_sync` as they come."""
+        if self.phase is Phase.DONE:
+            return []
+        t, times = self._t, []
+        known = self.phase is Phase.LATENCY or self._start is not None
+        last = self._limit_syncs + 1 if known else self._step + 1  # the step that ends the phase
+        for step in range(self._step, last):
+            t += self._interval_s(step, self._sync + 1 + step - self._step)
+            times.append(t)
+        return times
+
+    def _interval_s(self, step: int, count: int) -> float:
+        """The interval before SYNC `count`, the phase's step `step` + 1."""
         p = self.period_ms / 1000.0
-        if self.phase is Phase.LATENCY:
-            return self._t + max(4 * p, 0.02)
-        if self._step == 0:
-            return self._t + max(4 * p, 0.02)  # a quiet gap: every answer of the last phase is in
-        j = self._j(self._sync + 1)
+        if self.phase is Phase.LATENCY or step == 0:
+            return max(4 * p, 0.02)  # (after a phase: a quiet gap, every answer of the last phase is in)
+        j = self._j(count)
         if self.phase is Phase.TIMING and j is not None and j >= 1:
-            return self._t + self.plan.interval_ms(j, self.period_ms) / 1000.0
-        return self._t + p
+            return self.plan.interval_ms(j, self.period_ms) / 1000.0
+        return p
 
     @property
     def syncs_seen(self) -> int:

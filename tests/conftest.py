@@ -14,6 +14,19 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
+# The one timing margin of the real-time tests. This shared 2-core VM holds even a SCHED_FIFO 99 task up for
+# 5-50 ms at times (benchmarks/bench_realtime.py's platform floor), so the cycle engine's SYNC then goes out
+# that late; a drive that follows the manual (a SYNC half a period late is lost: EMCY 0x8780) faults the job
+# for the machine's stall, not the master's. The simulated drives of the real-time tests (bus/sim/process.py,
+# which every `pvt` the tests start inherits) let a SYNC come up to 4 periods late. The benchmarks keep the
+# manual's 1.5 and count what this machine does to it.
+# The same stalls hold the simulated drives' process up (measured: answers up to 3 SYNCs late at 10 ms):
+# the master's TPDO timeout waits at least REALTIME_HOST_STALL_MS (streamer/runtime/realtime.py).
+REALTIME_SYNC_GAP_FACTOR = 4.0
+REALTIME_HOST_STALL_MS = 100
+os.environ.setdefault("PVT_SIM_SYNC_GAP_FACTOR", str(REALTIME_SYNC_GAP_FACTOR))
+os.environ.setdefault("PVT_HOST_STALL_MS", str(REALTIME_HOST_STALL_MS))
+
 from planner.config import CellConfig, load_cell
 
 ROOT = Path(__file__).resolve().parent.parent

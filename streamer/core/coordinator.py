@@ -501,6 +501,7 @@ class Coordinator:
         self._first_sync: int | None = None
         self._sync_since: float | None = None  # when the SYNC's current run began (Sync.since, or our first)
         self._sync_times: dict[int, float] = {}  # recent SYNC count -> time sent
+        self._wire_times: dict[int, float] = {}  # fed ahead (`ahead_syncs`): recent SYNC count -> time on the wire
         self._sync_counters: dict[int, int | None] = {}  # recent SYNC count -> its counter byte
         self._t = 0.0
         self._last_sync_t: float | None = None
@@ -1047,17 +1048,30 @@ class Coordinator:
     def _on_sync_on_wire(self, ev: SyncOnWire) -> None:
         """Fed ahead of the wire (`ahead_syncs`): the answers overdue are judged when SYNC n is on the wire."""
         if self._sync is not None and self._settings.ahead_syncs:
-            self._tpdo_overdue(min(ev.count, self._sync))
+            self._wire_times[ev.count] = ev.t
+            self._wire_times.pop(ev.count - 64, None)
+            self._tpdo_overdue(min(ev.count, self._sync), ev.t)
 
-    def _tpdo_overdue(self, m: int) -> bool:
+    def _tpdo_overdue(self, m: int, t_wire: float | None = None) -> bool:
         """TPDO_TIMEOUT when a node has not answered for `tpdo_timeout_syncs` SYNCs up to SYNC m (every frame
-        the bus carried before SYNC m has been fed)."""
+        the bus carried before SYNC m has been fed). With the SYNCs' times on the wire (`t_wire`, SYNC m's),
+        those SYNCs must also span that many periods less half of one: SYNCs a stalled sender put on the wire
+        back to back leave a drive no time to answer, and its silence is no loss yet."""
         timeout = self._settings.tpdo_timeout_syncs
         limit = m - timeout - 1
         limit2 = m - timeout * self._feedback_every - 1
+
+        def silent(last: int, syncs: int) -> bool:
+            if t_wire is None:
+                return True
+            t_first = self._wire_times.get(last + 1)  # the first SYNC left unanswered
+            return t_first is None or (t_wire - t_first) * 1000.0 >= (syncs - 0.5) * self._period
+
         for f in self._axes:
-            if f.last_tpdo1 <= limit or f.last_tpdo2 <= limit2:
-                which = "TPDO1" if f.last_tpdo1 <= limit else "TPDO2"
+            late1 = f.last_tpdo1 <= limit and silent(f.last_tpdo1, timeout)
+            late2 = f.last_tpdo2 <= limit2 and silent(f.last_tpdo2, timeout * self._feedback_every)
+            if late1 or late2:
+                which = "TPDO1" if late1 else "TPDO2"
                 self._fail(
                     oc.TPDO_TIMEOUT,
                     f"node {f.node_id}: no {which} for "

@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+import os
 import queue
 import sys
 import threading
@@ -57,6 +58,11 @@ from streamer.runtime.trace import JobTrace
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
 CYCLIC_AHEAD_MS = 50.0  # cells with drives fed one set point per SYNC: what a stall of this process may take
 FIFO_AHEAD_MS = 0.0  # EPOS-only cells: one period (a FIFO rides out a late record; feedback stays fresh)
+# the longest this machine may hold the drives' answers up: drives simulated in processes beside the master
+# share its CPUs and stall with them (hardware does not). The TPDO timeout waits at least this long; set by
+# PVT_HOST_STALL_MS in the environment (the test suite: tests/conftest.py), 0 by default (the cell's
+# [drive] tpdo_timeout_syncs as it is)
+HOST_STALL_MS = float(os.environ.get("PVT_HOST_STALL_MS", "0"))
 
 
 # with the cycle engine: SCHED_FIFO of the streaming thread while a job or the probe runs (it paces the probe's
@@ -264,24 +270,32 @@ class RealtimeRuntime:
                 if probe.wants_enable:
                     adapter.enable_drives()
                     probe.enabled(demands())
-                t_next = probe.next_sync_time()
-                if adapter.engine is None:  # this thread paces the SYNC; the engine sends it at its time itself
+                if adapter.engine is not None:
+                    # the engine sends every SYNC the probe already knows at its time: while a drive
+                    # interpolates, no stall of this thread stretches a SYNC interval
+                    times = probe.next_sync_times()
+                    for t_next in times:
+                        adapter.send_sync(at=t_next)
+                else:  # this thread paces the SYNC, one at a time
+                    t_next = probe.next_sync_time()
+                    times = [t_next]
                     while (now := adapter.now()) < t_next:
                         ev = self._drain(min(0.002, t_next - now))
                         if ev is not None:
                             self._feed_probe(probe, ev)
-                if fb is not None:
-                    counter = counter % fb.counter_overflow + 1
-                adapter.send_sync(counter if fb is not None else None, at=t_next)
-                # the SYNC's echo (probe.on_sync) and its answers come through the queue
-                deadline = time.monotonic() + 0.2 + max(0.0, t_next - adapter.now())
-                seen = probe.syncs_seen
-                while probe.syncs_seen == seen and time.monotonic() < deadline:
-                    ev = self._drain(0.005)
-                    if ev is not None:
-                        self._feed_probe(probe, ev)
-                if probe.syncs_seen == seen:
-                    raise ProbeError("no SYNC echo: the interface does not deliver own messages")
+                    if fb is not None:
+                        counter = counter % fb.counter_overflow + 1
+                    adapter.send_sync(counter if fb is not None else None)
+                # the SYNCs' echoes (probe.on_sync) and their answers come through the queue
+                for t_next in times:
+                    deadline = time.monotonic() + 0.2 + max(0.0, t_next - adapter.now())
+                    seen = probe.syncs_seen
+                    while probe.syncs_seen == seen and time.monotonic() < deadline:
+                        ev = self._drain(0.005)
+                        if ev is not None:
+                            self._feed_probe(probe, ev)
+                    if probe.syncs_seen == seen:
+                        raise ProbeError("no SYNC echo: the interface does not deliver own messages")
         except ProbeError as e:
             raise BusError(PROBE, str(e)) from None
         finally:
@@ -353,6 +367,9 @@ class RealtimeRuntime:
         engine = self.adapter.engine is not None
         if engine:
             settings = replace(settings, ahead_syncs=_Announcer.syncs_for(self.ahead_ms, cell.sync_period_s))
+        if HOST_STALL_MS > 0:
+            stall = min(100, math.ceil(HOST_STALL_MS / cell.sync_period_ms))
+            settings = replace(settings, tpdo_timeout_syncs=max(settings.tpdo_timeout_syncs, stall))
         prefetch: PrefetchExtender | None = None
         if extender is None:
             extender = prefetch = PrefetchExtender()

@@ -1,0 +1,91 @@
+"""The core fed each SYNC ahead of the wire (`StreamerSettings.ahead_syncs`, the real-time runtime with the
+cycle engine): answers overdue are judged when the SYNC is on the wire (`SyncOnWire`), and by the SYNCs'
+times there, not only their count. A cycle engine that the machine held up sends the SYNCs it owes back to
+back; the drives cannot answer SYNCs 0.1 ms apart before the next one is out, and that is no lost TPDO."""
+
+from __future__ import annotations
+
+from streamer_doubles import CPR, Rig, make_plan
+
+from bus.events import BufferStatus, Emcy, Sync, SyncOnWire
+from streamer.core import JobState, StreamerSettings
+from streamer.core import outcome as oc
+
+
+def ahead_rig() -> Rig:
+    plan = make_plan(3, 2000, seed=11)
+    return Rig(plan, settings=StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), ahead_syncs=2))
+
+
+def wire_sync(rig: Rig, t_wire: float, *, hold: list[object] | None = None, drop_node: int | None = None) -> None:
+    """SYNC `rig.count`: fed ahead, then on the wire at `t_wire`, then the drives' answers (kept in `hold`
+    instead when given: they reach the master later)."""
+    assert rig.drives is not None
+    m = rig.count
+    answers: list[object] = []
+    for drive in rig.drives.values():
+        answers.extend(drive.on_sync(m, rig.t))
+    answers.sort(key=lambda e: 0 if isinstance(e, Emcy) else 1 if isinstance(e, BufferStatus) else 2)
+    rig.feed(Sync(m, rig.t))
+    rig.feed(SyncOnWire(m, t_wire))
+    for ev in answers:
+        if drop_node is not None and getattr(ev, "node", None) == drop_node and isinstance(ev, BufferStatus):
+            continue
+        if hold is not None:
+            hold.append(ev)
+        else:
+            rig.feed(ev)
+    rig.count += 1
+
+
+def run_to_running(rig: Rig) -> None:
+    while rig.core.state is not JobState.RUNNING:
+        assert rig.count < 500 and rig.core.state not in (JobState.FAILED,), rig.core.outcome
+        wire_sync(rig, rig.t)
+    for _ in range(5):
+        wire_sync(rig, rig.t)
+
+
+def test_a_silent_node_fails_three_syncs_on_the_wire_later() -> None:
+    rig = ahead_rig()
+    run_to_running(rig)
+    gone = rig.count
+    for _ in range(3):
+        wire_sync(rig, rig.t, drop_node=2)
+    assert rig.core.state is JobState.RUNNING
+    wire_sync(rig, rig.t, drop_node=2)
+    outcome = rig.core.outcome
+    assert outcome is not None and outcome.code == oc.TPDO_TIMEOUT and outcome.node == 2, outcome
+    assert outcome.sync == gone + 3
+
+
+def test_syncs_sent_back_to_back_after_a_stall_are_no_lost_answers() -> None:
+    rig = ahead_rig()
+    run_to_running(rig)
+    # the engine was held up 30 ms: it sends the four SYNCs it owes 0.1 ms apart; the answers come after
+    t_burst = rig.t + 0.030
+    held: list[object] = []
+    for k in range(4):
+        wire_sync(rig, t_burst + 1e-4 * k, hold=held)
+    assert rig.core.state is JobState.RUNNING, rig.core.outcome
+    for ev in held:
+        rig.feed(ev)
+    assert rig.core.state is JobState.RUNNING, rig.core.outcome
+    while rig.core.state not in (JobState.DONE, JobState.FAILED) and rig.count < 2000:
+        wire_sync(rig, rig.t + 0.030)  # on schedule again (30 ms behind the nominal times: no matter)
+    assert rig.core.state is JobState.DONE, rig.core.outcome
+
+
+def test_a_node_silent_through_a_burst_and_after_it_still_fails() -> None:
+    rig = ahead_rig()
+    run_to_running(rig)
+    t_burst = rig.t + 0.030
+    for k in range(4):
+        wire_sync(rig, t_burst + 1e-4 * k, drop_node=2)
+    assert rig.core.state is JobState.RUNNING, rig.core.outcome
+    for _ in range(4):
+        wire_sync(rig, rig.t + 0.030, drop_node=2)
+        if rig.core.state is JobState.FAILED:
+            break
+    outcome = rig.core.outcome
+    assert outcome is not None and outcome.code == oc.TPDO_TIMEOUT and outcome.node == 2, outcome
