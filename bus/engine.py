@@ -350,7 +350,8 @@ class _Loop:
                     sent = self.sync_sent_at.get(n + 1)
                     self.stats.late_batches += 1
                     self.stats.late_frames += len(frames)
-                    self.out.send(("late", n, len(frames), None if sent is None else time.time() - sent))
+                    self.out.send(("late", n, len(frames), None if sent is None else time.time() - sent,
+                                   self.cycle))
             else:
                 self.ring.setdefault(n, []).extend(frames)
         elif kind == "sync_start":
@@ -519,8 +520,9 @@ class EngineBus(can.BusABC):
         self._closed = False
         self.schedule: tuple[float, float] | None = None  # (t0, period) while the engine sends SYNC
         self.counter_start = 0  # SYNC n of the schedule carries counters[(counter_start + n) % len(counters)]
-        self.late: list[tuple[int, int, float | None]] = []  # (cycle, frames, seconds after its SYNC)
-        self.on_late: Callable[[int, int, float | None], None] | None = None
+        # (cycle, frames, seconds after the next SYNC, the first SYNC sent after them)
+        self.late: list[tuple[int, int, float | None, int]] = []
+        self.on_late: Callable[[int, int, float | None, int], None] | None = None
         self.on_send_failed: Callable[[int, str], None] | None = None
         if not self._in.poll(start_timeout_s):
             self._proc.kill()
@@ -581,9 +583,9 @@ class EngineBus(can.BusABC):
             if self.on_send_failed is not None:
                 self.on_send_failed(SYNC_COB_ID, f"SYNC {item[1]} refused by the bus: the engine's schedule stopped")
         elif kind == "late":
-            self.late.append((item[1], item[2], item[3]))
+            self.late.append((item[1], item[2], item[3], item[4]))
             if self.on_late is not None:
-                self.on_late(item[1], item[2], item[3])
+                self.on_late(item[1], item[2], item[3], item[4])
         elif kind == "send_failed":
             if self.on_send_failed is not None:
                 self.on_send_failed(item[1], item[2])

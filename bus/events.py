@@ -36,6 +36,17 @@ class SyncOnWire:
 
 
 @dataclass(frozen=True)
+class RecordsLate:
+    """The frames the core returned for the cycle after SYNC `cycle` went out only after a later SYNC: they are
+    on the bus from SYNC `visible_from` on (a runtime whose cycle engine reports it; bus/engine.py `late`).
+    The records among them count in the drives' FIFOs from there, not from SYNC `cycle` + 1."""
+
+    cycle: int
+    visible_from: int
+    t: float
+
+
+@dataclass(frozen=True)
 class BufferStatus:
     """TPDO1 of one drive: statusword 0x6041, interpolation buffer status 0x20C4:01, free size 0x60C4:02.
 

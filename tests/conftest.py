@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
+from planner.config import CellConfig, load_cell
+
 # The one timing margin of the real-time tests. This shared 2-core VM holds even a SCHED_FIFO 99 task up for
 # 5-50 ms at times (benchmarks/bench_realtime.py's platform floor), so the cycle engine's SYNC then goes out
 # that late; a drive that follows the manual (a SYNC half a period late is lost: EMCY 0x8780) faults the job
@@ -26,8 +28,6 @@ REALTIME_SYNC_GAP_FACTOR = 4.0
 REALTIME_HOST_STALL_MS = 100
 os.environ.setdefault("PVT_SIM_SYNC_GAP_FACTOR", str(REALTIME_SYNC_GAP_FACTOR))
 os.environ.setdefault("PVT_HOST_STALL_MS", str(REALTIME_HOST_STALL_MS))
-
-from planner.config import CellConfig, load_cell
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"

@@ -145,6 +145,7 @@ from bus.events import (
     Emcy,
     HeartbeatLost,
     PositionFeedback,
+    RecordsLate,
     Send,
     SendFailed,
     StatusWord,
@@ -251,6 +252,7 @@ _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
 _EVENT_HANDLERS: dict[str, str] = {
     "Sync": "_on_sync",
     "SyncOnWire": "_on_sync_on_wire",
+    "RecordsLate": "_on_records_late",
     "BufferStatus": "_on_buffer_status",
     "StatusWord": "_on_status",
     "PositionFeedback": "_on_position",
@@ -273,6 +275,7 @@ _CANCEL_HANDLERS: dict[JobState, str] = {
 _EVENT_TYPES: dict[str, type] = {
     "Sync": Sync,
     "SyncOnWire": SyncOnWire,
+    "RecordsLate": RecordsLate,
     "BufferStatus": BufferStatus,
     "StatusWord": StatusWord,
     "PositionFeedback": PositionFeedback,
@@ -1051,6 +1054,14 @@ class Coordinator:
             self._wire_times[ev.count] = ev.t
             self._wire_times.pop(ev.count - 64, None)
             self._tpdo_overdue(min(ev.count, self._sync), ev.t)
+
+    def _on_records_late(self, ev: RecordsLate) -> None:
+        """The batch each FIFO axis sent in the cycle after SYNC `ev.cycle` reached the bus only before SYNC
+        `ev.visible_from`: it counts in the fill from there (else the drive's fill at the SYNCs between would
+        look like lost records, and their resend would arrive twice)."""
+        for f in self._feeders:
+            if f.sent_end > f.confirmed and f.batch_tag == ev.cycle + 1:
+                f.batch_tag = max(f.batch_tag, ev.visible_from)
 
     def _tpdo_overdue(self, m: int, t_wire: float | None = None) -> bool:
         """TPDO_TIMEOUT when a node has not answered for `tpdo_timeout_syncs` SYNCs up to SYNC m (every frame

@@ -43,7 +43,7 @@ import can
 
 from bus.engine import thread_priority
 from bus.errors import PROBE, BusError
-from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync, SyncOnWire
+from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, RecordsLate, SendFailed, Sync, SyncOnWire
 from bus.families import EPOS_IPM, PROFILES
 from bus.network import MasterAdapter
 from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
@@ -209,9 +209,9 @@ class RealtimeRuntime:
             engine.on_send_failed = lambda cob_id, why: self._on_event(
                 SendFailed(f"the bus refused frame 0x{cob_id:03X}: {why}", adapter.now()))
 
-    def _on_late(self, cycle: int, frames: int, delay_s: float | None) -> None:
+    def _on_late(self, cycle: int, frames: int, delay_s: float | None, visible_from: int) -> None:
         if self._running:
-            self._events.put(_Late(cycle, frames, delay_s))  # type: ignore[arg-type]
+            self._events.put(_Late(cycle, frames, delay_s, visible_from))  # type: ignore[arg-type]
 
     def _on_event(self, ev: Event) -> None:
         """Adapter thread: keep the latest state of every node (cheap), queue events only during a job."""
@@ -423,6 +423,8 @@ class RealtimeRuntime:
                             f"frames for the cycle after SYNC {ev.cycle} reached the cycle engine {after} the next "
                             f"SYNC: the master fell behind its {ahead.lead_s * 1000:.0f} ms lead", self.adapter.now()),
                             ahead)
+                    else:  # PVT records only: the FIFOs take them whenever they come; the core counts them from there
+                        self._feed(core, trace, RecordsLate(ev.cycle, ev.visible_from, self.adapter.now()), ahead)
                     continue
                 if isinstance(ev, Sync):
                     first_sync = ev.count if first_sync is None else first_sync
@@ -490,6 +492,7 @@ class _Late:
     cycle: int
     frames: int
     delay_s: float | None
+    visible_from: int  # the first SYNC the engine sent after them
 
 
 class _Announcer:

@@ -95,8 +95,8 @@ def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel:
 
 
 def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: EngineBus, channel: str) -> None:
-    late: list[tuple[int, int, float | None]] = []
-    engine.on_late = lambda cycle, frames, delay: late.append((cycle, frames, delay))
+    late: list[tuple[int, int, float | None, int]] = []
+    engine.on_late = lambda cycle, frames, delay, visible: late.append((cycle, frames, delay, visible))
     with can.Bus(interface="ipc", channel=channel) as drive:
         t0 = engine.start_sync(PERIOD_S)
         time.sleep(0.1)
@@ -110,8 +110,14 @@ def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: E
     deadline = time.monotonic() + 2
     while not late and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert [(c, n) for c, n, _ in late] == [(past, 1)]
+    assert [(c, n) for c, n, _, _ in late] == [(past, 1)]
     assert late[0][2] is not None and late[0][2] > 0.0
+    # it names the first SYNC after the frame went out: the frame is on the bus between SYNC visible - 1 and it
+    visible = late[0][3]
+    assert visible >= past + 2
+    ids = [m.arbitration_id for m in got]
+    syncs_before = ids[:ids.index(0x201)].count(0x080)
+    assert syncs_before == visible, (syncs_before, visible)
     st = engine.stats()
     assert (st.late_batches, st.late_frames) == (1, 1)
 

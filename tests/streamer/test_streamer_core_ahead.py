@@ -5,9 +5,11 @@ back; the drives cannot answer SYNCs 0.1 ms apart before the next one is out, an
 
 from __future__ import annotations
 
+import pytest
 from streamer_doubles import CPR, Rig, make_plan
 
-from bus.events import BufferStatus, Emcy, Sync, SyncOnWire
+from bus.cob import RPDO2_BASE
+from bus.events import BufferStatus, Emcy, RecordsLate, Send, Sync, SyncOnWire
 from streamer.core import JobState, StreamerSettings
 from streamer.core import outcome as oc
 
@@ -89,3 +91,43 @@ def test_a_node_silent_through_a_burst_and_after_it_still_fails() -> None:
             break
     outcome = rig.core.outcome
     assert outcome is not None and outcome.code == oc.TPDO_TIMEOUT and outcome.node == 2, outcome
+
+
+@pytest.mark.parametrize("told", [True, False], ids=["reported", "control"])
+def test_records_that_reached_the_bus_two_syncs_late_are_counted_from_there(told: bool) -> None:
+    """The cycle engine got a batch of PVT records two SYNCs after the SYNC they were meant to follow and says
+    so (`RecordsLate`): the core counts them in the FIFO from the SYNC they really preceded, so the drive's
+    fill at the SYNCs between is no loss, nothing is resent and nothing arrives twice. The control, not told,
+    takes them for lost."""
+    rig = ahead_rig()
+    run_to_running(rig)
+    held: list[Send] = []
+    holding = [True]
+
+    def inject(send: Send) -> list[Send]:
+        if holding[0] and send.cob_id & 0x780 == RPDO2_BASE:
+            held.append(send)
+            return []
+        return [send]
+
+    rig.inject = inject
+    cycle = rig.count  # the records the answers to SYNC `cycle` release are meant for the cycle after it
+    wire_sync(rig, rig.t)
+    holding[0] = False
+    assert held, "no records were sent in that cycle"
+    wire_sync(rig, rig.t)  # SYNC cycle + 1: the records are not on the bus yet
+    if told:
+        rig.feed(RecordsLate(cycle, cycle + 3, rig.t))  # they go out after SYNC cycle + 2
+    answers: list[object] = []
+    wire_sync(rig, rig.t, hold=answers)  # SYNC cycle + 2 on the wire, the records right after it
+    for send in held:
+        rig.deliver(send)
+    for ev in answers:
+        rig.feed(ev)
+    rig.run()
+    resends = sum(f.resends for f in rig.core._feeders)
+    if told:
+        assert rig.core.state is JobState.DONE, rig.core.outcome
+        assert resends == 0
+    else:
+        assert resends > 0 or rig.core.state is JobState.FAILED
