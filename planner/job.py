@@ -107,6 +107,15 @@ _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) b
     "home": ({"method"}, {"search_speed", "zero_speed", "acceleration", "offset", "timeout_s"}),
 }
 _LIMIT_KEYS = ("velocity", "acceleration", "jerk")
+
+
+def job_fields(kind: str) -> tuple[frozenset[str], frozenset[str]]:
+    """(required, optional) top-level fields of a job of `kind` as `job_from_dict` takes them (a move needs
+    `target`, or `velocity` in velocity mode: both optional here). KeyError for an unknown kind."""
+    required, optional = _KIND_FIELDS[kind]
+    common = _HOME_COMMON if kind == "home" else _COMMON
+    extra = {"start"} if kind == "path" else set()
+    return frozenset({"kind", "axes"} | required), frozenset((common | optional | extra) - {"kind", "axes"})
 # `start = "current"` (path and move jobs): plan from where the axes stand. The planner itself plans a path
 # from its first waypoint (and a move from the caller's start); the job service, which knows where the axes
 # stand, prepends that position to a path whose first waypoint is elsewhere (docs/api.md section 3).

@@ -24,23 +24,12 @@ from typing import Any
 
 from planner.config import CellConfig
 from planner.errors import PlanningError
+from planner.job import job_fields
 from streamer.api.backend import CancelToken, Emit, Planned
 
-_COMMON = {
-    "tolerance_counts",
-    "velocity_scale",
-    "acceleration_scale",
-    "limits",
-    "description",
-    "job_id",
-    "name",
-}
+# kind: (required fields, optional fields), the planner's own (planner/job.py `job_fields`); "name" is fake-only
 KINDS: dict[str, tuple[set[str], set[str]]] = {
-    # kind: (required fields, optional fields), the planner's names (planner/job.py); "name" is fake-only
-    "path": ({"kind", "axes", "waypoints"}, _COMMON),
-    "move": ({"kind", "axes", "target"}, _COMMON | {"mode", "start"}),
-    "timed": ({"kind", "axes", "times", "positions"}, _COMMON),
-    "pvt": ({"kind", "axes", "times", "positions", "velocities"}, _COMMON),
+    kind: (set(job_fields(kind)[0]), set(job_fields(kind)[1]) | {"name"}) for kind in ("path", "move", "timed", "pvt")
 }
 
 # tolerance_counts values that make the fake planner fail with a given code (planning-stage errors)
@@ -127,14 +116,17 @@ class FakeBackend:
                 raise PlanningError("AXIS_ID", f"axis {a!r} appears twice", path=f"axes[{i}]")
         rows_field = {"path": "waypoints", "timed": "positions", "pvt": "positions", "move": None}[kind]
         if rows_field is None:
-            self._numbers(body["target"], "target", axes)
-            if len(body["target"]) != len(axes):
+            field = "velocity" if body.get("mode") == "velocity" else "target"
+            if field not in body:
+                raise PlanningError("SCHEMA", f"missing field {field!r} for a move job", path=field)
+            self._numbers(body[field], field, axes)
+            if len(body[field]) != len(axes):
                 raise PlanningError(
                     "AXIS_COUNT",
-                    f"target has {len(body['target'])} values for {len(axes)} axes",
-                    path="target",
+                    f"{field} has {len(body[field])} values for {len(axes)} axes",
+                    path=field,
                 )
-            rows: list[Any] = [body["target"]]
+            rows: list[Any] = [body[field]]
         else:
             rows = body[rows_field]
             if not isinstance(rows, list):

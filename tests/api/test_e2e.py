@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import json
 from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -226,3 +228,23 @@ def test_tiny_velocity_scale_is_a_coded_rejection(serve: Serve, demo_cell: CellC
     served = serve(backend=planner_backend(demo_cell, time_scale=0.0))
     kind, msg = raw_get(served.session, keys.submit("demo"), pack({**PATH, "velocity_scale": scale}))
     assert kind == "ok" or msg["code"] != "INTERNAL", msg
+
+
+JOB_FILES = sorted((Path(__file__).resolve().parents[2] / "configs" / "jobs").glob("*.*"))
+
+
+@pytest.mark.parametrize("path", JOB_FILES, ids=lambda p: p.name)
+def test_every_example_job_file_goes_through_pvt_submit(
+    serve: Serve, demo_cell: CellConfig, path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every job file we ship, as a user submits it (`pvt submit FILE --wait`), planned by the planner."""
+    from streamer.cli import submit as cli_submit
+    from tests.api.test_cli import run_cli
+
+    served = serve(backend=planner_backend(demo_cell, time_scale=0.01))
+    code = run_cli(cli_submit, ["submit", str(path), "--connect", served.endpoint, "--cell", "demo", "--wait",
+                                "--json"])
+    out = capsys.readouterr()
+    assert code == 0, (out.out, out.err)
+    assert json.loads(out.out)["state"] == "done", out.out
+    assert served.backend.executed, "nothing was executed"
