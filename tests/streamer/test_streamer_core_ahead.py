@@ -5,13 +5,17 @@ back; the drives cannot answer SYNCs 0.1 ms apart before the next one is out, an
 
 from __future__ import annotations
 
+from dataclasses import replace
+from typing import Any
+
 import pytest
-from streamer_doubles import CPR, Rig, make_plan
+from streamer_doubles import CPR, FakeIpDriveDouble, Rig, make_plan
 
 from bus.cob import RPDO2_BASE
-from bus.events import BufferStatus, Emcy, RecordsLate, Send, Sync, SyncOnWire
+from bus.events import BufferStatus, Emcy, PositionFeedback, RecordsLate, Send, Sync, SyncOnWire
 from streamer.core import JobState, StreamerSettings
 from streamer.core import outcome as oc
+from streamer.core.settings import REFERENCE_READINGS
 
 
 def ahead_rig() -> Rig:
@@ -131,3 +135,64 @@ def test_records_that_reached_the_bus_two_syncs_late_are_counted_from_there(told
         assert resends == 0
     else:
         assert resends > 0 or rig.core.state is JobState.FAILED
+
+
+class SyncTimedDrive(FakeIpDriveDouble):
+    """A drive without 0x1006 (the communication cycle period, optional in CiA 301): it times its
+    interpolation by the SYNCs it receives, so a SYNC the master's machine held up makes it run that much
+    longer in that cycle (docs/drive-model.md, reading 5)."""
+
+    def __init__(self, *args: Any, **kw: Any) -> None:
+        super().__init__(*args, **kw)
+        self._nominal_ms = self.period_ms
+        self._last_t: float | None = None
+        self._acc_us = 0
+
+    def on_sync(self, count: int, t: float) -> list[BufferStatus | PositionFeedback | Emcy]:
+        step_us = self._nominal_ms * 1000 if self._last_t is None else round((t - self._last_t) * 1e6)
+        self._last_t = t
+        ticks, self._acc_us = divmod(self._acc_us + step_us, 1000)
+        self.period_ms = ticks
+        try:
+            return super().on_sync(count, t)
+        finally:
+            self.period_ms = self._nominal_ms
+
+
+@pytest.mark.parametrize("absent", [True, False], ids=["without-0x1006", "control"])
+def test_a_drive_timed_by_the_syncs_it_receives_follows_a_late_sync(absent: bool) -> None:
+    """A drive without 0x1006 interpolates the time between the SYNCs it receives. The core, fed each SYNC
+    ahead at its nominal time, judges that drive's answers at the SYNC's time on the wire: a SYNC the
+    machine held up 6 ms is no false fault. The control: the same drive taken for one locked to SYNC."""
+    plan = make_plan(3, 2000, seed=11)
+    readings = {n: replace(REFERENCE_READINGS, absent=(0x1006,) if absent else ()) for n in plan.node_ids}
+    settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), ahead_syncs=2,
+                                readings=readings)
+    drives = {n: SyncTimedDrive(n, plan.start_positions[i], period_ms=settings.sync_period_ms)
+              for i, n in enumerate(plan.node_ids)}
+    rig = Rig(plan, settings=settings, drives=drives)
+
+    def wire(rig: Rig) -> None:
+        m = rig.count
+        t_wire = rig.t + (0.006 if late_at is not None and m == late_at else 0.0)
+        answers: list[object] = []
+        for drive in drives.values():
+            answers.extend(drive.on_sync(m, t_wire))
+        answers.sort(key=lambda e: 0 if isinstance(e, Emcy) else 1 if isinstance(e, BufferStatus) else 2)
+        rig.feed(Sync(m, rig.t))
+        rig.feed(SyncOnWire(m, t_wire))
+        for ev in answers:
+            rig.feed(ev)
+        rig.count += 1
+
+    late_at: int | None = None
+    while rig.core.state is not JobState.RUNNING:
+        assert rig.count < 500 and rig.core.state is not JobState.FAILED, rig.core.outcome
+        wire(rig)
+    late_at = rig.count + 20  # in motion
+    while rig.core.state not in (JobState.DONE, JobState.FAILED) and rig.count < 2000:
+        wire(rig)
+    if absent:
+        assert rig.core.state is JobState.DONE, rig.core.outcome
+    else:
+        assert rig.core.state is JobState.FAILED, "the control should take the late SYNC's motion for a fault"
