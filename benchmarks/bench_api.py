@@ -31,7 +31,7 @@ from typing import Any
 import zenoh
 
 from planner.config import CellConfig, load_cell
-from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
+from streamer.api.backend import CancelToken, Emit, MotionBackend, Planned, planned_from_trajectory
 from streamer.api.client import MotionClient, load_job_file
 from streamer.api.service import JobService
 from streamer.api.store import JobStore
@@ -59,7 +59,7 @@ FALLBACK_JOB: dict[str, Any] = {
 }
 
 
-class _Backend:
+class _Backend(MotionBackend):
     """Plans with `plan_fn`; execute() reports done at once (this benchmark measures the API path)."""
 
     def __init__(
@@ -75,7 +75,9 @@ class _Backend:
     def validate(self, body: Mapping[str, Any]) -> Any:
         return self._validate(body)
 
-    def plan(self, job: Any, start: Mapping[str, float] | None = None) -> Planned:
+    def plan(self, job: Any, start: Mapping[str, float] | None = None, *,
+             last_target: Mapping[str, float | None] | None = None,
+             last_direction: Mapping[str, int] | None = None, lead_ms: int | None = None) -> Planned:
         return self._plan(job)  # every benchmark job starts from home (execute does not move)
 
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]:

@@ -119,7 +119,7 @@ def timing(jobs: int) -> None:
     import can
 
     from bus.cob import SYNC_COB_ID
-    from bus.profile import setpoint_slots
+    from bus.families import setpoint_slots
     from planner.job import load_job
     from planner.plan import plan_job
     from streamer import demo

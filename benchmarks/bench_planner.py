@@ -249,10 +249,10 @@ def measure(job: Job, cell: CellConfig) -> dict[str, Any]:
 def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, float]:
     """Median plan_job time against raw toppra's (interleaved runs), and where plan_job's time goes: its
     time-optimal solves, chain fits and encodings, timed by wrapping planner.topp.solve,
-    planner.chain.fit_chain and planner.plan.encode during the measurement. CPU time of this thread
+    planner.chain.fit_chain and planner.pipeline.encode during the measurement. CPU time of this thread
     (time.thread_time) throughout: on a shared machine, wall time also counts the other processes."""
     import planner.chain
-    import planner.plan
+    import planner.pipeline
     import planner.topp
 
     spent: dict[str, float] = {"topp": 0.0, "chain": 0.0, "encode": 0.0}
@@ -270,7 +270,7 @@ def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, f
     patches = [
         (planner.topp, "solve", "topp"),
         (planner.chain, "fit_chain", "chain"),
-        (planner.plan, "encode", "encode"),
+        (planner.pipeline, "encode", "encode"),
     ]
     plan_job(job, cell)  # warm up imports and caches
     raw_toppra(job, cell, refine=False)

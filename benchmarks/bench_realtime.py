@@ -87,7 +87,7 @@ def late_setpoints(log: Path, cell: CellConfig, traj: Any, since_s: float | None
     import can
 
     from bus.cob import SYNC_COB_ID
-    from bus.profile import setpoint_slots
+    from bus.families import setpoint_slots
     from streamer.report import decode_setpoints
 
     syncs = np.array([m.timestamp for m in can.LogReader(str(log)) if m.arbitration_id == SYNC_COB_ID])

@@ -101,7 +101,7 @@ def feedback_every(
 
 def cell_traffic(cell: Any) -> tuple[int, float]:
     """(cyclic nodes, their set point frames' bits per SYNC) of a `planner.config.CellConfig`."""
-    from bus.profile import setpoint_slots
+    from bus.families import setpoint_slots
 
     slots = setpoint_slots(cell.axes)
     frames = {s.cob_id: s.frame_bytes for s in slots.values()}

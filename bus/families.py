@@ -20,12 +20,14 @@ PT, AS, AT"), so a cyclic axis that cannot follow a stop trajectory quick-stops 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import MappingProxyType
 
 from bus import cob
 from bus.profile import (
+    MAX_GROUP_AXES,
+    MAX_GROUP_BITS,
     DriveProfile,
     ObjectRef,
     PdoEntry,
@@ -291,3 +293,41 @@ PROFILES: Mapping[str, DriveProfile] = MappingProxyType(
 def profile_of(axis: AxisConfig) -> DriveProfile:
     return PROFILES[axis.profile]
 
+
+def setpoint_slots(axes: Sequence[AxisConfig]) -> dict[int, SetpointSlot]:
+    """The set point slot of every cyclic axis of a cell (node id -> slot); FIFO axes have none.
+
+    An axis with `mux_group` 0 has RPDO3 0x400 + node to itself: 32-bit position (+ 32-bit velocity in
+    PV). The axes of one group share one frame, in node id order, 16 bits each (+ 16-bit velocity in PV),
+    with the RPDO3 COB-ID of the group's lowest node. Raises ValueError for a group that does not fit one
+    frame (more than 4 axes or 64 bits), or mixes families."""
+    slots: dict[int, SetpointSlot] = {}
+    groups: dict[int, list[AxisConfig]] = {}
+    for a in axes:
+        profile = PROFILES[a.profile]
+        if profile.kind != "cyclic":
+            continue
+        pv = profile.velocity_in_setpoint(a)
+        if a.mux_group:
+            groups.setdefault(a.mux_group, []).append(a)
+            continue
+        size = 8 if pv else 4
+        slots[a.node_id] = SetpointSlot(a.node_id, cob.rpdo3_id(a.node_id), 0, 32, 32 if pv else 0, size,
+                                        (a.node_id,))
+    for g, members in sorted(groups.items()):
+        members.sort(key=lambda a: a.node_id)
+        names = ", ".join(repr(a.name) for a in members)
+        if len({a.profile for a in members}) > 1:
+            raise ValueError(f"mux_group {g} ({names}) mixes drive families")
+        widths = [32 if PROFILES[a.profile].velocity_in_setpoint(a) else 16 for a in members]
+        if len(members) > MAX_GROUP_AXES or sum(widths) > MAX_GROUP_BITS:
+            raise ValueError(
+                f"mux_group {g} ({names}) needs {sum(widths)} bits in one frame; a frame carries 64 (four "
+                "16-bit positions, or two positions with their 16-bit velocities in sub-mode pv)")
+        cob_id = cob.rpdo3_id(members[0].node_id)
+        nodes = tuple(a.node_id for a in members)
+        offset = 0
+        for a, w in zip(members, widths, strict=True):
+            slots[a.node_id] = SetpointSlot(a.node_id, cob_id, offset // 8, 16, w - 16, sum(widths) // 8, nodes)
+            offset += w
+    return slots

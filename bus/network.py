@@ -68,9 +68,9 @@ from bus.errors import (
     ProtocolError,
 )
 from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, SendFailed, Sync
-from bus.families import PROFILES
+from bus.families import PROFILES, setpoint_slots
 from bus.probe import AbsentObject, WriteOnly
-from bus.profile import DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule, frame_to_event, setpoint_slots
+from bus.profile import DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule, frame_to_event
 from planner.config import AxisConfig, BusConfig, CellConfig
 from planner.readings import OPTIONAL_OBJECTS
 

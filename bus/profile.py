@@ -11,12 +11,12 @@ The families themselves are in bus/families.py: `epos-ipm` (maxon's PVT FIFO), `
 XtrapulsPac interpolated position, one set point per SYNC in 0x60C1) and `cia402-csp` (cyclic
 synchronous position, 0x607A every SYNC); each axis of a cell names its own (`AxisConfig.profile`).
 
-Set points of the cyclic families travel in RPDO3 (transmission type 1: applied at the next SYNC). An
-axis has an RPDO3 of its own (COB-ID 0x400 + node: position 32 bits, plus the velocity 32 bits in PV),
-or shares one frame with the other axes of its multiplexed group (XtrapulsPac 0x3350 = 1, seed 003
-"Multiplexed data"): every member maps 16-bit entries at its own offset of one frame with the COB-ID of
-the group's lowest node (its own RPDO3 COB-ID, so no new identifier is taken), dummy objects 0x0006 /
-0x0007 over the other members' bytes. `setpoint_slots` lays the slots out; the master and the simulated
+Set points of the cyclic families travel in RPDO3 (transmission type 1: applied at the next SYNC). An axis has
+an RPDO3 of its own (COB-ID 0x400 + node: position 32 bits, plus the velocity 32 bits in PV), or shares one
+frame with the other axes of its multiplexed group (XtrapulsPac 0x3350 = 1, seed 003 "Multiplexed data"):
+every member maps 16-bit entries at its own offset of one frame with the COB-ID of the group's lowest node
+(its own RPDO3 COB-ID, so no new identifier is taken), dummy objects 0x0006 / 0x0007 over the other members'
+bytes. `bus.families.setpoint_slots` lays the slots out (it needs the families); the master and the simulated
 drive both configure from it, the streamer packs the frames with it.
 """
 
@@ -256,47 +256,6 @@ def _dummies(bits: int) -> tuple[PdoEntry, ...]:
     if bits:
         raise ValueError(f"slot boundaries must be whole 16-bit words, {bits} bits left")
     return tuple(out)
-
-
-def setpoint_slots(axes: Sequence[AxisConfig]) -> dict[int, SetpointSlot]:
-    """The set point slot of every cyclic axis of a cell (node id -> slot); FIFO axes have none.
-
-    An axis with `mux_group` 0 has RPDO3 0x400 + node to itself: 32-bit position (+ 32-bit velocity in
-    PV). The axes of one group share one frame, in node id order, 16 bits each (+ 16-bit velocity in PV),
-    with the RPDO3 COB-ID of the group's lowest node. Raises ValueError for a group that does not fit one
-    frame (more than 4 axes or 64 bits), or mixes families."""
-    from bus.families import PROFILES
-
-    slots: dict[int, SetpointSlot] = {}
-    groups: dict[int, list[AxisConfig]] = {}
-    for a in axes:
-        profile = PROFILES[a.profile]
-        if profile.kind != "cyclic":
-            continue
-        pv = profile.velocity_in_setpoint(a)
-        if a.mux_group:
-            groups.setdefault(a.mux_group, []).append(a)
-            continue
-        size = 8 if pv else 4
-        slots[a.node_id] = SetpointSlot(a.node_id, cob.rpdo3_id(a.node_id), 0, 32, 32 if pv else 0, size,
-                                        (a.node_id,))
-    for g, members in sorted(groups.items()):
-        members.sort(key=lambda a: a.node_id)
-        names = ", ".join(repr(a.name) for a in members)
-        if len({a.profile for a in members}) > 1:
-            raise ValueError(f"mux_group {g} ({names}) mixes drive families")
-        widths = [32 if PROFILES[a.profile].velocity_in_setpoint(a) else 16 for a in members]
-        if len(members) > MAX_GROUP_AXES or sum(widths) > MAX_GROUP_BITS:
-            raise ValueError(
-                f"mux_group {g} ({names}) needs {sum(widths)} bits in one frame; a frame carries 64 (four "
-                "16-bit positions, or two positions with their 16-bit velocities in sub-mode pv)")
-        cob_id = cob.rpdo3_id(members[0].node_id)
-        nodes = tuple(a.node_id for a in members)
-        offset = 0
-        for a, w in zip(members, widths, strict=True):
-            slots[a.node_id] = SetpointSlot(a.node_id, cob_id, offset // 8, 16, w - 16, sum(widths) // 8, nodes)
-            offset += w
-    return slots
 
 
 def pack_setpoints(slot: SetpointSlot, frame: bytearray, position: int, velocity: int = 0) -> None:

@@ -47,7 +47,7 @@ import numpy as np
 
 from planner.config import AxisConfig, CellConfig
 from planner.errors import AXIS_COUNT, INFEASIBLE, NONFINITE, POSITION_LIMIT, PlanningError
-from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
+from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
 from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
 

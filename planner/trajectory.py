@@ -11,10 +11,10 @@ Deviation is measured in whole counts: drive demand (the Hermite rounded as the 
 planned demand (the plan rounded the same way), at every ms of every axis; the encoder guarantees it
 is within `tolerance_counts`. Against the unrounded plan that is within tolerance + 0.5 counts.
 
-Open-ended trajectories (a velocity move, planner/travel.py) end moving: `open_end` holds the cruise
-they end in (`travel.CruiseState`), their last knot has the cruise velocity, and `records()` leaves out
-the end record (time 0 would end the drive's interpolation): the streamer sends the records of
-`travel.extend_velocity(traj)` next, whose knot 0 is exactly this trajectory's last knot.
+Open-ended trajectories (a velocity move, planner/travel.py) end moving: `open_end` holds the cruise they end
+in (`CruiseState`, below: the trajectory carries it, so it lives here), their last knot has the cruise
+velocity, and `records()` leaves out the end record (time 0 would end the drive's interpolation): the streamer
+sends the records of `travel.extend_velocity(traj)` next, whose knot 0 is exactly this trajectory's last knot.
 """
 
 from __future__ import annotations
@@ -23,17 +23,18 @@ import csv
 import io
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from planner import hermite
+from planner.config import AxisConfig, CellConfig
 from planner.errors import ENCODING_RANGE, PlanningError
 from planner.record import PvtRecord, pack
 from planner.reference import FloatArray, IntArray, Reference
 
-if TYPE_CHECKING:
-    from planner.travel import CruiseState
+DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension, planner/travel.py)
+_RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
 
 CSV_COLUMNS = ("axis", "node_id", "index", "time_s", "dt_ms", "position_counts", "velocity_rpm")
 
@@ -305,3 +306,50 @@ class PvtTrajectory:
         for r in self.csv_rows():
             w.writerow((r[0], r[1], r[2], f"{r[3]:.3f}", r[4], r[5], r[6]))
         return buf.getvalue()
+
+
+@dataclass(frozen=True)
+class CruiseState:
+    """Where an open-ended velocity move stands at the end of a chunk, and what extending it needs
+    (planner/travel.py plans and extends the chunks).
+
+    Cruise knots lie at `position_at(e)` for e ms since the anchor, exactly (integers): see the module
+    docstring. `elapsed_ms` is the cruise time at the end of the trajectory that carries this state.
+    """
+
+    cell: CellConfig
+    axes: tuple[str, ...]
+    anchor_counts: tuple[int, ...]
+    velocity_rpm: tuple[int, ...]
+    elapsed_ms: int
+    deceleration: tuple[float, ...]  # user units/s^2: the limit stop's braking
+    jerk: tuple[float, ...]  # user units/s^3
+    velocity_limit: tuple[float, ...]  # the job's limits (user units), for the encoding checks
+    acceleration_limit: tuple[float, ...]
+    acceleration_axis: tuple[float, ...]
+    tolerance_counts: int = 1
+    chunk_ms: int = DEFAULT_CHUNK_MS
+
+    @property
+    def cfg(self) -> tuple[AxisConfig, ...]:
+        return tuple(self.cell.axis(a) for a in self.axes)
+
+    def position_at(self, elapsed_ms: int) -> list[int]:
+        """Cruise position (counts) of every axis `elapsed_ms` after the anchor, rounded half up, exactly."""
+        out = []
+        for a, v, c in zip(self.anchor_counts, self.velocity_rpm, self.cfg, strict=True):
+            q = v * c.counts_per_rev * int(elapsed_ms)
+            out.append(a + (2 * q + _RPM_MS) // (2 * _RPM_MS))
+        return out
+
+    def velocity_counts_per_ms(self) -> FloatArray:
+        return np.array([v * c.counts_per_rev / _RPM_MS for v, c in zip(self.velocity_rpm, self.cfg, strict=True)])
+
+    def limits(self) -> dict[str, FloatArray]:
+        return {
+            "velocity": np.array(self.velocity_limit),
+            "acceleration": np.array(self.acceleration_limit),
+            "jerk": np.array(self.jerk),
+            "velocity_axis": np.array(self.velocity_limit),
+            "acceleration_axis": np.array(self.acceleration_axis),
+        }

@@ -78,17 +78,16 @@ from planner.errors import (
     PlanningError,
 )
 from planner.job import MODULO_MODES, Job, MoveData, check_relative_target, effective_limits
+from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
 from planner.reference import FloatArray, IntArray, Reference, hold
-from planner.trajectory import PvtTrajectory
+from planner.trajectory import _RPM_MS, DEFAULT_CHUNK_MS, CruiseState, PvtTrajectory
 
-DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension)
 MIN_CHUNK_MS = 100  # shorter cruise segments turn the knots' rounding (<= 1 count) into acceleration noise
 MAX_CHUNK_MS = 60_000
 LIMIT_MARGIN_COUNTS = 1.0  # a limit stop ends this far inside the software limits (the knots round)
 STOP_RESERVE = 1.3  # a chunk stays open-ended only if a stop this much slower (longer) still fits from its end,
 # so the limit stop may be played slower where the encoding needs it and still end inside the limits
 CRUISE_SEGMENT_MS = 250  # cruise knots at most this far apart (<= 255, the PVT time field)
-_RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -222,59 +221,12 @@ class MotionState:
         )
 
 
-@dataclass(frozen=True)
-class CruiseState:
-    """Where an open-ended velocity move stands at the end of a chunk, and what extending it needs.
-
-    Cruise knots lie at `position_at(e)` for e ms since the anchor, exactly (integers): see the module
-    docstring. `elapsed_ms` is the cruise time at the end of the trajectory that carries this state.
-    """
-
-    cell: CellConfig
-    axes: tuple[str, ...]
-    anchor_counts: tuple[int, ...]
-    velocity_rpm: tuple[int, ...]
-    elapsed_ms: int
-    deceleration: tuple[float, ...]  # user units/s^2: the limit stop's braking
-    jerk: tuple[float, ...]  # user units/s^3
-    velocity_limit: tuple[float, ...]  # the job's limits (user units), for the encoding checks
-    acceleration_limit: tuple[float, ...]
-    acceleration_axis: tuple[float, ...]
-    tolerance_counts: int = 1
-    chunk_ms: int = DEFAULT_CHUNK_MS
-
-    @property
-    def cfg(self) -> tuple[AxisConfig, ...]:
-        return tuple(self.cell.axis(a) for a in self.axes)
-
-    def position_at(self, elapsed_ms: int) -> list[int]:
-        """Cruise position (counts) of every axis `elapsed_ms` after the anchor, rounded half up, exactly."""
-        out = []
-        for a, v, c in zip(self.anchor_counts, self.velocity_rpm, self.cfg, strict=True):
-            q = v * c.counts_per_rev * int(elapsed_ms)
-            out.append(a + (2 * q + _RPM_MS) // (2 * _RPM_MS))
-        return out
-
-    def velocity_counts_per_ms(self) -> FloatArray:
-        return np.array([v * c.counts_per_rev / _RPM_MS for v, c in zip(self.velocity_rpm, self.cfg, strict=True)])
-
-    def limits(self) -> dict[str, FloatArray]:
-        return {
-            "velocity": np.array(self.velocity_limit),
-            "acceleration": np.array(self.acceleration_limit),
-            "jerk": np.array(self.jerk),
-            "velocity_axis": np.array(self.velocity_limit),
-            "acceleration_axis": np.array(self.acceleration_axis),
-        }
-
-
 def plan_velocity(
     job: Job, cell: CellConfig, start_state: MotionState | None = None, *, chunk_ms: int = DEFAULT_CHUNK_MS
 ) -> PvtTrajectory:
     """A velocity move: ramp from `start_state` (default: at rest at the job's `start`, else 0) to the
     job's velocities, then cruise `chunk_ms`; open-ended unless the position limits end it (see the module
     docstring). The streaming side extends it with `extend_velocity` while it runs."""
-    from planner.plan import axis_configs, axis_scales, build_trajectory, encode_with_retries
 
     d = job.data
     if not isinstance(d, MoveData) or d.velocity is None:
@@ -384,7 +336,6 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
     `chunk_ms` of cruise (default: the plan's), or up to the limit stop (closed) where the position
     limits come first (see the module docstring)."""
     from planner.encoder import ACC_EXCESS_LIMIT, Knots, acceleration_excess, planned_demand, reconstruct
-    from planner.plan import axis_scales, build_trajectory, encode_with_retries
 
     st = traj_or_state.open_end if isinstance(traj_or_state, PvtTrajectory) else traj_or_state
     if st is None:

@@ -471,7 +471,7 @@ class DriveDevice:
         slot: SetpointSlot | None = None,
     ) -> list[Frame]:
         """Apply the very writes the master sends over SDO (`profile.configuration`), then NMT start.
-        `slot`: a cyclic axis' set point slot (bus.profile.setpoint_slots of the cell).
+        `slot`: a cyclic axis' set point slot (bus.families.setpoint_slots of the cell).
 
         For virtual-time runtimes that bypass SDO. Boots the drive first if it was not powered on. Like
         the master, it skips the optional objects the drive lacks and refuses a missing essential one.

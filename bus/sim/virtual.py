@@ -16,7 +16,8 @@ from collections.abc import Mapping
 from bus import codec
 from bus.budget import cell_feedback_every
 from bus.codec import Frame
-from bus.profile import DriveProfile, FeedbackSchedule, feedback_schedule, setpoint_slots
+from bus.families import setpoint_slots
+from bus.profile import DriveProfile, FeedbackSchedule, feedback_schedule
 from bus.sim import make_drive
 from bus.sim.device import DriveDevice
 from bus.sim.motor import DEFAULT_MOTOR, MotorParams

@@ -1,21 +1,31 @@
-"""The seam between the job service and the motion runtime: the `MotionBackend` protocol.
+"""The seam between the job service and the motion runtime: the `MotionBackend` base class.
 
 The job service (streamer/api/service.py) owns the network side: decoding, admission, the queue, the
 journal, events and telemetry. Everything that touches the planner or the bus is behind this
 protocol, so the service is tested with a fake (tests/api/fakes.py) and the motion runtime plugs in
 without the service knowing about CAN.
 
-    class MotionBackend(Protocol):
+    class MotionBackend(abc.ABC):
         cell: CellConfig
-        def validate(self, body: Mapping[str, Any]) -> Any
+        can_change: ClassVar[bool] = False
+        can_emergency_stop: ClassVar[bool] = False
+        def validate(self, body: Mapping[str, Any]) -> Any                                   # abstract
         def plan(self, job: Any, start: Mapping[str, float] | None, *,
                  last_target: Mapping[str, float | None] | None = None,
-                 last_direction: Mapping[str, int] | None = None) -> Planned
-        def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]
-        def telemetry(self) -> Sequence[Mapping[str, Any]]
-        def ready(self) -> tuple[bool, str]
-        def reset(self) -> tuple[bool, str]
-        def close(self) -> None
+                 last_direction: Mapping[str, int] | None = None,
+                 lead_ms: int | None = None) -> Planned                                      # abstract
+        def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]  # abstract
+        def telemetry(self) -> Sequence[Mapping[str, Any]]                                   # abstract
+        def ready(self) -> tuple[bool, str]                                                  # abstract
+        def reset(self) -> tuple[bool, str]                                                  # abstract
+        def close(self) -> None                                                              # abstract
+        def change(self, job, mode, emit, *, last_target=None, last_direction=None)          # rejects
+        def current_positions(self) -> Mapping[str, float] | None                            # None
+        def emergency_stop(self) -> str | Mapping[str, Any]                                  # none
+        def take_recording(self) -> Any                                                      # None
+
+A backend subclasses it; the optional capabilities have defaults (python-can's `BusABC` way), so the service
+calls every method as declared and never probes a backend for what it takes or has.
 
 Contract, method by method (which service thread calls it, what it may raise):
 
@@ -32,8 +42,9 @@ Contract, method by method (which service thread calls it, what it may raise):
   `plan_job(job, cell, start=[start.get(a, current[a]) for a in job.axes])`. `last_target` and
   `last_direction` (axis name -> the last commanded target, None for none, and the sign of the last
   commanded motion; the service keeps them from every job it accepted: `Planned.commanded_target` /
-  `commanded_direction`) serve the additive and modulo_current modes (planner/travel.py); a backend whose
-  `plan` does not take them is called without (additive then counts from the start position).
+  `commanded_direction`) serve the additive and modulo_current modes (planner/travel.py); a backend that has
+  no use for them ignores them (additive then counts from the start position). `lead_ms` (given only when
+  the job set its own lead): segments bounded so that a change or stop acts within about that lead.
 - `execute(planned, emit, cancel)`: runs the motion and blocks until it has ended. Called on the
   service's executor thread, one job at a time, only when `ready()` said True just before. While it
   runs it calls `emit("running", {"progress": p, ...})` (p in 0..1, at any rate: the service
@@ -69,20 +80,22 @@ Contract, method by method (which service thread calls it, what it may raise):
 - `reset()`: clear a fault (fault reset on the drives); returns `ready()` afterwards. Called by the
   control thread only while no job runs.
 - `close()`: release the bus. Called once, after the executor has stopped.
-- optional `current_positions() -> Mapping[str, float]`: where each axis' position demand stands now,
-  user units (any thread, cheap). With it, the service checks before `execute` that a queued job still
-  starts where the axes stand (the job before it may have been cancelled or stopped): a move is re-planned
-  from there, a path/timed/pvt job fails INFEASIBLE naming the axis and both positions, unless it said
+- optional `current_positions() -> Mapping[str, float] | None`: where each axis' position demand stands now,
+  user units (any thread, cheap); the default None: not known. With it, the service checks before `execute`
+  that a queued job still starts where the axes stand (the job before it may have been cancelled or stopped): a move is
+  re-planned from there, a path/timed/pvt job fails INFEASIBLE naming the axis and both positions, unless it said
   `start = "current"` (a path is then planned from where the axes stand through all its waypoints).
-- optional `emergency_stop() -> str | Mapping`: the fastest stop the motion runtime has, on every axis (the
+- optional `emergency_stop() -> str | Mapping`, with `can_emergency_stop = True`: the fastest stop the
+  motion runtime has, on every axis (the
   real backend: the running job's planned emergency stop at each axis' emergency deceleration, spliced
   after what is queued; the quick stop, controlword 0x000B, each drive ramping down on its quick stop
   deceleration 0x6085, when no plan is possible or nothing runs); a running `execute` then returns
   "failed" with code EMERGENCY_STOP, and `ready()` stays False until `reset()`. Any thread; returns what
   it did for the reply: a message (method `quick_stop`) or `{"method": "emergency_trajectory" |
-  "quick_stop", "message": ...}`. Without it the service's emergency stop falls back to the jerk-limited
-  stop of a cancel.
-- optional `change(job, mode, emit) -> (Planned, info)`: a move submitted with `buffer = "aborting"` while a
+  "quick_stop", "message": ...}`. Without it (the default) the service's emergency stop falls back to the
+  jerk-limited stop of a cancel.
+- optional `change(job, mode, emit, *, last_target, last_direction) -> (Planned, info)`, with
+  `can_change = True`: a move submitted with `buffer = "aborting"` while a
   job runs: replace the running job's remainder with it, without stopping, planned from the state at the
   end of what is queued (streamer.core.Change); from then on the new job's progress goes to `emit`.
   Returns the new job's `Planned` and what was done (`time_ms`: where it begins in the running stream,
@@ -90,11 +103,11 @@ Contract, method by method (which service thread calls it, what it may raise):
   Raises `MotionError(COMMAND_REJECTED)` naming the reason when it cannot be made (out of reach within the
   limits and position limits, cannot be streamed in time, the running plan's end already queued); the
   running job then goes on untouched. Intake thread; it waits for the SYNC thread's answer (a period or two).
-  Without it, `aborting` is rejected while a job runs.
+  Without it (the default), `aborting` is rejected while a job runs.
 - optional `take_recording()`: the recording of the job the last `execute` ran (a
   `streamer.recording.JobRecording`, or `streamer.recording.writer.RecordingInputs` to build it from),
   or None; each once. Called on the executor thread right after `execute`; the service writes it
-  beside its journal (docs/recording.md). A backend without it has no recordings.
+  beside its journal (docs/recording.md). The default: None, no recordings.
 
 `load_backend(spec, cell, ...)` imports a backend factory by "module:function" name; `pvt serve`
 uses `DEFAULT_BACKEND` unless `--backend` names another (tests use this to run the fake).
@@ -102,13 +115,16 @@ uses `DEFAULT_BACKEND` unless `--backend` names another (tests use this to run t
 
 from __future__ import annotations
 
+import abc
 import importlib
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, ClassVar
 
 from planner.config import CellConfig
+from streamer.api import errors as E
+from streamer.api.errors import MotionError
 
 # The motion runtime's factory: open_backend(cell, *, sim, interface, channel, bitrate) -> MotionBackend
 DEFAULT_BACKEND = "streamer.runtime.backend:open_backend"
@@ -212,28 +228,64 @@ class CancelToken:
         return self._event.wait(timeout)
 
 
-class MotionBackend(Protocol):
-    """What the job service needs from the motion runtime (see the module docstring for the contract)."""
+class MotionBackend(abc.ABC):
+    """What the job service needs from the motion runtime (see the module docstring for the contract). A
+    backend subclasses it: the required methods are abstract, the optional capabilities are methods with
+    defaults (python-can's `BusABC` way), and the two capabilities the service must know of before it acts
+    are declared (`can_change`, `can_emergency_stop`), so the service never probes a backend."""
 
     cell: CellConfig
+    can_change: ClassVar[bool] = False  # `change` splices a job into the running motion (else it rejects)
+    can_emergency_stop: ClassVar[bool] = False  # `emergency_stop` has a stop of its own (else the cancel's)
 
+    @abc.abstractmethod
     def validate(self, body: Mapping[str, Any]) -> Any: ...
 
-    def plan(self, job: Any, start: Mapping[str, float] | None) -> Planned: ...  # (+ last_target, last_direction)
+    @abc.abstractmethod
+    def plan(self, job: Any, start: Mapping[str, float] | None, *,
+             last_target: Mapping[str, float | None] | None = None,
+             last_direction: Mapping[str, int] | None = None, lead_ms: int | None = None) -> Planned:
+        """`last_target` / `last_direction`: what the service keeps of the accepted jobs (None: nothing known);
+        `lead_ms`: the job's own lead (None: the cell's). A backend ignores what it has no use for."""
 
+    @abc.abstractmethod
     def execute(self, planned: Planned, emit: Emit, cancel: CancelToken) -> Mapping[str, Any]: ...
 
+    @abc.abstractmethod
     def telemetry(self) -> Sequence[Mapping[str, Any]]: ...
 
+    @abc.abstractmethod
     def ready(self) -> tuple[bool, str]: ...
 
+    @abc.abstractmethod
     def reset(self) -> tuple[bool, str]: ...
 
+    @abc.abstractmethod
     def close(self) -> None: ...
+
+    def change(self, job: Any, mode: str, emit: Emit, *, last_target: Mapping[str, float | None] | None = None,
+               last_direction: Mapping[str, int] | None = None) -> tuple[Planned, dict[str, Any]]:
+        """Splice `job` into the running motion (a backend with `can_change`); by default it cannot."""
+        raise MotionError(E.COMMAND_REJECTED, "this backend cannot change a running motion", path="buffer")
+
+    def current_positions(self) -> Mapping[str, float] | None:
+        """Where each axis' position demand stands now, user units; None (the default): not known."""
+        return None
+
+    def emergency_stop(self) -> str | Mapping[str, Any]:
+        """The fastest stop the runtime has (a backend with `can_emergency_stop`); by default none: the service
+        stops with the cancel's stop and does not call this."""
+        raise NotImplementedError(f"{type(self).__name__} has no emergency stop of its own")
+
+    def take_recording(self) -> Any:
+        """The recording of the job the last `execute` ran, once; None (the default): none."""
+        return None
 
 
 def check_backend(obj: object) -> None:
     """Raise TypeError naming what is missing if `obj` does not look like a MotionBackend."""
+    if not isinstance(obj, MotionBackend):
+        raise TypeError(f"{type(obj).__name__} is not a MotionBackend: subclass streamer.api.backend.MotionBackend")
     missing = [m for m in REQUIRED_METHODS if not callable(getattr(obj, m, None))]
     if not isinstance(getattr(obj, "cell", None), CellConfig):
         missing.append("cell (a CellConfig)")

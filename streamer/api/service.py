@@ -18,7 +18,7 @@ into a queue (they run on Zenoh's threads and must return at once):
   order. Backends may emit from any thread; emitting never blocks (progress is throttled).
 - telemetry: publishes the backend's per-axis snapshot at `telemetry_hz`.
 
-Recordings: a backend that has `take_recording()` (the real one does) hands over each job's recording
+Recordings: a backend whose `take_recording()` returns one (the real one's does) hands over each job's recording
 (a `JobRecording`, or the `RecordingInputs` to build it from) after `execute`; the executor has it
 built and written to `<recordings dir>/<job_id>.mcap` (default: beside the journal, `<journal
 stem>.recordings/`) by a low-priority worker process (streamer/recording/writer.py: this process keeps
@@ -33,15 +33,15 @@ executor checks that it still starts where the axes stand (`current_positions()`
 job before it may have been cancelled or stopped elsewhere. A move is re-planned from there; a path,
 timed or pvt job fails INFEASIBLE naming the axis, where it stands and where the job starts, unless the
 job said `start = "current"` (a path is then planned from where the axes stand through its waypoints).
-Stop with `emergency=true` calls the backend's `emergency_stop()` when it has one (the real backend: the
-running job's planned emergency stop at the emergency deceleration, or the quick stop on every drive when no
-plan is possible; the reply's `method` says which); `resume` then re-enables the drives.
+Stop with `emergency=true` calls the backend's `emergency_stop()` when it has one (`can_emergency_stop`; the
+real backend: the running job's planned emergency stop at the emergency deceleration, or the quick stop on
+every drive when no plan is possible; the reply's `method` says which); `resume` then re-enables the drives.
 
 Travel memory (planner/travel.py's `last_target` contract): per axis the service keeps the last commanded
 target (a move's resolved target, a path/timed/pvt job's last row, None after a velocity move; also for a
 job later stopped, cancelled or replaced) and the sign of the last commanded motion, from every job it
 accepts (`Planned.commanded_target` / `commanded_direction`), and passes them to `backend.plan` and
-`backend.change` (when they take them), so `additive` and `modulo_current` moves work through the
+`backend.change`, so `additive` and `modulo_current` moves work through the
 service; a queued job re-planned at its start keeps those it was accepted with.
 
 A cancel of the running job is journalled at once as a `cancelling` event (state CANCELLING); the
@@ -59,7 +59,6 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
-import inspect
 import logging
 import math
 import queue
@@ -698,8 +697,8 @@ class JobService:
             moved = self._with_start(sub.body, {**here, **(start or {})})
             if moved is not None:
                 job = self.backend.validate(moved)
-        travel = self._travel(self.backend.plan)
-        if lead_ms is not None and _takes(self.backend.plan, "lead_ms"):
+        travel: dict[str, Any] = self._travel()
+        if lead_ms is not None:
             travel["lead_ms"] = lead_ms  # a short lead bounds the plan's segments (so a change acts within it)
         planned = self.backend.plan(job, start, **travel)
         if not isinstance(planned, Planned):
@@ -768,8 +767,7 @@ class JobService:
         """`buffer = "aborting"` while `current` moves: the backend splices the job in after what is queued
         (or refuses, COMMAND_REJECTED, and nothing changes); the running job ends `aborted` naming this one,
         which is journalled running at once and owns the motion (and its cancel token) from here on."""
-        change = getattr(self.backend, "change", None)
-        if not callable(change):
+        if not self.backend.can_change:
             raise MotionError(E.COMMAND_REJECTED, "this backend cannot change a running motion", path="buffer")
         with self._cv:
             moving = current.started and not current.cancel_requested and current.emitter is not None
@@ -778,7 +776,7 @@ class JobService:
                               f"{'stopping' if current.cancel_requested else 'not moving yet'}: nothing to change",
                               path="buffer")
         emitter = _Emitter(self, job_id, 1.0 / self.options.progress_hz, paused=True)
-        planned, info = change(job, "aborting", emitter, **self._travel(change))
+        planned, info = self.backend.change(job, "aborting", emitter, **self._travel())
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.change returned {type(planned).__name__}, not Planned")
         planning_s = time.perf_counter() - t0
@@ -824,15 +822,9 @@ class JobService:
                  current.job_id, info.get("time_ms"), info.get("reaction_ms"))
         return record, False, planning_s
 
-    def _travel(self, fn: Callable[..., Any]) -> dict[str, Any]:
-        """The last commanded target and direction per axis, as keyword arguments of `fn` (the backend's plan
-        or change), or {} when it does not take them."""
-        try:
-            params = inspect.signature(fn).parameters
-        except (TypeError, ValueError):
-            return {}
-        if "last_target" not in params:
-            return {}
+    def _travel(self) -> dict[str, Any]:
+        """The last commanded target and direction per axis, as keyword arguments of the backend's plan or
+        change."""
         with self._cv:
             return {"last_target": dict(self._last_target), "last_direction": dict(self._last_direction)}
 
@@ -954,11 +946,11 @@ class JobService:
     # -- the start of a queued job -------------------------------------------------------------------
     def _positions(self) -> dict[str, float] | None:
         """Where every axis' position demand stands (backend.current_positions()), or None if unknown."""
-        get = getattr(self.backend, "current_positions", None)
-        if not callable(get):
-            return None
         try:
-            return {str(k): float(v) for k, v in dict(get()).items()}
+            got = self.backend.current_positions()
+            if got is None:
+                return None
+            return {str(k): float(v) for k, v in dict(got).items()}
         except Exception as exc:
             log.warning("backend.current_positions() raised %s: %s", type(exc).__name__, exc)
             return None
@@ -1031,11 +1023,10 @@ class JobService:
 
     def _record(self, job_id: str, report: Any) -> Any:
         """Write the job's recording (if the backend made one); the report says where, or why not."""
-        take = getattr(self.backend, "take_recording", None)
-        if self._writer is None or not callable(take):
+        if self._writer is None:
             return report
         try:
-            rec = take()
+            rec = self.backend.take_recording()
             if rec is None:
                 return report
             saved = self._writer.save(job_id, rec, cell=self.cell)
@@ -1377,16 +1368,15 @@ class JobService:
         self._hold("emergency stop" if emergency else "stop requested")
         with self._cv:
             current = self._current
-        stop_all = getattr(self.backend, "emergency_stop", None)
         method = "none"
         what = ""
-        if emergency and callable(stop_all):
+        if emergency and self.backend.can_emergency_stop:
             if current is not None:
                 current.emergency = True
                 if not current.started:
                     current.token.cancel()  # it had not started: it never will
             try:
-                did = stop_all()
+                did = self.backend.emergency_stop()
             except Exception as exc:
                 log.exception("backend.emergency_stop() raised")
                 raise MotionError(E.INTERNAL, f"backend.emergency_stop() raised {type(exc).__name__}: {exc}") from None
@@ -1581,11 +1571,3 @@ class JobService:
     def _drop(query: Any) -> None:
         with contextlib.suppress(Exception):
             query.drop()
-
-
-def _takes(fn: Callable[..., Any], name: str) -> bool:
-    """Does `fn` (a backend method) take the keyword `name`? (Backends written before it do not.)"""
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False

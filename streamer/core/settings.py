@@ -181,8 +181,7 @@ class StreamerSettings:
     def from_cell(cls, cell: Any, **overrides: Any) -> StreamerSettings:
         """Settings for a `planner.config.CellConfig` (typed Any so this module does not pull the TOML
         loader into the core's type check); keyword overrides win."""
-        from bus.families import PROFILES
-        from bus.profile import setpoint_slots
+        from bus.families import PROFILES, setpoint_slots
 
         slots = setpoint_slots(cell.axes)
         cyclic = {a.node_id: CyclicAxis(slots[a.node_id], PROFILES[a.profile].submode(a),

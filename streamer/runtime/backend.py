@@ -64,7 +64,7 @@ from planner.job import Job, MoveData, job_from_dict
 from planner.plan import plan_job
 from planner.travel import resolve_target
 from streamer.api import errors as E
-from streamer.api.backend import CancelToken, Emit, Planned, planned_from_trajectory
+from streamer.api.backend import CancelToken, Emit, MotionBackend, Planned, planned_from_trajectory
 from streamer.api.errors import MotionError
 from streamer.core.coordinator import Coordinator, JobState
 from streamer.core.plan_source import Change, ChangeResult, EmergencyStop
@@ -103,7 +103,10 @@ EMERGENCY_STOP = "EMERGENCY_STOP"
 QUICK_STOP_WAIT_S = 2.0  # how long a resume is BUSY after an emergency quick stop, at most
 
 
-class RuntimeBackend:
+class RuntimeBackend(MotionBackend):
+    can_change = True
+    can_emergency_stop = True
+
     def __init__(self, cell: CellConfig, *, sim: bool = False, bus_config: BusConfig | None = None):
         self.cell = dataclasses.replace(cell, bus=bus_config) if bus_config is not None else cell
         self._lock = threading.Lock()

@@ -30,8 +30,7 @@ import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, Protocol
 
-from bus.families import PROFILES
-from bus.profile import setpoint_slots
+from bus.families import PROFILES, setpoint_slots
 from planner.config import CellConfig
 from planner.job import HomeData, Job
 

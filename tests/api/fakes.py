@@ -25,7 +25,7 @@ from typing import Any
 from planner.config import CellConfig
 from planner.errors import PlanningError
 from planner.job import job_fields
-from streamer.api.backend import CancelToken, Emit, Planned
+from streamer.api.backend import CancelToken, Emit, MotionBackend, Planned
 
 # kind: (required fields, optional fields), the planner's own (planner/job.py `job_fields`); "name" is fake-only
 KINDS: dict[str, tuple[set[str], set[str]]] = {
@@ -45,8 +45,12 @@ MAGIC_ERRORS = {
 }
 
 
-class FakeBackend:
-    """A MotionBackend test double. Deterministic: a job of duration D runs D * time_scale wall seconds."""
+class FakeBackend(MotionBackend):
+    """A MotionBackend test double. Deterministic: a job of duration D runs D * time_scale wall seconds. Its
+    `plan` ignores the travel memory and the lead (as the `plan` callback it may be given, which takes the job
+    and the start)."""
+
+    can_emergency_stop = True
 
     def __init__(
         self,
@@ -186,7 +190,9 @@ class FakeBackend:
             if not math.isfinite(v):
                 raise PlanningError("NONFINITE", f"{path}[{j}] is {v}", path=f"{path}[{j}]")
 
-    def plan(self, job: Any, start: Mapping[str, float] | None = None) -> Planned:
+    def plan(self, job: Any, start: Mapping[str, float] | None = None, *,
+             last_target: Mapping[str, float | None] | None = None,
+             last_direction: Mapping[str, int] | None = None, lead_ms: int | None = None) -> Planned:
         self.planned += 1
         self.plan_starts.append(dict(start) if start is not None else None)
         if self._plan is not None:

@@ -14,8 +14,8 @@ from bus_testkit import make_axis, make_cell
 
 from bus import cob, codec
 from bus.codec import Cia402State, Frame, NmtState
-from bus.families import CIA402_CSP
-from bus.profile import pack_setpoints, setpoint_slots
+from bus.families import CIA402_CSP, setpoint_slots
+from bus.profile import pack_setpoints
 from bus.sim import make_drive
 from bus.sim import od as odm
 from bus.sim.csp import CspDrive

@@ -17,9 +17,9 @@ from bus_testkit import make_axis, make_cell, wait_until
 
 from bus import cob, codec
 from bus.codec import Cia402State, Frame, NmtCommand, NmtState
-from bus.families import XTRAPULS_IP
+from bus.families import XTRAPULS_IP, setpoint_slots
 from bus.network import MasterAdapter
-from bus.profile import SetpointSlot, pack_setpoints, setpoint_slots
+from bus.profile import SetpointSlot, pack_setpoints
 from bus.sim import make_drive
 from bus.sim import od as odm
 from bus.sim.node import SimulatedCell

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from bus.cob import SYNC_COB_ID
-from bus.profile import setpoint_slots
+from bus.families import setpoint_slots
 from bus.sim.virtual import VirtualCell
 from planner import cyclic
 from streamer import demo

@@ -17,7 +17,7 @@ from pathlib import Path
 import can
 import pytest
 
-from bus.profile import setpoint_slots
+from bus.families import setpoint_slots
 from planner.config import load_cell
 from streamer import demo
 from streamer.cli.demo import guarantees
