@@ -234,9 +234,6 @@ _EXTENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING})  # job states in w
 EXTEND_EARLY_MS = 500  # ask the extender this long before the chunk is needed (it may plan on another thread)
 MAX_EXTENSIONS_PER_SYNC = 4  # short chunks: several may be needed at once; bounded so one SYNC stays short
 LONGEST_SEGMENT_MS = 255  # the PVT time field
-# a drive timed by the SYNCs it receives (no 0x1006): no drift, only its receive delay against the SYNC's
-# time on the wire (tens of us) over the time since the last demand that pinned it
-SYNC_TIMED_PPM = 100.0
 
 _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
     _J.CONFIGURING: frozenset({_J.PRIMING, _J.CANCELLED, _J.FAILED}),
@@ -484,13 +481,8 @@ class Coordinator:
                     open_end=self._plan.open_end,
                 )
                 self._feeders.append(feeder)
-            # a drive without 0x1006 (the cycle period) times its interpolation by the SYNCs it receives: like
-            # its own clock, with no drift of its own (the SYNC's time on the wire is its time base)
-            by_sync_time = bool(r.absent) and 0x1006 in (r.absent or ())
-            self._clocks[node] = DriveTime(
-                s.sync_period_ms, own_clock=(r.clock == "own" or by_sync_time) and node not in s.cyclic,
-                ppm_max=SYNC_TIMED_PPM if by_sync_time and r.clock != "own" else r.clock_ppm_max,
-                time_stamped=s.time_stamp)
+            self._clocks[node] = DriveTime.of_reading(r, s.sync_period_ms, cyclic=node in s.cyclic,
+                                                      time_stamped=s.time_stamp)
             self._sampling[node] = r.tpdo_sampling
             self._axes.append(feeder)
             self._by_node[node] = feeder

@@ -21,9 +21,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 
+from planner.readings import DriveReadings
+
 # the drive anchors its grid when it processes the enabling SYNC; the master's time stamp of that SYNC
 # differs from the drive's reception by bus and processing delays
 _ANCHOR_SLACK_MS = 0.25
+# a drive timed by the SYNCs it receives (no 0x1006): no drift, only its receive delay against the SYNC's
+# time on the wire (tens of us) over the time since the last demand that pinned it
+SYNC_TIMED_PPM = 100.0
 
 
 class DriveTime:
@@ -41,6 +46,16 @@ class DriveTime:
         self._lo = 0.0
         self._hi = 0.0
         self.narrowings = 0
+
+    @classmethod
+    def of_reading(cls, r: DriveReadings, period_ms: int, *, cyclic: bool, time_stamped: bool) -> DriveTime:
+        """The clock of a drive with readings `r`: locked to SYNC, its own (`clock = "own"`), or timed by the
+        SYNCs it receives (0x1006, the cycle period, absent: like its own clock with no drift of its own, the
+        SYNC's time on the wire its time base). A cyclic drive takes a set point per SYNC: locked."""
+        by_sync_time = 0x1006 in (r.absent or ())
+        own = r.clock == "own"
+        return cls(period_ms, own_clock=(own or by_sync_time) and not cyclic,
+                   ppm_max=r.clock_ppm_max if own else SYNC_TIMED_PPM, time_stamped=time_stamped)
 
     def start(self, sync: int, t: float) -> None:
         """Interpolation began at SYNC `sync`, sent at time `t` (s)."""
