@@ -1130,7 +1130,8 @@ class Coordinator:
     def _update_safe_prefix(self, m: int) -> None:
         if self._start_sync is not None:
             _, next_hi = self._elapsed_bounds(m + 1, self._sync_time(m) + self._period / 1000.0)
-            horizon = next_hi + self._policy.repair_syncs * self._period
+            # fed ahead, a batch's confirmation (and so the next batch) comes `ahead_syncs` SYNCs later too
+            horizon = next_hi + (self._policy.repair_syncs + self._settings.ahead_syncs) * self._period
             self._safe_prefix = consumed_at(self._ends, horizon) + self._policy.underflow_watermark
 
     def _feed(self, f: FifoFeeder, fill: int, free: int) -> None:

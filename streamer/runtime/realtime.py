@@ -83,9 +83,19 @@ def _switch_interval(seconds: float) -> Iterator[None]:
 
 def default_ahead_ms(cell: CellConfig) -> float:
     """How far ahead of the cycle engine the core runs by default: far enough to ride out a stall of the
-    master's process where a late frame faults a drive (cyclic set points), one period where it does not."""
+    master's process where a late frame faults a drive (cyclic set points: CYCLIC_AHEAD_MS, or the stall
+    PVT_HOST_STALL_MS states for this machine when longer), one period where it does not."""
     cyclic = any(PROFILES[a.profile].kind == "cyclic" for a in cell.axes)
-    return CYCLIC_AHEAD_MS if cyclic else FIFO_AHEAD_MS
+    return max(CYCLIC_AHEAD_MS, HOST_STALL_MS) if cyclic else FIFO_AHEAD_MS
+
+def with_host_stall(settings: StreamerSettings, stall_ms: float) -> StreamerSettings:
+    """`settings` whose TPDO timeout waits at least `stall_ms` (PVT_HOST_STALL_MS: how long this machine may
+    hold the drives' answers up), in whole SYNCs, at most 100."""
+    if stall_ms <= 0:
+        return settings
+    syncs = min(100, math.ceil(stall_ms / settings.sync_period_ms))
+    return replace(settings, tpdo_timeout_syncs=max(settings.tpdo_timeout_syncs, syncs))
+
 
 _gc_lock = threading.Lock()
 _gc_holders = 0  # jobs streaming in this process (several runtimes may share one, as in the tests)
@@ -367,9 +377,7 @@ class RealtimeRuntime:
         engine = self.adapter.engine is not None
         if engine:
             settings = replace(settings, ahead_syncs=_Announcer.syncs_for(self.ahead_ms, cell.sync_period_s))
-        if HOST_STALL_MS > 0:
-            stall = min(100, math.ceil(HOST_STALL_MS / cell.sync_period_ms))
-            settings = replace(settings, tpdo_timeout_syncs=max(settings.tpdo_timeout_syncs, stall))
+        settings = with_host_stall(settings, HOST_STALL_MS)
         prefetch: PrefetchExtender | None = None
         if extender is None:
             extender = prefetch = PrefetchExtender()
