@@ -39,20 +39,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--external-drives", action="store_true",
                    help="do not start simulated drives here (they run elsewhere, e.g. `pvt sim`)")
     p.add_argument("--quiet", action="store_true", help="no live display")
+    from streamer.cli.live_options import add_live_option
+
     add_live_option(p)
     p.add_argument("--live-wait", type=float, default=30.0, metavar="S",
                    help="with --fast --live: wait up to S seconds for a client to subscribe to every axis before "
                         "the job runs (virtual time is over in a blink), default 30")
     p.set_defaults(func=run)
-
-
-def add_live_option(p: Any) -> None:
-    """`--live [PORT]` (pvt demo, pvt serve): the live channels over Foxglove's WebSocket protocol."""
-    from streamer.live import DEFAULT_PORT
-
-    p.add_argument("--live", nargs="?", type=int, const=DEFAULT_PORT, default=None, metavar="PORT",
-                   help=f"publish the job's channels live on ws://127.0.0.1:PORT (Foxglove; default port "
-                        f"{DEFAULT_PORT}): docs/recording.md#live-channels")
 
 
 def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:

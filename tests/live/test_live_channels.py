@@ -5,10 +5,12 @@ gets every axis' samples of every SYNC of the job, with the values the run's rep
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -103,3 +105,84 @@ def test_demo_live_channels_carry_every_sync_of_every_axis(tmp_path: Path) -> No
     assert [e["sync"] for e in starts] == [report["axes"][0]["start_sync"]]
     states = [e["state"] for e in events if e["kind"] == "state"]
     assert states[-1] == "done" and "running" in states
+
+
+@pytest.mark.slow
+def test_serve_live_publishes_telemetry_and_the_jobs_samples(tmp_path: Path) -> None:
+    """`pvt serve --sim --live PORT`: telemetry before any job, then a submitted move's per-SYNC samples on its
+    axes' channels (the plan goes to the target, the drive follows it there) and its events, live."""
+    import threading
+
+    from planner.config import load_cell
+    from streamer.api.client import MotionClient
+    from tests.api.conftest import free_port as zenoh_port
+    from tests.cli.conftest import start_pvt
+
+    cell = load_cell(ROOT / "configs" / "demo.toml")
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{zenoh_port()}"
+    proc = start_pvt("serve", "--config", str(ROOT / "configs" / "demo.toml"), "--sim", "--listen", endpoint,
+                     "--store", str(tmp_path / "s"), "--no-record", "--log-level", "WARNING", "--live", str(port))
+    client = None
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline(), proc.stdout.readline()]
+        assert any(f"live channels on ws://127.0.0.1:{port}" in line for line in lines), lines
+        assert any("ready" in line for line in lines), lines
+        client = connect("127.0.0.1", port, timeout_s=30.0)
+        topics = ["/cell/telemetry", "/axis/j1", "/axis/j2", "/job/events"]
+        ids = client.wait_channels(topics, timeout_s=30.0)
+        client.subscribe(list(ids.values()))
+        got: dict[str, list[dict[str, Any]]] = {t: [] for t in topics}
+
+        def read_until(stop: Callable[[], bool], timeout_s: float) -> None:
+            end = time.monotonic() + timeout_s
+            while time.monotonic() < end and not stop():
+                kind, payload = client.next_message()
+                if kind == "data":
+                    got[payload[0]].append(payload[2])
+
+        read_until(lambda: len(got["/cell/telemetry"]) >= 3, 30.0)
+        before = got["/cell/telemetry"][-1]
+        assert [a["name"] for a in before["axes"]] == [a.name for a in cell.axes]
+        target = [0.3, -0.2]
+        done: list[Any] = []
+
+        def submit() -> None:
+            with MotionClient(connect=endpoint, cell="demo") as api:
+                api.wait_for_service(timeout=30)
+                done.append(api.submit({"kind": "move", "axes": ["j1", "j2"], "target": target,
+                                        "mode": "absolute"}).wait(timeout=60))
+
+        worker = threading.Thread(target=submit)
+        worker.start()
+        read_until(lambda: bool(done), 90.0)
+        read_until(lambda: False, 1.0)  # the job's last samples and the telemetry after it
+        worker.join(timeout=60)
+        assert done and done[0].state.value == "done", done
+        for name, goal in zip(["j1", "j2"], target, strict=True):
+            samples = got[f"/axis/{name}"]
+            counts = round(goal * cell.axis(name).counts_per_unit)
+            assert len(samples) > 50, name
+            syncs = [m["sync"] for m in samples]
+            assert syncs == sorted(syncs)
+            planned = [m["planned"] for m in samples]
+            assert abs(planned[-1] - counts) <= 1 and abs(planned[0] - counts) > 1000
+            assert abs(samples[-1]["actual"] - counts) <= 1
+            positions = [m["actual"] for m in samples]
+            assert len(set(positions)) > 20  # it moved, and was seen moving
+        after = got["/cell/telemetry"][-1]
+        seen = {a["name"]: a for a in after["axes"]}
+        assert seen["j1"]["position"] == pytest.approx(target[0], abs=1e-3)
+        states = [e.get("state") for e in got["/job/events"] if e["kind"] == "state"]
+        assert states and states[-1] == "done"
+    finally:
+        if client is not None:
+            client.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=10)
