@@ -17,12 +17,14 @@ SUBPROTOCOL = "foxglove.sdk.v1"
 
 
 class FoxgloveClient:
-    def __init__(self, host: str, port: int, *, timeout_s: float = 10.0):
+    def __init__(self, host: str, port: int, *, timeout_s: float = 10.0, path: str = "/",
+                 subprotocol: str | None = SUBPROTOCOL):
         self.sock = socket.create_connection((host, port), timeout=timeout_s)
         key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall((f"GET / HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                           f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
-                           f"Sec-WebSocket-Protocol: {SUBPROTOCOL}\r\n\r\n").encode())
+        proto = f"Sec-WebSocket-Protocol: {subprotocol}\r\n" if subprotocol else ""
+        self.sock.sendall((f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+                           f"{proto}\r\n").encode())
         head = b""
         while b"\r\n\r\n" not in head:
             chunk = self.sock.recv(4096)
@@ -49,6 +51,9 @@ class FoxgloveClient:
             self._buf += chunk
         out, self._buf = self._buf[:n], self._buf[n:]
         return out
+
+    def send_text(self, text: str) -> None:
+        self._send(1, text.encode())
 
     def _send(self, opcode: int, payload: bytes) -> None:
         mask = os.urandom(4)
