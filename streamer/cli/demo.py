@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -143,8 +144,10 @@ def run(args: argparse.Namespace) -> int:
                         console.print(f"pvt demo: no client subscribed within {args.live_wait:g} s; running anyway",
                                       highlight=False)
 
+                    wall0 = time.time()  # virtual time starts at 0 (run_fast's recording counts from here too)
+
                     def on_start(plan: Any, core: Any, trace: Any) -> None:
-                        slot[0] = LiveJob(plan, core, trace, cell.sync_period_ms)
+                        slot[0] = LiveJob(plan, core, trace, cell.sync_period_ms, epoch_s=wall0)
 
                 report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync, on_start=on_start)
             else:

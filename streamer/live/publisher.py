@@ -80,6 +80,9 @@ class LiveJob:
     core: Any
     trace: Any
     sync_period_ms: int
+    # wall clock = epoch_s + the trace's time: 0 for the real-time runtime (python-can timestamps are Unix
+    # time, as the recording's log times), the run's start for virtual time
+    epoch_s: float = 0.0
 
 
 class TraceFollower:
@@ -117,6 +120,12 @@ class TraceFollower:
         if t is None:
             return round((sync - self._first_sync) * self.job.sync_period_ms / 1000.0, 6)
         return round(float(t) - t0, 6)
+
+    def log_time_ns(self, t: float) -> int:
+        """The wall-clock time of `t` (seconds since the job's first SYNC), ns since the epoch (the MCAP log time
+        the recording gives the same message)."""
+        t0 = self._t0 if self._t0 is not None else 0.0
+        return max(0, round((self.job.epoch_s + t0 + t) * 1e9))
 
     def poll(self, *, final: bool = False) -> tuple[dict[str, list[dict[str, Any]]], list[dict[str, Any]]]:
         """(per axis name its new `pvt.AxisSample` messages, new `pvt.JobEvent` messages). `final`: the job
@@ -327,12 +336,12 @@ class LivePublisher:
         for axis, msgs in samples.items():
             topic = AXIS_TOPIC_PREFIX + axis
             for m in msgs:
-                self._log(topic, m)
+                self._log(topic, m, follower.log_time_ns(m["t"]))
         for e in events:
-            self._log(EVENTS_TOPIC, e)
+            self._log(EVENTS_TOPIC, e, follower.log_time_ns(e["t"]))
 
-    def _log(self, topic: str, msg: Mapping[str, Any]) -> None:
+    def _log(self, topic: str, msg: Mapping[str, Any], log_time_ns: int | None = None) -> None:
         ch = self._channels.get(topic)
         if ch is not None:
-            ch.log(dict(msg))
+            ch.log(dict(msg), log_time=log_time_ns)
             self.published += 1
