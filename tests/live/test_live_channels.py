@@ -51,11 +51,13 @@ def _collect(port: int, topics: list[str], timeout_s: float) -> tuple[str, dict[
         client.close()
 
 
-@pytest.mark.slow
-def test_demo_live_channels_carry_every_sync_of_every_axis(tmp_path: Path) -> None:
+@pytest.mark.parametrize("fast", [pytest.param(True, marks=pytest.mark.slow, id="virtual-time"),
+                                  pytest.param(False, marks=pytest.mark.realtime, id="real-time")])
+def test_demo_live_channels_carry_every_sync_of_every_axis(tmp_path: Path, fast: bool) -> None:
     port = free_port()
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "demo", "--fast", "--quiet", "--live", str(port),
+    mode = ["--fast"] if fast else []
+    proc = subprocess.Popen([sys.executable, "-m", "streamer.cli", "demo", *mode, "--quiet", "--live", str(port),
                              "--out", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         axes = [f"j{i}" for i in range(1, 7)]
@@ -84,7 +86,9 @@ def test_demo_live_channels_carry_every_sync_of_every_axis(tmp_path: Path) -> No
         last = msgs[-1]
         assert last["actual"] - last["planned"] == a["final_position_error_counts"]
         # the motion itself: the recording's samples, SYNC for SYNC (the recording attributes TPDOs as the core
-        # did; live they carry their arrival SYNC, the same here, where every drive answers within its SYNC)
+        # did; live they carry their arrival SYNC: the same in virtual time, where every drive answers within its
+        # SYNC; in real time a late answer is one SYNC apart)
+        near = 0 if fast else 1
         rec = recording.samples[a["name"]]
         moved = max(m["planned"] for m in during) - min(m["planned"] for m in during)
         assert moved > 1000, f"axis {a['name']} hardly moves: the comparison would say little"
@@ -94,10 +98,11 @@ def test_demo_live_channels_carry_every_sync_of_every_axis(tmp_path: Path) -> No
             if live is None or rec.actual[k] is None:
                 continue
             assert live["planned"] == rec.planned[k]
-            assert abs(live["actual"] - rec.actual[k]) <= 2
-            assert abs(live["demand"] - rec.demand[k]) <= 2
+            around = [j for j in range(max(0, k - near), min(len(rec), k + near + 1)) if rec.actual[j] is not None]
+            assert min(abs(live["actual"] - rec.actual[j]) for j in around) <= 2, (a["name"], s, live)
+            assert min(abs(live["demand"] - rec.demand[j]) for j in around) <= 2, (a["name"], s, live)
             assert live["t"] == pytest.approx(rec.t[k], abs=1e-6)
-            assert live.get("fifo_fill") == rec.fifo_fill[k]
+            assert live.get("fifo_fill") in [rec.fifo_fill[j] for j in around]
             # log time: the wall clock of that SYNC, as the recording's (its epoch is taken a moment later)
             assert abs(live["_log_time"] / 1e9 - (recording.epoch_s + rec.t[k])) < 0.5
             compared += 1
