@@ -7,13 +7,15 @@ reads and acts with this identity) and serves one self-contained page (no CDN: i
 each axis' position against its demand and the following error over the last seconds, the FIFO fill
 against the watermarks, the drives' states, the running job's progress, the queue, the last events; for
 the operator role the buttons stop, emergency stop, hold and resume (through the job API: the service
-decides whether the identity may). `--role observer` serves a page without them. Runs until Ctrl-C.
+decides whether the identity may). `--role observer` serves a page without them. The URL it prints
+carries a random token (as Jupyter's): without it the server answers 401. Runs until Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import secrets
 import threading
 from pathlib import Path
 from typing import Any
@@ -32,6 +34,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, default=None,
                    help="the cell's config, for its FIFO watermarks (default: configs/demo.toml's)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop serving after S seconds")
+    p.add_argument("--no-token", action="store_true",
+                   help="serve the page without its token (any local process may then read and, on an operator "
+                        "page, press its buttons)")
     connect.add_arguments(p)
     p.set_defaults(func=run)
     return p
@@ -51,9 +56,11 @@ def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int
     if isinstance(client, int):
         return client
     stop = stop or threading.Event()
-    with client, ViewServer(client, role=args.role, port=args.port,
+    token = None if args.no_token else secrets.token_urlsafe(18)
+    with client, ViewServer(client, role=args.role, port=args.port, token=token,
                             watermarks=(cell.drive.underflow_warning, cell.drive.overflow_warning)) as server:
-        print(f"pvt view: cell {client.cell!r} on {server.url} ({args.role}); Ctrl-C stops", flush=True)
+        print(f"pvt view: cell {client.cell!r} ({args.role} page): open {server.entry_url} ; Ctrl-C stops",
+              flush=True)
         with contextlib.suppress(KeyboardInterrupt):
             stop.wait(args.duration)
     return connect.EXIT_OK

@@ -16,7 +16,11 @@ that identity may read, from any running service, with or without `--live`. `Vie
   SEQ, the events, the status, the role and the watermarks, as JSON; the page polls it every 100 ms;
 - `POST /api/stop`, `/api/estop`, `/api/hold`, `/api/resume` call the client's stop (emergency), hold and
   resume. With role observer the page shows no buttons and these answer 403 without asking the service
-  (which refuses an observer's writes anyway: the rules are the service's, this is only the page).
+  (which refuses an observer's writes anyway: the rules are the service's, this is only the page);
+- with a `token` (what `pvt view` does: a random one, in the URL it prints, as Jupyter does), every request
+  needs it: the printed URL's `?token=` sets it as a cookie (HttpOnly, SameSite=Strict) and the page goes on
+  with that; without it the answer is 401. So another local user, or a page of another site in the user's
+  browser, neither reads the cell through this page nor presses its buttons.
 
 On the page the position against the plan is the drive's position (0x6064) against its position demand
 (0x6062, the plan as the drive interpolates it), and the following error their difference, in the
@@ -28,6 +32,7 @@ from __future__ import annotations
 import collections
 import json
 import logging
+import secrets
 import threading
 import time
 from collections.abc import Mapping
@@ -38,6 +43,7 @@ from typing import Any
 from urllib.parse import parse_qs, urlparse
 
 STATIC = Path(__file__).resolve().parent / "static"
+TOKEN_COOKIE = "pvt_view_token"
 ROLES = ("operator", "observer")
 VERBS = ("stop", "estop", "hold", "resume")
 _TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
@@ -64,7 +70,7 @@ class ViewServer:
 
     def __init__(self, client: Any, *, role: str = "operator", host: str = "127.0.0.1", port: int = 8080,
                  watermarks: tuple[int, int] = (4, 60), fifo_size: int = 64, keep_s: float = 30.0,
-                 keep_events: int = 50, status_period_s: float = 0.5):
+                 keep_events: int = 50, status_period_s: float = 0.5, token: str | None = None):
         if role not in ROLES:
             raise ValueError(f"role must be one of {', '.join(ROLES)}, got {role!r}")
         self.client = client
@@ -75,6 +81,7 @@ class ViewServer:
         self.fifo_size = fifo_size
         self.keep_s = keep_s
         self.status_period_s = status_period_s
+        self.token = token
         self._lock = threading.Lock()
         self._telemetry: collections.deque[dict[str, Any]] = collections.deque()
         self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=keep_events)
@@ -122,6 +129,25 @@ class ViewServer:
     @property
     def url(self) -> str:
         return f"http://{self.host}:{self.port}/"
+
+    @property
+    def entry_url(self) -> str:
+        """The URL to open: with the token, when there is one."""
+        return self.url + (f"?token={self.token}" if self.token else "")
+
+    def allowed(self, cookie_header: str | None) -> bool:
+        """Whether a request with this Cookie header may see the page (always, without a token)."""
+        if not self.token:
+            return True
+        from http.cookies import CookieError, SimpleCookie
+
+        cookies: SimpleCookie = SimpleCookie()
+        try:
+            cookies.load(cookie_header or "")
+        except CookieError:
+            return False
+        morsel = cookies.get(TOKEN_COOKIE)
+        return morsel is not None and secrets.compare_digest(morsel.value, self.token)
 
     def close(self) -> None:
         self._stop.set()
@@ -213,8 +239,25 @@ class ViewServer:
             def _json(self, code: int, obj: Any) -> None:
                 self._send(code, json.dumps(obj, allow_nan=False, default=str).encode(), "application/json")
 
+            def _admitted(self, url: Any) -> bool:
+                if view.allowed(self.headers.get("Cookie")):
+                    return True
+                given = parse_qs(url.query).get("token", [""])[0]
+                if view.token and url.path == "/" and given and secrets.compare_digest(given, view.token):
+                    self.send_response(HTTPStatus.SEE_OTHER)
+                    self.send_header("Set-Cookie", f"{TOKEN_COOKIE}={view.token}; Path=/; HttpOnly; SameSite=Strict")
+                    self.send_header("Location", "/")
+                    self.send_header("Content-Length", "0")
+                    self.end_headers()
+                    return False
+                self._send(HTTPStatus.UNAUTHORIZED, b"pvt view: open the URL `pvt view` printed (it has the token)",
+                           "text/plain; charset=utf-8")
+                return False
+
             def do_GET(self) -> None:
                 url = urlparse(self.path)
+                if not self._admitted(url):
+                    return
                 if url.path == "/api/state":
                     after = parse_qs(url.query).get("after", ["-1"])[0]
                     try:
@@ -234,6 +277,9 @@ class ViewServer:
 
             def do_POST(self) -> None:
                 url = urlparse(self.path)
+                if not view.allowed(self.headers.get("Cookie")):
+                    self._json(HTTPStatus.UNAUTHORIZED, {"error": "no token"})
+                    return
                 if not url.path.startswith("/api/"):
                     self._send(HTTPStatus.NOT_FOUND, b"not found", "text/plain")
                     return

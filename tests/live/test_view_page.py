@@ -68,9 +68,9 @@ def test_the_page_plots_the_motion_and_its_stop_button_stops_the_job(service: st
                                                 lambda s: seen.put(unpack(s.payload.to_bytes())))
         browser = None
         try:
-            with ViewServer(client, role="operator", port=0) as view:
+            with ViewServer(client, role="operator", port=0, token="page-test-token") as view:
                 browser = Browser(tmp_path / "profile")
-                browser.goto(view.url)
+                browser.goto(view.entry_url)  # the token becomes the page's cookie
                 browser.wait_for("window.pvtView && window.pvtView.polls > 2 && !!window.pvtView.axes.j1")
                 assert browser.evaluate("document.getElementById('btn-stop') !== null")
                 moving = client.submit({"kind": "move", "axes": ["j1", "j2"], "target": [2.5, -2.0],

@@ -108,3 +108,34 @@ def test_verbs_reach_the_client_only_for_an_operator(role: str) -> None:
     else:
         assert client.calls == []
         assert all(code == 403 and a["error"] == "PERMISSION_DENIED" for code, a in answers.values())
+
+
+def test_with_a_token_nothing_is_served_without_it() -> None:
+    client = _Client()
+    with ViewServer(client, port=0, token="s3cret-token") as view:
+        assert view.entry_url.endswith("/?token=s3cret-token")
+        assert _get(view.port, "/")[0] == 401
+        assert _get(view.port, "/api/state")[0] == 401
+        assert _get(view.port, "/static/view.js")[0] == 401
+        assert _get(view.port, "/?token=wrong")[0] == 401
+        assert _post(view.port, "/api/stop")[0] == 401
+        conn = http.client.HTTPConnection("127.0.0.1", view.port, timeout=10)
+        conn.request("GET", "/?token=s3cret-token")
+        r = conn.getresponse()
+        r.read()
+        assert r.status == 303 and r.getheader("Location") == "/"
+        cookie = r.getheader("Set-Cookie") or ""
+        assert "HttpOnly" in cookie and "SameSite=Strict" in cookie
+        jar = cookie.split(";", 1)[0]
+        conn.request("GET", "/api/state", headers={"Cookie": jar})
+        r = conn.getresponse()
+        assert r.status == 200 and json.loads(r.read())["cell"] == "demo"
+        conn.request("POST", "/api/hold", headers={"Cookie": jar, "X-Pvt-View": "1"})
+        r = conn.getresponse()
+        r.read()
+        assert r.status == 200
+        conn.request("POST", "/api/stop", headers={"Cookie": "pvt_view_token=guess", "X-Pvt-View": "1"})
+        r = conn.getresponse()
+        r.read()
+        assert r.status == 401
+    assert client.calls == ["hold"]
