@@ -223,7 +223,10 @@ def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:
 
 
 def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
-             on_sync: Any = None, readings_out: dict[int, Any] | None = None) -> tuple[dict[str, Any], Any]:
+             on_sync: Any = None, readings_out: dict[int, Any] | None = None,
+             on_start: Any = None) -> tuple[dict[str, Any], Any]:
+    """The job in virtual time. `on_start(plan, core, trace)`: once, at the job's first SYNC (the live view
+    follows the trace from there)."""
     from bus.sim.virtual import VirtualCell
 
     out.mkdir(parents=True, exist_ok=True)
@@ -239,7 +242,16 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
         from planner.travel import extend_velocity
 
         kept = KeptChunks(extend_velocity)
-        result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync, extender=kept)
+        started: list[Any] = []
+
+        def each_sync(core: Coordinator, n: int) -> None:
+            if on_start is not None and not started:
+                started.append(core)
+                on_start(traj, core, rt.trace)
+            if on_sync is not None:
+                on_sync(core, n)
+
+        result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=each_sync, extender=kept)
         traj = whole_stream(traj, kept.chunks, result.coordinator)
     if readings_out is not None:
         readings_out.update(rt.settings.readings)
@@ -293,7 +305,7 @@ def realtime_cell(cell: CellConfig, traj: PvtTrajectory | None = None, *,
 
 def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_drives: bool = False,
                  on_change: Any = None, cancel: threading.Event | None = None, job: Job | None = None,
-                 on_engine: Any = None) -> tuple[dict[str, Any], Any]:
+                 on_engine: Any = None, on_runtime: Any = None) -> tuple[dict[str, Any], Any]:
     """The job in real time: the drives in a process of their own (or `external_drives` on the cell's bus),
     the cycle engine in another, the core here. The drives' readings are measured first (the standstill
     probe); when `job` is given and a drive rounds its demand otherwise than the plan assumed, the job is
@@ -304,6 +316,8 @@ def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_d
     out.mkdir(parents=True, exist_ok=True)
     with realtime_cell(cell, traj, external_drives=external_drives) as adapter:
         rt = RealtimeRuntime(adapter.cell, adapter, log_path=out / "bus.log")
+        if on_runtime is not None:
+            on_runtime(rt)  # the live view reads its `live` (the running job)
         try:
             rt.ensure_readings()
             if job is not None:

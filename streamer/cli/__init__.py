@@ -19,6 +19,7 @@ SUBCOMMANDS: tuple[str, ...] = (
     "streamer.cli.submit",
     "streamer.cli.status",
     "streamer.cli.watch",
+    "streamer.cli.view",
     "streamer.cli.jog",
     "streamer.cli.cancel",
     "streamer.cli.stop",

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,12 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--external-drives", action="store_true",
                    help="do not start simulated drives here (they run elsewhere, e.g. `pvt sim`)")
     p.add_argument("--quiet", action="store_true", help="no live display")
+    from streamer.cli.live_options import add_live_option
+
+    add_live_option(p)
+    p.add_argument("--live-wait", type=float, default=30.0, metavar="S",
+                   help="with --fast --live: wait up to S seconds for a client to subscribe to every axis before "
+                        "the job runs (virtual time is over in a blink), default 30")
     p.set_defaults(func=run)
 
 
@@ -124,16 +131,38 @@ def run(args: argparse.Namespace) -> int:
            "limits)" if traj.open_ended else "")
     )
     display = _Display(console, traj, cell, enabled=not args.quiet)
+    from streamer.live.publisher import LiveJob
+
+    live = _start_live(console, args, cell)
     try:
         with display:
             if args.fast:
-                report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync)
+                on_start = None
+                if live is not None:
+                    publisher, slot = live
+                    if not publisher.wait_subscribed(args.live_wait):
+                        console.print(f"pvt demo: no client subscribed within {args.live_wait:g} s; running anyway",
+                                      highlight=False)
+
+                    wall0 = time.time()  # virtual time starts at 0 (run_fast's recording counts from here too)
+
+                    def on_start(plan: Any, core: Any, trace: Any) -> None:
+                        slot[0] = LiveJob(plan, core, trace, cell.sync_period_ms, epoch_s=wall0)
+
+                report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync, on_start=on_start)
             else:
+                on_runtime = None
+                if live is not None:
+                    publisher, slot = live
+
+                    def on_runtime(rt: Any) -> None:
+                        slot[1] = rt
+
                 # the drives in a process of their own (`pvt sim`; elsewhere with --external-drives), the
                 # cycle engine in another (bus/engine.py)
                 report, _ = demo.run_realtime(cell, traj, args.out, external_drives=args.external_drives,
-                                              job=job,
-                                              on_change=display.on_change, on_engine=display.on_engine)
+                                              job=job, on_change=display.on_change, on_engine=display.on_engine,
+                                              on_runtime=on_runtime)
     except Exception as e:  # bus errors, timeouts: say what and where, do not dump a traceback on users
         from bus.errors import BusError
 
@@ -141,11 +170,35 @@ def run(args: argparse.Namespace) -> int:
             console.print(f"[red]demo failed:[/red] {escape(str(e))}")
             return 1
         raise
+    finally:
+        if live is not None:
+            live[0].stop()
     _summary(console, report, args.out)
     problems = guarantees(report, job.tolerance_counts)
     for p in problems:
         console.print(f"[red]guarantee missed:[/red] {escape(p)}")
     return 0 if not problems else 1
+
+
+def _start_live(console: Any, args: argparse.Namespace, cell: Any) -> tuple[Any, list[Any]] | None:
+    """With --live: the publisher and its slot ([a LiveJob handed over in virtual time, the real-time
+    runtime whose `live` is the running job])."""
+    if args.live is None:
+        return None
+    from streamer.live.publisher import LiveJob, LivePublisher
+
+    slot: list[Any] = [None, None]
+
+    def source() -> Any:
+        if slot[1] is not None:
+            running = slot[1].live
+            return None if running is None else LiveJob(*running, cell.sync_period_ms)
+        return slot[0]
+
+    publisher = LivePublisher([(a.name, a.node_id) for a in cell.axes], source=source, port=args.live).start()
+    console.print(f"pvt demo: live channels on {publisher.url} (Foxglove: open connection, Foxglove WebSocket; "
+                  "layout configs/foxglove-layout.json)", highlight=False, markup=False)
+    return publisher, slot
 
 
 class _Display:

@@ -88,6 +88,9 @@ def _arguments(p: argparse.ArgumentParser) -> None:
         help="advanced: the motion backend factory to use instead of the built-in runtime",
     )
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+    from streamer.cli.live_options import add_live_option
+
+    add_live_option(p)
 
 
 def run(args: argparse.Namespace, *, stop: threading.Event | None = None) -> int:
@@ -166,6 +169,7 @@ def _serve(
     backend = None
     session: Any = None
     service = None
+    live: Any = None
     try:
         try:
             backend = load_backend(
@@ -197,6 +201,8 @@ def _serve(
 
         warm_up()  # the planner's kernels loaded (compiled on a machine's first run) before the first job
         service = JobService(session, backend, store, options).start()
+        if getattr(args, "live", None) is not None:
+            live = _start_live(backend, cell, args.live)
         listen = args.listen or list(cell.zenoh.listen)
         print(
             f"pvt serve: cell {cell.name!r} ready on {', '.join(listen) or '(no listen endpoint)'}; "
@@ -209,6 +215,8 @@ def _serve(
         print("pvt serve: stopping", flush=True)
         return 0
     finally:
+        if live is not None:
+            live.stop(linger_s=0.0)
         if service is not None:
             service.close()
         if session is not None:
@@ -217,6 +225,24 @@ def _serve(
             backend.close()
         store.close()
         lock.release()
+
+
+def _start_live(backend: Any, cell: Any, port: int) -> Any:
+    """The live channels of the service's jobs (streamer/live/publisher.py): the running job from the runtime's
+    `live` (a backend without one publishes telemetry only), the telemetry the Zenoh API serves, between jobs
+    too."""
+    from streamer.live.publisher import LiveJob, LivePublisher
+
+    runtime = getattr(backend, "runtime", None)
+
+    def source() -> LiveJob | None:
+        running = getattr(runtime, "live", None)
+        return None if running is None else LiveJob(*running, cell.sync_period_ms)
+
+    publisher = LivePublisher([(a.name, a.node_id) for a in cell.axes], source=source, telemetry=backend.telemetry,
+                              port=port).start()
+    print(f"pvt serve: live channels on {publisher.url} (docs/recording.md#live-channels)", flush=True)
+    return publisher
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -135,6 +135,33 @@ def _dumps(obj: Mapping[str, Any]) -> bytes:
     return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
+def sample_message(t: float, sync: int, node: int, row: Mapping[str, int | None]) -> dict[str, Any]:
+    """One `pvt.AxisSample` message (a field without a value is left out); the recording and the live
+    channels (streamer/live) both write this."""
+    msg: dict[str, Any] = {"t": t, "sync": sync, "node": node}
+    for name in SAMPLE_FIELDS:
+        v = row.get(name)
+        if v is not None:
+            msg[name] = v
+    return msg
+
+
+def event_message(e: RecordedEvent) -> dict[str, Any]:
+    """One `pvt.JobEvent` message (the recording's and the live channel's)."""
+    ev: dict[str, Any] = {"t": e.t, "kind": e.kind}
+    if e.sync is not None:
+        ev["sync"] = e.sync
+    if e.state is not None:
+        ev["state"] = e.state
+    if e.code is not None:
+        ev["code"] = e.code
+    if e.node is not None:
+        ev["node"] = e.node
+    if e.message:
+        ev["message"] = e.message
+    return ev
+
+
 def _ns(epoch_s: float, t: float) -> int:
     return max(0, round((epoch_s + t) * 1e9))
 
@@ -188,25 +215,9 @@ def write_mcap_stream(rec: JobRecording, out: IO[bytes]) -> int:
         s = rec.samples[a.name]
         ch = axis_channels[a.name]
         for k in range(len(s)):
-            msg: dict[str, Any] = {"t": s.t[k], "sync": s.sync[k], "node": a.node_id}
-            for name in SAMPLE_FIELDS:
-                v = getattr(s, name)[k]
-                if v is not None:
-                    msg[name] = v
-            queue.append((s.t[k], 0, ch, _dumps(msg)))
+            queue.append((s.t[k], 0, ch, _dumps(sample_message(s.t[k], s.sync[k], a.node_id, s.row(k)))))
     for e in rec.events:
-        ev: dict[str, Any] = {"t": e.t, "kind": e.kind}
-        if e.sync is not None:
-            ev["sync"] = e.sync
-        if e.state is not None:
-            ev["state"] = e.state
-        if e.code is not None:
-            ev["code"] = e.code
-        if e.node is not None:
-            ev["node"] = e.node
-        if e.message:
-            ev["message"] = e.message
-        queue.append((e.t, 1, events_channel, _dumps(ev)))
+        queue.append((e.t, 1, events_channel, _dumps(event_message(e))))
     f = rec.frames
     for k in range(len(f)):
         queue.append((f.t[k], 2, frames_channel,

@@ -262,6 +262,21 @@ def _event_from_noted(sync: int, ev: object, t: float) -> RecordedEvent:
     raise RecordingError("RECORDING", f"cannot record event {type(ev).__name__}")
 
 
+def change_events(c: Any, t: float) -> list[RecordedEvent]:
+    """The events of one job state change (a `streamer.runtime.trace.NotedChange`) at `t`: the state, and
+    the fault its outcome carries (the recording and the live channels both read them so)."""
+    events = [RecordedEvent(t, c.sync, STATE, state=c.state, message=c.message)]
+    if c.code is not None:
+        events.append(RecordedEvent(t, c.sync, FAULT, state=c.state, code=str(c.code), node=c.node,
+                                    message=c.message))
+    return events
+
+
+def noted_event(noted: Any, t: float) -> RecordedEvent:
+    """The event of a `streamer.runtime.trace.NotedEvent` at `t`."""
+    return _event_from_noted(noted.sync, noted.event, t)
+
+
 def build_recording(
     traj: Any,
     trace: Any,
@@ -329,14 +344,9 @@ def build_recording(
 
     events: list[RecordedEvent] = []
     for c in trace.changes:
-        t = rel(c.t) if c.t else t_of(c.sync if c.sync is not None else first_sync)
-        events.append(RecordedEvent(t, c.sync, STATE, state=c.state, message=c.message))
-        if c.code is not None:
-            events.append(RecordedEvent(t, c.sync, FAULT, state=c.state, code=str(c.code), node=c.node,
-                                        message=c.message))
+        events += change_events(c, rel(c.t) if c.t else t_of(c.sync if c.sync is not None else first_sync))
     for noted in trace.noted:
-        ev = noted.event
-        events.append(_event_from_noted(noted.sync, ev, rel(float(ev.t))))
+        events.append(noted_event(noted, rel(float(noted.event.t))))
     if start_sync is not None:
         events.append(RecordedEvent(t_of(start_sync), start_sync, START,
                                     message=f"every axis in ip mode from SYNC {start_sync}"))

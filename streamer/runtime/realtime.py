@@ -210,6 +210,9 @@ class RealtimeRuntime:
         self._tap = _Tap(log_path)
         adapter.add_listener(self._tap)
         self._running = False
+        # the running job's (plan, core, trace), None between jobs: read, never written, by the live view's
+        # publishing thread (streamer/live), which follows the trace's append-only lists
+        self.live: tuple[Any, Coordinator, JobTrace] | None = None
         self._snap_lock = threading.Lock()
         self._snapshot: dict[int, NodeSnapshot] = {a.node_id: NodeSnapshot(a.node_id) for a in cell.axes}
         adapter.on_event(self._on_event)
@@ -391,6 +394,7 @@ class RealtimeRuntime:
             pass
         self._running = True
         self._tap.trace = trace
+        self.live = (trajectory, core, trace)
         thaw = contextlib.ExitStack()
         thaw.enter_context(quiet_gc())
         if engine:  # this thread feeds the engine ahead: it preempts planning, logging and the API where permitted
@@ -458,6 +462,7 @@ class RealtimeRuntime:
         finally:
             self._running = False
             self._tap.trace = None
+            self.live = None
             thaw.close()
             if prefetch is not None:
                 prefetch.close()

@@ -46,7 +46,7 @@ def test_readme_has_the_two_quick_start_commands() -> None:
 @pytest.mark.parametrize("argv", _pvt_commands(), ids=lambda a: " ".join(a)[:60])
 def test_every_pvt_command_in_the_readme_parses(argv: list[str]) -> None:
     placeholders = {"JOB": "configs/jobs/demo-path.toml", "CELL": "configs/demo.toml", "IF:CH": "virtual:x",
-                    "N": "1"}
+                    "N": "1", "PORT": "8765"}
     argv = [placeholders.get(a, a) for a in argv]
     args = build_parser().parse_args(argv)  # argparse exits (SystemExit) on an unknown option
     assert callable(args.func)
