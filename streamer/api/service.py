@@ -202,8 +202,8 @@ class _Emitter:
         except (TypeError, ValueError):
             progress = 0.0
         data["progress"] = min(1.0, max(0.0, progress)) if math.isfinite(progress) else 0.0
-        now = time.monotonic()
         with self._lock:
+            now = time.monotonic()  # under the lock: a post another thread makes meanwhile is counted
             if self._closed:
                 return
             self.progress = data["progress"]
@@ -218,9 +218,9 @@ class _Emitter:
                     self._timer.daemon = True
                     self._timer.start()
                 return
-            self._last_sent = now
             self._held = None
             self._service._post_progress(self._job_id, self._type(), data)
+            self._last_sent = time.monotonic()  # after the event's time stamp: the next one is an interval later
 
     def _flush(self) -> None:
         """The timer: the held update goes out (latest wins) unless something newer already went."""
@@ -230,8 +230,8 @@ class _Emitter:
             if held is None or self._closed or self._paused:
                 self._held = held
                 return
-            self._last_sent = time.monotonic()
             self._service._post_progress(self._job_id, self._type(), held)
+            self._last_sent = time.monotonic()
 
     def unpause(self) -> None:
         with self._lock:
