@@ -17,8 +17,7 @@ The candidates for one TPDO of one node are the SYNCs it can answer:
   before its SYNC);
 - after `after`, the last SYNC this PDO of the node answered (once, in order), and for TPDO1 also after the
   last SYNC its TPDO2 answered (a drive sends a SYNC's TPDOs in PDO order, TPDO1 first);
-- not before `upper - reach` (a few SYNCs: a starved SYNC sender puts several on the wire at once, a
-  starved drive answers late; at least REACH, and as many as the TPDO timeout lets an answer be late);
+- not before `upper - REACH` (a few SYNCs: a starved SYNC sender puts several on the wire at once);
 - TPDO2 every n-th SYNC: only SYNCs whose counter carries the node (the feedback schedule, 0x1019).
 The order's choice is the earliest of them: with no answer lost it is the one (the drive answers every
 SYNC, in order). If the content fits it (or content has no say: the axis at rest, a state with nothing to
@@ -61,18 +60,15 @@ def choose(options: Sequence[int], fits: Fits) -> int | None:
     return next((m for m in options[1:] if fits(m)), order)
 
 
-def attribute(upper: int, after: int, fits: Fits, *, reach: int = REACH,
+def attribute(upper: int, after: int, fits: Fits, *,
               scheduled: Callable[[int], bool] | None = None, schedule_reach: int = 0) -> int | None:
     """The SYNC a TPDO answers (see the module docstring). `after`: the last SYNC it cannot answer (the
-    last one this PDO of the node answered; for TPDO1 also its TPDO2's). `reach`: how many SYNCs late an
-    answer may come (at least REACH; the core gives its TPDO timeout: an answer later than that is a
-    fault anyway). `scheduled`/`schedule_reach`: a PDO sent every n-th SYNC, with how far back its schedule
-    looks (2n - 1)."""
-    reach = max(reach, REACH)
+    last one this PDO of the node answered; for TPDO1 also its TPDO2's). `scheduled`/`schedule_reach`: a
+    PDO sent every n-th SYNC, with how far back its schedule looks (2n - 1)."""
     if scheduled is not None:
-        return choose(candidates(upper, after, reach=max(schedule_reach, reach), scheduled=scheduled), fits)
+        return choose(candidates(upper, after, reach=max(schedule_reach, REACH), scheduled=scheduled), fits)
     # `choose` over `candidates`, without building the list (this runs for every TPDO)
-    first = max(after + 1, upper - reach)
+    first = max(after + 1, upper - REACH)
     if first > upper:
         return None
     ok = fits(first)

@@ -811,17 +811,16 @@ class Coordinator:
                 )
             upper = sync_count
         fb = self._feedback
-        reach = self._settings.tpdo_timeout_syncs  # an answer later than that is TPDO_TIMEOUT anyway
         if pdo == 2:
             if fb is not None and fb.every > 1:
                 counters, node = self._sync_counters, f.node_id
                 return attribution.attribute(
-                    upper, f.last_tpdo2, fits, reach=reach,
+                    upper, f.last_tpdo2, fits,
                     scheduled=lambda m: m in counters and fb.carries(node, counters[m]),
                     schedule_reach=2 * fb.every - 1)
-            return attribution.attribute(upper, f.last_tpdo2, fits, reach=reach)
+            return attribution.attribute(upper, f.last_tpdo2, fits)
         # a SYNC's TPDO1 goes out before its TPDO2: a TPDO1 answers a SYNC after the one TPDO2 last answered
-        return attribution.attribute(upper, max(f.last_tpdo1, f.last_tpdo2), fits, reach=reach)
+        return attribution.attribute(upper, max(f.last_tpdo1, f.last_tpdo2), fits)
 
     def _progress_at(self, f: FifoFeeder, m: int, active: bool) -> tuple[bool, bool, int, int]:
         """(started, activated, least ms, most ms interpolated) of `f`'s drive at SYNC m, given whether it

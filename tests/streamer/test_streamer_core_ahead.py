@@ -198,36 +198,6 @@ def test_a_drive_timed_by_the_syncs_it_receives_follows_a_late_sync(absent: bool
         assert rig.core.state is JobState.FAILED, "the control should take the late SYNC's motion for a fault"
 
 
-def arrived(ev: object, newest: int) -> object:
-    """An answer as the adapter tags it: with the newest SYNC on the wire when it arrived."""
-    return replace(ev, sync_count=newest) if hasattr(ev, "sync_count") else ev  # type: ignore[type-var]
-
-
-def test_answers_as_late_as_the_tpdo_timeout_allows_are_attributed_to_their_sync() -> None:
-    """A machine that stalls the drives' process (PVT_HOST_STALL_MS: the TPDO timeout widened to 10 SYNCs)
-    gets their answers up to 5 SYNCs late for a while: each is still taken for the SYNC it answers (the
-    attribution reaches back as far as the timeout), so no fill looks like a duplicate and the job is DONE."""
-    plan = make_plan(3, 2000, seed=11)
-    rig = Rig(plan, settings=StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), ahead_syncs=2,
-                                              tpdo_timeout_syncs=10))
-    run_to_running(rig)
-    backlog: list[list[object]] = []
-    for _ in range(12):  # the drives' answers reach the master 5 SYNCs late
-        held: list[object] = []
-        wire_sync(rig, rig.t, hold=held)
-        backlog.append(held)
-        if len(backlog) > 5:
-            for ev in backlog.pop(0):
-                rig.feed(arrived(ev, rig.count - 1))
-        assert rig.core.state is JobState.RUNNING, rig.core.outcome
-    for answers in backlog:
-        for ev in answers:
-            rig.feed(arrived(ev, rig.count - 1))
-    while rig.core.state not in (JobState.DONE, JobState.FAILED) and rig.count < 2000:
-        wire_sync(rig, rig.t)
-    assert rig.core.state is JobState.DONE, rig.core.outcome
-
-
 @pytest.mark.parametrize("ahead", [2, 6, 11])
 def test_fed_far_ahead_the_fifos_never_run_low(ahead: int) -> None:
     """A cell with drives fed one set point per SYNC runs the core 50-100 ms ahead of the wire (6-11 SYNCs at
