@@ -33,9 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.bench_recording import sync_answers
 from benchmarks.bench_streamer_core import PERIOD_MS, LoopbackDrive, make_plan
-from bus.cob import SYNC_COB_ID, unpack_tpdo1, unpack_tpdo2
-from bus.events import BufferStatus, PositionFeedback, Sync
 from streamer.core import Coordinator, JobState, StreamerSettings, StreamPlan
 from streamer.runtime.trace import JobTrace
 
@@ -104,18 +103,8 @@ def run_job(plan: StreamPlan, on_start: Any = None) -> tuple[list[float], list[f
         late.append(clock() - due)
         due += period
         t = time.time()  # the SYNC on the bus (the runtime's frames carry their Unix-time stamps)
-        frames = [d.sync() for d in drives]
         t0 = clock()
-        wire: list[tuple[int, bytes]] = [(SYNC_COB_ID, b"")]
-        events: list[object] = [Sync(count, t)]
-        for d, (tp1, _) in zip(drives, frames, strict=True):
-            sw, free = unpack_tpdo1(tp1)
-            events.append(BufferStatus(d.node, sw, 0x8000 if sw & 0x1000 else 0, free, t, count))
-            wire.append((0x180 + d.node, tp1))
-        for d, (_, tp2) in zip(drives, frames, strict=True):
-            actual, demand = unpack_tpdo2(tp2)
-            events.append(PositionFeedback(d.node, actual, demand, t, count))
-            wire.append((0x280 + d.node, tp2))
+        wire, events = sync_answers(drives, count, t)
         trace.on_sync(count, t)
         sends = []
         for ev in events:

@@ -41,6 +41,22 @@ CPR = 8192
 TERMINAL = (JobState.DONE, JobState.CANCELLED, JobState.FAILED)
 
 
+def sync_answers(drives: list[LoopbackDrive], count: int, t: float) -> tuple[list[tuple[int, bytes]], list[object]]:
+    """SYNC `count` at time `t` and the loopback drives' answers: the frames on the wire, the core's events."""
+    frames = [d.sync() for d in drives]
+    wire: list[tuple[int, bytes]] = [(SYNC_COB_ID, b"")]
+    events: list[object] = [Sync(count, t)]
+    for d, (tp1, _) in zip(drives, frames, strict=True):
+        sw, free = unpack_tpdo1(tp1)
+        events.append(BufferStatus(d.node, sw, 0x8000 if sw & 0x1000 else 0, free, t, count))
+        wire.append((0x180 + d.node, tp1))
+    for d, (_, tp2) in zip(drives, frames, strict=True):
+        actual, demand = unpack_tpdo2(tp2)
+        events.append(PositionFeedback(d.node, actual, demand, t, count))
+        wire.append((0x280 + d.node, tp2))
+    return wire, events
+
+
 def run_job(plan: StreamPlan, record: bool) -> tuple[float, float, int, JobTrace]:
     """One job to its end: (s in the loop's work, s in the frame tap, axis-SYNCs in motion, trace)."""
     settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR))
@@ -55,17 +71,7 @@ def run_job(plan: StreamPlan, record: bool) -> tuple[float, float, int, JobTrace
     clock = time.perf_counter
     for count in range(10_000_000):
         t = count * PERIOD_MS / 1000.0
-        frames = [d.sync() for d in drives]
-        wire: list[tuple[int, bytes]] = [(SYNC_COB_ID, b"")]
-        events: list[object] = [Sync(count, t)]
-        for d, (tp1, _) in zip(drives, frames, strict=True):
-            sw, free = unpack_tpdo1(tp1)
-            events.append(BufferStatus(d.node, sw, 0x8000 if sw & 0x1000 else 0, free, t, count))
-            wire.append((0x180 + d.node, tp1))
-        for d, (_, tp2) in zip(drives, frames, strict=True):
-            actual, demand = unpack_tpdo2(tp2)
-            events.append(PositionFeedback(d.node, actual, demand, t, count))
-            wire.append((0x280 + d.node, tp2))
+        wire, events = sync_answers(drives, count, t)
         trace.on_sync(count, t)
         for ev in events:
             t0 = clock()

@@ -6,7 +6,6 @@ cannot be installed (not root, no apt-get) these tests skip and say so."""
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
@@ -17,6 +16,7 @@ import pytest
 from streamer.cli import main as pvt
 from streamer.recording.export import job_figure
 from streamer.recording.mcap_io import read_mcap
+from tests.live.cdp import chromium
 
 CLICK_SAMPLE_AND_HOLD = """
 <script>
@@ -32,19 +32,10 @@ window.addEventListener('load', function () {
 """
 
 
-def _chromium() -> str:
-    for name in ("chromium", "chromium-browser"):
-        path = shutil.which(name)
-        if path:
-            return path
-    pytest.skip("chromium is not installed (tools/ensure-chromium installs Debian's chromium when run as root "
-                "with apt-get; here it could not)")
-
-
 def _dump_dom(page: Path, tmp_path: Path) -> str:
     profile = tmp_path / f"chromium-profile-{page.stem}"
     cmd = [
-        _chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync",
         f"--user-data-dir={profile}",
         "--host-resolver-rules=MAP * ~NOTFOUND",  # no name resolves: the page must need no network
