@@ -4,7 +4,8 @@
 on disk, removed when it is closed or collected with its column): blocks are appended at its end and read
 back by sample index. The runtimes give it to the core (`Coordinator(store=...)`, used only for an
 open-ended plan) and to the `JobTrace` of an open-ended job, so that an hour of motion holds one block per
-column in memory and the report and recording still read every sample.
+column in memory and the report and recording still read every sample. Pickled (the service hands a job's
+trace to its recording process), a store carries its samples and unpickles into a temporary file there.
 """
 
 from __future__ import annotations
@@ -40,6 +41,19 @@ class TempFileStore:
 
     def close(self) -> None:
         self._file.close()
+
+    # a finished job's trace and feedback logs are pickled to the process that writes its recording
+    # (streamer/recording/writer.py): the samples travel, and land in a temporary file of that process
+    def __getstate__(self) -> dict[str, object]:
+        self._file.seek(0)
+        return {"typecode": self.typecode, "data": self._file.read(self._size * self.itemsize)}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        typecode, data = state["typecode"], state["data"]
+        assert isinstance(typecode, str) and isinstance(data, bytes)
+        self.__init__(typecode)  # type: ignore[misc]
+        self._file.write(data)
+        self._size = len(data) // self.itemsize
 
 
 def temp_store(typecode: str) -> TempFileStore:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import pickle
 from array import array
 from pathlib import Path
 from typing import Any
@@ -89,7 +90,11 @@ def endless() -> dict[str, Any]:
     recording = build_recording(whole, result.trace, report, first_sync=result.first_sync,
                                 start_sync=core_report.start_sync, sync_period_ms=cell.sync_period_ms,
                                 feedback=core_report.feedback)
-    return {"cell": cell, "result": result, "seen": seen, "report": report, "recording": recording,
+    # as the service builds it: the trace and the logs pickled to the recording's process
+    inputs = pickle.loads(pickle.dumps((result.trace, core_report.feedback)))
+    remote = build_recording(whole, inputs[0], report, first_sync=result.first_sync,
+                             start_sync=core_report.start_sync, sync_period_ms=cell.sync_period_ms, feedback=inputs[1])
+    return {"cell": cell, "result": result, "seen": seen, "report": report, "recording": recording, "remote": remote,
             "core_report": core_report, "whole": whole, "per_minute": per_minute}
 
 
@@ -139,6 +144,8 @@ def test_the_report_and_recording_of_an_endless_job_cover_the_whole_run(endless:
         assert set(syncs) <= set(rows)  # every attributed sample is recorded, the first minute's too
         assert [rows[sy][0] for sy in syncs] == list(log.demand)
         assert min(rows) <= start + 2 and max(rows) >= end_sync
+        r = endless["remote"].samples[info.name]
+        assert (r.sync, r.demand, r.fifo_fill) == (s.sync, s.demand, s.fifo_fill)
         # the report's max deviation is over the whole run: the recording's worst sample within the plan
         plan_end = start + int(endless["whole"].duration_ms) // endless["cell"].sync_period_ms + 1
         worst = max(abs(d - p) for sy, (d, p) in rows.items() if start <= sy <= plan_end and p is not None)
@@ -173,3 +180,6 @@ def test_a_spilled_column_reads_every_sample_back_and_holds_one_block() -> None:
     for v in ref:
         plain.append(v)
     assert plain.held == 1000 and list(plain) == list(ref)
+    # pickled to the recording's process (streamer/recording/writer.py), it reads the same there
+    back = pickle.loads(pickle.dumps(c))
+    assert list(back) == list(ref) and back.held == c.held and back[17] == ref[17]
