@@ -17,6 +17,7 @@ import dataclasses
 import os
 import sys
 import time
+from typing import Any
 
 
 def rss_mib() -> float:
@@ -49,11 +50,19 @@ def main(argv: list[str] | None = None) -> int:
     def on_sync(core: object, m: int) -> None:
         if m % per_minute:
             return
-        held = core.held  # type: ignore[attr-defined]
+        held = getattr(core, "held", None)
+        if held is None:  # a commit before the core counted what it holds (the baseline): count its lists
+            c: Any = core
+            held = {"ends": len(c._ends), "records": sum(len(f.records) for f in c._feeders),
+                    "frames": sum(len(f.sends) for f in c._feeders), "pieces": len(c.pieces),
+                    "piece_records": sum(len(r) for _, p in c.pieces for r in p.records), "retired": 0,
+                    "feedback_samples": 3 * sum(len(log.sync) for log in c.report().feedback.values())}
         tr = rt.trace
         assert tr is not None
         times = tr.sync_times
-        trace = sum(ax.held for ax in tr.axes.values()) + tr.frame_log.held + getattr(times, "held", len(times))
+        trace = sum(getattr(ax, "held", None) or sum(len(v) for k, v in vars(ax).items() if isinstance(v, list))
+                    for ax in tr.axes.values()) + getattr(tr.frame_log, "held", len(tr.frame_log)) \
+            + getattr(times, "held", len(times))
         rows.append((m // per_minute, held["ends"], held["records"], held["frames"], held["pieces"],
                      held["piece_records"], held["feedback_samples"], trace, held["retired"], rss_mib()))
         r = rows[-1]
