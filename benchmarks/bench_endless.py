@@ -5,10 +5,16 @@ motion (default 60; `python -m benchmarks.bench_endless --minutes 10` for a shor
 end. Every simulated minute it prints what would grow with the job's length: what the core holds of the
 stream (`Coordinator.held`: segment ends, the feeders' records and frames, the pieces and their records,
 the feedback log's samples in memory) and the trace's samples in memory, next to the process' RSS now
-(MiB, /proc/self/statm). Flat memory shows these as constants after the first minute; the end prints the
-records and samples the job covered (all of them still readable: the report and recording read the spilled
-ones back), RSS at the first and last minute and the growth per minute, and the last minute's held counts
-as ratios against the first minute's (measured in the same run: 1.0x is flat)."""
+(MiB, /proc/self/statm). Flat memory shows these as constants after the first minute (the samples in
+memory as a saw-tooth under one block per column); the end prints the records and samples the job covered
+(all of them still readable: the report and recording read the spilled ones back), RSS at the first and
+last minute and the growth per minute, and the last minute's held counts as ratios against the first
+minute's (measured in the same run: 1.0x is flat).
+
+Measured (2 axes, demo.toml, this VM): before the core retired its past (8efa25a), 15 min: RSS 171.7 ->
+227.2 MiB (+3.97 MiB/min), held records 530 -> 7250; after, 60 min: RSS 169.1 -> 169.3 MiB (+0.004 MiB/min),
+held records 36 -> 36, feedback and trace samples in memory at most 24k and 74k while 720k of each were
+kept whole."""
 
 from __future__ import annotations
 
@@ -84,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
         span = last[0] - first[0]
         print(f"RSS {first[9]:.1f} MiB at minute {first[0]:.0f}, {last[9]:.1f} MiB at minute {last[0]:.0f}: "
               f"{(last[9] - first[9]) / span:+.3f} MiB/min")
+        print(f"samples in memory, most at any minute: feedback {max(r[6] for r in rows):.0f}, trace "
+              f"{max(r[7] for r in rows):.0f} (spilled columns hold at most one block each, so these rise and "
+              f"fall within a bound; the ratios below for them compare two points of that saw-tooth)")
         names = ("ends", "records", "frames", "pieces", "piece records", "feedback samples", "trace samples")
         print("held, last minute / first minute: " + ", ".join(
             f"{n} {b / a:.1f}x" for n, a, b in zip(names, first[1:8], last[1:8], strict=True) if a))
