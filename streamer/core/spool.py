@@ -4,8 +4,8 @@ The per-SYNC logs (the core's `FeedbackLog`, the runtime's `JobTrace`) get one s
 as a job runs; the report and the recording read them whole when the job is over. A `Column` holds its
 newest samples in memory and, when it was given a `BlockStore`, hands every full block of `block` samples
 to the store and forgets it: memory stays at one block per column however long the job runs, and reading
-(`len`, `c[i]`, `c[-1]`, iteration, `array()`) sees every sample ever appended, the stored ones read back
-from the store. Without a store (every finite job) it is a plain in-memory array: nothing changes.
+(`len`, `c[i]`, `c[-1]`, `c[i:j]` as a list, iteration, `array()`) sees every sample ever appended, the
+stored ones read back from the store. Without a store (every finite job) it is a plain in-memory array: nothing changes.
 
 The core does no I/O: the store is given to it (streamer/runtime/trace.py `TempFileStore`: an anonymous
 temporary file, removed when closed or collected). Samples are int64 (typecode "q") or float64 ("d").
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from array import array
 from collections.abc import Callable, Iterator
-from typing import Protocol
+from typing import Protocol, overload
 
 BLOCK = 4096  # samples per block handed to the store (32 KiB)
 
@@ -61,7 +61,26 @@ class Column:
     def __bool__(self) -> bool:
         return len(self) > 0
 
-    def __getitem__(self, i: int) -> int | float:
+    @overload
+    def __getitem__(self, i: int) -> int | float: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[int | float]: ...
+
+    def __getitem__(self, i: int | slice) -> int | float | list[int | float]:
+        if isinstance(i, slice):  # a list, as slicing the list a finite job's trace keeps gives
+            start, stop, step = i.indices(len(self))
+            if step != 1:
+                return [self[j] for j in range(start, stop, step)]
+            if stop <= start:
+                return []
+            out: list[int | float] = []
+            if start < self._stored:
+                assert self._store is not None
+                out.extend(self._store.read(start, min(stop, self._stored) - start))
+            lo = max(start, self._stored) - self._stored
+            out.extend(self._tail[lo:max(lo, stop - self._stored)])
+            return out
         n = len(self)
         j = i + n if i < 0 else i
         if not 0 <= j < n:

@@ -176,6 +176,8 @@ def test_a_spilled_column_reads_every_sample_back_and_holds_one_block() -> None:
     assert c.held < 16 and len(c) == 1000
     assert list(c) == list(ref) and c.array() == ref
     assert (c[0], c[15], c[16], c[999], c[-1]) == (ref[0], ref[15], ref[16], ref[999], ref[-1])
+    assert (c[10:40], c[-5:], c[990:2000], c[3:3], c[0:7:3]) == (
+        list(ref[10:40]), list(ref[-5:]), list(ref[990:]), [], list(ref[0:7:3]))
     plain = Column("q")
     for v in ref:
         plain.append(v)
