@@ -113,7 +113,8 @@ def whole_stream(first: PvtTrajectory, chunks: list[PvtTrajectory], core: Coordi
     (`core.pieces`: (start ms, plan) each), knot 0 of a chunk being the last knot before it. The plan at every
     ms and the knots are joined; the stats are the worst of the pieces'. `first` alone for a closed job."""
     pieces = core.pieces
-    used = chunks[:max(0, len(pieces) - 1)]
+    dropped = core.pieces_dropped  # an endless job forgets its oldest pieces: pieces[0] is piece `dropped`
+    used = chunks[:max(0, dropped + len(pieces) - 1)]
     if not used:
         return first
     import numpy as np
@@ -121,8 +122,10 @@ def whole_stream(first: PvtTrajectory, chunks: list[PvtTrajectory], core: Coordi
     from planner.reference import Reference
 
     parts = [first, *used]
+    offsets = {dropped + j: offset for j, (offset, _plan) in enumerate(pieces)}
     at = first.duration_ms
-    for (offset, _plan), part, before in zip(pieces[1:], used, parts, strict=False):
+    for g, (part, before) in enumerate(zip(used, parts, strict=False), start=1):
+        offset = offsets.get(g, at)
         if offset != at or not np.array_equal(part.positions[:, 0], before.positions[:, -1]):
             raise ValueError(f"the core appended a piece at {offset} ms; the chunk kept there does not follow the "
                              f"stream before it (ends at {at} ms, last knot {before.positions[:, -1].tolist()})")

@@ -275,7 +275,7 @@ def plot_motion(
             right.legend(loc="upper right", fontsize=7)
             continue
         tf = np.array([(s - sync0) * period_s for s in ax.fill_sync])
-        right.step(tf, ax.fill, where="post", color="#2ca02c", lw=1.0, label="FIFO fill")
+        right.step(tf, list(ax.fill), where="post", color="#2ca02c", lw=1.0, label="FIFO fill")
         right.axhline(underflow_watermark, color="#d62728", lw=0.8, ls="--",
                       label=f"underflow wm {underflow_watermark}")
         right.axhline(overflow_watermark, color="#9467bd", lw=0.8, ls="--",

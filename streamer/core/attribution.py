@@ -31,9 +31,9 @@ lag by a SYNC until the content differs, which no check minds (they all fit).
 
 from __future__ import annotations
 
-from array import array
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+
+from streamer.core.spool import Column, StoreFactory
 
 REACH = 3  # an answer can reach the master this many SYNCs after the newest on the wire, no more
 
@@ -77,17 +77,25 @@ def attribute(upper: int, after: int, fits: Fits, *,
     return next((m for m in range(first + 1, upper + 1) if fits(m)), first)
 
 
-@dataclass
 class FeedbackLog:
     """What one node's drive reported, per SYNC it answered (as attributed): position demand and actual from
     TPDO2, and the last SYNC whose TPDO1 showed ip mode active. Kept by the coordinator; the job report
-    measures the deviation from it (never from arrival order). Compact arrays: one job of minutes holds a
-    few ten thousand samples per axis."""
+    measures the deviation from it (never from arrival order). Compact columns (streamer/core/spool.py): one
+    job of minutes holds a few ten thousand samples per axis in memory; given a `store` (an endless job), the
+    columns keep one block each in memory and the rest in the store, and still read whole."""
 
-    sync: array[int] = field(default_factory=lambda: array("q"))
-    demand: array[int] = field(default_factory=lambda: array("q"))
-    actual: array[int] = field(default_factory=lambda: array("q"))
-    last_active_sync: int | None = None
+    __slots__ = ("actual", "demand", "last_active_sync", "sync")
+
+    def __init__(self, store: StoreFactory | None = None) -> None:
+        self.sync = Column("q", store)
+        self.demand = Column("q", store)
+        self.actual = Column("q", store)
+        self.last_active_sync: int | None = None
+
+    @property
+    def held(self) -> int:
+        """Samples held in memory (all of them without a store)."""
+        return self.sync.held + self.demand.held + self.actual.held
 
     def position(self, sync: int, demand: int, actual: int) -> None:
         self.sync.append(sync)

@@ -91,8 +91,16 @@ does; halt without one) and the job ends FAILED EXTENSION_FAILED once at rest. A
 finishes by itself: it ends by a change (a `Change`, "aborting" only: it has no end to buffer after), a
 cancel, a fault, or a closed chunk (the planner's chunk brakes by itself before the position limits; the
 job is then DONE at rest there). A chunk whose successor follows keeps only its records: the plan at every
-ms (`StreamPlan.reference`) of chunks wholly in the past is dropped, so an endless job holds no more than
-its records.
+ms (`StreamPlan.reference`) of chunks wholly in the past is dropped. And every SYNC of an open stream the core
+retires its past (`_retire`): the segment ends, the FIFO axes' records and frames and the pieces from before
+`_retain_ms` (>= 1 s, more than every SYNC a TPDO can still be attributed to: the demand prediction reads the
+records around the drive's time then) behind the slowest drive's interpolation time, and never a frame not
+yet confirmed in its FIFO (a resend) nor anything a stop, change or chunk is spliced after (the queue's end,
+later still). Records, frames and ends are `Window`s (streamer/core/window.py): indices still count from
+the stream's start, so every index keeps its meaning; reading a retired one raises instead of misreading.
+The per-SYNC feedback log of an open stream keeps its old samples in the `store` the runtime gives
+(streamer/core/spool.py). So an endless job's memory stays flat however long it runs (`held` counts what it
+holds; benchmarks/bench_endless.py); a closed plan retires nothing and keeps its log in memory, as before.
 
 Fault: any EMCY from a job node (except code 0x0000, "no error"), a lost heartbeat, a boot-up, a buffer
 error bit or the statusword fault bit in a TPDO, TPDO1/TPDO2 missing for `tpdo_timeout_syncs` SYNCs,
@@ -183,6 +191,8 @@ from streamer.core.schedule import (
     target_prefix,
 )
 from streamer.core.settings import StreamerSettings
+from streamer.core.spool import StoreFactory
+from streamer.core.window import Window
 
 # controlwords (CiA 402, seed 000 4.3.4)
 CW_ENABLE_OPERATION = 0x000F  # operation enabled, ip mode bit 4 low
@@ -231,6 +241,7 @@ _ALL_ACTIVE = frozenset({_F.STREAMING, _F.DRAINING, _F.FINISHED})
 _ALL_QUEUED = frozenset({_F.DRAINING, _F.FINISHED})
 _ALL_FINISHED = frozenset({_F.FINISHED})
 _EXTENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING})  # job states in which an open stream is extended
+RETAIN_MIN_MS = 1000  # an endless job keeps at least this much of its past records (see `_retire`)
 EXTEND_EARLY_MS = 500  # ask the extender this long before the chunk is needed (it may plan on another thread)
 MAX_EXTENSIONS_PER_SYNC = 4  # short chunks: several may be needed at once; bounded so one SYNC stays short
 LONGEST_SEGMENT_MS = 255  # the PVT time field
@@ -390,6 +401,7 @@ class Coordinator:
         settings: StreamerSettings,
         stop_planner: StopPlanner | None = None,
         extender: Extender | None = None,
+        store: StoreFactory | None = None,
     ) -> None:
         self._wire_sync: int | None = None
         self._plan = plan if isinstance(plan, StreamPlan) else StreamPlan.from_trajectory(plan)
@@ -418,7 +430,7 @@ class Coordinator:
             s.sync_period_ms, s.underflow_watermark + (1 if hide else 0), s.overflow_watermark, s.lead_ms,
             s.repair_syncs
         )
-        self._ends = _stream_ends(self._plan)
+        self._ends: Window[int] = Window(_stream_ends(self._plan))  # by record index; an endless job drops its past
         self._t_end = self._ends[-1]
         self.extend_need_ms = s.sync_period_ms + max(s.repair_syncs * s.sync_period_ms, s.lead_ms) + (
             self._policy.underflow_watermark + 2) * LONGEST_SEGMENT_MS
@@ -447,7 +459,9 @@ class Coordinator:
         self._clocks: dict[int, DriveTime] = {}
         self._sampling: dict[int, str | None] = {}
         # what every drive reported, per SYNC as attributed (the report's deviation is measured from it)
-        self._feedback_log: dict[int, FeedbackLog] = {node: FeedbackLog() for node in self._plan.node_ids}
+        # (an endless job's go to `store` block by block, when the runtime gives one: streamer/core/spool.py)
+        log_store = store if self._plan.open_end else None
+        self._feedback_log: dict[int, FeedbackLog] = {node: FeedbackLog(log_store) for node in self._plan.node_ids}
         self._memo_progress: tuple[tuple[int, int, bool], tuple[bool, bool, int, int]] | None = None
         self._memo_demand: tuple[tuple[int, int], tuple[int, ...]] | None = None
         self._memo_match: tuple[tuple[int, int, int], tuple[list[int], int]] | None = None
@@ -526,6 +540,11 @@ class Coordinator:
         # the stream as (start ms, plan) pieces: the job's plan, then every change spliced in (a cyclic axis'
         # state at a time comes from the piece that covers it)
         self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]
+        self._pieces_dropped = 0  # pieces of an endless job wholly in the past, forgotten (`_retire`)
+        self._retired = 0  # records, frames and segment ends forgotten so far (`_retire`)
+        # how far behind the slowest drive an endless job keeps its records: every SYNC a TPDO can still be
+        # attributed to (attribution.REACH, the TPDO2 schedule's 2n - 1), with room to spare, and at least 1 s
+        self._retain_ms = max(RETAIN_MIN_MS, (attribution.REACH + 2 * self._feedback_every + 2) * self._period)
         self._change_results: list[ChangeResult] = []
         self._emergency: dict[str, Any] | None = None  # what an EmergencyStop did (see `emergency`)
         self._positioning = PositioningTracker(self._plan, s.target_window_counts, s.in_target_timeout_ms)
@@ -602,6 +621,26 @@ class Coordinator:
     def extensions(self) -> int:
         """Chunks appended to an open-ended stream so far."""
         return self._extensions
+
+    @property
+    def pieces_dropped(self) -> int:
+        """Pieces before `pieces[0]` that an endless job forgot (wholly interpolated long ago)."""
+        return self._pieces_dropped
+
+    @property
+    def held(self) -> dict[str, int]:
+        """What the core holds of the stream now (what grows with a job's length unless it is retired):
+        segment ends, the FIFO axes' records and frames, the pieces and their records; and `retired`, how
+        many records, frames and ends it has forgotten."""
+        return {
+            "ends": self._ends.held,
+            "records": sum(f.records.held for f in self._feeders),
+            "frames": sum(f.sends.held for f in self._feeders),
+            "pieces": len(self._pieces),
+            "piece_records": sum(len(r) for _, p in self._pieces for r in p.records),
+            "retired": self._retired,
+            "feedback_samples": sum(log.held for log in self._feedback_log.values()),
+        }
 
     @property
     def pieces(self) -> tuple[tuple[int, StreamPlan], ...]:
@@ -1005,6 +1044,7 @@ class Coordinator:
                 clock.start(m, ev.t)
         if self._open_plan is not None and self._state in _EXTENDING:
             self._keep_open(m, ev.t)
+            self._retire(m, ev.t)
         st = self._state
         if st is JobState.PRIMING:
             for cf in self._cyclic:
@@ -1750,7 +1790,7 @@ class Coordinator:
                 f"(starts {list(plan.start_positions)}, queued {list(request.positions_counts)})"
             )
         if self._feeders:
-            new_ends = self._ends[:k] + [t0 + e for e in _stream_ends(plan)]
+            new_ends = self._ends.spliced(k, [t0 + e for e in _stream_ends(plan)])
             assert self._sync is not None
             _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
             short = dry_run(new_ends, self._policy, self._step, k, now_hi)
@@ -1776,9 +1816,12 @@ class Coordinator:
                 f.splice(t0, pos, vel)
                 if f.state is FeederState.DRAINING:  # it had sent its last set point: the new part has more
                     f.state = FeederState.STREAMING
-        new_ends = self._ends[:k] + [t0 + e for e in _stream_ends(plan)]
-        self._ends = new_ends
-        self._t_end = new_ends[-1]
+        if k < self._ends.base:  # no FIFO axis: k is 0, the cyclic axes' part from t0 on is the whole timing
+            self._ends = Window()
+        else:
+            self._ends.truncate(k)
+        self._ends.extend(t0 + e for e in _stream_ends(plan))
+        self._t_end = self._ends[-1]
         self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
         self._lockstep = min(self._lockstep, k)
         self._lock_prev = min(self._lock_prev, k)
@@ -1912,7 +1955,7 @@ class Coordinator:
                           f"counts, {list(start_rpm or ())} rpm; the stream ends at {list(positions)} counts, "
                           f"{[r.velocity for r in knots]} rpm)")
         if self._feeders:
-            ends = self._ends + [self._t_end + e for e in _stream_ends(plan)]
+            ends = self._ends.spliced(len(self._ends), [self._t_end + e for e in _stream_ends(plan)])
             short = dry_run(ends, self._policy, self._step, self._lockstep, now_hi)
             if short is not None:
                 return None, (f"the next chunk cannot be streamed in time ({short.fill} records left at "
@@ -1931,6 +1974,29 @@ class Coordinator:
         self._cancel_info["reason"] = why
         self._open_plan = None
         self._open_source = None
+
+    def _retire(self, m: int, t: float) -> None:
+        """SYNC m of an open stream: forget what no one can read again, so that an endless job's memory stays
+        flat. Kept: `_retain_ms` behind the slowest drive's interpolation time (every SYNC a TPDO may still be
+        attributed to, whose demand is predicted from the records around it), every frame not yet confirmed
+        in its FIFO (a resend), and everything after (a stop, change or chunk is spliced after what is
+        queued, which is later still). Indices keep counting from the stream's start (`Window`)."""
+        if self._start_sync is None or m <= self._start_sync:
+            return
+        now_lo, _ = self._elapsed_bounds(m, t)
+        keep_ms = now_lo - self._retain_ms
+        if keep_ms <= 0:
+            return
+        k = consumed_at(self._ends, keep_ms) - 2  # record k - 1 stays: the segment before k starts there
+        if self._feeders:
+            k = min([k] + [f.confirmed - f.lead - 1 for f in self._feeders])
+        if k > self._ends.base:
+            self._retired += self._ends.drop_before(k)
+            for f in self._feeders:
+                self._retired += f.retire(k)
+        while len(self._pieces) > 1 and self._pieces[1][0] <= keep_ms:
+            del self._pieces[0]
+            self._pieces_dropped += 1
 
     def _drop_past_references(self, now_ms: int) -> None:
         """The plan at every ms of the pieces wholly interpolated already is not needed any more (an endless

@@ -45,6 +45,10 @@ records per period an isolated loss is repaired only when it takes the whole bat
 (the protocol cannot tell which record of the batch is missing). Priming goes at
 `prime_records_per_sync` (default 1) per cycle so priming losses are always repairable.
 
+Records and frames are held in `Window`s (streamer/core/window.py) indexed from the stream's start: an
+endless job's coordinator retires (`retire`) the prefix that is confirmed, consumed and behind every SYNC
+still to be attributed, and every index (`confirmed`, `sent_end`, record k) keeps its meaning.
+
 Reordering inside a batch (two records of one axis swapped) leaves the fill right; it is caught when
 executed, by the position-demand check against the plan (coordinator, PositionFeedback).
 
@@ -62,7 +66,6 @@ The drive's readings (planner/readings.py) shape the stream and the accounting, 
 
 from __future__ import annotations
 
-from bisect import bisect_right
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -72,6 +75,7 @@ from bus.events import Send
 from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms, truncate_counts
 from planner.record import PvtRecord
 from streamer.core import outcome as oc
+from streamer.core.window import Window, bisect_right
 
 
 class InvalidTransition(RuntimeError):
@@ -190,13 +194,15 @@ class FifoFeeder:
         self.axis = axis
         self.node_id = node_id
         self.start_position = start_position
-        self.records = records  # the plan's records; replaced on cancel (the stop trajectory is spliced in)
+        # the plan's records (the stop trajectory or the next chunk is spliced in) and the stream's frames,
+        # by index from the stream's start; an endless job drops the prefix no one can read again (`retire`)
+        self.records: Window[PvtRecord] = Window(records)
         self.lead = 1 if lead is not None else 0
         self._lead_send = lead
         self._tail_send = tail
         self.open_end = open_end  # the stream goes on (an open-ended plan): no tail until a closed part follows
         self.tail = 1 if tail is not None and not open_end else 0
-        self.sends = self._stream(sends)  # lead + the plan's frames + tail
+        self.sends: Window[Send] = Window(self._stream(sends))  # lead + the plan's frames + tail
         self.hides_target = hides_target  # the reported fill leaves out the record being interpolated towards
         self._rounders = {"nearest": (round_counts,), "toward_zero": (truncate_counts,),
                           None: (round_counts, truncate_counts)}[rounding]
@@ -270,13 +276,24 @@ class FifoFeeder:
         """Replace the plan after record k (a stop, a change, the next chunk of an open-ended plan); the stream
         keeps its lead, and its tail (a second end record) repeats the new end record once the stream is
         closed (`open_end` false)."""
-        self.records = self.records[:k] + records
-        plan_sends = self.sends[self.lead:self.lead + k] + sends
+        self.records.truncate(k)
+        self.records.extend(records)
+        self.sends.truncate(self.lead + k)  # the lead and the plan's first k frames (the old tail goes)
+        self.sends.extend(sends)
         self.open_end = open_end
         if self._tail_send is not None and not open_end:
             self._tail_send = sends[-1]  # the new end record: the tail is a copy of it
         self.tail = 1 if self._tail_send is not None and not open_end else 0
-        self.sends = self._stream(plan_sends)
+        if self.tail and self._tail_send is not None:
+            self.sends.append(self._tail_send)
+
+    def retire(self, k: int) -> int:
+        """Forget the plan's records before index k and the stream's frames before them (and before
+        `confirmed`: a frame not yet confirmed in the FIFO may be resent). The caller (the coordinator)
+        picks k so that nothing before it is read again: consumed by every drive, behind every SYNC still
+        to be attributed, behind every splice point. Returns the records and frames dropped."""
+        k = max(0, min(k, self.confirmed - self.lead - 1))
+        return self.records.drop_before(k) + self.sends.drop_before(min(self.lead + k, self.confirmed))
 
     @property
     def pending(self) -> bool:

@@ -18,9 +18,10 @@ possible batch per cycle, which is what makes losses repairable (see feeder.py).
 
 from __future__ import annotations
 
-from bisect import bisect_right
 from collections.abc import Sequence
 from dataclasses import dataclass
+
+from streamer.core.window import bisect_right
 
 
 def segment_ends(segment_ms: Sequence[int]) -> list[int]:
@@ -35,7 +36,7 @@ def segment_ends(segment_ms: Sequence[int]) -> list[int]:
 
 
 def consumed_at(ends: Sequence[int], elapsed_ms: int) -> int:
-    """Records popped after `elapsed_ms` of interpolation."""
+    """Records popped after `elapsed_ms` of interpolation (`ends` may be a `Window`: stream indices)."""
     return bisect_right(ends, elapsed_ms)
 
 

@@ -323,12 +323,13 @@ def build_recording(
         rows: dict[int, dict[str, int | None]] = {}
         if ax is not None:
             recorded_status = len(ax.statusword) == len(ax.fill_sync)
-            for k, s in enumerate(ax.fill_sync):
+            # in order, never by index: an endless job's columns read their spilled blocks back in sequence
+            status = zip(ax.statusword, ax.buffer_status, strict=True) if recorded_status else None
+            for s, fill in zip(ax.fill_sync, ax.fill, strict=True):
                 row = rows.setdefault(s, {})
-                row["fifo_fill"] = ax.fill[k]
-                if recorded_status:
-                    row["statusword"] = ax.statusword[k]
-                    row["buffer_status"] = ax.buffer_status[k]
+                row["fifo_fill"] = fill
+                if status is not None:
+                    row["statusword"], row["buffer_status"] = next(status)
         for s, actual, demand in zip(*positions_by_sync(ax, (feedback or {}).get(int(node))), strict=True):
             row = rows.setdefault(int(s), {})
             row["actual"], row["demand"], row["following_error"] = actual, demand, actual - demand
@@ -354,8 +355,7 @@ def build_recording(
 
     frames = Frames()
     log = trace.frame_log
-    for k in range(len(log)):
-        ft, cob_id, dlc, data = log.frame(k)
+    for ft, cob_id, dlc, data in log.frames():
         frames.append(rel(ft), cob_id, dlc, data)
 
     return JobRecording(

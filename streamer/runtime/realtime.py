@@ -53,6 +53,7 @@ from streamer.core.coordinator import Coordinator, JobState
 from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.extension import PrefetchExtender
+from streamer.runtime.spill import temp_store
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
@@ -385,10 +386,12 @@ class RealtimeRuntime:
         if extender is None:
             extender = prefetch = PrefetchExtender()
             prefetch.prefetch(trajectory)  # the first chunk's successor, while the drives are primed
-        core = Coordinator(trajectory, settings, stop_planner=stop_planner, extender=extender)
+        # an endless job's per-SYNC logs keep their old samples in temporary files (streamer/runtime/spill.py)
+        core = Coordinator(trajectory, settings, stop_planner=stop_planner, extender=extender, store=temp_store)
         nodes = set(core.node_ids)
         trace = JobTrace([(a.node_id, a.name) for a in cell.axes if a.node_id in nodes],
-                         sync_period_s=cell.sync_period_s, bitrate=cell.bus.bitrate)
+                         sync_period_s=cell.sync_period_s, bitrate=cell.bus.bitrate,
+                         store=temp_store if core.open_ended else None)
         # events queued before this job (TPDOs of the previous one) belong to nobody
         while self._drain(0.0) is not None:
             pass

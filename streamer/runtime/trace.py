@@ -9,6 +9,11 @@ SYNC are taken from the core's attribution (`JobReport.feedback`), not from thes
 the virtual-time and the real-time runtimes, so the report and the plot are built the same way whatever
 bus ran the job. No I/O, no clock: timestamps come with the events.
 
+An endless (open-ended) job's trace is given a `store` (streamer/runtime/spill.py): its per-SYNC series, SYNC
+times and frame log are then `Column`s (streamer/core/spool.py) that hold their newest block in memory and
+the rest in the store, and read whole (in order: `FrameLog.frames`, iteration), so an hour of motion costs
+no more memory than a minute and the report and recording still see every sample.
+
 With `record=True` (the default) it also keeps what the job's recording needs (streamer/recording):
 every frame with its data and time (in compact arrays, up to `max_frames`, then counted in
 `frames_dropped`), the statusword and buffer status of every TPDO1, the events that are not
@@ -21,8 +26,9 @@ from this trace after the job, never during it. `record=False` keeps only what t
 
 from __future__ import annotations
 
+import dataclasses
 from array import array
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,6 +45,7 @@ from bus.events import (
     SendFailed,
     StatusWord,
 )
+from streamer.core.spool import Column, StoreFactory
 
 IP_ACTIVE_BIT = 1 << 15  # 0x20C4:01 bit 15
 FIFO_SIZE = 64
@@ -82,9 +89,11 @@ class NotedChange:
 
 
 class FrameLog:
-    """Frames in compact arrays: time (s, the runtime's clock), COB-ID, DLC and 8 data bytes each."""
+    """Frames in compact arrays: time (s, the runtime's clock), COB-ID, DLC and 8 data bytes each. Given a
+    `store` (an endless job), four `Column`s that keep their old blocks there instead (the data bytes as one
+    little-endian int64), so that the `max_frames` it keeps cost one block each in memory."""
 
-    def __init__(self, max_frames: int):
+    def __init__(self, max_frames: int, store: StoreFactory | None = None):
         if max_frames < 0:
             raise ValueError(f"max_frames must be >= 0, got {max_frames}")
         self.max_frames = max_frames
@@ -93,13 +102,27 @@ class FrameLog:
         self.dlc = array("B")
         self.data = bytearray()
         self.dropped = 0
+        self._columns = None if store is None else (
+            Column("d", store), Column("q", store), Column("q", store), Column("q", store))
 
     def __len__(self) -> int:
-        return len(self.t)
+        return len(self.t) if self._columns is None else len(self._columns[0])
+
+    @property
+    def held(self) -> int:
+        """Frames held in memory."""
+        return len(self.t) if self._columns is None else self._columns[0].held
 
     def add(self, t: float, cob_id: int, dlc: int, data: bytes) -> None:
-        if len(self.t) >= self.max_frames:
+        if len(self) >= self.max_frames:
             self.dropped += 1
+            return
+        if self._columns is not None:
+            ct, cc, cd, cx = self._columns
+            ct.append(t)
+            cc.append(cob_id)
+            cd.append(dlc)
+            cx.append(int.from_bytes((data[:8] + _PAD)[:8], "little", signed=True))
             return
         self.t.append(t)
         self.cob_id.append(cob_id)
@@ -112,8 +135,20 @@ class FrameLog:
             self.data += _PAD[min(n, 8):]
 
     def frame(self, i: int) -> tuple[float, int, int, bytes]:
+        if self._columns is not None:
+            ct, cc, cd, cx = self._columns
+            n = int(cd[i])
+            return float(ct[i]), int(cc[i]), n, int(cx[i]).to_bytes(8, "little", signed=True)[:min(n, 8)]
         n = self.dlc[i]
         return self.t[i], self.cob_id[i], n, bytes(self.data[8 * i: 8 * i + min(n, 8)])
+
+    def frames(self) -> Iterator[tuple[float, int, int, bytes]]:
+        """Every frame kept, in order (reads a store's blocks in sequence, never frame by frame)."""
+        if self._columns is None:
+            yield from (self.frame(i) for i in range(len(self)))
+            return
+        for t, c, n, x in zip(*self._columns, strict=True):
+            yield float(t), int(c), int(n), int(x).to_bytes(8, "little", signed=True)[:min(int(n), 8)]
 
 
 @dataclass
@@ -139,13 +174,79 @@ class AxisTrace:
     def max_following_error(self) -> int:
         return max((abs(a - d) for a, d in zip(self.actual, self.demand, strict=True)), default=0)
 
+    @classmethod
+    def spilled(cls, node_id: int, name: str, store: StoreFactory) -> AxisTrace:
+        """An axis trace whose per-SYNC samples are `Column`s that keep their old blocks in `store`."""
+        return cls(node_id, name, **{f.name: Column("q", store) for f in dataclasses.fields(cls)  # type: ignore[arg-type]
+                                     if f.name not in ("node_id", "name")})
+
+    @property
+    def held(self) -> int:
+        """Samples held in memory, over every per-SYNC series."""
+        return sum(getattr(v, "held", len(v)) for k, v in vars(self).items() if k not in ("node_id", "name"))
+
+
+class SyncTimes(Mapping[int, float]):
+    """SYNC count -> time it was sent, in two columns (the counts increase): what `JobTrace.sync_times` is for
+    an endless job (a dict of an hour's SYNCs holds tens of MB)."""
+
+    def __init__(self, store: StoreFactory) -> None:
+        self._counts = Column("q", store)
+        self._times = Column("d", store)
+
+    def add(self, count: int, t: float) -> None:
+        n = len(self._counts)
+        if n and count <= self._counts[-1]:
+            raise ValueError(f"SYNC count {count} after {self._counts[-1]}: counts must increase")
+        self._counts.append(count)
+        self._times.append(t)
+
+    def _index(self, count: int) -> int | None:
+        n = len(self._counts)
+        if not n:
+            return None
+        i = count - int(self._counts[0])  # consecutive counts: the usual case, one look
+        if 0 <= i < n and self._counts[i] == count:
+            return i
+        lo, hi = 0, n  # else bisect (a gap: a SYNC the runtime did not see)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if self._counts[mid] < count:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo if lo < n and self._counts[lo] == count else None
+
+    def __getitem__(self, count: int) -> float:
+        i = self._index(count)
+        if i is None:
+            raise KeyError(count)
+        return float(self._times[i])
+
+    def __contains__(self, count: object) -> bool:
+        return isinstance(count, int) and self._index(count) is not None
+
+    def __iter__(self) -> Iterator[int]:
+        return (int(c) for c in self._counts)
+
+    def __len__(self) -> int:
+        return len(self._counts)
+
+    @property
+    def held(self) -> int:
+        return self._counts.held + self._times.held
+
 
 class JobTrace:
     """Per-axis samples per SYNC and the bus traffic per SYNC cycle (for bus-load peak)."""
 
     def __init__(self, nodes: Sequence[tuple[int, str]], *, sync_period_s: float, bitrate: int,
-                 record: bool = True, max_frames: int = DEFAULT_MAX_FRAMES):
-        self.axes: dict[int, AxisTrace] = {n: AxisTrace(n, name) for n, name in nodes}
+                 record: bool = True, max_frames: int = DEFAULT_MAX_FRAMES, store: StoreFactory | None = None):
+        # an endless job's samples (`store` given: streamer/runtime/spill.py) keep all but their newest block
+        # in the store, so its memory stays flat and the report and recording still read every sample
+        self.store = store
+        self.axes: dict[int, AxisTrace] = {
+            n: AxisTrace(n, name) if store is None else AxisTrace.spilled(n, name, store) for n, name in nodes}
         self.sync_period_s = sync_period_s
         self.bitrate = bitrate
         self.frames = 0
@@ -155,16 +256,19 @@ class JobTrace:
         self._peak_bits = 0
         self._sync = -1
         self._cycle = 0
-        self.sync_times: dict[int, float] = {}
+        self.sync_times: dict[int, float] | SyncTimes = {} if store is None else SyncTimes(store)
         self.record = record
-        self.frame_log = FrameLog(max_frames if record else 0)
+        self.frame_log = FrameLog(max_frames if record else 0, store)
         self.noted: list[NotedEvent] = []
         self.changes: list[NotedChange] = []
 
     # ---- feeding
     def on_sync(self, count: int, t: float) -> None:
         self._sync = count
-        self.sync_times[count] = t
+        if isinstance(self.sync_times, SyncTimes):
+            self.sync_times.add(count, t)
+        else:
+            self.sync_times[count] = t
 
     def on_frame(self, cob_id: int, dlc: int, data: bytes | None = None, t: float | None = None) -> None:
         """Every frame on the bus, whoever sent it. A SYNC frame opens a new cycle for the bus-load tally

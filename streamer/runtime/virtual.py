@@ -70,6 +70,7 @@ from planner.readings import DriveReadings
 from streamer.core.coordinator import Coordinator, JobState, Reaction
 from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
+from streamer.runtime.spill import temp_store
 from streamer.runtime.trace import JobTrace
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
@@ -617,12 +618,14 @@ class VirtualRuntime:
             from planner.travel import extend_velocity
 
             extender = extend_velocity  # type: ignore[assignment]
-        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner, extender=extender)
+        # an endless job's per-SYNC logs keep their old samples in temporary files (streamer/runtime/spill.py)
+        core = Coordinator(trajectory, self.settings, stop_planner=stop_planner, extender=extender, store=temp_store)
         job_nodes = set(core.node_ids)
         self.trace = JobTrace(
             [(a.node_id, a.name) for a in self.cell.axes if a.node_id in job_nodes],
             sync_period_s=self.period_s,
             bitrate=self.cell.bus.bitrate,
+            store=temp_store if core.open_ended else None,
         )
         self._core = core
         first_cycle = self._cycle + 1
