@@ -45,6 +45,7 @@ from planner.job import job_from_dict, load_job  # noqa: E402
 from planner.plan import plan_job, warm_up  # noqa: E402
 from planner.trajectory import PvtTrajectory  # noqa: E402
 from streamer import demo  # noqa: E402
+from streamer.core.attribution import FeedbackLog  # noqa: E402
 from streamer.core.coordinator import Coordinator, Reaction  # noqa: E402
 from streamer.core.plan_source import Change, EmergencyStop  # noqa: E402
 from streamer.report import build_report  # noqa: E402
@@ -82,6 +83,9 @@ def fmt(value: Any) -> str:
         return f"{type(value).__name__}({inner})"
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(fmt(v) for v in value) + "]"
+    if isinstance(value, FeedbackLog):  # its samples, not how it keeps them (in memory or spilled)
+        cols = ", ".join(f"{k}=[{', '.join(str(x) for x in getattr(value, k))}]" for k in ("sync", "demand", "actual"))
+        return f"FeedbackLog({cols}, last_active_sync={value.last_active_sync!r})"
     if isinstance(value, (set, frozenset)):
         return "{" + ", ".join(sorted(fmt(v) for v in value)) + "}"
     if isinstance(value, Mapping):
