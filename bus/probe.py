@@ -46,6 +46,11 @@ CW_START_IP = 0x001F
 STRETCH = 0.3  # of a period, per stretched SYNC interval (well inside the drives' 1.5-period SYNC watch)
 LATENCY_SYNCS = 12
 OWN_CLOCK_PPM = 5000.0  # the probe's own bound on a drive clock: wider than any crystal
+# the timing experiment is run again (up to this many times in all) while what the drives showed leaves a
+# reading open: a SYNC sent late or early by a loaded host can undo the stretched intervals that tell a
+# SYNC-locked clock from an own one, and a TPDO lost or late can hide a fill change; the next run's
+# schedule is another draw
+TIMING_ATTEMPTS = 3
 
 
 class Phase(Enum):
@@ -197,6 +202,7 @@ class StandstillProbe:
         self.feedback = feedback
         self._counters: dict[int, int | None] = {}
         self._timing_survivors: dict[int, list[tuple[str, str, str, str]]] = {}
+        self.timing_runs = 0  # how often the timing experiment ran (again while it left a reading open)
         self._rounding_start: dict[int, int] = {}
         self._records_sent: dict[int, int] = {}
         self._next_phase()
@@ -346,6 +352,8 @@ class StandstillProbe:
         if self.phase is Phase.LATENCY:
             self._limit_syncs = LATENCY_SYNCS
         elif self.phase is Phase.TIMING:
+            for r in self.rec.values():
+                r.timing.clear()  # a run again judges what this run shows, not a mix of both
             total = self.plan.t1 + self.plan.t2 + self.plan.t3
             self._limit_syncs = 1 + math.ceil(total / p) + 3
         elif self.phase is Phase.UNDERFLOW:
@@ -357,7 +365,10 @@ class StandstillProbe:
 
     def _finish_phase(self) -> None:
         if self.phase is Phase.TIMING:
+            self.timing_runs += 1
             self._analyse_timing()
+            if self._timing_open() and self.timing_runs < TIMING_ATTEMPTS:
+                self._queue.insert(0, Phase.TIMING)
         if self.phase is Phase.ROUNDING:
             self._queue.insert(0, Phase.ROUNDING_BACK)
         self._next_phase()
@@ -411,6 +422,11 @@ class StandstillProbe:
             if len(survivors) == 1:
                 self._first_record[n] = survivors[0][2]
 
+    def _timing_open(self) -> bool:
+        """Did the last timing experiment leave a node unexplained or one of its readings open?"""
+        return any(not sv or any(len({x[i] for x in sv}) > 1 for i in range(len(_TIMING_POINTS)))
+                   for sv in self._timing_survivors.values())
+
 
     def result(self, absent: Mapping[int, tuple[int, ...]] | None = None) -> ProbeResult:
         """The readings per node (None for what was not measured or not determined)."""
@@ -435,9 +451,10 @@ class StandstillProbe:
                         values = {sv[i] for sv in survivors}
                         if len(values) == 1:
                             kw[key] = values.pop()
+                    runs = f" (run {self.timing_runs} times: a run left a reading open)" if self.timing_runs > 1 else ""
                     evidence.append(f"timing: records {self.plan.t1}/{self.plan.t2}/{self.plan.t3} ms of zero "
                                     f"motion, SYNC intervals {self.plan.stretched} x +{self.plan.stretch_ms:g} ms "
-                                    f"after s+1; seen {seen}")
+                                    f"after s+1; seen {seen}{runs}")
             if Phase.UNDERFLOW in self.experiments:
                 first = self._first_record.get(n)
                 if r.underflow_j is None:

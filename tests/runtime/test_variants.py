@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from bus.errors import MISSING_OBJECT, BusError
-from bus.probe import ALL_EXPERIMENTS
+from bus.probe import ALL_EXPERIMENTS, Phase, StandstillProbe
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
 from planner.plan import plan_job
@@ -181,3 +181,30 @@ def test_missing_essential_object_names_node_object_and_why() -> None:
             m.configure_drives()
     assert e.value.code == MISSING_OBJECT and e.value.node == 2 and e.value.obj == (0x1017, 0)
     assert "heartbeat" in e.value.message and "cannot run this drive" in e.value.message
+
+
+@pytest.mark.parametrize("name", ["own_clock_fast", "tpdo_before_rpdo"])
+def test_probe_runs_the_timing_experiment_again_when_the_schedule_left_a_reading_open(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loaded host that sends the first timing run's stretched SYNCs on the period (late SYNCs caught up)
+    leaves SYNC-locked and own clocks alike: the probe runs the experiment again and settles every reading
+    from that run. Without the second run, the clock stays unknown and the runtime cannot plan for it."""
+    original = StandstillProbe._interval_s
+
+    def unstretched_first_run(self: StandstillProbe, step: int, count: int) -> float:
+        if self.phase is Phase.TIMING and self.timing_runs == 0 and step > 0:
+            return self.period_ms / 1000.0
+        return original(self, step, count)
+
+    monkeypatch.setattr(StandstillProbe, "_interval_s", unstretched_first_run)
+    base, _job, traj = demo.prepare(axes=2)
+    cell = cell_with(base, [VARIANTS[name]])
+    vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
+    rt = VirtualRuntime(cell, vcell=vcell)
+    result = rt.probe(ALL_EXPERIMENTS)
+    assert result.failures() == []
+    sim = cell.axes[0].sim
+    for node in (1, 2):
+        got = result.nodes[node].readings
+        assert {k: getattr(got, k) for k in OPEN_POINTS} == {k: getattr(sim, k) for k in OPEN_POINTS}
+        assert any("run 2 times" in e for e in result.nodes[node].evidence)
