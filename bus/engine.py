@@ -98,6 +98,18 @@ class EngineSpec:
 
 
 @dataclass(frozen=True)
+class LateBatch:
+    """Frames queued for the cycle after SYNC `cycle` that reached the engine only after SYNC `cycle` + 1 had
+    gone out too: sent at once, before SYNC `visible_from`. `cob_ids` names them (a batch is one `send_at`),
+    so the master knows whose frames were late: in one cycle some axes' frames may be in time, others not."""
+
+    cycle: int
+    cob_ids: tuple[int, ...]
+    delay_s: float | None  # after SYNC cycle + 1 went out (None: not known)
+    visible_from: int
+
+
+@dataclass(frozen=True)
 class RealtimeStatus:
     """What the engine got: SCHED_FIFO at `priority` (or not, and why), memory locked (or not)."""
 
@@ -350,8 +362,8 @@ class _Loop:
                     sent = self.sync_sent_at.get(n + 1)
                     self.stats.late_batches += 1
                     self.stats.late_frames += len(frames)
-                    self.out.send(("late", n, len(frames), None if sent is None else time.time() - sent,
-                                   self.cycle))
+                    delay = None if sent is None else time.time() - sent
+                    self.out.send(("late", n, tuple(f[0] for f in frames), delay, self.cycle))
             else:
                 self.ring.setdefault(n, []).extend(frames)
         elif kind == "sync_start":
@@ -520,9 +532,8 @@ class EngineBus(can.BusABC):
         self._closed = False
         self.schedule: tuple[float, float] | None = None  # (t0, period) while the engine sends SYNC
         self.counter_start = 0  # SYNC n of the schedule carries counters[(counter_start + n) % len(counters)]
-        # (cycle, frames, seconds after the next SYNC, the first SYNC sent after them)
-        self.late: list[tuple[int, int, float | None, int]] = []
-        self.on_late: Callable[[int, int, float | None, int], None] | None = None
+        self.late: list[LateBatch] = []
+        self.on_late: Callable[[LateBatch], None] | None = None
         self.on_send_failed: Callable[[int, str], None] | None = None
         if not self._in.poll(start_timeout_s):
             self._proc.kill()
@@ -583,9 +594,10 @@ class EngineBus(can.BusABC):
             if self.on_send_failed is not None:
                 self.on_send_failed(SYNC_COB_ID, f"SYNC {item[1]} refused by the bus: the engine's schedule stopped")
         elif kind == "late":
-            self.late.append((item[1], item[2], item[3], item[4]))
+            late = LateBatch(item[1], item[2], item[3], item[4])
+            self.late.append(late)
             if self.on_late is not None:
-                self.on_late(item[1], item[2], item[3], item[4])
+                self.on_late(late)
         elif kind == "send_failed":
             if self.on_send_failed is not None:
                 self.on_send_failed(item[1], item[2])

@@ -36,14 +36,16 @@ class SyncOnWire:
 
 
 @dataclass(frozen=True)
-class RecordsLate:
-    """The frames the core returned for the cycle after SYNC `cycle` went out only after a later SYNC: they are
-    on the bus from SYNC `visible_from` on (a runtime whose cycle engine reports it; bus/engine.py `late`).
-    The records among them count in the drives' FIFOs from there, not from SYNC `cycle` + 1."""
+class RecordOnWire:
+    """One PVT record frame (RPDO2) of drive `node` as the bus carried it: the master's own frame, received
+    back (the cycle engine forwards what it sent; python-can's `receive_own_messages` otherwise). It is on the
+    wire after SYNC `sync_count` (the newest SYNC received back before it; None before the first), so the drive
+    has it from SYNC `sync_count` + 1 on. Frames received back keep the bus's order with the SYNCs and the
+    drives' answers, so an answer fed before a record's echo was sampled before that record was on the wire."""
 
-    cycle: int
-    visible_from: int
+    node: int
     t: float
+    sync_count: int | None
 
 
 @dataclass(frozen=True)
@@ -139,8 +141,8 @@ class BusLoad:
 
 
 Event = (
-    Sync | BufferStatus | StatusWord | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel | SendFailed
-    | AdapterError | BusLoad
+    Sync | RecordOnWire | BufferStatus | StatusWord | PositionFeedback | Emcy | HeartbeatLost | Bootup | Cancel
+    | SendFailed | AdapterError | BusLoad
 )
 
 

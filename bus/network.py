@@ -67,7 +67,7 @@ from bus.errors import (
     BusError,
     ProtocolError,
 )
-from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, SendFailed, Sync
+from bus.events import AdapterError, BusLoad, Event, HeartbeatLost, RecordOnWire, SendFailed, Sync
 from bus.families import PROFILES, setpoint_slots
 from bus.probe import AbsentObject, WriteOnly
 from bus.profile import DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule, frame_to_event
@@ -611,6 +611,9 @@ class MasterAdapter:
                     self._hb_last[node] = t
                     self._hb_lost.discard(node)
             sync_count = self._sync_count - 1 if self._sync_count else None
+            if kind == "RPDO2" and node in self.nodes:  # our own PVT record, received back: when it was on the wire
+                self._emit(RecordOnWire(node, t, sync_count))
+                return
             event = frame_to_event(self.profiles, cob_id, data, t, self.nodes, sync_count)
             if event is not None:
                 self._emit(event)

@@ -153,7 +153,7 @@ from bus.events import (
     Emcy,
     HeartbeatLost,
     PositionFeedback,
-    RecordsLate,
+    RecordOnWire,
     Send,
     SendFailed,
     StatusWord,
@@ -263,7 +263,7 @@ _JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
 _EVENT_HANDLERS: dict[str, str] = {
     "Sync": "_on_sync",
     "SyncOnWire": "_on_sync_on_wire",
-    "RecordsLate": "_on_records_late",
+    "RecordOnWire": "_on_record_on_wire",
     "BufferStatus": "_on_buffer_status",
     "StatusWord": "_on_status",
     "PositionFeedback": "_on_position",
@@ -286,7 +286,7 @@ _CANCEL_HANDLERS: dict[JobState, str] = {
 _EVENT_TYPES: dict[str, type] = {
     "Sync": Sync,
     "SyncOnWire": SyncOnWire,
-    "RecordsLate": RecordsLate,
+    "RecordOnWire": RecordOnWire,
     "BufferStatus": BufferStatus,
     "StatusWord": StatusWord,
     "PositionFeedback": PositionFeedback,
@@ -493,6 +493,7 @@ class Coordinator:
                     hides_target=r.fifo_count == "until_segment_start",
                     rounding=r.rounding,
                     open_end=self._plan.open_end,
+                    echoed=s.records_echoed,
                 )
                 self._feeders.append(feeder)
             self._clocks[node] = DriveTime.of_reading(r, s.sync_period_ms, cyclic=node in s.cyclic,
@@ -1102,13 +1103,12 @@ class Coordinator:
                         clock.start(ev.count, ev.t)
             self._tpdo_overdue(min(ev.count, self._sync), ev.t)
 
-    def _on_records_late(self, ev: RecordsLate) -> None:
-        """The batch each FIFO axis sent in the cycle after SYNC `ev.cycle` reached the bus only before SYNC
-        `ev.visible_from`: it counts in the fill from there (else the drive's fill at the SYNCs between would
-        look like lost records, and their resend would arrive twice)."""
-        for f in self._feeders:
-            if f.sent_end > f.confirmed and f.batch_tag == ev.cycle + 1:
-                f.batch_tag = max(f.batch_tag, ev.visible_from)
+    def _on_record_on_wire(self, ev: RecordOnWire) -> None:
+        """One of our PVT records received back from the bus (`records_echoed`): the batch it completes counts
+        in its drive's fill from the SYNC after the one it followed on the wire (FifoFeeder.on_wire)."""
+        f = self._by_node.get(ev.node)
+        if isinstance(f, FifoFeeder):
+            f.on_wire(ev.sync_count)
 
     def _tpdo_overdue(self, m: int, t_wire: float | None = None) -> bool:
         """TPDO_TIMEOUT when a node has not answered for `tpdo_timeout_syncs` SYNCs up to SYNC m (every frame

@@ -49,6 +49,12 @@ Records and frames are held in `Window`s (streamer/core/window.py) indexed from 
 endless job's coordinator retires (`retire`) the prefix that is confirmed, consumed and behind every SYNC
 still to be attributed, and every index (`confirmed`, `sent_end`, record k) keeps its meaning.
 
+When a batch counts. In virtual time the frames are on the wire when the core returns them, so a batch sent in
+cycle m counts from SYNC m + 1 (its tag). In real time the machine may hold them up past a SYNC, or (fed ahead)
+let them out before the SYNC planned: with `echoed` the runtime feeds each record frame back as the bus carried
+it (`on_wire`, streamer/core/settings.py `records_echoed`), and the batch counts from the SYNC after its last
+frame was on the wire, and not in any answer fed before that (sampled before it was there).
+
 Reordering inside a batch (two records of one axis swapped) leaves the fill right; it is caught when
 executed, by the position-demand check against the plan (coordinator, PositionFeedback).
 
@@ -190,6 +196,7 @@ class FifoFeeder:
         hides_target: bool = False,
         rounding: str | None = "nearest",
         open_end: bool = False,
+        echoed: bool = False,
     ) -> None:
         self.axis = axis
         self.node_id = node_id
@@ -215,6 +222,10 @@ class FifoFeeder:
         self.confirmed = 0
         self.sent_end = 0
         self.batch_tag = 0  # SYNC from which the batch [confirmed, sent_end) is counted in the fill
+        # the runtime feeds our records as the bus carried them (`on_wire`): a batch counts from the SYNC after
+        # its last frame was on the wire, and not at all while a frame of it has not come back
+        self.echoed = echoed
+        self.in_flight = 0  # frames taken whose echo has not come back (with `echoed`)
         self.suspect_sync: int | None = None
         self.repair_pending = 0
         self.max_sent = 0
@@ -315,7 +326,7 @@ class FifoFeeder:
         original would then arrive twice), and fail BUS_OVERLOAD when the time is up. Returns a Failure,
         or None (possibly after scheduling a resend).
         """
-        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
+        visible = self.batch_visible(sync)
         c_hi = consumed if consumed_hi is None else max(consumed, consumed_hi)
         expected = self.expected_fill(sync, consumed, hidden)  # nothing missing, the least consumption
         lowest = expected - (c_hi - consumed)  # ... and the most consumption the drive's clock allows
@@ -394,20 +405,33 @@ class FifoFeeder:
         self.suspect_sync = None
         return None
 
+    def batch_visible(self, sync: int) -> bool:
+        """Can the drive's fill at SYNC `sync` hold the unconfirmed batch? From its tag on, and with `echoed`
+        only once all of its frames came back from the bus (an answer fed before that was sampled before)."""
+        return self.sent_end > self.confirmed and self.batch_tag <= sync and self.in_flight == 0
+
+    def on_wire(self, sync_count: int | None) -> None:
+        """One of our record frames came back from the bus after SYNC `sync_count`: the last of a batch sets
+        the SYNC it counts from (`sync_count` + 1, whatever SYNC it was meant for: a frame the machine held up
+        counts later, one sent early counts earlier). An echo with no frame taken is not this job's."""
+        if self.in_flight == 0:
+            return
+        self.in_flight -= 1
+        if self.in_flight == 0 and sync_count is not None:
+            self.batch_tag = sync_count + 1
+
     def expected_fill(self, sync: int, consumed: int, hidden: int = 0) -> int:
         """The fill the drive can report at SYNC `sync` with nothing missing, having consumed `consumed`
         stream records (the unconfirmed batch counts from its tag on). More is never possible there: a fill
         above it is a duplicate, or an answer to another SYNC (the attribution tries that first)."""
-        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
-        return (self.sent_end if visible else self.confirmed) - hidden - consumed
+        return (self.sent_end if self.batch_visible(sync) else self.confirmed) - hidden - consumed
 
     def possible_fill(self, sync: int, consumed: int, consumed_hi: int, hidden: int = 0) -> tuple[int, int]:
         """[least, most] fill the drive can report at SYNC `sync` without a PROTOCOL fault: most = nothing
         missing and the least consumption; least = the whole unconfirmed batch missing and the most
         consumption its clock allows. Outside it the answer is to another SYNC, or a fault."""
         most = self.expected_fill(sync, consumed, hidden)
-        visible = self.sent_end > self.confirmed and self.batch_tag <= sync
-        batch = self.sent_end - self.confirmed if visible else 0
+        batch = self.sent_end - self.confirmed if self.batch_visible(sync) else 0
         return most - (max(consumed, consumed_hi) - consumed) - batch, most
 
     def take(self, n: int, tag: int) -> list[Send]:
@@ -422,6 +446,8 @@ class FifoFeeder:
         self.sent_end = hi
         self.batch_tag = tag
         self.frames_sent += n
+        if self.echoed:
+            self.in_flight += n
         return out
 
     # ---- position demand prediction ---------------------------------------------------------------

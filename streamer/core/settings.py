@@ -68,6 +68,10 @@ class StreamerSettings:
     # SYNCs the core is fed ahead of the wire (the real-time runtime's lead over the cycle engine: Sync(n) is fed
     # up to `ahead_syncs` periods before SYNC n goes out); > 0: the answers overdue are judged on `SyncOnWire`
     ahead_syncs: int = 0
+    # the runtime feeds every PVT record frame back as the bus carried it (`RecordOnWire`, in the bus's order with
+    # the SYNCs and the answers): a batch counts in the fill from the SYNC after it was on the wire (the real-time
+    # runtime; in virtual time the frames are on the wire when the core returns them)
+    records_echoed: bool = False
     finish_timeout_ms: int = 2000
     start_tolerance_counts: int = 0
     demand_tolerance_counts: int = 2

@@ -41,9 +41,10 @@ from typing import Any
 
 import can
 
-from bus.engine import thread_priority
+from bus.cob import RPDO2_BASE
+from bus.engine import LateBatch, thread_priority
 from bus.errors import PROBE, BusError
-from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, RecordsLate, SendFailed, Sync, SyncOnWire
+from bus.events import BufferStatus, Cancel, Emcy, Event, PositionFeedback, SendFailed, Sync, SyncOnWire
 from bus.families import EPOS_IPM, PROFILES
 from bus.network import MasterAdapter
 from bus.probe import AUTO_EXPERIMENTS, Phase, ProbeError, ProbeResult, StandstillProbe
@@ -223,9 +224,9 @@ class RealtimeRuntime:
             engine.on_send_failed = lambda cob_id, why: self._on_event(
                 SendFailed(f"the bus refused frame 0x{cob_id:03X}: {why}", adapter.now()))
 
-    def _on_late(self, cycle: int, frames: int, delay_s: float | None, visible_from: int) -> None:
+    def _on_late(self, late: LateBatch) -> None:
         if self._running:
-            self._events.put(_Late(cycle, frames, delay_s, visible_from))  # type: ignore[arg-type]
+            self._events.put(late)  # type: ignore[arg-type]
 
     def _on_event(self, ev: Event) -> None:
         """Adapter thread: keep the latest state of every node (cheap), queue events only during a job."""
@@ -382,6 +383,9 @@ class RealtimeRuntime:
         if engine:
             settings = replace(settings, ahead_syncs=_Announcer.syncs_for(self.ahead_ms, cell.sync_period_s))
         settings = with_host_stall(settings, HOST_STALL_MS)
+        # the adapter hands our own frames back as the bus carried them: the core counts each batch of records
+        # from the SYNC after it was on the wire, whenever the machine let it go out (RecordOnWire)
+        settings = replace(settings, records_echoed=True)
         prefetch: PrefetchExtender | None = None
         if extender is None:
             extender = prefetch = PrefetchExtender()
@@ -431,22 +435,21 @@ class RealtimeRuntime:
                     if time.monotonic() - wall0 > limit:
                         raise TimeoutError(f"job still {core.state.value} after {limit:.1f} s")
                     continue
-                if isinstance(ev, _Late):
-                    if ahead is not None and ahead.critical(ev.cycle):
+                if isinstance(ev, LateBatch):
+                    if ahead is not None and any(synchronous(c) for c in ev.cob_ids):
                         after = "after" if ev.delay_s is None else f"{1000 * ev.delay_s:.1f} ms after"
                         self._feed(core, trace, SendFailed(
                             f"frames for the cycle after SYNC {ev.cycle} reached the cycle engine {after} the next "
                             f"SYNC: the master fell behind its {ahead.lead_s * 1000:.0f} ms lead", self.adapter.now()),
                             ahead)
-                    else:  # PVT records only: the FIFOs take them whenever they come; the core counts them from there
-                        self._feed(core, trace, RecordsLate(ev.cycle, ev.visible_from, self.adapter.now()), ahead)
+                    # PVT records only: the FIFOs take them whenever they come, and the core counts them from the
+                    # SYNC after their echo (RecordOnWire), which the bus's order brings before any answer with them
                     continue
                 if isinstance(ev, Sync):
                     first_sync = ev.count if first_sync is None else first_sync
                     last_sync = ev.count
                     trace.on_sync(ev.count, ev.t)
                     if ahead is not None:  # the core was fed this SYNC ahead of the wire: now it is out
-                        ahead.on_wire(ev)
                         ev = SyncOnWire(ev.count, ev.t)
                 self._feed(core, trace, ev, ahead)
                 if on_change is not None:
@@ -495,20 +498,15 @@ class RealtimeRuntime:
                     for s in reaction.sends:
                         self.adapter.send(s.cob_id, s.data)
                 else:  # after the SYNC the core last saw: it is on the wire, or in the engine's ring for it
-                    ahead.sending(reaction.sends)
                     self.adapter.send_at(ahead.fed, [(s.cob_id, s.data) for s in reaction.sends])
             except BusError as err:
                 pending.append(SendFailed(str(err), self.adapter.now()))
 
 
-@dataclass(frozen=True)
-class _Late:
-    """The cycle engine got frames for `cycle` after that SYNC had gone out (bus/engine.py)."""
-
-    cycle: int
-    frames: int
-    delay_s: float | None
-    visible_from: int  # the first SYNC the engine sent after them
+def synchronous(cob_id: int) -> bool:
+    """Must this frame reach the drive between its SYNC and the next (a controlword, a cyclic set point)? A
+    PVT record (asynchronous RPDO2, 0x300 + node) is taken whenever it comes: late, it only counts later."""
+    return (cob_id & 0x780) != RPDO2_BASE
 
 
 class _Announcer:
@@ -518,7 +516,7 @@ class _Announcer:
     core returned for SYNC n, so the core must have been fed Sync(n) before that: `lead_s` (a whole number of
     periods less half a period, so the core's work never meets the engine's busy moment) covers the longest
     stall of this process the cell tolerates. A synchronous frame (a controlword, a cyclic set point) that
-    still reaches the engine after its SYNC is a fault (`critical`); a PVT record (asynchronous RPDO2) is not."""
+    still reaches the engine after its SYNC is a fault (`synchronous`); a PVT record (asynchronous RPDO2) is not."""
 
     def __init__(self, t0: float, period_s: float, syncs: int, first: int,
                  counter: Callable[[int], int | None] = lambda n: None):
@@ -528,7 +526,6 @@ class _Announcer:
         self.syncs = syncs
         self.lead_s = (syncs - 0.5) * period_s
         self.fed = first - 1  # the last SYNC fed to the core
-        self._critical: set[int] = set()
 
     @staticmethod
     def syncs_for(ahead_ms: float, period_s: float) -> int:
@@ -557,12 +554,3 @@ class _Announcer:
             n = self.fed
             yield Sync(n, self.t0 + n * self.period_s, self.counter(n), since=self.t0)  # the engine's unbroken run
 
-    def on_wire(self, ev: Sync) -> None:
-        self._critical.discard(ev.count - 64)
-
-    def sending(self, sends: Any) -> None:
-        if any((s.cob_id & 0x780) != 0x300 for s in sends):  # anything but a PVT record (RPDO2)
-            self._critical.add(self.fed)
-
-    def critical(self, cycle: int) -> bool:
-        return cycle in self._critical

@@ -13,9 +13,9 @@ import can
 import pytest
 
 import bus.ipc  # noqa: F401  (the "ipc" interface)
-from bus.engine import EngineBus, EngineSpec, request_realtime
+from bus.engine import EngineBus, EngineSpec, LateBatch, request_realtime
 from bus.events import Sync
-from streamer.runtime.realtime import _Announcer
+from streamer.runtime.realtime import _Announcer, synchronous
 
 PERIOD_S = 0.01
 pytestmark = pytest.mark.realtime
@@ -95,8 +95,8 @@ def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel:
 
 
 def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: EngineBus, channel: str) -> None:
-    late: list[tuple[int, int, float | None, int]] = []
-    engine.on_late = lambda cycle, frames, delay, visible: late.append((cycle, frames, delay, visible))
+    late: list[LateBatch] = []
+    engine.on_late = late.append
     with can.Bus(interface="ipc", channel=channel) as drive:
         t0 = engine.start_sync(PERIOD_S)
         time.sleep(0.1)
@@ -110,10 +110,11 @@ def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: E
     deadline = time.monotonic() + 2
     while not late and time.monotonic() < deadline:
         time.sleep(0.01)
-    assert [(c, n) for c, n, _, _ in late] == [(past, 1)]
-    assert late[0][2] is not None and late[0][2] > 0.0
+    # it names the late frame (the in-time 0x202 of another cycle is not in it)
+    assert [(b.cycle, b.cob_ids) for b in late] == [(past, (0x201,))]
+    assert late[0].delay_s is not None and late[0].delay_s > 0.0
     # it names the first SYNC after the frame went out: the frame is on the bus between SYNC visible - 1 and it
-    visible = late[0][3]
+    visible = late[0].visible_from
     assert visible >= past + 2
     ids = [m.arbitration_id for m in got]
     syncs_before = ids[:ids.index(0x201)].count(0x080)
@@ -182,12 +183,7 @@ def test_the_announcer_gives_each_sync_the_counter_the_engine_sends() -> None:
     assert [(s.count, s.counter) for s in a.due(0.095, None)] == [(5, 2), (6, 3), (7, 4), (8, 1), (9, 2), (10, 3)]
 
 
-def test_the_announcer_tells_synchronous_frames_from_records() -> None:
-    from bus.events import Send
-
-    a = _Announcer(t0=0.0, period_s=0.01, syncs=1, first=5)
-    list(a.due(1.0, None))
-    a.sending([Send(0x301, bytes(8))])  # a PVT record (RPDO2): asynchronous, late is harmless
-    assert not a.critical(a.fed)
-    a.sending([Send(0x201, b"\x1f\x00")])  # a controlword: late would start an axis a SYNC late
-    assert a.critical(a.fed)
+def test_the_runtime_tells_synchronous_frames_from_records() -> None:
+    assert not synchronous(0x301) and not synchronous(0x37F)  # PVT records (RPDO2): late is harmless
+    assert synchronous(0x201)  # a controlword: late would start an axis a SYNC late
+    assert synchronous(0x401) and synchronous(0x501)  # a cyclic set point (RPDO3/4)

@@ -24,6 +24,7 @@ from bus.events import (
     BufferStatus,
     Emcy,
     PositionFeedback,
+    RecordOnWire,
     Send,
     Sync,
 )
@@ -332,6 +333,9 @@ class Rig:
     changes: list[StateChange] = field(default_factory=list)
     sends_after_terminal: list[Send] = field(default_factory=list)
     delayed: list[Send] = field(default_factory=list)
+    # feed every record frame back as it reaches the drive (`RecordOnWire`, after the newest SYNC: the rig's
+    # count), as the real-time runtime does (settings.records_echoed)
+    echo: bool = False
 
     def __post_init__(self) -> None:
         if self.settings is None:
@@ -378,6 +382,8 @@ class Rig:
         assert drive is not None, f"frame to unknown node {node}"
         for emcy in drive.receive(frame.cob_id, frame.data, self.t):
             self.feed(emcy)
+        if self.echo and frame.cob_id & 0x780 == RPDO2_BASE:
+            self.feed(RecordOnWire(node, self.t, self.count))
 
     def sync(self) -> None:
         assert self.drives is not None

@@ -12,7 +12,7 @@ import pytest
 from streamer_doubles import CPR, FakeIpDriveDouble, Rig, make_plan
 
 from bus.cob import RPDO2_BASE
-from bus.events import BufferStatus, Emcy, PositionFeedback, RecordsLate, Send, Sync, SyncOnWire
+from bus.events import BufferStatus, Emcy, PositionFeedback, Send, Sync, SyncOnWire
 from streamer.core import JobState, StreamerSettings
 from streamer.core import outcome as oc
 from streamer.core.settings import REFERENCE_READINGS
@@ -97,13 +97,16 @@ def test_a_node_silent_through_a_burst_and_after_it_still_fails() -> None:
     assert outcome is not None and outcome.code == oc.TPDO_TIMEOUT and outcome.node == 2, outcome
 
 
-@pytest.mark.parametrize("told", [True, False], ids=["reported", "control"])
-def test_records_that_reached_the_bus_two_syncs_late_are_counted_from_there(told: bool) -> None:
-    """The cycle engine got a batch of PVT records two SYNCs after the SYNC they were meant to follow and says
-    so (`RecordsLate`): the core counts them in the FIFO from the SYNC they really preceded, so the drive's
-    fill at the SYNCs between is no loss, nothing is resent and nothing arrives twice. The control, not told,
-    takes them for lost."""
-    rig = ahead_rig()
+@pytest.mark.parametrize("echo", [True, False], ids=["echoed", "control"])
+def test_records_count_from_the_sync_after_their_echo_whatever_sync_they_were_meant_for(echo: bool) -> None:
+    """The machine held the records of one cycle up until two more SYNCs and their answers were on the bus,
+    and the engine's late report has not come (it comes through the same pipe, after those answers). With the
+    records fed back as the bus carried them (`RecordOnWire`), the answers before the echo are judged without
+    them and the fill after with them: nothing looks lost, nothing is resent, nothing arrives twice. The
+    control, without echoes, takes the answers for a lost batch and resends it, or fails."""
+    plan = make_plan(3, 2000, seed=11)
+    settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), ahead_syncs=2, records_echoed=echo)
+    rig = Rig(plan, settings=settings, echo=echo)
     run_to_running(rig)
     held: list[Send] = []
     holding = [True]
@@ -115,22 +118,21 @@ def test_records_that_reached_the_bus_two_syncs_late_are_counted_from_there(told
         return [send]
 
     rig.inject = inject
-    cycle = rig.count  # the records the answers to SYNC `cycle` release are meant for the cycle after it
-    wire_sync(rig, rig.t)
+    wire_sync(rig, rig.t)  # the records its answers release are meant for the next cycle
     holding[0] = False
     assert held, "no records were sent in that cycle"
-    wire_sync(rig, rig.t)  # SYNC cycle + 1: the records are not on the bus yet
-    if told:
-        rig.feed(RecordsLate(cycle, cycle + 3, rig.t))  # they go out after SYNC cycle + 2
+    wire_sync(rig, rig.t)  # SYNC cycle + 1 and its answers: the records are not on the bus yet
     answers: list[object] = []
-    wire_sync(rig, rig.t, hold=answers)  # SYNC cycle + 2 on the wire, the records right after it
-    for send in held:
-        rig.deliver(send)
+    wire_sync(rig, rig.t, hold=answers)  # SYNC cycle + 2, its answers, then the records
     for ev in answers:
         rig.feed(ev)
+    rig.count -= 1  # the records follow SYNC cycle + 2 on the wire
+    for send in held:
+        rig.deliver(send)
+    rig.count += 1
     rig.run()
     resends = sum(f.resends for f in rig.core._feeders)
-    if told:
+    if echo:
         assert rig.core.state is JobState.DONE, rig.core.outcome
         assert resends == 0
     else:
