@@ -91,12 +91,16 @@ def default_ahead_ms(cell: CellConfig) -> float:
     return max(CYCLIC_AHEAD_MS, HOST_STALL_MS) if cyclic else FIFO_AHEAD_MS
 
 def with_host_stall(settings: StreamerSettings, stall_ms: float) -> StreamerSettings:
-    """`settings` whose TPDO timeout waits at least `stall_ms` (PVT_HOST_STALL_MS: how long this machine may
-    hold the drives' answers up), in whole SYNCs, at most 100."""
+    """`settings` for a machine that may hold the master and the drives' answers up `stall_ms`
+    (PVT_HOST_STALL_MS), in whole SYNCs, at most 100: the TPDO timeout waits at least that long, and the FIFOs
+    are kept topped up that much further ahead (`repair_syncs`), so a drive interpolating through the stall
+    does not run below its underflow watermark while the master cannot send. A stop then begins up to that
+    much later (it begins after what is queued)."""
     if stall_ms <= 0:
         return settings
     syncs = min(100, math.ceil(stall_ms / settings.sync_period_ms))
-    return replace(settings, tpdo_timeout_syncs=max(settings.tpdo_timeout_syncs, syncs))
+    return replace(settings, tpdo_timeout_syncs=max(settings.tpdo_timeout_syncs, syncs),
+                   repair_syncs=max(settings.repair_syncs, syncs))
 
 
 _gc_lock = threading.Lock()

@@ -18,6 +18,8 @@ def test_the_tpdo_timeout_covers_the_stated_stall() -> None:
     assert realtime.with_host_stall(base, 100).tpdo_timeout_syncs == 10
     assert realtime.with_host_stall(base, 15).tpdo_timeout_syncs == 3  # never shorter than the cell's
     assert realtime.with_host_stall(base, 5000).tpdo_timeout_syncs == 100
+    assert realtime.with_host_stall(base, 0).repair_syncs == base.repair_syncs
+    assert realtime.with_host_stall(base, 100).repair_syncs == 10  # the FIFOs topped up through it
 
 
 def test_the_cyclic_lead_covers_the_stated_stall(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -241,3 +241,49 @@ def test_fed_far_ahead_the_fifos_never_run_low(ahead: int) -> None:
     for drive in rig.drives.values():
         running = [fill for _, fill, executed in drive.fill_log if 0 < executed < len(drive.executed) - low]
         assert min(running) >= low, (drive.node, min(running))
+
+
+@pytest.mark.parametrize("stated", [True, False], ids=["stall-stated", "control"])
+def test_a_stated_host_stall_keeps_the_fifos_above_the_underflow_watermark_through_it(stated: bool) -> None:
+    """The machine holds the master up 100 ms (10 SYNCs) while the drives run on: nothing reaches the core and
+    nothing leaves it, then it takes the held answers in a burst. With that stall stated (PVT_HOST_STALL_MS,
+    `with_host_stall`) the core keeps that much more queued, and no FIFO drops below its underflow watermark
+    while the plan still has records to give. The control, with the cell's own repair horizon, does."""
+    from streamer.runtime.realtime import with_host_stall
+
+    plan = make_plan(3, 6000, seed=11, dt_choices=(100,))  # the demo path: few long segments
+    settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), ahead_syncs=1,
+                                records_echoed=True)
+    if stated:
+        settings = with_host_stall(settings, 100.0)
+    rig = Rig(plan, settings=settings, echo=True)
+    run_to_running(rig)
+    for _ in range(30):
+        wire_sync(rig, rig.t)
+    assert rig.drives is not None
+    held: list[object] = []
+    first = rig.count
+    for _ in range(10):  # the stall: the drives answer, the master hears nothing yet
+        m = rig.count
+        answers: list[object] = []
+        for drive in rig.drives.values():
+            answers.extend(drive.on_sync(m, rig.t))
+        answers.sort(key=lambda e: 0 if isinstance(e, Emcy) else 1 if isinstance(e, BufferStatus) else 2)
+        held.append((m, rig.t, answers))
+        rig.count += 1
+    rig.count -= 1  # what the core sends in the burst goes out after the last SYNC of the stall
+    for m, t, answers in held:  # the burst
+        rig.feed(Sync(m, t))
+        rig.feed(SyncOnWire(m, t))
+        for ev in answers:
+            rig.feed(ev)
+    rig.count += 1
+    for _ in range(20):
+        wire_sync(rig, rig.t)
+    low = [(n, s, fill) for n, d in rig.drives.items() for s, fill, _ in d.fill_log
+           if first <= s < first + 30 and fill < settings.underflow_watermark]
+    if stated:
+        assert rig.core.state is JobState.RUNNING, rig.core.outcome
+        assert low == []
+    else:
+        assert low, "the control never ran low: the stall is too short to show anything"
