@@ -19,8 +19,11 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/pvt demo
 
+# the virtual-time tests on every core at once (pytest-xdist), then the ones in wall-clock time alone, then the
+# isolated ones in a pytest process of their own (pyproject.toml's markers say which is which)
 test: $(STAMP) lint chromium
-	$(PY) -m pytest -q -m "not isolated"
+	$(PY) -m pytest -q -n auto -m virtual
+	$(PY) -m pytest -q -m "not virtual and not isolated"
 	$(PY) -m pytest -q -m isolated
 
 # Debian's chromium for the HTML report test (installed once when root and missing; else that test skips)

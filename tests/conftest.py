@@ -41,6 +41,19 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+# the folders whose tests run in virtual time only (no service, no wall-clock waits) unless marked otherwise:
+# `make test` runs them on every core at once, and everything that runs in wall-clock time alone after them
+VIRTUAL_TIME_FOLDERS = ("planner", "streamer", "reliability")
+WALL_CLOCK_MARKS = ("realtime", "isolated", "wallclock", "vcan")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        rel = Path(str(item.fspath)).resolve().relative_to(ROOT / "tests")
+        if rel.parts[0] in VIRTUAL_TIME_FOLDERS and not any(item.get_closest_marker(m) for m in WALL_CLOCK_MARKS):
+            item.add_marker(pytest.mark.virtual)
+
+
 @pytest.fixture(scope="session")
 def demo_cell() -> CellConfig:
     return load_cell(CONFIGS / "demo.toml")

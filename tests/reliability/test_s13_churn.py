@@ -28,6 +28,7 @@ CHURN_S = float(os.environ.get("PVT_CHURN_S", "10"))
 
 
 @pytest.mark.slow
+@pytest.mark.wallclock  # a real job with clients coming and going
 def test_client_churn_during_a_real_job_loses_no_event(serve: Callable[..., Served]) -> None:  # noqa: F811
     cell = dataclasses.replace(cell3(), bus=dataclasses.replace(cell3().bus, channel=f"rel-churn-{os.getpid()}"))
     backend = RuntimeBackend(cell, sim=True)
