@@ -1,7 +1,9 @@
 """The Zenoh job API: payload decoding, the job journal, the job service and the Python client.
 
 `MotionClient` (client.py) is the public entry point for users; `JobService` (service.py) serves one
-cell behind a `MotionBackend` (backend.py). docs/api.md documents the key space and the wire format.
+cell behind a `MotionBackend` (backend.py), put together from intake.py, cell_queue.py (the queue and the
+hold), control_verbs.py, journal.py, progress.py, telemetry.py and handlers.py (the Zenoh side).
+docs/api.md documents the key space and the wire format.
 Names are imported lazily, so `streamer.api.store` (used by `pvt jobs`) does not load Zenoh.
 """
 

@@ -1,7 +1,8 @@
 """The seam between the job service and the motion runtime: the `MotionBackend` base class.
 
-The job service (streamer/api/service.py) owns the network side: decoding, admission, the queue, the
-journal, events and telemetry. Everything that touches the planner or the bus is behind this
+The job service (streamer/api/service.py and its parts: intake.py, cell_queue.py, control_verbs.py,
+journal.py, progress.py, telemetry.py, handlers.py) owns the network side: decoding, admission, the queue,
+the journal, events and telemetry. Everything that touches the planner or the bus is behind this
 protocol, so the service is tested with a fake (tests/api/fakes.py) and the motion runtime plugs in
 without the service knowing about CAN.
 
