@@ -33,7 +33,7 @@ chromium:
 lint: $(STAMP)
 	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
 	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py streamer/runtime/homing.py streamer/runtime/extension.py \
-		streamer/recording streamer/live streamer/view
+		streamer/recording streamer/live streamer/view streamer/api
 	$(PY) -m pytest -q -p no:cacheprovider tests/test_architecture.py  # import contracts, module sizes (issue 24)
 
 # every benchmark; the soak runs 1 h of virtual time here (about 2 min), the full 8 h with
