@@ -10,7 +10,8 @@ The drive is built in layers, each a class on the one below, each in a module na
 
 - bus/sim/cia301.py, `Cia301Node`: the entry points (`power_on`, `on_frame`, `on_sync`, `advance`,
   `next_deadline`), NMT and heartbeats, the object dictionary and SDO (`sdo_read`, `sdo_write`,
-  `configure`, store/restore), PDO mapping and traffic, SYNC, TPDO timing and latency, the own clock.
+  `configure`, store/restore), SYNC, the own clock.
+- bus/sim/pdo.py, `PdoLayer`: PDO mapping and traffic, TPDO timing (inhibit, event timer) and latency.
 - bus/sim/plant.py, `PlantLoop`: the control ticks, position controller and motor (`_integrate`,
   `_coast`), and the demand sources (interpolation segments, stop ramps).
 - bus/sim/recorder_ticks.py, `RecordedTicks`: the ticks while the data recorder samples.

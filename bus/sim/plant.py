@@ -1,6 +1,6 @@
 """The plant of the simulated drive: the position loop and motor, tick by tick, and the demand it follows.
 
-The layer on CiA 301 (bus/sim/cia301.py). `_run_ticks(n, t)` runs n control ticks of 1 ms (drive time):
+The layer on the PDOs (bus/sim/pdo.py). `_run_ticks(n, t)` runs n control ticks of 1 ms (drive time):
 per tick the position controller (PID with the drive's filtered derivative, current limited) drives the
 motor model (bus/sim/motor.py: friction, inertia; the discretised constants `LoopConstants`). With the
 power stage off the motor coasts down on friction and the demand follows the actual position.
@@ -26,9 +26,9 @@ from enum import Enum
 
 from bus import codec
 from bus.codec import Cia402State, Internal
-from bus.sim.cia301 import Cia301Node
 from bus.sim.motor import LoopConstants, MotorParams
 from bus.sim.od import Key
+from bus.sim.pdo import PdoLayer
 from bus.sim.recorder import TRIGGER_END, DataRecorder
 from planner import hermite
 
@@ -59,7 +59,7 @@ def _first_violation(
     return 0  # pragma: no cover - the candidates found one
 
 
-class PlantLoop(Cia301Node):
+class PlantLoop(PdoLayer):
     """Position loop, motor and demand sources. See the module docstring."""
 
     # what the layers above provide (bus/sim/recorder_ticks.py, homing_mode.py, cia402.py)
