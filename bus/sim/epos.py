@@ -326,7 +326,7 @@ class EposDrive(DriveDevice):
             return
         self._begin_segment(self._demand, 0.0, head)
 
-    # ---- the data recorder's objects and triggers (seed 004; the ticks that sample: bus/sim/device.py)
+    # ---- the data recorder's objects and triggers (seed 004; the ticks that sample: bus/sim/recorder_ticks.py)
     def set_digital_inputs(self, word: int, t: float) -> list[Frame]:
         """The drive's digital inputs change (the simulation has no I/O: tests and tools set the word);
         an edge of any input is the recorder's digital-input trigger (0x2011 bit 2)."""

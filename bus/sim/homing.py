@@ -3,7 +3,7 @@
 Theory of operation. The drive references its position counter against a switch (seed 003 "Homing Mode":
 "This position can be detected by using several signals such as positive or negative limit switch, home
 switch, index pulse or mechanical limit ... The drive generates the trajectory according to the homing
-method"). This module is the pure part the shared drive (bus/sim/device.py, "homing mode") uses:
+method"). This module is the pure part the shared drive's homing mode (bus/sim/homing_mode.py) uses:
 
 - `Inputs`: the home switch and the limit switches as digital inputs at positions of the machine (counts of
   the drive's position at power-on, which homing does not move): the home switch active on [low, high]

@@ -8,7 +8,7 @@ docs/drive-model.md). It is used
 
 - by `bus.sim.eds` to render configs/drives/<family>.eds (a test checks the committed files match),
   which canopen loads as a `LocalNode` (the simulated drive) or a `RemoteNode` (the master);
-- by the pure drive (bus/sim/device.py) as its object store, through which every SDO read/write and
+- by the pure drive (its CiA 301 layer, bus/sim/cia301.py) as its object store, through which every SDO read/write and
   every PDO-mapped write goes, with the same access and range checks a drive makes;
 - by the PDO mapping validation (size, mappability, direction).
 

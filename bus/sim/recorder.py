@@ -6,7 +6,7 @@ the write position, the trigger's place in the rings, and the recorder's clock: 
 the current regulator's cycle, 0.1 ms (`UNIT_S`), since it started.
 
 What it is fed, by the EPOS drive (bus/sim/epos.py: the recorder is maxon's), which owns the object
-dictionary, and by the shared drive's ticks (bus/sim/device.py):
+dictionary, and by the shared drive's ticks (bus/sim/recorder_ticks.py):
 - `start(config)` / `stop()` / `force_trigger()`: writes of 0x2010 (control); the drive builds the
   `RecorderConfig` from 0x2011-0x2016 and its object table's types (`RecorderConfig.build`);
 - `trigger(kind)`: something happened in the drive that a trigger bit of 0x2011 may select (movement
