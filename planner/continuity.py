@@ -24,15 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from planner import hermite
-from planner.encoder import (
-    ACC_EXCESS_LIMIT,
-    VELOCITY_SLACK,
-    AxisScales,
-    Knots,
-    planned_demand,
-    segment_envelope,
-    within_contract,
-)
+from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
+from planner.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
 from planner.reference import FloatArray, IntArray, Reference
 
 JERK_SLACK = 0.05  # in-segment jerk allowed above the limit (the issue's +5 %)

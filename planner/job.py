@@ -5,7 +5,8 @@ payload). `job_from_dict(data, cell)` checks *everything* that can be checked wi
 rejects the first problem with a `PlanningError` whose `code` is stable and whose `path` names the
 field ("waypoints[7][2]"), with a message naming the axis and the value. What it returns is a frozen
 `Job` whose arrays are read-only float64: nothing downstream re-validates shapes or finiteness.
-`job_to_dict` is the inverse (the API stores job bodies and compares them), `load_job` reads a file.
+`job_to_dict` is the inverse (the API stores job bodies and compares them), `load_job` reads a file. The readers
+of one field's value (a number, one per axis, rows, text) are planner/fields.py.
 
 Kinds (docs/formats.md has the full schema):
 
@@ -44,7 +45,7 @@ from typing import Any, Literal, cast
 
 import numpy as np
 
-from planner.config import HOMING_METHODS, AxisConfig, CellConfig, check_name
+from planner.config import HOMING_METHODS, AxisConfig, CellConfig
 from planner.errors import (
     AXIS_COUNT,
     AXIS_ID,
@@ -60,6 +61,18 @@ from planner.errors import (
     TOO_LARGE,
     TYPE,
     PlanningError,
+)
+from planner.fields import (
+    axis_note,
+    nan_name,
+    read_matrix,
+    read_number,
+    read_per_axis,
+    read_scale,
+    read_series,
+    read_text,
+    read_vector,
+    show,
 )
 from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
 from planner.reference import FloatArray
@@ -80,9 +93,7 @@ MAX_ROWS = 100_000  # waypoints / rows per job (TOO_LARGE above)
 HOME_TIMEOUT_S = 120.0  # the master's default wait for homing attained / error
 MAX_HOME_TIMEOUT_S = 3600.0
 MAX_DURATION_S = 900.0  # user timing (timed/pvt) longer than this is TOO_LARGE
-MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
 MAX_TOLERANCE_COUNTS = 1_000_000
-MAX_TEXT = 1000
 GEOMETRIES: tuple[str, ...] = ("lines", "spline")
 # a path job without `jerk_limited` keeps the jerk limits when every axis of the job has one (every axis
 # of a cell states one: planner/config.py); False plans the acceleration-only optimum
@@ -307,11 +318,11 @@ def _check_path_options(data: PathData, axes: Sequence[str]) -> None:
     for j, v in enumerate(tol):
         p = "path_tolerance" if data.scalar_tolerance else f"path_tolerance[{j}]"
         if not math.isfinite(v):
-            raise PlanningError(NONFINITE, f"{p}{_axis_note(axes, j)} is {_nan_name(v)}", path=p)
+            raise PlanningError(NONFINITE, f"{p}{axis_note(axes, j)} is {nan_name(v)}", path=p)
         if v < 0:
             raise PlanningError(
                 LIMITS,
-                f"{p}{'' if data.scalar_tolerance else _axis_note(axes, j)} is {v:g}; a path tolerance "
+                f"{p}{'' if data.scalar_tolerance else axis_note(axes, j)} is {v:g}; a path tolerance "
                 f"is >= 0 (0: stop exactly at every corner)",
                 path=p,
             )
@@ -330,125 +341,6 @@ def _arrays(data: JobData) -> list[tuple[str, FloatArray | None]]:
 
 
 # ----------------------------------------------------------------------------------------------------
-# parsing helpers: every check names the field path
-
-
-def _number(value: Any, path: str, what: str = "") -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise PlanningError(TYPE, f"{path}{what} must be a number, got {_show(value)}", path=path)
-    if isinstance(value, int):
-        if abs(value) > MAX_EXACT_INT:
-            raise PlanningError(
-                TYPE, f"{path}{what} = {value} is too large (integers must be within +-2**53)", path=path
-            )
-        return float(value)
-    if not math.isfinite(value):
-        raise PlanningError(NONFINITE, f"{path}{what} is {_nan_name(value)}", path=path)
-    return float(value)
-
-
-def _show(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
-def _nan_name(value: float) -> str:
-    return "NaN" if math.isnan(value) else ("infinity" if value > 0 else "-infinity")
-
-
-def _axis_note(axes: Sequence[str], j: int) -> str:
-    return f" of axis {axes[j]!r}" if 0 <= j < len(axes) else ""
-
-
-def _vector(value: Any, path: str, axes: Sequence[str]) -> FloatArray:
-    """A list with one number per axis."""
-    if not isinstance(value, list | tuple):
-        raise PlanningError(
-            TYPE, f"{path} must be a list of {len(axes)} numbers, got {_show(value)}", path=path
-        )
-    if len(value) != len(axes):
-        raise PlanningError(
-            AXIS_COUNT, f"{path} has {len(value)} values for {len(axes)} axes {list(axes)!r}", path=path
-        )
-    return np.array([_number(v, f"{path}[{j}]", _axis_note(axes, j)) for j, v in enumerate(value)])
-
-
-def _check_list(value: Any, path: str, items: str, what: str, max_rows: int) -> None:
-    """TYPE unless `value` is a list, TOO_LARGE when it has more than `max_rows` items."""
-    if not isinstance(value, list | tuple):
-        raise PlanningError(TYPE, f"{path} must be {what}, got {_show(value)}", path=path)
-    if len(value) > max_rows:
-        raise PlanningError(
-            TOO_LARGE,
-            f"{path} has {len(value)} {items}, more than the limit of {max_rows}",
-            path=path,
-            detail={"rows": len(value), "limit": max_rows},
-        )
-
-
-def _matrix(value: Any, path: str, axes: Sequence[str], max_rows: int) -> FloatArray:
-    """A list of rows, one number per axis in each row (fast path through numpy, exact errors after)."""
-    _check_list(value, path, "rows", "a list of rows", max_rows)
-    n = len(axes)
-    if all(isinstance(row, list | tuple) and len(row) == n for row in value):
-        flat = [x for row in value for x in row]
-        if all(type(x) is float or (type(x) is int and abs(x) <= MAX_EXACT_INT) for x in flat):
-            arr = np.array(flat, dtype=np.float64).reshape(len(value), n)
-            if np.all(np.isfinite(arr)):
-                return arr
-    # slow path: find and name the first bad element
-    out = np.empty((len(value), n))
-    for i, row in enumerate(value):
-        rp = f"{path}[{i}]"
-        if not isinstance(row, list | tuple):
-            raise PlanningError(TYPE, f"{rp} must be a list of {n} numbers, got {_show(row)}", path=rp)
-        if len(row) != n:
-            raise PlanningError(
-                AXIS_COUNT, f"{rp} has {len(row)} values for {n} axes {list(axes)!r}", path=rp
-            )
-        for j, x in enumerate(row):
-            out[i, j] = _number(x, f"{rp}[{j}]", _axis_note(axes, j))
-    return out
-
-
-def _series(value: Any, path: str, max_rows: int) -> FloatArray:
-    _check_list(value, path, "values", "a list of numbers", max_rows)
-    return np.array([_number(x, f"{path}[{i}]") for i, x in enumerate(value)], dtype=np.float64)
-
-
-def _per_axis_scale(value: Any, path: str, axes: Sequence[str]) -> tuple[tuple[float, ...], bool]:
-    if isinstance(value, list | tuple):
-        vals = _vector(value, path, axes)
-        scalar = False
-    else:
-        vals = np.full(len(axes), _number(value, path))
-        scalar = True
-    for j, v in enumerate(vals):
-        if not 0.0 < v <= 1.0:
-            p = path if scalar else f"{path}[{j}]"
-            raise PlanningError(
-                LIMITS,
-                f"{p}{'' if scalar else _axis_note(axes, j)} is {v:g}; scales must be in (0, 1]",
-                path=p,
-            )
-    return tuple(float(v) for v in vals), scalar
-
-
-def _text(value: Any, path: str, *, job_id: bool = False) -> str:
-    if not isinstance(value, str):
-        raise PlanningError(TYPE, f"{path} must be a string, got {_show(value)}", path=path)
-    if job_id:  # the one rule of names (planner/config.py), the same in the job API and the CLI
-        return check_name(value, path, path=path)
-    if len(value) > MAX_TEXT:
-        raise PlanningError(SCHEMA, f"{path} must be 0..{MAX_TEXT} characters long", path=path)
-    if any(ord(c) < 32 and c not in "\n\t" for c in value):
-        raise PlanningError(
-            SCHEMA, f"{path} {value!r} contains a character that is not allowed (no control characters)", path=path
-        )
-    return value
-
-
-# ----------------------------------------------------------------------------------------------------
 # job_from_dict
 
 
@@ -458,12 +350,12 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
         raise PlanningError(SCHEMA, f"a job must be a table/object, got {type(data).__name__}", path="")
     for key in data:
         if not isinstance(key, str):
-            raise PlanningError(SCHEMA, f"job keys must be strings, got {_show(key)}", path=str(key))
+            raise PlanningError(SCHEMA, f"job keys must be strings, got {show(key)}", path=str(key))
     if "kind" not in data:
         raise PlanningError(SCHEMA, "missing field 'kind' (one of path, move, timed, pvt)", path="kind")
     kind = data["kind"]
     if not isinstance(kind, str):
-        raise PlanningError(TYPE, f"kind must be a string, got {_show(kind)}", path="kind")
+        raise PlanningError(TYPE, f"kind must be a string, got {show(kind)}", path="kind")
     if kind not in KINDS:
         raise PlanningError(SCHEMA, f"kind must be one of {list(KINDS)}, got {kind!r}", path="kind")
     required, optional = _KIND_FIELDS[kind]
@@ -482,12 +374,12 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
 
     axes = _axes(data["axes"], cell)
     axis_cfg = [cell.axis(a) for a in axes]
-    job_id = _text(data["job_id"], "job_id", job_id=True) if data.get("job_id") is not None else None
-    description = _text(data["description"], "description") if data.get("description") is not None else None
+    job_id = read_text(data["job_id"], "job_id", job_id=True) if data.get("job_id") is not None else None
+    description = read_text(data["description"], "description") if data.get("description") is not None else None
 
     tolerance = 1
     if "tolerance_counts" in data:
-        t = _number(data["tolerance_counts"], "tolerance_counts")
+        t = read_number(data["tolerance_counts"], "tolerance_counts")
         if t <= 0 or t != math.floor(t) or t > MAX_TOLERANCE_COUNTS:
             raise PlanningError(
                 LIMITS,
@@ -497,12 +389,12 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             )
         tolerance = int(t)
     vscale, vs_scalar = (
-        _per_axis_scale(data["velocity_scale"], "velocity_scale", axes)
+        read_scale(data["velocity_scale"], "velocity_scale", axes)
         if "velocity_scale" in data
         else ((1.0,) * len(axes), False)
     )
     ascale, as_scalar = (
-        _per_axis_scale(data["acceleration_scale"], "acceleration_scale", axes)
+        read_scale(data["acceleration_scale"], "acceleration_scale", axes)
         if "acceleration_scale" in data
         else ((1.0,) * len(axes), False)
     )
@@ -516,10 +408,10 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             raise PlanningError(
                 SCHEMA,
                 f"start of a path job can only be {START_CURRENT!r} (re-plan from where the axes stand), "
-                f"got {_show(data['start'])}; the first waypoint is where the path starts",
+                f"got {show(data['start'])}; the first waypoint is where the path starts",
                 path="start",
             )
-        wp = _matrix(data["waypoints"], "waypoints", axes, max_rows)
+        wp = read_matrix(data["waypoints"], "waypoints", axes, max_rows)
         _check_positions(wp, "waypoints", axes, axis_cfg)
         distinct = 1 + int(np.count_nonzero(np.any(np.diff(wp, axis=0) != 0.0, axis=1))) if wp.shape[0] else 0
         if distinct < 2:
@@ -530,20 +422,20 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             )
         geometry = data.get("geometry", "lines")
         if not isinstance(geometry, str):
-            raise PlanningError(TYPE, f"geometry must be a string, got {_show(geometry)}", path="geometry")
+            raise PlanningError(TYPE, f"geometry must be a string, got {show(geometry)}", path="geometry")
         tol: tuple[float, ...] | None = None
         tol_scalar = False
         if data.get("path_tolerance") is not None:
             value = data["path_tolerance"]
             if isinstance(value, list | tuple):
-                tol = tuple(float(v) for v in _vector(value, "path_tolerance", axes))
+                tol = tuple(float(v) for v in read_vector(value, "path_tolerance", axes))
             else:
-                tol = (_number(value, "path_tolerance"),) * len(axes)
+                tol = (read_number(value, "path_tolerance"),) * len(axes)
                 tol_scalar = True
         jerk_limited = data.get("jerk_limited")
         if jerk_limited is not None and not isinstance(jerk_limited, bool):
             raise PlanningError(
-                TYPE, f"jerk_limited must be true or false, got {_show(jerk_limited)}", path="jerk_limited"
+                TYPE, f"jerk_limited must be true or false, got {show(jerk_limited)}", path="jerk_limited"
             )
         job_data = PathData(
             _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar, jerk_limited
@@ -551,8 +443,8 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
     elif kind == "move":
         job_data = _move_data(data, axes, axis_cfg, limits, vscale, "acceleration_scale" in data)
     else:
-        times = _series(data["times"], "times", max_rows)
-        pos = _matrix(data["positions"], "positions", axes, max_rows)
+        times = read_series(data["times"], "times", max_rows)
+        pos = read_matrix(data["positions"], "positions", axes, max_rows)
         if pos.shape[0] != times.size:
             raise PlanningError(
                 SCHEMA,
@@ -568,7 +460,7 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
         if kind == "timed":
             job_data = TimedData(_ro(times), _ro(pos))
         else:
-            vel = _matrix(data["velocities"], "velocities", axes, max_rows)
+            vel = read_matrix(data["velocities"], "velocities", axes, max_rows)
             if vel.shape[0] != times.size:
                 raise PlanningError(
                     SCHEMA,
@@ -602,13 +494,6 @@ HOME_SEARCH_SHARE = 0.1
 HOME_ZERO_SHARE = 0.01
 
 
-def _per_axis(value: Any, path: str, axes: Sequence[str]) -> tuple[tuple[float, ...], bool]:
-    """One number for every axis, or one per axis: (values, given as one number)."""
-    if isinstance(value, list | tuple):
-        return tuple(float(v) for v in _vector(value, path, axes)), False
-    return (_number(value, path),) * len(axes), True
-
-
 def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[AxisConfig]) -> HomeData:
     raw = data["method"]
     methods = raw if isinstance(raw, list | tuple) else [raw] * len(axes)
@@ -619,7 +504,7 @@ def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[Axi
     for j, m in enumerate(methods):
         p = f"method[{j}]" if isinstance(raw, list | tuple) else "method"
         if isinstance(m, bool) or not isinstance(m, int):
-            raise PlanningError(TYPE, f"{p} of axis {axes[j]!r} must be a whole number (0x6098), got {_show(m)}",
+            raise PlanningError(TYPE, f"{p} of axis {axes[j]!r} must be a whole number (0x6098), got {show(m)}",
                                 path=p)
         supported = HOMING_METHODS[cfg[j].profile]
         if m not in supported:
@@ -630,7 +515,7 @@ def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[Axi
     for key, default in (("search_speed", [HOME_SEARCH_SHARE * c.velocity for c in cfg]),
                          ("zero_speed", [HOME_ZERO_SHARE * c.velocity for c in cfg]),
                          ("acceleration", [c.acceleration for c in cfg])):
-        vals, scalar = _per_axis(data[key], key, axes) if key in data else (tuple(default), False)
+        vals, scalar = read_per_axis(data[key], key, axes) if key in data else (tuple(default), False)
         limit = [c.velocity if key != "acceleration" else c.acceleration for c in cfg]
         for j, v in enumerate(vals):
             p = key if scalar else f"{key}[{j}]"
@@ -640,7 +525,7 @@ def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[Axi
                                     f"the axis' {'velocity' if key != 'acceleration' else 'acceleration'} "
                                     f"{limit[j]:g} {unit}", path=p)
         speeds[key] = vals
-    offset, scalar = _per_axis(data["offset"], "offset", axes) if "offset" in data else ((0.0,) * len(axes), False)
+    offset, scalar = read_per_axis(data["offset"], "offset", axes) if "offset" in data else ((0.0,) * len(axes), False)
     for j, v in enumerate(offset):
         c = cfg[j]
         if not c.position_min <= v <= c.position_max:
@@ -648,7 +533,7 @@ def _home_data(data: Mapping[str, Any], axes: tuple[str, ...], cfg: Sequence[Axi
             raise PlanningError(POSITION_LIMIT, f"{p} of axis {axes[j]!r} is {v:g} {c.unit}, outside its position "
                                 f"limits [{c.position_min:g}, {c.position_max:g}] (the home position gets it)",
                                 path=p)
-    timeout = _number(data["timeout_s"], "timeout_s") if "timeout_s" in data else HOME_TIMEOUT_S
+    timeout = read_number(data["timeout_s"], "timeout_s") if "timeout_s" in data else HOME_TIMEOUT_S
     if not 0.0 < timeout <= MAX_HOME_TIMEOUT_S:
         raise PlanningError(LIMITS, f"timeout_s is {timeout:g}; it must be in (0, {MAX_HOME_TIMEOUT_S:g}] s",
                             path="timeout_s")
@@ -667,11 +552,11 @@ def _move_data(
     """The move's mode, its target (or velocity), start and ramps, each checked against the cell."""
     mode = data.get("mode", "absolute")
     if not isinstance(mode, str):
-        raise PlanningError(TYPE, f"mode must be a string, got {_show(mode)}", path="mode")
+        raise PlanningError(TYPE, f"mode must be a string, got {show(mode)}", path="mode")
     if mode not in MOVE_MODES:
         raise PlanningError(SCHEMA, f"mode must be one of {list(MOVE_MODES)}, got {mode!r}", path="mode")
     given = data.get("start")
-    start = _vector(given, "start", axes) if given is not None and given != START_CURRENT else None
+    start = read_vector(given, "start", axes) if given is not None and given != START_CURRENT else None
     if start is not None:
         _check_positions(start[None, :], "start", axes, cfg, vector=True)
     ramps = _ramps(data["ramps"], axes, cfg) if "ramps" in data else None
@@ -692,7 +577,7 @@ def _move_data(
                                 "`velocity = [...]` (user units/s)", path="target")
         if "velocity" not in data:
             raise PlanningError(SCHEMA, "missing field 'velocity' in a move job with mode 'velocity'", path="velocity")
-        vel = _vector(data["velocity"], "velocity", axes)
+        vel = read_vector(data["velocity"], "velocity", axes)
         vlim = limits.get("velocity") or tuple(c.velocity for c in cfg)
         for j, v in enumerate(vel):
             top = vlim[j] * vscale[j]
@@ -709,7 +594,7 @@ def _move_data(
                             "limits.velocity or velocity_scale)", path="velocity")
     if "target" not in data:
         raise PlanningError(SCHEMA, "missing field 'target' in a move job", path="target")
-    target = _vector(data["target"], "target", axes)
+    target = read_vector(data["target"], "target", axes)
     if mode == "absolute":
         _check_positions(target[None, :], "target", axes, cfg, vector=True)
     elif mode in OFFSET_MODES:
@@ -765,7 +650,7 @@ def _check_modulo_targets(mode: str, target: FloatArray, axes: Sequence[str], cf
 def _ramps(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> Ramps:
     """ramps = {accel_ms = ..., decel_ms = ...}: a number or one per axis; one alone serves both."""
     if not isinstance(value, Mapping):
-        raise PlanningError(TYPE, f"ramps must be a table with {list(RAMP_KEYS)}, got {_show(value)}", path="ramps")
+        raise PlanningError(TYPE, f"ramps must be a table with {list(RAMP_KEYS)}, got {show(value)}", path="ramps")
     for key in value:
         if key not in RAMP_KEYS:
             raise PlanningError(SCHEMA, f"unknown field {key!r} in ramps (allowed: {list(RAMP_KEYS)})",
@@ -780,10 +665,10 @@ def _ramps(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> Ramps:
         p = f"ramps.{key}"
         raw = value[key]
         scalar[key] = not isinstance(raw, list | tuple)
-        vals = np.full(len(axes), _number(raw, p)) if scalar[key] else _vector(raw, p, axes)
+        vals = np.full(len(axes), read_number(raw, p)) if scalar[key] else read_vector(raw, p, axes)
         for j, ms in enumerate(vals):
             at = p if scalar[key] else f"{p}[{j}]"
-            note = f" (axis {axes[j]!r})" if scalar[key] else _axis_note(axes, j)
+            note = f" (axis {axes[j]!r})" if scalar[key] else axis_note(axes, j)
             if not 0.0 < ms <= MAX_RAMP_MS:
                 raise PlanningError(LIMITS, f"{at}{note} is {ms:g} ms; a ramp time is in (0, {MAX_RAMP_MS:g}] ms",
                                     path=at)
@@ -806,7 +691,7 @@ def _ramps(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> Ramps:
 
 def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
     if not isinstance(value, list | tuple):
-        raise PlanningError(TYPE, f"axes must be a list of axis names, got {_show(value)}", path="axes")
+        raise PlanningError(TYPE, f"axes must be a list of axis names, got {show(value)}", path="axes")
     if not value:
         raise PlanningError(AXIS_COUNT, "axes is empty: a job needs at least one axis", path="axes")
     known = cell.axis_names()
@@ -817,7 +702,7 @@ def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
     seen: set[str] = set()
     for j, name in enumerate(value):
         if not isinstance(name, str):
-            raise PlanningError(TYPE, f"axes[{j}] must be an axis name, got {_show(name)}", path=f"axes[{j}]")
+            raise PlanningError(TYPE, f"axes[{j}] must be an axis name, got {show(name)}", path=f"axes[{j}]")
         if name not in known:
             raise PlanningError(
                 AXIS_ID,
@@ -833,7 +718,7 @@ def _axes(value: Any, cell: CellConfig) -> tuple[str, ...]:
 def _limits(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> dict[str, tuple[float, ...]]:
     if not isinstance(value, Mapping):
         raise PlanningError(
-            TYPE, f"limits must be a table with {list(_LIMIT_KEYS)}, got {_show(value)}", path="limits"
+            TYPE, f"limits must be a table with {list(_LIMIT_KEYS)}, got {show(value)}", path="limits"
         )
     out: dict[str, tuple[float, ...]] = {}
     for key in value:
@@ -847,7 +732,7 @@ def _limits(value: Any, axes: Sequence[str], cfg: Sequence[AxisConfig]) -> dict[
         if key not in value:
             continue
         p = f"limits.{key}"
-        vals = _vector(value[key], p, axes)
+        vals = read_vector(value[key], p, axes)
         for j, v in enumerate(vals):
             if v <= 0:
                 raise PlanningError(

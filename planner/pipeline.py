@@ -19,17 +19,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from planner.config import AxisConfig, CellConfig
-from planner.encoder import (
-    AxisScales,
-    EncodingFailed,
-    EncodingNeedsTime,
-    Knots,
-    Reconstruction,
-    acceleration_excess,
-    encode,
-    planned_demand,
-)
+from planner.encoder import EncodingFailed, EncodingNeedsTime, encode
 from planner.errors import ENCODING_RANGE, INFEASIBLE, PlanningError
+from planner.reconstruction import AxisScales, Knots, Reconstruction, acceleration_excess, planned_demand
 from planner.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, CruiseState, PvtTrajectory
 

@@ -28,12 +28,7 @@ import numpy as np
 
 from planner.config import AxisConfig, CellConfig
 from planner.cyclic import with_cyclic_stats
-from planner.encoder import (
-    ACC_EXCESS_LIMIT,
-    load_kernels,
-    reconstruct,
-    segment_bounds,
-)
+from planner.encoder import ACC_EXCESS_LIMIT, load_kernels, segment_bounds
 from planner.errors import INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
 from planner.job import (
     MAX_DURATION_S,
@@ -48,6 +43,7 @@ from planner.job import (
     path_tolerance,
 )
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
+from planner.reconstruction import reconstruct
 from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
 

@@ -335,7 +335,8 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
     """The next chunk of an open-ended velocity move: knot 0 is exactly the previous chunk's last knot;
     `chunk_ms` of cruise (default: the plan's), or up to the limit stop (closed) where the position
     limits come first (see the module docstring)."""
-    from planner.encoder import ACC_EXCESS_LIMIT, Knots, acceleration_excess, planned_demand, reconstruct
+    from planner.encoder import ACC_EXCESS_LIMIT
+    from planner.reconstruction import Knots, acceleration_excess, planned_demand, reconstruct
 
     st = traj_or_state.open_end if isinstance(traj_or_state, PvtTrajectory) else traj_or_state
     if st is None:

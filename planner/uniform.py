@@ -20,7 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from planner.encoder import AxisScales, Knots, planned_demand, reconstruct, within_contract
+from planner.encoder import within_contract
+from planner.reconstruction import AxisScales, Knots, planned_demand, reconstruct
 from planner.record import SEGMENT_TIME_MAX_MS
 from planner.reference import IntArray, Reference
 

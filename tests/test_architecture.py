@@ -22,14 +22,12 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("planner", "bus", "streamer")
 MAX_LINES = 1000
 # the modules over MAX_LINES when the guard came, with their line count then as the ceiling (issue 24: the
-# coordinator is to be split, as the simulated drive (bus/sim/device.py and its layers) and the job service
-# (streamer/api/service.py and its parts) were; job.py and encoder.py are near the line)
+# coordinator is to be split, as the simulated drive (bus/sim/device.py and its layers), the job service
+# (streamer/api/service.py and its parts), planner/job.py (fields.py) and encoder.py (reconstruction.py) were)
 OVERSIZED: Mapping[str, int] = {
     # raised once, knowingly: an endless job's retirement of its past (issue 23 item 10) landed in the same
     # session as the guard, before the split; the split brings it down
     "streamer/core/coordinator.py": 2130,
-    "planner/job.py": 1104,
-    "planner/encoder.py": 1021,
 }
 # what streamer/core must not reach: I/O, threads, processes, clocks, and the parts of the product that do them
 CORE_FORBIDDEN_EXTERNAL = frozenset({
