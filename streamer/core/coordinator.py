@@ -104,7 +104,7 @@ from streamer.core.spool import StoreFactory
 
 
 class Coordinator(Scheduler, Feedback):
-    """One streaming job over all axes. `handle(event) -> Reaction`; see the module docstring."""
+    """One streaming job over all axes. `handle(event) -> Reaction`; see the module docstring (and its parts')."""
 
     def __init__(
         self,
