@@ -5,8 +5,7 @@
 - planner/ imports neither bus/ nor streamer/ (the planner is pure computation on a cell and a job);
 - streamer/core imports no I/O, directly or through what it imports: no sockets, CAN, Zenoh, threads,
   processes, clocks or the runtimes (time is an argument of the core);
-- no module over MAX_LINES lines; the files that were over it when this guard came (OVERSIZED) may shrink
-  but not grow, and their ceiling is lowered when they shrink.
+- no module over MAX_LINES lines.
 """
 
 from __future__ import annotations
@@ -21,14 +20,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("planner", "bus", "streamer")
 MAX_LINES = 1000
-# the modules over MAX_LINES when the guard came, with their line count then as the ceiling (issue 24: the
-# coordinator is to be split, as the simulated drive (bus/sim/device.py and its layers), the job service
-# (streamer/api/service.py and its parts), planner/job.py (fields.py) and encoder.py (reconstruction.py) were)
-OVERSIZED: Mapping[str, int] = {
-    # raised once, knowingly: an endless job's retirement of its past (issue 23 item 10) landed in the same
-    # session as the guard, before the split; the split brings it down
-    "streamer/core/coordinator.py": 2130,
-}
 # what streamer/core must not reach: I/O, threads, processes, clocks, and the parts of the product that do them
 CORE_FORBIDDEN_EXTERNAL = frozenset({
     "socket", "can", "canopen", "zenoh", "threading", "subprocess", "multiprocessing", "asyncio", "selectors",
@@ -187,19 +178,10 @@ def _line_counts() -> dict[str, int]:
             for path in modules().values()}
 
 
-def test_no_module_over_the_line_limit_and_the_oversized_ones_do_not_grow() -> None:
-    counts = _line_counts()
-    new = sorted(f"{p}: {n} lines" for p, n in counts.items() if n > MAX_LINES and p not in OVERSIZED)
-    assert not new, f"over {MAX_LINES} lines (split them): {new}"
-    grown = sorted(f"{p}: {counts[p]} lines, ceiling {c}" for p, c in OVERSIZED.items() if counts.get(p, 0) > c)
-    assert not grown, f"oversized modules that grew (split them, do not add to them): {grown}"
-
-
-@pytest.mark.parametrize("path", sorted(OVERSIZED))
-def test_an_oversized_module_is_still_there_and_over_the_limit(path: str) -> None:
-    """An entry of OVERSIZED goes when its file is split or renamed, or gets under MAX_LINES: the list says
-    what is left to do, and a ceiling far above the file's size would let it grow back."""
-    n = _line_counts().get(path)
-    assert n is not None, f"{path} is gone: remove it from OVERSIZED"
-    assert n > MAX_LINES, f"{path} has {n} lines, within the limit now: remove it from OVERSIZED"
-    assert n >= OVERSIZED[path] - 50, f"{path} shrank to {n} lines: lower its ceiling ({OVERSIZED[path]}) to {n}"
+def test_no_module_over_the_line_limit() -> None:
+    """Issue 24 split the five modules that were over it (the coordinator into streamer/core's job_core, sending,
+    splices, open_stream, feedback and scheduling; the simulated drive into bus/sim's layers; the job service
+    into streamer/api's parts; planner/job.py and encoder.py gave fields.py and reconstruction.py). A module
+    that grows over the limit is split too."""
+    over = sorted(f"{p}: {n} lines" for p, n in _line_counts().items() if n > MAX_LINES)
+    assert not over, f"over {MAX_LINES} lines (split them): {over}"

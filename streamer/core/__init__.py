@@ -2,7 +2,8 @@
 
 A runtime creates one `Coordinator(plan, settings, stop_planner)` per job and feeds it `bus.events`;
 each `handle(event)` returns the frames to send and the job's state changes. See coordinator.py for
-the life cycle and the contract with the runtime, feeder.py for the per-axis FIFO accounting and loss
+the life cycle, the contract with the runtime and its parts (job_core, sending, splices, open_stream,
+feedback, scheduling), feeder.py for the per-axis FIFO accounting and loss
 repair, schedule.py for the fill model, bus/budget.py for the frame budget.
 """
 

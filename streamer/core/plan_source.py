@@ -18,7 +18,7 @@ on one shared grid, whose knot 0 is exactly that state.
 
 An open-ended trajectory (a velocity move's chunk: `open_ended` true, no end record, its last knot moving)
 becomes an open `StreamPlan` (`open_end`): the core keeps the stream going by asking an `Extender` for the
-next chunk, whose knot 0 must be exactly the last knot (coordinator.py, "Open-ended streams").
+next chunk, whose knot 0 must be exactly the last knot (open_stream.py).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 velocity mode.
 
 Theory of operation. The streamer core asks its `Extender` for the next chunk of an open-ended stream on
-the thread that feeds it events (coordinator.py, "Open-ended streams"); on the real-time runtime that is
+the thread that feeds it events (streamer/core/open_stream.py); on the real-time runtime that is
 the SYNC loop, which must answer every SYNC within a period (10 ms on the demo cell). Planning a chunk
 (`planner.travel.extend_velocity`) takes about 1 ms for 3 axes and 2 ms for 6 on an idle machine, and
 several times that for the chunk that brakes before a position limit or on a loaded machine: too large a

@@ -1,5 +1,5 @@
 """Velocity jobs streamed (issue 15 follow-up C), in virtual time on simulated drives: an open-ended plan is
-extended chunk by chunk (coordinator.py, "Open-ended streams") on FIFO and cyclic axes; the demand is
+extended chunk by chunk (streamer/core/open_stream.py) on FIFO and cyclic axes; the demand is
 continuous through every chunk boundary and the cruise lies on its exact integer line; the job ends only by a
 change (to a target, or another velocity), a stop, a closed chunk before the position limits, or, when no chunk
 comes, a stop from the end of the queue (EXTENSION_FAILED)."""
