@@ -15,8 +15,6 @@ import functools
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("planner", "bus", "streamer")
 MAX_LINES = 1000
