@@ -285,7 +285,9 @@ class Scheduler(OpenStream):
             self._emit_cw(f, CW_START_IP)
         for cf in self._cyclic:  # already interpolating the hold: the first set point that moves starts it
             cf.fire(FeederInput.START)
-        self._start_sync = m + 1
+        # the controlword applies at the SYNC after it is on the wire: after SYNC m, or after a later one already
+        # out when a lagging real-time master (no cycle engine) gets here (`wire_sync`)
+        self._start_sync = max(m, self._wire_sync if self._wire_sync is not None else m) + 1
         self._set_state(JobState.STARTING)
         if self._feeders:
             self._advance_lockstep(target_prefix(self._ends, 0, 0, self._policy), self._step)

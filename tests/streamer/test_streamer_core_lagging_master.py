@@ -23,6 +23,7 @@ class LaggingRig(Rig):
     lagging: bool = False
     hint: bool = True
     stalled: bool = False  # records pile up and go out only when the stall ends
+    lag_all: bool = False  # while lagging, every frame (the start controlword too) goes after the next SYNC
     held: list[Send] = field(default_factory=list)
 
     def feed(self, event: object) -> None:
@@ -33,16 +34,16 @@ class LaggingRig(Rig):
             self.sent.append((self.count, send))
             if self.stalled and send.cob_id & 0x780 == 0x300:
                 self.held.append(send)
-            elif self.lagging and send.cob_id & 0x780 == 0x300:
+            elif self.lagging and (self.lag_all or send.cob_id & 0x780 == 0x300):
                 self.delayed.append(send)
             else:
                 self.deliver(send)
 
 
-def _run(hint: bool, lag_syncs: range, lead_ms: int = 200) -> LaggingRig:
+def _run(hint: bool, lag_syncs: range, lead_ms: int = 200, lag_all: bool = False) -> LaggingRig:
     plan = make_plan(3, 4000, seed=41)
     settings = StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR), lead_ms=lead_ms)
-    rig = LaggingRig(plan, settings, hint=hint)
+    rig = LaggingRig(plan, settings, hint=hint, lag_all=lag_all)
     for _ in range(2000):
         if rig.core.state in (JobState.DONE, JobState.FAILED, JobState.CANCELLED):
             break
@@ -56,6 +57,14 @@ def test_late_records_with_the_wire_hint_are_neither_lost_nor_resent() -> None:
     assert rig.core.state is JobState.DONE, rig.core.outcome
     for t in rig.core.telemetry():
         assert t.resends == 0 and t.losses_detected == 0
+
+
+def test_a_master_lagging_through_the_start_starts_every_drive_at_the_sync_its_controlword_reaches() -> None:
+    """The master lags a SYNC through priming and the start (no cycle engine: its frames go out when it gets
+    to them): the start controlword reaches the drives after the SYNC after the one the core decided at, so
+    the start SYNC is the one after the newest on the wire, not after the core's (a false START_FAILED)."""
+    rig = _run(hint=True, lag_syncs=range(0, 400), lag_all=True)
+    assert rig.core.state is JobState.DONE, rig.core.outcome
 
 
 def test_without_the_hint_the_same_lag_is_misread() -> None:
