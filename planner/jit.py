@@ -7,11 +7,14 @@ interpreter overhead whatever its size; compiled, the whole loop costs about wha
 (planning a 7 s 6-axis path went from ~100 ms to a few ms, benchmarks/bench_planner.py).
 
 - `cache=True`: the machine code is kept beside the module (`__pycache__`, or numba's cache directory
-  where that is not writable), so only the first process on a machine compiles (once; about 2 minutes on
+  where that is not writable), so only the first process on a machine compiles (once; about a minute on
   a busy 2-core machine, nearly all of it in the first plan, which reaches almost every kernel, so
-  compiling only what the demo needs would not save much; `make`'s install step runs
-  `planner.plan.warm_up`, a service runs it when it starts). The demo's child processes (bus/sim/process.py,
-  bus/engine.py) import no kernel, so they never compile (tests/cli/test_first_run.py).
+  compiling only what the demo needs would not save much). `make test` compiles them first
+  (`python -m planner.jit`, which reports each kernel as it is compiled: `compiling`), a service when it
+  starts (planner.plan.warm_up). A machine's first `make demo` plans with the kernels interpreted
+  (`NUMBA_DISABLE_JIT=1`, about 10 s for the demo's job) and compiles them after it, so that motion shows
+  within seconds of the install. The demo's child processes (bus/sim/process.py, bus/engine.py) import no
+  kernel, so they never compile (tests/cli/test_first_run.py).
 - `nogil=True`: a kernel releases the GIL, so planning on one thread does not stall the streaming
   thread's SYNC handling (DEVELOPERS.md: a busy Python thread in the same process raised its jitter
   from 0.6 to 6 ms).
@@ -28,17 +31,83 @@ once) asks glibc to keep 64 MB of freed heap for reuse; elsewhere it does nothin
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any, TypeVar, cast
 
 from numba import njit
+from numba.core import event
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+KERNELS: list[Any] = []  # every kernel of the planner, as its modules are imported (numba dispatchers)
 
 
 def kernel(fn: F) -> F:
     """`fn` compiled (see the module docstring)."""
-    return cast(F, njit(cache=True, nogil=True, error_model="numpy")(fn))
+    compiled = njit(cache=True, nogil=True, error_model="numpy")(fn)
+    KERNELS.append(compiled)
+    return cast(F, compiled)
+
+
+def kernel_name(dispatcher: Any) -> str:
+    """`module.function` of a kernel, without the `planner.` prefix: "topp._solve"."""
+    fn = dispatcher.py_func
+    return f"{fn.__module__.removeprefix('planner.')}.{fn.__qualname__}"
+
+
+class _CompileListener(event.Listener):  # type: ignore[misc]  # numba ships no type information
+    def __init__(self, done: Callable[[str], None]) -> None:
+        self._done = done
+
+    def on_start(self, ev: Any) -> None:
+        pass
+
+    def on_end(self, ev: Any) -> None:
+        dispatcher = ev.data["dispatcher"]
+        if any(dispatcher is k for k in KERNELS):
+            self._done(kernel_name(dispatcher))
+
+
+@contextmanager
+def compiling(done: Callable[[str], None]) -> Iterator[None]:
+    """Calls `done(name)` each time one of the planner's kernels has been compiled (not when it was loaded from
+    the cache) while in the block: numba's compile events, which fire in the compiling thread."""
+    listener = _CompileListener(done)
+    event.register("numba:compile", listener)
+    try:
+        yield
+    finally:
+        event.unregister("numba:compile", listener)
+
+
+def compile_all(out: Callable[[str], None] = print) -> int:
+    """Compile (or load) every kernel the planner's plans take, reporting each compiled one with its count and
+    the time so far (`python -m planner.jit`; `make test` runs it first). Returns how many were compiled."""
+    import importlib
+    import pkgutil
+
+    import planner
+    from planner.plan import warm_up
+
+    for info in pkgutil.iter_modules(planner.__path__):  # every kernel registered, for the total
+        importlib.import_module(f"planner.{info.name}")
+    t0, seen = time.monotonic(), set[str]()
+
+    def done(name: str) -> None:
+        seen.add(name)
+        out(f"  compiled {len(seen):>2} of {len(KERNELS)} kernels after {time.monotonic() - t0:4.0f} s: {name}")
+
+    with compiling(done):
+        warm_up()
+    took = time.monotonic() - t0
+    if seen:
+        out(f"  the planner's kernels: {len(seen)} of {len(KERNELS)} compiled (any other loaded from the cache or "
+            f"compiled when a plan first needs it), in {took:.0f} s")
+    else:
+        out(f"  the planner's kernels: every one loaded from the cache, in {took:.1f} s")
+    return len(seen)
 
 
 _M_TOP_PAD = -2  # glibc malloc.h
@@ -56,3 +125,11 @@ def keep_heap() -> bool:
         return bool(libc.mallopt(_M_TOP_PAD, KEEP_HEAP_BYTES))
     except (OSError, AttributeError):
         return False
+
+
+if __name__ == "__main__":
+    print("compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)",
+          flush=True)
+    from planner.jit import compile_all as _compile_all  # this file runs as __main__: the registry is planner.jit's
+
+    _compile_all(lambda line: print(line, flush=True))

@@ -17,6 +17,7 @@ final position is where that braking chunk stops. A home job (kind "home") is re
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import threading
 import time
@@ -74,6 +75,13 @@ def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
 
 PLANNING_LINE = ("pvt demo: planning the job (the first run on a machine compiles the planner's kernels first, "
                  "once, then they load from the cache in about a second)")
+INTERPRETED_LINE = ("pvt demo: planning the job with the planner's kernels interpreted (NUMBA_DISABLE_JIT=1: a "
+                    "machine's first `make demo`, which compiles them after the demo; about 10 s)")
+
+
+def planning_line() -> str:
+    """What the demo says before it plans: with the kernels compiled (or compiling first), or interpreted."""
+    return INTERPRETED_LINE if os.environ.get("NUMBA_DISABLE_JIT", "0") not in ("", "0") else PLANNING_LINE
 
 
 def job_kind(path: Path) -> str | None:
@@ -111,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # shown before planning: a machine's first plan compiles the planner's kernels (planner/jit.py), which
     # takes minutes on a loaded machine, and nothing else would be shown meanwhile
-    console.print(PLANNING_LINE, highlight=False)
+    console.print(planning_line(), highlight=False)
     try:
         # virtual time measures its own simulated drives; in real time the drives on the bus are measured
         # (demo.run_realtime), and the job is planned again when they round otherwise
