@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 $(KERNELS): $(STAMP)
-	$(PY) -m planner.jit
+	$(PY) -m planner.plan
 	touch $(KERNELS)
 
 demo: $(STAMP)

@@ -10,7 +10,7 @@ interpreter overhead whatever its size; compiled, the whole loop costs about wha
   where that is not writable), so only the first process on a machine compiles (once; about a minute on
   a busy 2-core machine, nearly all of it in the first plan, which reaches almost every kernel, so
   compiling only what the demo needs would not save much). `make test` compiles them first
-  (`python -m planner.jit`, which reports each kernel as it is compiled: `compiling`), a service when it
+  (`python -m planner.plan`, which reports each kernel as it is compiled: `compiling`), a service when it
   starts (planner.plan.warm_up). A machine's first `make demo` plans with the kernels interpreted
   (`NUMBA_DISABLE_JIT=1`, about 10 s for the demo's job) and compiles them after it, so that motion shows
   within seconds of the install. The demo's child processes (bus/sim/process.py, bus/engine.py) import no
@@ -31,7 +31,6 @@ once) asks glibc to keep 64 MB of freed heap for reuse; elsewhere it does nothin
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar, cast
@@ -57,7 +56,7 @@ def kernel_name(dispatcher: Any) -> str:
     return f"{fn.__module__.removeprefix('planner.')}.{fn.__qualname__}"
 
 
-class _CompileListener(event.Listener):  # type: ignore[misc]  # numba ships no type information
+class _CompileListener(event.Listener):
     def __init__(self, done: Callable[[str], None]) -> None:
         self._done = done
 
@@ -75,39 +74,11 @@ def compiling(done: Callable[[str], None]) -> Iterator[None]:
     """Calls `done(name)` each time one of the planner's kernels has been compiled (not when it was loaded from
     the cache) while in the block: numba's compile events, which fire in the compiling thread."""
     listener = _CompileListener(done)
-    event.register("numba:compile", listener)
+    event.register("numba:compile", listener)  # type: ignore[no-untyped-call]
     try:
         yield
     finally:
-        event.unregister("numba:compile", listener)
-
-
-def compile_all(out: Callable[[str], None] = print) -> int:
-    """Compile (or load) every kernel the planner's plans take, reporting each compiled one with its count and
-    the time so far (`python -m planner.jit`; `make test` runs it first). Returns how many were compiled."""
-    import importlib
-    import pkgutil
-
-    import planner
-    from planner.plan import warm_up
-
-    for info in pkgutil.iter_modules(planner.__path__):  # every kernel registered, for the total
-        importlib.import_module(f"planner.{info.name}")
-    t0, seen = time.monotonic(), set[str]()
-
-    def done(name: str) -> None:
-        seen.add(name)
-        out(f"  compiled {len(seen):>2} of {len(KERNELS)} kernels after {time.monotonic() - t0:4.0f} s: {name}")
-
-    with compiling(done):
-        warm_up()
-    took = time.monotonic() - t0
-    if seen:
-        out(f"  the planner's kernels: {len(seen)} of {len(KERNELS)} compiled (any other loaded from the cache or "
-            f"compiled when a plan first needs it), in {took:.0f} s")
-    else:
-        out(f"  the planner's kernels: every one loaded from the cache, in {took:.1f} s")
-    return len(seen)
+        event.unregister("numba:compile", listener)  # type: ignore[no-untyped-call]
 
 
 _M_TOP_PAD = -2  # glibc malloc.h
@@ -126,10 +97,3 @@ def keep_heap() -> bool:
     except (OSError, AttributeError):
         return False
 
-
-if __name__ == "__main__":
-    print("compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)",
-          flush=True)
-    from planner.jit import compile_all as _compile_all  # this file runs as __main__: the registry is planner.jit's
-
-    _compile_all(lambda line: print(line, flush=True))

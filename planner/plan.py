@@ -21,6 +21,7 @@ Errors are PlanningError with stable codes; no toppra/ruckig/numpy exception esc
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -496,3 +497,56 @@ def warm_up(progress: Callable[[int, int, str], None] | None = None) -> None:
     load_kernels(traj.plan)
     if progress is not None:
         progress(total, total, "done")
+
+
+def compile_all(out: Callable[[str], None] = print) -> int:
+    """Compile (or load) every kernel the planner's plans take, reporting each compiled one with its count and
+    the time so far (`python -m planner.plan`; `make test` runs it first). Returns how many were compiled."""
+    import importlib
+    import pkgutil
+    from pathlib import Path
+
+    from planner.jit import KERNELS, compiling
+
+    for info in pkgutil.iter_modules([str(Path(__file__).parent)]):  # every kernel registered, for the total
+        importlib.import_module(f"planner.{info.name}")
+    t0, seen = time.monotonic(), set[str]()
+
+    def done(name: str) -> None:
+        seen.add(name)
+        out(f"  compiled {len(seen):>2} of {len(KERNELS)} kernels after {time.monotonic() - t0:4.0f} s: {name}")
+
+    with compiling(done):
+        warm_up()
+    took = time.monotonic() - t0
+    if seen:
+        out(f"  the planner's kernels: {len(seen)} of {len(KERNELS)} compiled (any other loaded from the cache or "
+            f"compiled when a plan first needs it), in {took:.0f} s")
+    else:
+        out(f"  the planner's kernels: every one loaded from the cache, in {took:.1f} s")
+    return len(seen)
+
+
+_M_TOP_PAD = -2  # glibc malloc.h
+KEEP_HEAP_BYTES = 64 << 20
+
+
+def keep_heap() -> bool:
+    """Keep `KEEP_HEAP_BYTES` of freed heap in this process for the next plan (glibc's M_TOP_PAD; see the
+    module docstring). False where the C library has no mallopt (not glibc)."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c"))
+        return bool(libc.mallopt(_M_TOP_PAD, KEEP_HEAP_BYTES))
+    except (OSError, AttributeError):
+        return False
+
+
+if __name__ == "__main__":
+    print("compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)",
+          flush=True)
+    from planner.plan import compile_all as _compile_all  # this file runs as __main__: the kernels are planner's
+
+    _compile_all(lambda line: print(line, flush=True))
