@@ -1,23 +1,31 @@
-# The two commands of the README: `make demo` and `make test`. Both create .venv and install the project (with
-# its dev extra) when it is missing or pyproject.toml changed: with uv (installed into the venv first), which
-# installs the same wheels as pip in a fraction of the time (measured here from an empty cache: 9 s, pip 53 s),
-# or with pip where uv cannot be had. The planner's kernels (planner/jit.py) compile once per machine, about a
+# The two commands of the README: `make demo` and `make test`. Both create .venv and install the project when it
+# is missing or pyproject.toml changed (`make test` and the other targets also its dev extra): with uv (installed
+# into the venv first), which installs the same wheels as pip in a fraction of the time (measured here from empty
+# caches: 9 s, pip 53 s), or with pip where uv cannot be had. The planner's kernels (planner/jit.py) compile once per machine, about a
 # minute: `make test` compiles them first; a machine's first `make demo` plans with them interpreted (about 10 s
 # for the demo's job, NUMBA_DISABLE_JIT=1) so that motion shows at once, and compiles them after it.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+DEV := $(VENV)/.installed-dev
 KERNELS := $(VENV)/.kernels
+# uv when it installs, else pip
+INSTALL = ($(PY) -m pip install -q --disable-pip-version-check uv && $(VENV)/bin/uv pip install -q --python $(PY) -e '$(1)') \
+	  || $(PY) -m pip install -q -e '$(1)'
 
 .PHONY: demo test lint bench vcan-test rt-test clean chromium
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	@echo "installing pvt and its dependencies into $(VENV)"
-	($(PY) -m pip install -q --disable-pip-version-check uv && $(VENV)/bin/uv pip install -q --python $(PY) -e '.[dev]') \
-	  || $(PY) -m pip install -q -e '.[dev]'
+	$(call INSTALL,.)
 	touch $(STAMP)
+
+$(DEV): $(STAMP)
+	@echo "installing the dev extra (tests, lint) into $(VENV)"
+	$(call INSTALL,.[dev])
+	touch $(DEV)
 
 $(KERNELS): $(STAMP)
 	$(PY) -m planner.plan
@@ -30,7 +38,7 @@ demo: $(STAMP)
 
 # the virtual-time tests on every core at once (pytest-xdist), then the ones in wall-clock time alone, then the
 # isolated ones in a pytest process of their own (pyproject.toml's markers say which is which)
-test: $(KERNELS) lint chromium
+test: $(DEV) $(KERNELS) lint chromium
 	$(PY) -m pytest -q -n auto -m virtual
 	$(PY) -m pytest -q -m "not virtual and not isolated"
 	$(PY) -m pytest -q -m isolated
@@ -39,7 +47,7 @@ test: $(KERNELS) lint chromium
 chromium:
 	tools/ensure-chromium
 
-lint: $(STAMP)
+lint: $(DEV)
 	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
 	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py streamer/runtime/homing.py streamer/runtime/extension.py \
 		streamer/recording streamer/live streamer/view streamer/api
@@ -47,7 +55,7 @@ lint: $(STAMP)
 
 # every benchmark; the soak runs 1 h of virtual time here (about 2 min), the full 8 h with
 # `.venv/bin/python -m benchmarks.bench_soak --hours 8` (about 13 min)
-bench: $(KERNELS)
+bench: $(DEV) $(KERNELS)
 	PVT_SOAK_HOURS=1 $(PY) -m benchmarks
 
 clean:
@@ -55,10 +63,10 @@ clean:
 
 # the real-time tests (the drives in a process of their own, the cycle engine) 5 times in a row with a busy
 # process beside them: they must not flake (issue 22); run it alone, it measures this machine's real time
-rt-test: $(KERNELS)
+rt-test: $(DEV) $(KERNELS)
 	$(PY) -c 'import subprocess, sys; hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]); \
 	  runs = [subprocess.run([sys.executable, "-m", "pytest", "-q", "-m", "realtime or isolated"]).returncode for _ in range(5)]; \
 	  hog.kill(); print("rt-test: exit codes", runs); sys.exit(max(runs))'
 
-vcan-test: $(STAMP)
+vcan-test: $(DEV)
 	tools/vcan-vm/vcan-test.sh
