@@ -39,8 +39,10 @@ demo: $(STAMP)
 	  NUMBA_DISABLE_JIT=1 $(VENV)/bin/pvt demo; status=$$?; $(MAKE) --no-print-directory $(KERNELS); exit $$status; fi
 
 # the virtual-time tests on every core at once (pytest-xdist), then the ones in wall-clock time alone, then the
-# isolated ones in a pytest process of their own (pyproject.toml's markers say which is which)
-test: $(DEV) $(KERNELS) lint chromium
+# isolated ones in a pytest process of their own (pyproject.toml's markers say which is which); first the kernels,
+# lint and chromium side by side (each takes about a minute on a first run)
+test: $(DEV)
+	$(MAKE) --no-print-directory -j3 $(KERNELS) lint chromium
 	$(PY) -m pytest -q -n auto -m virtual
 	$(PY) -m pytest -q -m "not virtual and not isolated"
 	$(PY) -m pytest -q -m isolated
