@@ -8,6 +8,7 @@ repair, schedule.py for the fill model, bus/budget.py for the frame budget.
 """
 
 from bus.codec import frame_bits
+from streamer.core.axis_state import FeederState, InvalidTransition
 from streamer.core.coordinator import (
     Coordinator,
     JobReport,
@@ -16,7 +17,7 @@ from streamer.core.coordinator import (
     StateChange,
     UnexpectedEvent,
 )
-from streamer.core.feeder import AxisTelemetry, FeederState, FifoFeeder, InvalidTransition
+from streamer.core.feeder import AxisTelemetry, FifoFeeder
 from streamer.core.outcome import FAILURE_CODES, JobOutcome, JobResult
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
 from streamer.core.settings import StreamerSettings

@@ -29,8 +29,9 @@ from typing import Any, NamedTuple
 from bus.events import BufferStatus, PositionFeedback, StatusWord
 from streamer.core import attribution
 from streamer.core import outcome as oc
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
     _FEEDING,
     _SENDING,
@@ -206,28 +207,25 @@ class Feedback(Sending):
             state = sw & SW_STATE_MASK
             if state not in (SW_OPERATION_ENABLED, SW_QUICK_STOP_ACTIVE) or (
                     state == SW_QUICK_STOP_ACTIVE and sw & SW_TARGET_REACHED):
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
             return
         if fs is FeederState.PRIMING:
             asked = f.bit4_sync if f.spec.starts_with_bit4 else f.ready_sync
             if active and f.active_sync is None and asked is not None and m > asked:
-                f.active_sync = m
+                f.seen_active(m)
             return
         s = self._start_sync
         if not active:
             if fs is FeederState.DRAINING and f.bit4_off_sync is not None and m >= f.bit4_off_sync:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
                 return
             self._fail(oc.PROTOCOL, f"node {node}: ip mode inactive (statusword 0x{sw:04X}) at SYNC {m} while "
                        "it is being fed set points", node, {"statusword": sw})
             return
         if fs is FeederState.STARTING and s is not None and m >= s:
-            f.fire(FeederInput.ACTIVE)
-            f.start_sync = s
+            f.activated(s)
             self._progress_job()
 
     def _on_buffer_status(self, ev: BufferStatus) -> None:
@@ -279,8 +277,7 @@ class Feedback(Sending):
             return
         if fs is FeederState.HALTING:
             if self._halt_sync is not None and m > self._halt_sync and sw & SW_TARGET_REACHED:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
             return
         active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
@@ -315,8 +312,7 @@ class Feedback(Sending):
                     )
                     return
             if fs is FeederState.STARTING and active:
-                f.fire(FeederInput.ACTIVE)
-                f.start_sync = s
+                f.activated(s)
                 fs = FeederState.STREAMING
         plan_lo = consumed_at(self._ends, lo_ms) if activated else 0
         plan_hi = consumed_at(self._ends, hi_ms) if activated else 0
@@ -362,8 +358,7 @@ class Feedback(Sending):
             fs = FeederState.DRAINING
         if fs is FeederState.DRAINING:
             if started and hi_ms >= self._t_end and not active and sw & SW_TARGET_REACHED:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
         elif fs in _FEEDING and self._state in _SENDING:
             self._feed(f, fill, ev.free_size)
         self._progress_job()
@@ -406,14 +401,14 @@ class Feedback(Sending):
                 )
                 return
         for f in self._axes:
-            f.fire(FeederInput.READY)
             if isinstance(f, FifoFeeder):
+                f.fire(FeederInput.READY)
                 self._emit_cw(f, CW_ENABLE_OPERATION)
             else:
                 # the hold set point from now on (sent with the next SYNC's reaction, and this one now, so the
                 # SYNC that applies bit 4 finds one); an XtrapulsPac gets bit 4 (a rising edge: enable left it
                 # low) once SYNC has run long enough for its PLL, a CSP drive already follows its target
-                f.ready_sync = self._sync
+                f.ready(self._sync)
                 if f.spec.starts_with_bit4 and self._sync is not None:
                     self._request_ip(f, self._sync)
         self._set_state(JobState.PRIMING)
@@ -450,7 +445,7 @@ class Feedback(Sending):
         miss = self._demand_error(f, m, demand)
         if miss is None:
             return
-        f.max_demand_error = max(f.max_demand_error, miss.err)
+        f.demand_checked(miss.err)
         if miss.err > self._settings.demand_tolerance_counts:
             code, message, detail = self._demand_mismatch(f, m, demand, miss)
             self._fail(code, message, f.node_id, detail)
@@ -517,8 +512,7 @@ class Feedback(Sending):
         s = self._start_sync
         if (isinstance(f, CyclicFeeder) and f.state is FeederState.DRAINING and not f.spec.starts_with_bit4
                 and s is not None and m >= s + f.n and demand == f.value(f.n)[0]):
-            f.fire(FeederInput.STOPPED)
-            f.end_sync = m
+            f.stopped(m)
             self._progress_job()
 
 

@@ -24,9 +24,10 @@ from planner import hermite
 from planner.record import PvtRecord, pack
 from streamer.core import attribution
 from streamer.core.attribution import FeedbackLog
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder
 from streamer.core.drive_time import DriveTime
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder, stream_framing
+from streamer.core.feeder import FifoFeeder, stream_framing
 from streamer.core.job_state import (
     _ALL_ACTIVE,
     _ALL_FINISHED,
@@ -271,7 +272,7 @@ class JobCore:
 
     def _emit_cw(self, feeder: FifoFeeder | CyclicFeeder, controlword: int) -> None:
         self._out.append(self._cw[feeder.node_id][controlword])
-        feeder.frames_sent += 1
+        feeder.controlword_sent()
         self._cycle_used_bits += CONTROLWORD_FRAME_BITS
         self._extra_bits -= CONTROLWORD_FRAME_BITS
         self._frames_sent += 1
@@ -297,7 +298,7 @@ class JobCore:
             if f.state is not FeederState.FAULTED:
                 f.fire(FeederInput.FAULT)
         if node is not None and node in self._by_node:
-            self._by_node[node].errors.append(code)
+            self._by_node[node].failed(code)
         self._positioning.failed(self._elapsed_now())
         self._set_state(
             JobState.FAILED,

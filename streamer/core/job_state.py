@@ -27,7 +27,8 @@ from bus.events import (
     SyncOnWire,
 )
 from streamer.core.attribution import FeedbackLog
-from streamer.core.feeder import AxisTelemetry, FeederState
+from streamer.core.axis_state import FeederState
+from streamer.core.feeder import AxisTelemetry
 from streamer.core.outcome import JobOutcome
 from streamer.core.plan_source import Change, EmergencyStop, StreamPlan
 from streamer.core.positioning import NotInTarget

@@ -29,8 +29,9 @@ import numpy as np
 from bus.budget import RECORD_FRAME_BITS
 from bus.events import RecordOnWire, Sync, SyncOnWire
 from streamer.core import outcome as oc
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
     _ALL_FINISHED,
     _ALL_PRIMED,
