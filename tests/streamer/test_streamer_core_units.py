@@ -34,6 +34,7 @@ from streamer.core import outcome as oc
 from streamer.core.axis_state import CYCLIC_TRANSITIONS, FIFO_TRANSITIONS, FeederInput
 from streamer.core.coordinator import _DISPATCH, _EVENT_TYPES, _JOB_TRANSITIONS, TERMINAL
 from streamer.core.cyclic import CyclicAxis, CyclicFeeder
+from streamer.core.job_state import STATE_TRIGGERED, TRIGGERS_BY_STATE
 from streamer.core.schedule import (
     FillPolicy,
     consumed_at,
@@ -211,6 +212,44 @@ def test_every_state_has_an_entry_for_every_event_type() -> None:
         for etype in _EVENT_TYPES.values():
             assert (state, etype) in _DISPATCH
     assert all(_JOB_TRANSITIONS[s] == frozenset() for s in TERMINAL)
+
+
+def test_the_state_triggered_table_names_moves_of_the_core() -> None:
+    for trigger in STATE_TRIGGERED:
+        assert trigger.state not in TERMINAL and trigger.axes_in <= set(FeederState)
+        assert callable(getattr(Coordinator, trigger.move))
+        assert trigger.guard is None or callable(getattr(Coordinator, trigger.guard))
+        assert trigger in TRIGGERS_BY_STATE[trigger.state]
+    assert sum(len(ts) for ts in TRIGGERS_BY_STATE.values()) == len(STATE_TRIGGERED)
+
+
+def _core_at(state: JobState, axes: FeederState) -> Coordinator:
+    core = Coordinator(make_plan(2, 300, seed=4), StreamerSettings())
+    core._state = state
+    for f in core._axes:
+        f.state = axes
+    return core
+
+
+@pytest.mark.parametrize("settled", [True, False])
+def test_state_triggered_transitions_run_to_a_fixed_point(settled: bool) -> None:
+    # every axis finished while the job was STARTING: one call goes RUNNING, FINISHING and (once every axis is
+    # in its target window) DONE
+    core = _core_at(JobState.STARTING, FeederState.FINISHED)
+    core._settled = lambda: settled  # type: ignore[method-assign]
+    core._progress_job()
+    expected = [JobState.RUNNING, JobState.FINISHING] + ([JobState.DONE] if settled else [])
+    assert [c.state for c in core._changes] == expected
+    core = _core_at(JobState.STARTING, FeederState.STREAMING)  # active, not all queued: RUNNING only
+    core._progress_job()
+    assert [c.state for c in core._changes] == [JobState.RUNNING]
+
+
+def test_a_state_triggered_move_that_leaves_the_state_raises() -> None:
+    core = _core_at(JobState.STARTING, FeederState.STREAMING)
+    core._to_running = lambda: None  # type: ignore[method-assign]
+    with pytest.raises(RuntimeError, match="_to_running left the job in STARTING"):
+        core._progress_job()
 
 
 def test_an_event_without_an_entry_raises() -> None:
