@@ -15,9 +15,11 @@ splice gives it set points after that one, and DRAINING --HALT--> HALTING (a FIF
 only stopped or faulted). A missing entry raises `InvalidTransition` (a bug in the caller).
 
 `AxisStateMachine` is the part both feeders share: the state, `fire`, and the named moves the coordinator
-makes on an axis (`activated`, `stopped`; telemetry: `controlword_sent`, `demand_checked`, `failed`), so
-that no coordinator part writes a feeder's state or its telemetry fields itself (a cyclic axis adds its
-own: `ready`, `ip_requested`, `seen_active`, `ip_released`, in cyclic.py).
+makes on an axis (`activated`, `stopped`; attribution: `answers_from`, `answered`; telemetry:
+`controlword_sent`, `demand_checked`, `failed`), so that no coordinator part writes a feeder's state, its
+attribution marks or its telemetry itself (a cyclic axis adds its own moves: `ready`, `ip_requested`,
+`seen_active`, `ip_released`, in cyclic.py). The readings recorded for the configuration check
+(`first_status`, `first_demand`) and a cyclic axis' `last_statusword` are still written by feedback.py.
 """
 
 from __future__ import annotations
@@ -90,6 +92,8 @@ class AxisStateMachine:
     frames_sent: int  # records or set points, and controlwords, sent to this node
     max_demand_error: int  # counts: the largest distance of a reported position demand from the plan
     errors: list[str]  # the failure codes the job reported against this node
+    last_tpdo1: int  # the newest SYNC a TPDO1 of this node was attributed to (feedback.py)
+    last_tpdo2: int  # the same for TPDO2
 
     def fire(self, inp: FeederInput) -> FeederState:
         nxt = self.transitions.get((self.state, inp))
@@ -109,6 +113,17 @@ class AxisStateMachine:
         """The drive is seen stopped at SYNC m (ip mode off, halt standstill, or its last set point reached)."""
         self.fire(FeederInput.STOPPED)
         self.end_sync = m
+
+    def answers_from(self, m: int) -> None:
+        """SYNC m is the job's first: every TPDO of this node from now on answers m or a later SYNC."""
+        self.last_tpdo1 = self.last_tpdo2 = m - 1
+
+    def answered(self, pdo: int, m: int) -> None:
+        """Its TPDO `pdo` (1 or 2) was attributed to SYNC m (its later ones answer later SYNCs)."""
+        if pdo == 1:
+            self.last_tpdo1 = m
+        else:
+            self.last_tpdo2 = m
 
     def controlword_sent(self) -> None:
         """A controlword frame went to this node (it counts in the axis' frames)."""

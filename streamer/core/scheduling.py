@@ -131,7 +131,7 @@ class Scheduler(OpenStream):
         if prev is None:
             self._first_sync = m
             for f in self._axes:
-                f.last_tpdo1 = f.last_tpdo2 = m - 1
+                f.answers_from(m)
         else:
             if m <= prev:
                 raise ValueError(f"Sync count {m} after {prev}: counts must increase by one")
