@@ -48,10 +48,11 @@ Job life cycle (JobState):
 
 The parts, each a class the next one builds on (the job's state lives in `JobCore`; the layers add
 behaviour, not state; each module opens with its own theory):
-  job_state.py   JobState, its transition table, the dispatch table (job state, event type) -> handler,
-                 the control words and status bits, `Reaction`, `JobReport`.
+  job_state.py   JobState, its transition table, the event-triggered table (job state, event type) ->
+                 handler and the state-triggered one (all axes active -> RUNNING, ...), the control words
+                 and status bits, `Reaction`, `JobReport`.
   job_core.py    JobCore: the job's state, the SYNC clocks (`_elapsed`, `_elapsed_bounds`), state changes,
-                 `_fail`, control words, the job's progress (RUNNING -> FINISHING -> DONE/CANCELLED).
+                 `_fail`, control words, the state-triggered transitions to a fixed point and their moves.
   sending.py     Sending: what goes on the wire each cycle: FIFO records within the budget, set point frames.
   splices.py     Splices: one place for cancel, change, emergency stop (and the extension's append): the
                  state at the queue's end, the checks, the splice; halt.

@@ -6,8 +6,8 @@ SYNC and interpolates towards it over the next period (planner/cyclic.py has the
 bound). So this feeder holds no stream position to account for; it owns, for one axis, which set point
 goes out after each SYNC, the start and end of its interpolation, and its telemetry. The coordinator
 (coordinator.py) drives it next to the FIFO feeders, through the same states and inputs
-(`feeder.FeederState`), and packs its set point into the axis' frame (its own RPDO3, or the frame of its
-multiplexed group).
+(`axis_state.FeederState`, with its own table `axis_state.CYCLIC_TRANSITIONS`), and packs its set point
+into the axis' frame (its own RPDO3, or the frame of its multiplexed group).
 
 Timing (S = the job's start SYNC, the same for every axis of the job; P = the SYNC period):
 - from the moment the axis is READY the drive gets its start position x_0 after every SYNC (a "hold"
@@ -43,7 +43,8 @@ from bus.events import Send
 from bus.profile import SetpointSlot, pack_setpoints
 from planner.cyclic import Setpoints, sample
 from planner.reference import FloatArray
-from streamer.core.feeder import _TRANSITIONS, AxisTelemetry, FeederInput, FeederState, InvalidTransition
+from streamer.core.axis_state import CYCLIC_TRANSITIONS, AxisStateMachine, FeederInput, FeederState
+from streamer.core.feeder import AxisTelemetry
 
 HOLD_AFTER_ACTIVE = 2  # holds sent after the SYNC ip mode was seen active, before the axis counts as primed
 
@@ -59,10 +60,11 @@ class CyclicAxis:
     sync_lock_ms: int = 0  # SYNC the drive must have seen before bit 4 (XtrapulsPac: 180 ms, else it refuses)
 
 
-class CyclicFeeder:
+class CyclicFeeder(AxisStateMachine):
     """One cyclic axis. The coordinator owns the timing and calls `setpoint`, `fire` and the checks."""
 
     kind = "cyclic"
+    transitions = CYCLIC_TRANSITIONS
 
     def __init__(self, axis: int, node_id: int, start_position: int, spec: CyclicAxis, period_ms: int,
                  positions: FloatArray, velocities_per_ms: FloatArray) -> None:
@@ -96,14 +98,24 @@ class CyclicFeeder:
         self.errors: list[str] = []
         self.last_statusword: int | None = None
 
-    # ---- state machine ------------------------------------------------------------------------------
-    def fire(self, inp: FeederInput) -> FeederState:
-        nxt = _TRANSITIONS.get((self.state, inp))
-        if nxt is None:
-            raise InvalidTransition(
-                f"feeder of node {self.node_id}: no transition from {self.state.name} on {inp.name}")
-        self.state = nxt
-        return nxt
+    # ---- the moves the coordinator makes on the axis (it owns the timing, the feeder its fields) -------
+    def ready(self, sync: int | None) -> None:
+        """Checked ready after SYNC `sync`: WAITING -> PRIMING; it gets its first hold after that SYNC."""
+        self.fire(FeederInput.READY)
+        self.ready_sync = sync
+
+    def ip_requested(self, m: int, sync_ran_ms: int) -> None:
+        """Controlword bit 4 went out after SYNC m; SYNC had run `sync_ran_ms` at the SYNC that applies it."""
+        self.bit4_sync = m
+        self.bit4_sync_ran_ms = sync_ran_ms
+
+    def seen_active(self, m: int) -> None:
+        """Statusword bit 12 (ip mode active / following the set point) first seen at SYNC m, priming."""
+        self.active_sync = m
+
+    def ip_released(self, m: int) -> None:
+        """Controlword bit 4 cleared for SYNC m (end of job: the drive holds its last set point)."""
+        self.bit4_off_sync = m
 
     # ---- set points ---------------------------------------------------------------------------------
     @property

@@ -16,20 +16,22 @@ order, twice or not at all: this is what catches two records of one batch swappe
 cannot see), or START_MISMATCH before the start. Off while halting (no plan to compare with).
 
 
-Here also: the TPDO handlers (TPDO1: statusword and buffer status / fill; TPDO2: position demand and actual),
-the configuration check on the first TPDOs of every axis (`_try_configure`), and the due-time slack a
-missing record still has (`_slack_ms`, for the feeder's repair decision).
+Here also: the TPDO handlers (TPDO1: statusword and buffer status / fill, one per axis kind; TPDO2: position
+demand and actual, one path for both kinds with the per-kind steps in the `_demand_*` methods), the
+configuration check on the first TPDOs of every axis (`_try_configure`), and the due-time slack a missing
+record still has (`_slack_ms`, for the feeder's repair decision).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 from bus.events import BufferStatus, PositionFeedback, StatusWord
 from streamer.core import attribution
 from streamer.core import outcome as oc
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
     _FEEDING,
     _SENDING,
@@ -183,7 +185,7 @@ class Feedback(Sending):
         m = self._attribute(f, 1, ev.sync_count, lambda _m: None)
         if m is None or m <= f.last_tpdo1:
             return
-        f.last_tpdo1 = m
+        f.answered(1, m)
         self._t = ev.t
         sw, node = ev.statusword, f.node_id
         if sw & SW_IP_ACTIVE:
@@ -205,28 +207,25 @@ class Feedback(Sending):
             state = sw & SW_STATE_MASK
             if state not in (SW_OPERATION_ENABLED, SW_QUICK_STOP_ACTIVE) or (
                     state == SW_QUICK_STOP_ACTIVE and sw & SW_TARGET_REACHED):
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
             return
         if fs is FeederState.PRIMING:
             asked = f.bit4_sync if f.spec.starts_with_bit4 else f.ready_sync
             if active and f.active_sync is None and asked is not None and m > asked:
-                f.active_sync = m
+                f.seen_active(m)
             return
         s = self._start_sync
         if not active:
             if fs is FeederState.DRAINING and f.bit4_off_sync is not None and m >= f.bit4_off_sync:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
                 return
             self._fail(oc.PROTOCOL, f"node {node}: ip mode inactive (statusword 0x{sw:04X}) at SYNC {m} while "
                        "it is being fed set points", node, {"statusword": sw})
             return
         if fs is FeederState.STARTING and s is not None and m >= s:
-            f.fire(FeederInput.ACTIVE)
-            f.start_sync = s
+            f.activated(s)
             self._progress_job()
 
     def _on_buffer_status(self, ev: BufferStatus) -> None:
@@ -238,7 +237,7 @@ class Feedback(Sending):
         m = self._attribute(f, 1, ev.sync_count, lambda k: self._status_fits(f, k, sw, bs, fill))
         if m is None or m <= f.last_tpdo1:
             return
-        f.last_tpdo1 = m
+        f.answered(1, m)
         self._t = ev.t
         if bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
             self._feedback_log[node].active(m)
@@ -278,8 +277,7 @@ class Feedback(Sending):
             return
         if fs is FeederState.HALTING:
             if self._halt_sync is not None and m > self._halt_sync and sw & SW_TARGET_REACHED:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
                 self._progress_job()
             return
         active = bool(bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE)
@@ -314,8 +312,7 @@ class Feedback(Sending):
                     )
                     return
             if fs is FeederState.STARTING and active:
-                f.fire(FeederInput.ACTIVE)
-                f.start_sync = s
+                f.activated(s)
                 fs = FeederState.STREAMING
         plan_lo = consumed_at(self._ends, lo_ms) if activated else 0
         plan_hi = consumed_at(self._ends, hi_ms) if activated else 0
@@ -361,8 +358,7 @@ class Feedback(Sending):
             fs = FeederState.DRAINING
         if fs is FeederState.DRAINING:
             if started and hi_ms >= self._t_end and not active and sw & SW_TARGET_REACHED:
-                f.fire(FeederInput.STOPPED)
-                f.end_sync = m
+                f.stopped(m)
         elif fs in _FEEDING and self._state in _SENDING:
             self._feed(f, fill, ev.free_size)
         self._progress_job()
@@ -405,14 +401,14 @@ class Feedback(Sending):
                 )
                 return
         for f in self._axes:
-            f.fire(FeederInput.READY)
             if isinstance(f, FifoFeeder):
+                f.fire(FeederInput.READY)
                 self._emit_cw(f, CW_ENABLE_OPERATION)
             else:
                 # the hold set point from now on (sent with the next SYNC's reaction, and this one now, so the
                 # SYNC that applies bit 4 finds one); an XtrapulsPac gets bit 4 (a rising edge: enable left it
                 # low) once SYNC has run long enough for its PLL, a CSP drive already follows its target
-                f.ready_sync = self._sync
+                f.ready(self._sync)
                 if f.spec.starts_with_bit4 and self._sync is not None:
                     self._request_ip(f, self._sync)
         self._set_state(JobState.PRIMING)
@@ -422,95 +418,108 @@ class Feedback(Sending):
         # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
         self._lock_prev = self._lockstep = 0
 
+    # ---- TPDO2: one attribution path for both axis kinds ---------------------------------------------
+    # The steps are the same for a FIFO and a cyclic axis; what differs per kind sits in the five
+    # `_demand_*` methods below it: which SYNCs the demand fits (the attribution), whether a demand is
+    # checked in the axis' state, how far it is from the plan, how a mismatch is reported, and whether the
+    # demand ends the axis (a CSP drive has no ip mode to switch off).
+
     def _on_position(self, ev: PositionFeedback) -> None:
         f = self._by_node.get(ev.node)
         if f is None:
             return
-        if isinstance(f, CyclicFeeder):
-            self._on_cyclic_position(f, ev)
-            return
-        m = self._attribute(f, 2, ev.sync_count, lambda k: self._demand_fits(f, k, ev.position_demand))
+        demand = ev.position_demand
+        m = self._attribute(f, 2, ev.sync_count, lambda k: self._demand_fits_at(f, k, demand))
         if m is None or m <= f.last_tpdo2:
             return
-        f.last_tpdo2 = m
+        f.answered(2, m)
         self._t = ev.t
-        self._feedback_log[f.node_id].position(m, ev.position_demand, ev.position_actual)
+        self._feedback_log[f.node_id].position(m, demand, ev.position_actual)
         if self._state is JobState.CONFIGURING:
-            f.first_demand = ev.position_demand
+            f.first_demand = demand
             self._try_configure()
             return
         self._track_actual(f.node_id, ev.position_actual, m)
-        if self._state is JobState.HALTING or f.state is FeederState.FAULTED:
-            return  # under halt each drive ramps down on its own: there is no plan to check against
-        s = self._start_sync
-        demand = ev.position_demand
-        clock = self._clocks[f.node_id]
+        if not self._demand_checked(f):
+            return
+        miss = self._demand_error(f, m, demand)
+        if miss is None:
+            return
+        f.demand_checked(miss.err)
+        if miss.err > self._settings.demand_tolerance_counts:
+            code, message, detail = self._demand_mismatch(f, m, demand, miss)
+            self._fail(code, message, f.node_id, detail)
+            return
+        self._demand_reached(f, m, demand)
+
+    def _demand_fits_at(self, f: FifoFeeder | CyclicFeeder, m: int, demand: int) -> bool | None:
+        """The attribution's test: could `f`'s drive report this position demand at SYNC m?"""
+        if isinstance(f, CyclicFeeder):
+            return self._setpoint_fits(f, m, demand)
+        return self._demand_fits(f, m, demand)
+
+    def _demand_checked(self, f: FifoFeeder | CyclicFeeder) -> bool:
+        """Is there a plan to check `f`'s demand against? Not under halt (each drive ramps down on its own),
+        not once faulted, and for a cyclic axis not once finished either."""
+        if isinstance(f, CyclicFeeder):
+            return f.state not in (FeederState.HALTING, FeederState.FAULTED, FeederState.FINISHED)
+        return not (self._state is JobState.HALTING or f.state is FeederState.FAULTED)
+
+    def _demand_error(self, f: FifoFeeder | CyclicFeeder, m: int, demand: int) -> _DemandMiss | None:
+        """How far `demand` at SYNC m is from what the plan allows (None: nothing to compare with). A FIFO
+        drive with its own clock: the ticks its demand matches pin that clock down (`DriveTime.observe`)."""
+        if isinstance(f, CyclicFeeder):
+            lo, hi = f.expected_demand(m, self._start_sync)
+            return _DemandMiss(max(0, lo - demand, demand - hi), lo, hi)
+        s, clock = self._start_sync, self._clocks[f.node_id]
         if s is None or m <= s or clock.exact:
             candidates = self._demand_options(f, self._elapsed(m))
             if not candidates:
-                return
-            err = min(abs(demand - c) for c in candidates)
+                return None
             expected = min(candidates, key=lambda c: abs(demand - c))
-        else:
-            # a drive with its own clock: the ticks its demand matches pin its clock down
-            t_m = self._sync_time(m)
-            ticks, err = self._clock_match(f, m, demand)
-            clock.observe(m, t_m, ticks)
-            lo, _ = clock.ticks(m, t_m)
-            expected = (f.demand_candidates(lo, self._ends) or (demand,))[0]
-        if err > f.max_demand_error:
-            f.max_demand_error = err
-        if err > self._settings.demand_tolerance_counts:
-            if s is None or m <= s:
-                self._fail(
-                    oc.START_MISMATCH,
-                    f"node {f.node_id}: position demand moved to {demand} "
-                    f"before the start (plan start {expected})",
-                    f.node_id,
-                    {"position_demand": demand, "expected": expected},
-                )
-            else:
-                self._fail(
-                    oc.PROTOCOL,
-                    f"node {f.node_id}: position demand {demand} at SYNC {m} is "
-                    f"{err} counts from the plan's {expected}: records executed out of order, twice or "
-                    f"not at all",
-                    f.node_id,
-                    {"position_demand": demand, "expected": expected, "sync": m},
-                )
+            return _DemandMiss(min(abs(demand - c) for c in candidates), expected, expected)
+        t_m = self._sync_time(m)
+        ticks, err = self._clock_match(f, m, demand)
+        clock.observe(m, t_m, ticks)
+        lo_ms, _ = clock.ticks(m, t_m)
+        expected = (f.demand_candidates(lo_ms, self._ends) or (demand,))[0]
+        return _DemandMiss(err, expected, expected)
 
-    def _on_cyclic_position(self, f: CyclicFeeder, ev: PositionFeedback) -> None:
-        m = self._attribute(f, 2, ev.sync_count, lambda k: self._setpoint_fits(f, k, ev.position_demand))
-        if m is None or m <= f.last_tpdo2:
-            return
-        f.last_tpdo2 = m
-        self._t = ev.t
-        self._feedback_log[f.node_id].position(m, ev.position_demand, ev.position_actual)
-        if self._state is JobState.CONFIGURING:
-            f.first_demand = ev.position_demand
-            self._try_configure()
-            return
-        self._track_actual(f.node_id, ev.position_actual, m)
-        if f.state in (FeederState.HALTING, FeederState.FAULTED, FeederState.FINISHED):
-            return
+    def _demand_mismatch(self, f: FifoFeeder | CyclicFeeder, m: int, demand: int,
+                         miss: _DemandMiss) -> tuple[str, str, dict[str, Any]]:
+        """(code, message, detail) of a demand off the plan: START_MISMATCH up to the start, then PROTOCOL."""
+        s, node, err = self._start_sync, f.node_id, miss.err
+        before = s is None or m <= s
+        if isinstance(f, CyclicFeeder):
+            lo, hi = miss.lo, miss.hi
+            return (oc.START_MISMATCH if before else oc.PROTOCOL,
+                    f"node {node}: position demand {demand} at SYNC {m} is {err} counts from the set point "
+                    f"{'it holds before the start' if before else 'it reached at that SYNC'} ({lo}..{hi})",
+                    {"position_demand": demand, "expected": [lo, hi], "sync": m})
+        expected = miss.lo
+        if before:
+            return (oc.START_MISMATCH,
+                    f"node {node}: position demand moved to {demand} before the start (plan start {expected})",
+                    {"position_demand": demand, "expected": expected})
+        return (oc.PROTOCOL,
+                f"node {node}: position demand {demand} at SYNC {m} is {err} counts from the plan's {expected}: "
+                "records executed out of order, twice or not at all",
+                {"position_demand": demand, "expected": expected, "sync": m})
+
+    def _demand_reached(self, f: FifoFeeder | CyclicFeeder, m: int, demand: int) -> None:
+        """A CSP drive has no ip mode to switch off: it is done when it reports its last set point. (A FIFO
+        drive and an XtrapulsPac end on their TPDO1: ip mode off.)"""
         s = self._start_sync
-        demand = ev.position_demand
-        lo, hi = f.expected_demand(m, s)
-        err = max(0, lo - demand, demand - hi)
-        f.max_demand_error = max(f.max_demand_error, err)
-        if err > self._settings.demand_tolerance_counts:
-            before = s is None or m <= s
-            self._fail(
-                oc.START_MISMATCH if before else oc.PROTOCOL,
-                f"node {f.node_id}: position demand {demand} at SYNC {m} is {err} counts from the set point "
-                f"{'it holds before the start' if before else 'it reached at that SYNC'} ({lo}..{hi})",
-                f.node_id,
-                {"position_demand": demand, "expected": [lo, hi], "sync": m},
-            )
-            return
-        # a CSP drive has no ip mode to switch off: it is done when it reports its last set point
-        if (f.state is FeederState.DRAINING and not f.spec.starts_with_bit4 and s is not None
-                and m >= s + f.n and demand == f.value(f.n)[0]):
-            f.fire(FeederInput.STOPPED)
-            f.end_sync = m
+        if (isinstance(f, CyclicFeeder) and f.state is FeederState.DRAINING and not f.spec.starts_with_bit4
+                and s is not None and m >= s + f.n and demand == f.value(f.n)[0]):
+            f.stopped(m)
             self._progress_job()
+
+
+class _DemandMiss(NamedTuple):
+    """A TPDO2's distance from the plan: `err` counts outside [lo, hi] (a FIFO axis: lo == hi, the plan's
+    demand nearest the reported one)."""
+
+    err: int
+    lo: int
+    hi: int

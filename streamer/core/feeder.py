@@ -6,13 +6,8 @@ free size, and the axis' telemetry. It is fed by the coordinator, which attribut
 SYNC it answers and knows the shared timing; it emits nothing itself: the coordinator asks it which
 frames to send (`take`). No I/O, no clock.
 
-States (`FeederState`, transitions in `_TRANSITIONS`; a missing entry raises `InvalidTransition`):
-
-    WAITING --READY--> PRIMING --PRIMED--> PRIMED --START--> STARTING --ACTIVE--> STREAMING
-    STREAMING --END_QUEUED--> DRAINING --STOPPED--> FINISHED
-    STARTING/STREAMING --HALT--> HALTING --STOPPED--> FINISHED
-    WAITING/PRIMING/PRIMED --ABANDON--> FINISHED          (cancel before the start)
-    any state but FAULTED --FAULT--> FAULTED             (poisoned: never sends again)
+States: `axis_state.FeederState`, the same for both axis kinds; this kind's transitions are
+`axis_state.FIFO_TRANSITIONS` (a missing entry raises `InvalidTransition`).
 
 Loss, duplicate and reorder accounting (the "one unconfirmed batch" design)
 ---------------------------------------------------------------------------
@@ -74,60 +69,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any, NamedTuple
 
 from bus.events import Send
 from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms, truncate_counts
 from planner.record import PvtRecord
 from streamer.core import outcome as oc
+from streamer.core.axis_state import FIFO_TRANSITIONS, AxisStateMachine, FeederState
 from streamer.core.window import Window, bisect_right
-
-
-class InvalidTransition(RuntimeError):
-    """An input arrived that the current state has no transition for (a bug in the caller)."""
-
-
-class FeederState(Enum):
-    WAITING = "waiting"
-    PRIMING = "priming"
-    PRIMED = "primed"
-    STARTING = "starting"
-    STREAMING = "streaming"
-    DRAINING = "draining"
-    HALTING = "halting"
-    FINISHED = "finished"
-    FAULTED = "faulted"
-
-
-class FeederInput(Enum):
-    READY = "ready"  # first feedback checked: drive ready, FIFO empty, at the plan's start
-    PRIMED = "primed"  # priming level confirmed in the FIFO
-    START = "start"  # start controlword sent
-    ACTIVE = "active"  # drive reports ip mode active at/after the start SYNC
-    END_QUEUED = "end_queued"  # the end record is confirmed in the FIFO
-    HALT = "halt"  # cancel fell back to halt (controlword bit 8)
-    STOPPED = "stopped"  # ip mode inactive and target reached (or halt standstill)
-    ABANDON = "abandon"  # cancelled before the start
-    FAULT = "fault"
-
-
-_S, _I = FeederState, FeederInput
-_TRANSITIONS: dict[tuple[FeederState, FeederInput], FeederState] = {
-    (_S.WAITING, _I.READY): _S.PRIMING,
-    (_S.PRIMING, _I.PRIMED): _S.PRIMED,
-    (_S.PRIMED, _I.START): _S.STARTING,
-    (_S.STARTING, _I.ACTIVE): _S.STREAMING,
-    (_S.STREAMING, _I.END_QUEUED): _S.DRAINING,
-    (_S.DRAINING, _I.STOPPED): _S.FINISHED,
-    (_S.STARTING, _I.HALT): _S.HALTING,
-    (_S.STREAMING, _I.HALT): _S.HALTING,
-    (_S.HALTING, _I.STOPPED): _S.FINISHED,
-    (_S.WAITING, _I.ABANDON): _S.FINISHED,
-    (_S.PRIMING, _I.ABANDON): _S.FINISHED,
-    (_S.PRIMED, _I.ABANDON): _S.FINISHED,
-    **{(state, _I.FAULT): _S.FAULTED for state in FeederState if state is not _S.FAULTED},
-}
 
 
 class Failure(NamedTuple):
@@ -176,8 +125,10 @@ def framed(records: Sequence[PvtRecord], start_position: int, first_record: str 
     return [*([lead] if lead else []), *records, *([tail] if tail else [])]
 
 
-class FifoFeeder:
+class FifoFeeder(AxisStateMachine):
     """One axis. The coordinator owns the timing and calls `account`, `take` and `fire`."""
+
+    transitions = FIFO_TRANSITIONS
 
     def __init__(
         self,
@@ -249,16 +200,6 @@ class FifoFeeder:
         self.last_fill: int | None = None
         self.max_demand_error = 0
         self.errors: list[str] = []
-
-    # ---- state machine ----------------------------------------------------------------------------
-    def fire(self, inp: FeederInput) -> FeederState:
-        nxt = _TRANSITIONS.get((self.state, inp))
-        if nxt is None:
-            raise InvalidTransition(
-                f"feeder of node {self.node_id}: no transition from {self.state.name} on {inp.name}"
-            )
-        self.state = nxt
-        return nxt
 
     def _stream(self, plan_sends: list[Send]) -> list[Send]:
         out = [self._lead_send] if self._lead_send is not None else []

@@ -6,8 +6,8 @@ budget's accounting, the pieces and the outcome; all of it is set up in `__init_
 job (`_elapsed`: nominal ms since the start SYNC; `_elapsed_bounds`: the least and most any drive's clock may
 have interpolated), job state changes by the transition table, `_fail` (quick stop to every axis once
 anything was sent, then FAILED: rule 4 of STYLE.md), control words, the positioning tracker's inputs, and
-`_progress_job`, the state-triggered transitions (all axes active -> RUNNING, all queued -> FINISHING, all
-finished -> DONE or CANCELLED).
+`_progress_job`, the state-triggered transitions (job_state.STATE_TRIGGERED: all axes active -> RUNNING, all
+queued -> FINISHING, all finished -> DONE or CANCELLED) applied to a fixed point, and their moves.
 """
 
 from __future__ import annotations
@@ -24,13 +24,11 @@ from planner import hermite
 from planner.record import PvtRecord, pack
 from streamer.core import attribution
 from streamer.core.attribution import FeedbackLog
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder
 from streamer.core.drive_time import DriveTime
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder, stream_framing
+from streamer.core.feeder import FifoFeeder, stream_framing
 from streamer.core.job_state import (
-    _ALL_ACTIVE,
-    _ALL_FINISHED,
-    _ALL_QUEUED,
     _DISPATCH,
     _JOB_TRANSITIONS,
     CW_ENABLE_OPERATION,
@@ -41,6 +39,7 @@ from streamer.core.job_state import (
     LONGEST_SEGMENT_MS,
     RETAIN_MIN_MS,
     TERMINAL,
+    TRIGGERS_BY_STATE,
     JobState,
     StateChange,
     UnexpectedEvent,
@@ -271,7 +270,7 @@ class JobCore:
 
     def _emit_cw(self, feeder: FifoFeeder | CyclicFeeder, controlword: int) -> None:
         self._out.append(self._cw[feeder.node_id][controlword])
-        feeder.frames_sent += 1
+        feeder.controlword_sent()
         self._cycle_used_bits += CONTROLWORD_FRAME_BITS
         self._extra_bits -= CONTROLWORD_FRAME_BITS
         self._frames_sent += 1
@@ -297,7 +296,7 @@ class JobCore:
             if f.state is not FeederState.FAULTED:
                 f.fire(FeederInput.FAULT)
         if node is not None and node in self._by_node:
-            self._by_node[node].errors.append(code)
+            self._by_node[node].failed(code)
         self._positioning.failed(self._elapsed_now())
         self._set_state(
             JobState.FAILED,
@@ -305,41 +304,54 @@ class JobCore:
         )
 
     def _progress_job(self) -> None:
-        st = self._state
-        if st is JobState.STARTING and self._all_feeders(_ALL_ACTIVE):
-            self._set_state(JobState.RUNNING)
-            st = JobState.RUNNING
-        if st is JobState.RUNNING and self._all_feeders(_ALL_QUEUED):
-            self._set_state(JobState.FINISHING)
-            st = JobState.FINISHING
-        if st in (JobState.FINISHING, JobState.CANCELLING, JobState.HALTING) and self._all_feeders(
-            _ALL_FINISHED
-        ):
-            if st is JobState.FINISHING:
-                if not self._positioning.settled():
-                    return  # PRE_TARGET: waiting for the target windows (or their in-target timeouts)
-                self._finish_done()
-            elif self._extend_failure is not None:
-                if st is JobState.HALTING:
-                    for f in self._feeders:  # halt released
-                        self._emit_cw(f, CW_ENABLE_OPERATION)
-                code, message = self._extend_failure  # stopped at rest, then failed
-                self._set_state(JobState.FAILED, JobOutcome(JobResult.FAILED, code, None, message, self._sync,
-                                                            self._t, dict(self._cancel_info)))
-            elif st is JobState.CANCELLING:
-                self._finish(
-                    JobResult.CANCELLED,
-                    "cancelled: " + str(self._cancel_info.get("summary", "")),
-                    dict(self._cancel_info),
-                )
+        """The state-triggered transitions to a fixed point: the first entry of `STATE_TRIGGERED` for the
+        current state whose conditions hold makes its move; again from the new state, until none holds."""
+        while True:
+            st = self._state
+            for trigger in TRIGGERS_BY_STATE.get(st, ()):
+                if self._all_feeders(trigger.axes_in) and (trigger.guard is None or getattr(self, trigger.guard)()):
+                    getattr(self, trigger.move)()
+                    break
             else:
-                for f in self._feeders:  # halt released (the cyclic axes were quick-stopped instead)
-                    self._emit_cw(f, CW_ENABLE_OPERATION)
-                self._finish(
-                    JobResult.CANCELLED,
-                    "cancelled: " + str(self._cancel_info.get("summary", "")),
-                    dict(self._cancel_info),
-                )
+                return
+            if self._state is st:
+                raise RuntimeError(f"state-triggered move {trigger.move} left the job in {st.name}")
+
+    # ---- the state-triggered moves (job_state.STATE_TRIGGERED) -------------------------------------------
+    def _to_running(self) -> None:
+        self._set_state(JobState.RUNNING)
+
+    def _to_finishing(self) -> None:
+        self._set_state(JobState.FINISHING)
+
+    def _settled(self) -> bool:
+        """Every axis in its target window (or stopped, or timed out there): FINISHING may end."""
+        return self._positioning.settled()
+
+    def _cancel_done(self) -> None:
+        """CANCELLING, every axis stopped on its stop trajectory: CANCELLED."""
+        self._stopped_done()
+
+    def _halt_done(self) -> None:
+        """HALTING, every axis at standstill: the halt released (the FIFO axes; the cyclic axes were quick-stopped
+        instead), CANCELLED."""
+        for f in self._feeders:
+            self._emit_cw(f, CW_ENABLE_OPERATION)
+        self._stopped_done()
+
+    def _stopped_done(self) -> None:
+        """The end of a cancel or halt: CANCELLED, or FAILED with the extension failure that made the stop (an
+        open-ended stream whose next chunk could not be planned stops at rest, then fails)."""
+        if self._extend_failure is not None:
+            code, message = self._extend_failure
+            self._set_state(JobState.FAILED, JobOutcome(JobResult.FAILED, code, None, message, self._sync,
+                                                        self._t, dict(self._cancel_info)))
+            return
+        self._finish(
+            JobResult.CANCELLED,
+            "cancelled: " + str(self._cancel_info.get("summary", "")),
+            dict(self._cancel_info),
+        )
 
     def _track_time(self, m: int) -> None:
         s = self._start_sync

@@ -1,6 +1,12 @@
-"""The job's states and tables: `JobState` and its transition table, the dispatch table (job state, event
-type) -> handler name (data, so it is inspectable and testable), the CiA 402 control words and status bits
-the core uses, and what the core hands back (`Reaction`, `StateChange`, `JobReport`). No behaviour.
+"""The job's states and tables: `JobState` and its transition table, the two tables that move it (data, so
+they are inspectable and testable), the CiA 402 control words and status bits the core uses, and what the
+core hands back (`Reaction`, `StateChange`, `JobReport`). No behaviour.
+
+- Event-triggered: `_DISPATCH`, (job state, event type) -> the handler that takes the event.
+- State-triggered: `STATE_TRIGGERED`, (job state, the states every axis must be in, an extra guard) -> the
+  move that takes the job on ("all axes active -> RUNNING"). After anything that may change an axis' state,
+  `JobCore._progress_job` applies the entries to a fixed point: the first entry of the current state whose
+  conditions hold makes its move (every move leaves the state), until none holds.
 """
 
 from __future__ import annotations
@@ -27,7 +33,8 @@ from bus.events import (
     SyncOnWire,
 )
 from streamer.core.attribution import FeedbackLog
-from streamer.core.feeder import AxisTelemetry, FeederState
+from streamer.core.axis_state import FeederState
+from streamer.core.feeder import AxisTelemetry
 from streamer.core.outcome import JobOutcome
 from streamer.core.plan_source import Change, EmergencyStop, StreamPlan
 from streamer.core.positioning import NotInTarget
@@ -182,6 +189,28 @@ def dispatch_table() -> dict[tuple[JobState, type], str]:
 
 
 _DISPATCH = dispatch_table()
+
+
+class StateTrigger(NamedTuple):
+    """In job state `state`, once every axis is in one of `axes_in` and the guard method (if any) says so,
+    the job core calls `move` (a method that changes the job state)."""
+
+    state: JobState
+    axes_in: frozenset[FeederState]
+    guard: str | None
+    move: str
+
+
+STATE_TRIGGERED: tuple[StateTrigger, ...] = (
+    StateTrigger(_J.STARTING, _ALL_ACTIVE, None, "_to_running"),
+    StateTrigger(_J.RUNNING, _ALL_QUEUED, None, "_to_finishing"),
+    # PRE_TARGET: the plan is done but an axis is not yet in its target window (nor timed out there)
+    StateTrigger(_J.FINISHING, _ALL_FINISHED, "_settled", "_finish_done"),
+    StateTrigger(_J.CANCELLING, _ALL_FINISHED, None, "_cancel_done"),
+    StateTrigger(_J.HALTING, _ALL_FINISHED, None, "_halt_done"),
+)
+TRIGGERS_BY_STATE: dict[JobState, tuple[StateTrigger, ...]] = {
+    st: tuple(t for t in STATE_TRIGGERED if t.state is st) for st in dict.fromkeys(t.state for t in STATE_TRIGGERED)}
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,9 @@ import numpy as np
 from bus.budget import RECORD_FRAME_BITS
 from bus.events import RecordOnWire, Sync, SyncOnWire
 from streamer.core import outcome as oc
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
     _ALL_FINISHED,
     _ALL_PRIMED,
@@ -130,7 +131,7 @@ class Scheduler(OpenStream):
         if prev is None:
             self._first_sync = m
             for f in self._axes:
-                f.last_tpdo1 = f.last_tpdo2 = m - 1
+                f.answers_from(m)
         else:
             if m <= prev:
                 raise ValueError(f"Sync count {m} after {prev}: counts must increase by one")

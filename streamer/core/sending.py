@@ -8,8 +8,9 @@ its `sync_lock_ms`). Every frame sent is counted in the cycle's bits and the rep
 from __future__ import annotations
 
 from bus.budget import RECORD_FRAME_BITS, setpoint_frame_bits
+from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder, pack_frame
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_core import JobCore
 from streamer.core.job_state import _CYCLIC_SENDING, CW_ENABLE_OPERATION, CW_START_IP, JobState
 
@@ -65,8 +66,7 @@ class Sending(JobCore):
         if ran + 1e-6 < f.spec.sync_lock_ms:
             return
         self._emit_cw(f, CW_START_IP)
-        f.bit4_sync = m
-        f.bit4_sync_ran_ms = round(ran + self._period)
+        f.ip_requested(m, round(ran + self._period))
 
     def _send_setpoints(self, m: int) -> None:
         """After SYNC m: every cyclic frame whose axes are being fed, each axis' set point for SYNC m + 1;
@@ -85,7 +85,7 @@ class Sending(JobCore):
             if (f.state is FeederState.DRAINING and f.spec.starts_with_bit4 and f.bit4_off_sync is None
                     and s is not None and m >= s + f.n):
                 self._emit_cw(f, CW_ENABLE_OPERATION)  # the drive is at its last set point: ip mode off
-                f.bit4_off_sync = m + 1
+                f.ip_released(m + 1)
         if self._state is JobState.HALTING:
             return  # the cyclic axes were quick-stopped: they take no set points
         for members in self._groups.values():

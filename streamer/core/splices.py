@@ -32,7 +32,8 @@ from bus.cob import rpdo2_id
 from bus.events import Cancel, Send
 from planner import hermite
 from streamer.core import outcome as oc
-from streamer.core.feeder import FeederInput, FeederState, FifoFeeder
+from streamer.core.axis_state import FeederInput, FeederState
+from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import _J, CW_ENABLE_OPERATION, CW_HALT, CW_QUICK_STOP, JobState, _stream_ends
 from streamer.core.outcome import JobResult
 from streamer.core.plan_source import Change, ChangeResult, EmergencyStop, PvtTrajectoryLike, StopRequest, StreamPlan
@@ -160,7 +161,7 @@ class Splices(Sending):
                 pos, vel, _ = self._reference(plan, f.axis)
                 f.splice(t0, pos, vel)
                 if f.state is FeederState.DRAINING:  # it had sent its last set point: the new part has more
-                    f.state = FeederState.STREAMING
+                    f.fire(FeederInput.EXTENDED)
         if k < self._ends.base:  # no FIFO axis: k is 0, the cyclic axes' part from t0 on is the whole timing
             self._ends = Window()
         else:
@@ -220,8 +221,6 @@ class Splices(Sending):
             self._emit_cw(f, CW_HALT)
         for cf in self._cyclic:
             if cf.state in (FeederState.STARTING, FeederState.STREAMING, FeederState.DRAINING):
-                if cf.state is FeederState.DRAINING:
-                    cf.state = FeederState.STREAMING
                 cf.fire(FeederInput.HALT)
                 self._emit_cw(cf, CW_QUICK_STOP)
         self._halt_sync = (self._sync if self._sync is not None else 0) + 1

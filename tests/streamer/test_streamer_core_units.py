@@ -5,13 +5,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from streamer_doubles import CPR, FakeTrajectory, Rig, make_plan, make_trajectory
 
 from bus.budget import cycle_budget
+from bus.cob import rpdo3_id
 from bus.events import BufferStatus, Cancel, Sync
+from bus.profile import SetpointSlot
 from planner.errors import EncodingRangeError
 from planner.record import PvtRecord
 from streamer.core import (
@@ -28,8 +31,10 @@ from streamer.core import (
     frame_bits,
 )
 from streamer.core import outcome as oc
+from streamer.core.axis_state import CYCLIC_TRANSITIONS, FIFO_TRANSITIONS, FeederInput
 from streamer.core.coordinator import _DISPATCH, _EVENT_TYPES, _JOB_TRANSITIONS, TERMINAL
-from streamer.core.feeder import _TRANSITIONS, FeederInput
+from streamer.core.cyclic import CyclicAxis, CyclicFeeder
+from streamer.core.job_state import STATE_TRIGGERED, TRIGGERS_BY_STATE
 from streamer.core.schedule import (
     FillPolicy,
     consumed_at,
@@ -209,6 +214,44 @@ def test_every_state_has_an_entry_for_every_event_type() -> None:
     assert all(_JOB_TRANSITIONS[s] == frozenset() for s in TERMINAL)
 
 
+def test_the_state_triggered_table_names_moves_of_the_core() -> None:
+    for trigger in STATE_TRIGGERED:
+        assert trigger.state not in TERMINAL and trigger.axes_in <= set(FeederState)
+        assert callable(getattr(Coordinator, trigger.move))
+        assert trigger.guard is None or callable(getattr(Coordinator, trigger.guard))
+        assert trigger in TRIGGERS_BY_STATE[trigger.state]
+    assert sum(len(ts) for ts in TRIGGERS_BY_STATE.values()) == len(STATE_TRIGGERED)
+
+
+def _core_at(state: JobState, axes: FeederState) -> Coordinator:
+    core = Coordinator(make_plan(2, 300, seed=4), StreamerSettings())
+    core._state = state
+    for f in core._axes:
+        f.state = axes
+    return core
+
+
+@pytest.mark.parametrize("settled", [True, False])
+def test_state_triggered_transitions_run_to_a_fixed_point(settled: bool) -> None:
+    # every axis finished while the job was STARTING: one call goes RUNNING, FINISHING and (once every axis is
+    # in its target window) DONE
+    core = _core_at(JobState.STARTING, FeederState.FINISHED)
+    core._settled = lambda: settled  # type: ignore[method-assign]
+    core._progress_job()
+    expected = [JobState.RUNNING, JobState.FINISHING] + ([JobState.DONE] if settled else [])
+    assert [c.state for c in core._changes] == expected
+    core = _core_at(JobState.STARTING, FeederState.STREAMING)  # active, not all queued: RUNNING only
+    core._progress_job()
+    assert [c.state for c in core._changes] == [JobState.RUNNING]
+
+
+def test_a_state_triggered_move_that_leaves_the_state_raises() -> None:
+    core = _core_at(JobState.STARTING, FeederState.STREAMING)
+    core._to_running = lambda: None  # type: ignore[method-assign]
+    with pytest.raises(RuntimeError, match="_to_running left the job in STARTING"):
+        core._progress_job()
+
+
 def test_an_event_without_an_entry_raises() -> None:
     core = Coordinator(make_plan(1, 300, seed=4), StreamerSettings())
     with pytest.raises(UnexpectedEvent):
@@ -228,7 +271,32 @@ def test_feeder_transition_table_raises_on_missing_entries() -> None:
     assert f.fire(FeederInput.FAULT) is FeederState.FAULTED
     with pytest.raises(InvalidTransition):
         f.fire(FeederInput.FAULT)
-    assert all(nxt in FeederState for nxt in _TRANSITIONS.values())
+    assert all(nxt in FeederState for nxt in FIFO_TRANSITIONS.values())
+
+
+def test_each_axis_kind_has_its_own_transition_table() -> None:
+    # a cyclic axis drains once its last set point is sent: a splice extends it, a halt stops it from there;
+    # a FIFO axis has neither move (its DRAINING ends only stopped or faulted)
+    extra = {(FeederState.DRAINING, FeederInput.EXTENDED): FeederState.STREAMING,
+             (FeederState.DRAINING, FeederInput.HALT): FeederState.HALTING}
+    assert dict(CYCLIC_TRANSITIONS) == {**FIFO_TRANSITIONS, **extra}
+    spec = CyclicAxis(SetpointSlot(5, rpdo3_id(5), 0, 32, 0, 4, (5,)), "linear")
+    cf = CyclicFeeder(0, 5, 0, spec, 10, np.zeros(11), np.zeros(11))
+    f = FifoFeeder(
+        0, 1, 0, [], [], sync_period_ms=10, loss_confirm_syncs=1, repair_margin_ms=10, counts_per_rev=None
+    )
+    for inp in (FeederInput.READY, FeederInput.PRIMED, FeederInput.START, FeederInput.ACTIVE,
+                FeederInput.END_QUEUED):
+        f.fire(inp)
+        cf.fire(inp)
+    assert f.state is cf.state is FeederState.DRAINING
+    with pytest.raises(InvalidTransition):
+        f.fire(FeederInput.EXTENDED)
+    with pytest.raises(InvalidTransition):
+        f.fire(FeederInput.HALT)
+    assert cf.fire(FeederInput.EXTENDED) is FeederState.STREAMING
+    cf.fire(FeederInput.END_QUEUED)
+    assert cf.fire(FeederInput.HALT) is FeederState.HALTING
 
 
 def test_outcome_codes_are_checked() -> None:
