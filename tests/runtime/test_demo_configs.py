@@ -35,6 +35,7 @@ def _check(out: Path, job: Path) -> dict:
     return report
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 @pytest.mark.parametrize("job", JOBS, ids=lambda p: p.name)
 def test_every_job_plans_and_runs_in_the_fast_demo(job: Path, tmp_path: Path) -> None:
     assert pvt(["plan", str(job), "--config", str(DEMO)]) == 0
@@ -46,12 +47,14 @@ def test_every_job_plans_and_runs_in_the_fast_demo(job: Path, tmp_path: Path) ->
     _check(tmp_path, job)
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 @pytest.mark.parametrize("cell", CELLS, ids=lambda p: p.name)
 def test_every_cell_plans_and_runs_the_default_job_in_the_fast_demo(cell: Path, tmp_path: Path) -> None:
     assert pvt(["plan", str(demo.DEFAULT_JOB), "--config", str(cell)]) == 0
     assert pvt(["demo", "--fast", "--quiet", "--config", str(cell), "--out", str(tmp_path)]) == 0
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_fast_demo_judges_a_velocity_job_on_the_whole_stream(tmp_path: Path) -> None:
     """The demo's velocity job runs its ramp, its cruise chunk after chunk and the chunk that brakes before the
     position limits; the report covers all of it: the deviation and the final position are the whole stream's,

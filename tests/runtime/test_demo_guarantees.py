@@ -34,6 +34,7 @@ def _check(report: dict, traj, out: Path, cell) -> None:
     assert guarantees(report, traj.tolerance_counts) == []
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 @pytest.mark.parametrize("n_axes", [1, 3, 6, 16])
 def test_demo_virtual_time(tmp_path: Path, n_axes: int) -> None:
     cell, _job, traj = demo.prepare(axes=n_axes)
@@ -43,6 +44,7 @@ def test_demo_virtual_time(tmp_path: Path, n_axes: int) -> None:
     assert (tmp_path / "motion.png").stat().st_size > 10_000
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_demo_fifo_stays_within_watermarks_every_sync(tmp_path: Path) -> None:
     cell, _job, traj = demo.prepare(axes=6)
     report, trace = demo.run_fast(cell, traj, tmp_path)
@@ -63,6 +65,7 @@ def test_demo_fifo_stays_within_watermarks_every_sync(tmp_path: Path) -> None:
     assert checked > 6 * 300
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_cli_demo_fast_writes_outputs(tmp_path: Path) -> None:
     assert pvt(["demo", "--fast", "--quiet", "--axes", "3", "--out", str(tmp_path)]) == 0
     report = json.loads((tmp_path / "report.json").read_text())
@@ -75,6 +78,7 @@ def test_cli_demo_fast_writes_outputs(tmp_path: Path) -> None:
         assert (tmp_path / name).exists()
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_cli_demo_rejects_bad_bus_spec(tmp_path: Path) -> None:
     assert pvt(["demo", "--fast", "--quiet", "--bus", "vcan0", "--out", str(tmp_path)]) == 2
 

@@ -123,6 +123,7 @@ def check_family_demo(report: dict[str, Any], traj: Any, out: Path, cell: Any, t
     assert guarantees(report, traj.tolerance_counts) == []
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_family_demo_virtual_time(tmp_path: Path, name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])
@@ -132,6 +133,7 @@ def test_family_demo_virtual_time(tmp_path: Path, name: str) -> None:
     assert (tmp_path / "motion.png").stat().st_size > 10_000 and (tmp_path / "job.mcap").exists()
 
 
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_each_cyclic_drive_stays_within_its_bound_at_every_internal_cycle(name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])
