@@ -189,3 +189,15 @@ def worst_ratio(knots: Knots, scales: AxisScales, jerk_limit: FloatArray) -> flo
     jerk, steps = knot_steps(knots, scales)
     return float(max((np.abs(jerk) / jerk_limit[:, None]).max(initial=0.0),
                      (np.abs(steps) / jerk_limit[:, None]).max(initial=0.0)))
+
+
+def knot_step_units(scales: AxisScales, jerk_limit: FloatArray, t_ms: IntArray) -> tuple[FloatArray, FloatArray]:
+    """What the drive's units do to the acceleration step at a knot between two segments of T ms, over the
+    bound J x 1 ms (`jerk_limit` (n,) in counts/ms^3), per axis and T (n, m): one count of a neighbouring
+    knot's position moves it by 6/T^2 counts/ms^2 (the knot's own position cancels when both segments are
+    T long), one rpm of the knot's own velocity by 8 q/T (q counts/ms per rpm; a neighbour's rpm, 2 q/T)."""
+    t = np.asarray(t_ms, dtype=np.float64)[None, :]
+    bound = np.asarray(jerk_limit, dtype=np.float64)[:, None]
+    per_count = 6.0 / (t * t) / bound
+    per_rpm = 8.0 * scales.counts_per_ms_per_rpm[:, None] / t / bound
+    return per_count, per_rpm

@@ -318,3 +318,33 @@ def test_continuity_bounds_the_jerk_per_axis_not_per_segment(cell: CellConfig) -
     got_jerk, got_steps = knot_steps(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales)
     assert np.all(np.abs(got_jerk).max(axis=1) <= np.maximum(jerk * (1.0 + JERK_SLACK), own) * (1.0 + 1e-9))
     assert np.abs(got_steps[j1]).max() / jerk[j1] < 4.0
+
+
+def test_knot_step_units_are_the_reconstructions(cell: CellConfig) -> None:
+    """continuity.knot_step_units (the table of the drive's units in docs/formats.md): one count of a
+    neighbour's position and one rpm of a knot's own velocity change the drive's acceleration step at
+    that knot (`knot_steps`, the reconstruction's) by what it says, for every segment length."""
+    from planner.continuity import knot_step_units, knot_steps
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+    from planner.reconstruction import Knots
+
+    job = load_job(CONFIGS / "jobs" / "demo-path.toml", cell)
+    cfgs = axis_configs(job.axes, cell)
+    scales = axis_scales(cfgs, effective_limits(job, cell))
+    n = len(job.axes)
+    jerk = np.array([c.jerk * c.counts_per_unit for c in cfgs]) / 1.0e9
+    for t in (1, 7, 40, 255):
+        times = np.arange(4) * t
+        pos = np.tile(np.array([0, 100, 250, 300]), (n, 1))
+        vel = np.tile(np.array([0, 30, 20, 0]), (n, 1))
+        base = knot_steps(Knots(times, pos, vel), scales)[1][:, 0]
+        count = pos.copy()
+        count[:, 2] += 1
+        rpm = vel.copy()
+        rpm[:, 1] += 1
+        per_count, per_rpm = knot_step_units(scales, jerk, np.array([t]))
+        got_count = np.abs(knot_steps(Knots(times, count, vel), scales)[1][:, 0] - base) / jerk
+        got_rpm = np.abs(knot_steps(Knots(times, pos, rpm), scales)[1][:, 0] - base) / jerk
+        np.testing.assert_allclose(got_count, per_count[:, 0], rtol=1e-9)
+        np.testing.assert_allclose(got_rpm, per_rpm[:, 0], rtol=1e-9)
