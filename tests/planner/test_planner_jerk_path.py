@@ -142,6 +142,29 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
             assert traj.duration_ms <= np.ceil(stops.duration_ms * traj.info["time_scale"]) + 1
     if "optimal_s" in traj.info:
         assert traj.duration_s >= traj.info["optimal_s"] * 0.999
+    _check_drive_knots(traj, job, cell8)
+
+
+def _check_drive_knots(traj: Any, job: Any, cell: CellConfig) -> None:
+    """The drive's reconstruction of what plan_job sends (planner/continuity.py): on the encoder's own knot
+    times, its in-segment jerk within the larger of 1.05 J and the encoder's own peak on each axis, and its
+    largest step at a knot or in-segment jerk over the limit (`worst_ratio`) no larger than the encoder's.
+    (The issue's bound, steps <= J x 1 ms, is not reachable on these knots: docs/formats.md.)"""
+    from planner.continuity import JERK_SLACK, knot_steps, worst_ratio
+    from planner.encoder import encode
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+    from planner.reconstruction import Knots
+
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    sent = Knots(traj.knot_times_ms, traj.positions, traj.velocities)
+    assert np.array_equal(raw.times_ms, sent.times_ms)
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    own = np.abs(knot_steps(raw, scales)[0]).max(axis=1, initial=0.0)
+    got = np.abs(knot_steps(sent, scales)[0]).max(axis=1, initial=0.0)
+    assert np.all(got <= np.maximum(jerk * (1.0 + JERK_SLACK), own) * (1.0 + 1e-9)), (got / jerk, own / jerk)
+    assert worst_ratio(sent, scales, jerk) <= worst_ratio(raw, scales, jerk) * (1.0 + 1e-9)
 
 
 @pytest.mark.parametrize("name", ["demo-path.toml", "rectangle.toml"])
@@ -153,6 +176,7 @@ def test_example_jobs(cell: CellConfig, name: str) -> None:
     traj = plan_job(on, cell)
     _check_jerk_plan(traj, cell)
     assert_path_within(traj, on, cell)
+    _check_drive_knots(traj, on, cell)
 
 
 def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfig) -> None:
