@@ -460,6 +460,116 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
     return out
 
 
+# the drive's units against the knot-step bound J x 1 ms (issue 26): what one count and one rpm do, and the
+# smallest step a steady cruise at the worst fractional rpm can keep on the drive's cubic
+UNIT_TIMES = (10, 20, 30, 50, 75, 100, 150, 200, 255)
+
+
+def cruise_floor(cpu: float, jerk: float, acc: float, counts_per_rev: int, t_ms: int, tol: float,
+                 segments: int = 24) -> float:
+    """Largest knot step / (J x 1 ms) that the knot values' search (planner/continuity.py) leaves on a
+    cruise at n + f rpm (the worst f of 0, 0.1, .., 0.5) on knots every `t_ms` ms; inf: no values keep the
+    tolerance and the jerk (+5 %)."""
+    from planner import hermite
+    from planner.continuity import _axis, knot_steps
+    from planner.reconstruction import AxisScales
+
+    q = counts_per_rev / 60000.0
+    bound = jerk * cpu / 1.0e9
+    one = np.ones(1)
+    scales = AxisScales(q * one, one, one, one, one, one)
+    worst = 0.0
+    for frac in np.linspace(0.0, 0.5, 6):
+        x = 50.0 + frac
+        t = np.arange(segments * t_ms + 1, dtype=np.float64)
+        pos = 0.37 + x * q * t
+        want = hermite.round_counts_array(pos)
+        times = np.arange(0, t.size, t_ms)
+        got = _axis(want, np.full(t.size, x * q), times, hermite.round_counts_array(pos[times]),
+                    np.full(times.size, int(np.floor(x + 0.5))), np.zeros(times.size - 1), q, 1e9, 1e9,
+                    0.05 * acc * cpu / 1.0e6, bound, tol, 0.0)
+        if got is None:
+            return float("inf")
+        steps = knot_steps(Knots(times, got[0][None, :], got[1][None, :]), scales)[1]
+        worst = max(worst, float(np.abs(steps[0, 3:-3]).max()) / bound)
+    return worst
+
+
+def cruise_free_times(cpu: float, jerk: float, counts_per_rev: int, x_rpm: float, lo: int, hi: int,
+                      horizon: int = 300, tol: int = 1) -> float:
+    """The smallest largest knot step / (J x 1 ms) over a cruise at `x_rpm` when the knot *times* are free
+    too (whole ms, segments of lo..hi ms; whole counts within `tol` of the plan; the two rpm around x;
+    in-segment jerk within 1.05 J): a bottleneck shortest path over pairs of knots. Slow (tens of s)."""
+    from planner import hermite
+
+    q = counts_per_rev / 60000.0
+    bound = jerk * cpu / 1.0e9
+    want = hermite.round_counts_array(0.37 + x_rpm * q * np.arange(horizon + 1, dtype=np.float64))
+    rpms = (int(np.floor(x_rpm)), int(np.floor(x_rpm)) + 1)
+    by_t = {t: [(t, int(want[t]) + d, v) for d in (-1, 0, 1) for v in rpms] for t in range(horizon + 1)}
+    memo: dict[Any, tuple[bool, float, float]] = {}
+
+    def segment(a: tuple[int, int, int], b: tuple[int, int, int]) -> tuple[bool, float, float]:
+        if (a, b) not in memo:
+            (t0, p0, v0), (t1, p1, v1) = a, b
+            tt, dp, w0, w1 = t1 - t0, p1 - p0, v0 * q, v1 * q
+            bb = (-3 * dp + tt * (2 * w1 + w0)) / tt**2
+            aa = (-2 * dp + tt * (w1 + w0)) / tt**3
+            tau = np.arange(1, tt, dtype=np.float64) - tt
+            pos = ((aa * tau + bb) * tau + w1) * tau + p1
+            ok = abs(6 * aa) <= 1.05 * bound and bool(
+                (np.abs(hermite.round_counts_array(pos) - want[t0 + 1 : t1]) <= tol).all())
+            memo[(a, b)] = (ok, -6 * aa * tt + 2 * bb, 2 * bb)
+        return memo[(a, b)]
+
+    best: dict[Any, float] = {}
+    for a in by_t[0]:
+        for tt in range(lo, min(hi, horizon) + 1):
+            for b in by_t[tt]:
+                if segment(a, b)[0]:
+                    best[(a, b)] = 0.0
+    for t in range(lo, horizon + 1):
+        for (a, b), c in [(k, v) for k, v in best.items() if k[1][0] == t]:
+            acc_end = segment(a, b)[2]
+            for tt in range(lo, hi + 1):
+                if t + tt > horizon:
+                    break
+                for nb in by_t[t + tt]:
+                    ok, acc_start, _ = segment(b, nb)
+                    if ok:
+                        m = max(c, abs(acc_start - acc_end) / bound)
+                        if m < best.get((b, nb), np.inf):
+                            best[(b, nb)] = m
+    ends = [v for k, v in best.items() if k[1][0] >= horizon - hi]
+    return min(ends) if ends else float("inf")
+
+
+def print_units(cell: CellConfig, free_times: bool) -> None:
+    from planner.continuity import knot_step_units
+    from planner.reconstruction import AxisScales
+
+    print("the drive's units against the knot step bound J x 1 ms, per axis and segment length T (ms): "
+          "1 count of a neighbour's position / 1 rpm of the knot's own velocity, over the bound; then the "
+          "largest step the knot values' search leaves on a cruise at the worst fractional rpm on knots every "
+          "T ms (tolerance 1 count; inf: none keeps the tolerance and the jerk)")
+    ts = np.array(UNIT_TIMES)
+    for a in cell.axes:
+        q = a.counts_per_rev / 60000.0
+        bound = a.jerk * a.counts_per_unit / 1.0e9
+        one = np.ones(1)
+        per_count, per_rpm = knot_step_units(AxisScales(q * one, one, one, one, one, one), bound * one, ts)
+        units = " ".join(f"{t}:{c:.2f}/{r:.2f}" for t, c, r in zip(ts, per_count[0], per_rpm[0], strict=True))
+        floor = " ".join(
+            f"{t}:{cruise_floor(a.counts_per_unit, a.jerk, a.acceleration, a.counts_per_rev, int(t), 1.0):.2f}"
+            for t in ts)
+        print(f"  {a.name:4} J {a.jerk:g}/s^3 = {bound:.5f} counts/ms^2 per ms; count/rpm {units}")
+        print(f"  {'':4} cruise floor on uniform knots {floor}")
+        if free_times:
+            for lo, hi in ((15, 45), (30, 80)):
+                got = cruise_free_times(a.counts_per_unit, a.jerk, a.counts_per_rev, 50.5, lo, hi)
+                print(f"  {'':4} cruise at 50.5 rpm, knot times free in {lo}..{hi} ms: {got:.2f}")
+
+
 def _mark(ok: bool | None) -> str:
     return "n/a" if ok is None else ("ok" if ok else "MISS")
 
@@ -470,6 +580,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--seed", type=int, default=13)
     parser.add_argument("--jerk-jobs", type=int, default=40,
                         help="random paths per kind for the jerk rows (default 40)")
+    parser.add_argument("--units", choices=("off", "on", "free-times"), default="on",
+                        help="the drive's units against the knot step bound (free-times: also the search with free "
+                             "knot times, a minute per axis)")
     args = parser.parse_args(list(argv) if argv is not None else [])
     logging.getLogger("toppra").setLevel(logging.CRITICAL)
     warm_up()  # the solvers' first import (~0.7 s) would otherwise count as the first path's planning
@@ -538,6 +651,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         print()
         examples = [(n, j) for n, j in jobs if j.kind == "path"]
         jerk_rows = print_jerk(cell, examples, args.jerk_jobs, args.seed + 100)
+    if args.units != "off":
+        print()
+        print_units(cell, args.units == "free-times")
     return {"rows": rows, "latency": lat, "corpus": stats, "jerk": jerk_rows}
 
 

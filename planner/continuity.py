@@ -13,7 +13,11 @@ every knot (three knots' values) is a cost of one transition. Candidates per kno
 and one count either side, the two rpm values around the plan and one more either side, and the
 encoder's own choice (so the encoder's encoding is always one of the paths). A pair is admissible when
 its segment keeps the encoder's promises at every ms (the drive's rounded demand within the tolerance of
-the planned demand, velocity within the limits, acceleration within 0x60C5 and the excess budget); its
+the planned demand, velocity within the limits, acceleration within 0x60C5 and the excess budget) and
+its in-segment jerk within JERK_SLACK of the limit or, on an axis where the encoder's own values already
+exceed that, within the encoder's largest there (a bound per axis, not per segment, so never worse than
+the encoder's peak: a segment a little above the limit can buy a much smaller step at a knot, 12 -> 2.3
+times the bound on one random path); its
 cost penalises an in-segment jerk above the limit; a knot's cost is its acceleration step over the
 tick against the jerk limit (squared, and heavily beyond the limit). The result is checked with the
 encoder's own verification (`encoder.within_contract`); an encoding that does not pass is not used.
@@ -80,6 +84,7 @@ def _axis(
     budget: float,
     jlim: float,
     tol: float,
+    own_jerk: float,
 ) -> tuple[IntArray, IntArray] | None:
     """One axis' values (positions, rpm) by the second-order Viterbi pass; None when no path is admissible."""
     n = times.size - 1
@@ -97,6 +102,7 @@ def _axis(
             cp, cv = arr[:, 0], arr[:, 1]
         cands_p.append(cp)
         cands_v.append(cv)
+    jerk_cap = max(jlim * (1.0 + JERK_SLACK), own_jerk)
     step_lim = jlim * 1.0  # the step over the 1 ms tick the jerk limit allows (counts/ms^2)
     cost: FloatArray | None = None  # (C_{k-1}, C_k) best cost of the paths ending in that pair
     back: list[IntArray] = []
@@ -114,10 +120,8 @@ def _axis(
         peak = np.maximum(np.abs(acc_s), np.abs(acc_e))
         ok &= peak <= drive_acc
         ok &= peak - envelope[k] <= budget
-        # the in-segment jerk within the limit (+ JERK_SLACK), or no worse than the encoder's own choice
-        ia = int(np.nonzero((cands_p[k] == p_orig[k]) & (cands_v[k] == v_orig[k]))[0][0])
-        ib = int(np.nonzero((cands_p[k + 1] == p_orig[k + 1]) & (cands_v[k + 1] == v_orig[k + 1]))[0][0])
-        ok &= np.abs(jerk) <= max(jlim * (1.0 + JERK_SLACK), float(abs(jerk[ia, ib])))
+        # the in-segment jerk within the limit + JERK_SLACK, or the encoder's own largest on this axis
+        ok &= np.abs(jerk) <= jerk_cap
         seg_cost = np.where(ok, OVER * np.maximum(np.abs(jerk) / jlim - 1.0, 0.0) ** 2, np.inf)
         if cost is None or prev_acc_end is None:
             cost = seg_cost  # (1, C_1)
@@ -162,11 +166,13 @@ def smooth_values(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
     )
     pos = knots.positions.copy()
     vel = knots.velocities_rpm.copy()
+    own = np.abs(knot_steps(knots, scales)[0]).max(axis=1)
     for i in range(ref.n_axes):
         got = _axis(
             want[i], ref.velocities[i], knots.times_ms, knots.positions[i], knots.velocities_rpm[i], env[i],
             float(quantum[i]), float(vlim[i]), float(scales.drive_acceleration[i]),
             ACC_EXCESS_LIMIT * float(scales.acceleration_axis[i]) * 0.999, float(jerk_limit[i]), tol,
+            float(own[i]),
         )
         if got is not None:
             pos[i], vel[i] = got
@@ -183,3 +189,15 @@ def worst_ratio(knots: Knots, scales: AxisScales, jerk_limit: FloatArray) -> flo
     jerk, steps = knot_steps(knots, scales)
     return float(max((np.abs(jerk) / jerk_limit[:, None]).max(initial=0.0),
                      (np.abs(steps) / jerk_limit[:, None]).max(initial=0.0)))
+
+
+def knot_step_units(scales: AxisScales, jerk_limit: FloatArray, t_ms: IntArray) -> tuple[FloatArray, FloatArray]:
+    """What the drive's units do to the acceleration step at a knot between two segments of T ms, over the
+    bound J x 1 ms (`jerk_limit` (n,) in counts/ms^3), per axis and T (n, m): one count of a neighbouring
+    knot's position moves it by 6/T^2 counts/ms^2 (the knot's own position cancels when both segments are
+    T long), one rpm of the knot's own velocity by 8 q/T (q counts/ms per rpm; a neighbour's rpm, 2 q/T)."""
+    t = np.asarray(t_ms, dtype=np.float64)[None, :]
+    bound = np.asarray(jerk_limit, dtype=np.float64)[:, None]
+    per_count = 6.0 / (t * t) / bound
+    per_rpm = 8.0 * scales.counts_per_ms_per_rpm[:, None] / t / bound
+    return per_count, per_rpm

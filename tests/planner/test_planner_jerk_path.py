@@ -142,6 +142,29 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
             assert traj.duration_ms <= np.ceil(stops.duration_ms * traj.info["time_scale"]) + 1
     if "optimal_s" in traj.info:
         assert traj.duration_s >= traj.info["optimal_s"] * 0.999
+    _check_drive_knots(traj, job, cell8)
+
+
+def _check_drive_knots(traj: Any, job: Any, cell: CellConfig) -> None:
+    """The drive's reconstruction of what plan_job sends (planner/continuity.py): on the encoder's own knot
+    times, its in-segment jerk within the larger of 1.05 J and the encoder's own peak on each axis, and its
+    largest step at a knot or in-segment jerk over the limit (`worst_ratio`) no larger than the encoder's.
+    (The issue's bound, steps <= J x 1 ms, is not reachable on these knots: docs/formats.md.)"""
+    from planner.continuity import JERK_SLACK, knot_steps, worst_ratio
+    from planner.encoder import encode
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+    from planner.reconstruction import Knots
+
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    sent = Knots(traj.knot_times_ms, traj.positions, traj.velocities)
+    assert np.array_equal(raw.times_ms, sent.times_ms)
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    own = np.abs(knot_steps(raw, scales)[0]).max(axis=1, initial=0.0)
+    got = np.abs(knot_steps(sent, scales)[0]).max(axis=1, initial=0.0)
+    assert np.all(got <= np.maximum(jerk * (1.0 + JERK_SLACK), own) * (1.0 + 1e-9)), (got / jerk, own / jerk)
+    assert worst_ratio(sent, scales, jerk) <= worst_ratio(raw, scales, jerk) * (1.0 + 1e-9)
 
 
 @pytest.mark.parametrize("name", ["demo-path.toml", "rectangle.toml"])
@@ -153,6 +176,7 @@ def test_example_jobs(cell: CellConfig, name: str) -> None:
     traj = plan_job(on, cell)
     _check_jerk_plan(traj, cell)
     assert_path_within(traj, on, cell)
+    _check_drive_knots(traj, on, cell)
 
 
 def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfig) -> None:
@@ -265,3 +289,86 @@ def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
         corner = mixed[k].start  # type: ignore[union-attr]
         near = np.abs(chosen.q - corner[:, None]).max(axis=0).argmin()
         assert np.abs(chosen.q[:, near] - corner).max() < 1e-6 and np.abs(chosen.v[:, near]).max() < 1e-6
+
+
+# a zig-zag path of the benchmark's corpus (path-sharp, seed 5): where the encoder's own values put one
+# segment of j1 at 1.07 of its jerk limit, the re-chosen values may use that much elsewhere on the axis
+_ZIGZAG = {
+    "kind": "path",
+    "axes": ["j6", "j1", "j4", "j3", "j2", "j5"],
+    "waypoints": [
+        [-1.8456080713951306, 0.8959772552282441, -1.3462035720300027,
+         -0.5870284021406424, -0.20925102380622507, -0.31840128885357055],
+        [2.0170255636145753, -0.6911930435770741, -0.25512020853421014,
+         -1.5144360885476478, -0.3729399438442189, 1.2514821011790205],
+        [-1.6552545168398016, 0.44568924118301423, 0.29155732116154365,
+         1.065598188534305, -0.6731859690702469, -0.5135720261635406],
+        [2.369400089824817, 1.9313177826795398, -1.5669904172927416,
+         0.991055048367881, -0.07555522278591953, -0.07321964004542592],
+        [-1.750496432745654, 0.06067810331076151, -1.0868386568980122,
+         -0.5500987420723433, 0.8885042539449524, -0.28514971674969525],
+        [1.7269098424117728, 2.0972198293715856, 1.9758561461670925,
+         0.6247524949995547, -0.8489185183455783, 0.4391257449476935],
+        [-2.2530316947147377, -1.9530944037138054, -1.8651974216802292,
+         -1.1979210816157542, -0.8908053083607874, 0.9476563240640474],
+        [1.564489044415366, -2.073994012362788, -1.918820250245623,
+         -1.536878191466002, 1.208597507426076, 0.8883493662669584],
+        [-2.1393805174670844, -1.1485117014905892, -1.0219252667516687,
+         0.2953536161187498, -0.8267012192711989, 1.3298011568511505],
+        [1.6278891977670686, 0.304481356483123, -0.9476025810590283,
+         0.8210558841931732, 1.3783753185396166, 0.2678719914813783],
+    ],
+}
+
+
+def test_continuity_bounds_the_jerk_per_axis_not_per_segment(cell: CellConfig) -> None:
+    """planner/continuity.py: a segment's jerk may go up to the larger of the limit (+5 %) and the
+    encoder's own peak on that axis, never above it; on this path that takes j1's largest knot step from
+    12 to 2.3 times the bound (J x 1 ms), where a bound per segment (the encoder's own jerk in each) left 12."""
+    from planner.continuity import JERK_SLACK, knot_steps
+    from planner.encoder import encode
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+    from planner.reconstruction import Knots
+
+    job = job_from_dict({**_ZIGZAG, "jerk_limited": True}, cell)
+    traj = plan_job(job, cell)
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    own = np.abs(knot_steps(raw, scales)[0]).max(axis=1)
+    j1 = job.axes.index("j1")
+    assert own[j1] > jerk[j1] * (1.0 + JERK_SLACK)  # the case: the encoder's own values exceed the +5 %
+    got_jerk, got_steps = knot_steps(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales)
+    assert np.all(np.abs(got_jerk).max(axis=1) <= np.maximum(jerk * (1.0 + JERK_SLACK), own) * (1.0 + 1e-9))
+    assert np.abs(got_steps[j1]).max() / jerk[j1] < 4.0
+
+
+def test_knot_step_units_are_the_reconstructions(cell: CellConfig) -> None:
+    """continuity.knot_step_units (the table of the drive's units in docs/formats.md): one count of a
+    neighbour's position and one rpm of a knot's own velocity change the drive's acceleration step at
+    that knot (`knot_steps`, the reconstruction's) by what it says, for every segment length."""
+    from planner.continuity import knot_step_units, knot_steps
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+    from planner.reconstruction import Knots
+
+    job = load_job(CONFIGS / "jobs" / "demo-path.toml", cell)
+    cfgs = axis_configs(job.axes, cell)
+    scales = axis_scales(cfgs, effective_limits(job, cell))
+    n = len(job.axes)
+    jerk = np.array([c.jerk * c.counts_per_unit for c in cfgs]) / 1.0e9
+    for t in (1, 7, 40, 255):
+        times = np.arange(4) * t
+        pos = np.tile(np.array([0, 100, 250, 300]), (n, 1))
+        vel = np.tile(np.array([0, 30, 20, 0]), (n, 1))
+        base = knot_steps(Knots(times, pos, vel), scales)[1][:, 0]
+        count = pos.copy()
+        count[:, 2] += 1
+        rpm = vel.copy()
+        rpm[:, 1] += 1
+        per_count, per_rpm = knot_step_units(scales, jerk, np.array([t]))
+        got_count = np.abs(knot_steps(Knots(times, count, vel), scales)[1][:, 0] - base) / jerk
+        got_rpm = np.abs(knot_steps(Knots(times, pos, rpm), scales)[1][:, 0] - base) / jerk
+        np.testing.assert_allclose(got_count, per_count[:, 0], rtol=1e-9)
+        np.testing.assert_allclose(got_rpm, per_rpm[:, 0], rtol=1e-9)
