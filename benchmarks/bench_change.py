@@ -33,7 +33,7 @@ from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import ChangePlanner, make_stop_planner
+from streamer.splice_planners import ChangePlanner, make_stop_planner
 
 ROOT = Path(__file__).resolve().parent.parent
 AXES = ["j1", "j2", "j3", "j4", "j5", "j6"]

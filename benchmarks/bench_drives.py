@@ -114,7 +114,7 @@ def clock_run(cell: CellConfig, traj: Any, ppm: float, time_stamp: bool) -> dict
     from bus.sim.virtual import VirtualCell
     from streamer import demo
     from streamer.runtime.virtual import VirtualRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     cell = dataclasses.replace(_pinned(cell, clock="own", clock_drift_ppm=ppm), time_stamp=time_stamp)
     vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
@@ -205,7 +205,7 @@ def false_faults(jobs: int, variants: dict[str, dict[str, Any]]) -> None:
     from planner.plan import plan_job
     from streamer import demo
     from streamer.runtime.realtime import RealtimeRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     print(f"false faults: {jobs} real-time jobs at 10 ms SYNC, 3 axes, drives in this process, a CPU hog in a "
           f"second process ({os.cpu_count()} cores)")

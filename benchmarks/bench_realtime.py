@@ -152,7 +152,7 @@ def _baseline_run(cell: CellConfig, traj: Any, out: Path) -> dict[str, Any]:
     from bus.sim.node import SimulatedCell
     from streamer import demo
     from streamer.runtime.realtime import RealtimeRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     out.mkdir(parents=True, exist_ok=True)
     with SimulatedCell(cell, initial_positions=demo.start_positions(cell, traj),
@@ -241,7 +241,7 @@ def epos(jobs: int) -> None:
     from streamer import demo
     from streamer.cli.demo import guarantees
     from streamer.runtime.realtime import RealtimeRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
     from tests.runtime.test_variants import VARIANTS
 
     print(f"epos: {jobs} real-time jobs per reading at 10 ms, 3 axes (a move there and back), one busy process "

@@ -106,7 +106,7 @@ def _after_job(n_axes: int, duration_ms: int) -> dict[str, float]:
     from streamer.recording.model import build_recording
     from streamer.report import build_report
     from streamer.runtime.virtual import VirtualRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     cell = load_cell(ROOT / "configs" / "demo.toml").with_axes(n_axes)
     names = cell.axis_names()
@@ -199,7 +199,7 @@ def _sync_jitter() -> dict[str, dict[str, float]]:
     from streamer import demo
     from streamer.recording.files import RecordingFiles
     from streamer.recording.writer import RecordingWriter
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     folder = Path(tempfile.mkdtemp(prefix="pvt-bench-rec-"))
     cell, _job, traj = demo.prepare()

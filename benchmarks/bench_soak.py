@@ -78,7 +78,7 @@ def soak(hours: float, n_axes: int = 6, *, use_tracemalloc: bool = False, quiet:
     from streamer.core import JobState
     from streamer.demo import start_positions
     from streamer.runtime.virtual import VirtualRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     if use_tracemalloc:
         tracemalloc.start()  # before anything is built: the heap baseline is the whole live state

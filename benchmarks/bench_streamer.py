@@ -29,7 +29,7 @@ def virtual_speed(n_axes: int = 6, repeats: int = 3) -> dict[str, Any]:
         for _ in range(repeats):
             from bus.sim.virtual import VirtualCell
             from streamer.runtime.virtual import VirtualRuntime
-            from streamer.stop import make_stop_planner
+            from streamer.splice_planners import make_stop_planner
 
             vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
             rt = VirtualRuntime(cell, vcell=vcell)

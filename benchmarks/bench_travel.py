@@ -130,7 +130,7 @@ def _velocity_stream() -> dict[str, Any]:
     from streamer import demo
     from streamer.core.coordinator import Coordinator
     from streamer.runtime.virtual import VirtualRuntime
-    from streamer.stop import make_stop_planner
+    from streamer.splice_planners import make_stop_planner
 
     cell = load_cell(ROOT / "configs" / "demo.toml")
     axes = ["j1", "j2", "j3"]

@@ -29,7 +29,7 @@ from streamer.recording.mcap_io import write_mcap
 from streamer.recording.model import build_recording
 from streamer.report import build_report, plot_motion, write_report
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_JOB = ROOT / "configs" / "jobs" / "demo-path.toml"

@@ -51,7 +51,7 @@ from streamer.core.plan_source import Change, EmergencyStop  # noqa: E402
 from streamer.report import build_report  # noqa: E402
 from streamer.runtime.extension import VelocityChangePlanner  # noqa: E402
 from streamer.runtime.virtual import VirtualRuntime  # noqa: E402
-from streamer.stop import ChangePlanner, make_emergency_planner, make_stop_planner  # noqa: E402
+from streamer.splice_planners import ChangePlanner, make_emergency_planner, make_stop_planner  # noqa: E402
 
 CELLS = ("demo.toml", "mixed.toml", "xtrapuls.toml")
 WALL_CLOCK_FIELDS = frozenset({"planning_s", "wall_s", "cpu_s"})

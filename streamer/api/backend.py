@@ -128,7 +128,7 @@ from streamer.api import errors as E
 from streamer.api.errors import MotionError
 
 # The motion runtime's factory: open_backend(cell, *, sim, interface, channel, bitrate) -> MotionBackend
-DEFAULT_BACKEND = "streamer.runtime.backend:open_backend"
+DEFAULT_BACKEND = "streamer.runtime.bus_backend:open_backend"
 
 Emit = Callable[[str, Mapping[str, Any]], None]
 """emit(event_type, fields): report progress of the running job ("running" with "progress" 0..1)."""

@@ -97,7 +97,7 @@ class _FastSession:
             self.rt.idle(seconds)
 
     def run_job(self, traj: Any, on_change: Callable[[Any], None]) -> tuple[str, str]:
-        from streamer.stop import make_stop_planner
+        from streamer.splice_planners import make_stop_planner
 
         result = self.rt.run(traj, stop_planner=make_stop_planner(self.cell, traj),
                              on_sync=lambda core, n: on_change(core))
@@ -145,7 +145,7 @@ class _RealtimeSession:
             time.sleep(seconds)
 
     def run_job(self, traj: Any, on_change: Callable[[Any], None]) -> tuple[str, str]:
-        from streamer.stop import make_stop_planner
+        from streamer.splice_planners import make_stop_planner
 
         result = self.rt.run(traj, stop_planner=make_stop_planner(self.cell, traj), on_change=on_change)
         outcome = result.coordinator.outcome

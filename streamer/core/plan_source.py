@@ -94,7 +94,7 @@ class Change:
 class EmergencyStop:
     """Stop every axis at its emergency deceleration, fed to the core like `Cancel`: `planner` plans the stop
     from the state at the end of what is queued (planner.stop.plan_emergency_stop_from_wire behind
-    streamer.stop.make_emergency_planner) and the core splices it as the cancel's stop; when no plan is
+    streamer.splice_planners.make_emergency_planner) and the core splices it as the cancel's stop; when no plan is
     possible in time (none given, it raised, or it cannot be streamed in time) the core falls back to the
     drives' quick stop (controlword 0x000B) and the job fails EMERGENCY_STOP. `Coordinator.emergency` says
     which happened."""

@@ -126,7 +126,7 @@ def identity(certs: CertSet, name: str, **kw: Any) -> ClientSecurity:
 @pytest.fixture
 def real(serve: Callable[..., Served], demo_cell: CellConfig) -> Served:
     """A service on the real backend with 3 simulated axes of the demo cell in this process (real time)."""
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     # a virtual channel of its own: the same-named channel of an earlier test in this process may still
     # carry that test's simulated drives or their shutdown while this job runs

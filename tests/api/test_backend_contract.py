@@ -15,7 +15,7 @@ from planner.config import CellConfig
 from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, MotionBackend, Planned, check_backend
 from streamer.api.errors import MotionError
-from streamer.runtime.backend import RuntimeBackend
+from streamer.runtime.bus_backend import RuntimeBackend
 from tests.api.fakes import FakeBackend
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -134,7 +134,7 @@ def test_a_short_lead_bounds_the_segments_of_the_plan(demo_cell: CellConfig) -> 
     """`lead_ms` shorter than the cell's: the backend plans with segments bounded for it
     (StreamerSettings.segment_cap_ms), so the few segments the feeders keep queued span about the lead."""
     from planner.job import job_from_dict
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     cell = demo_cell.with_axes(3)
     backend = RuntimeBackend(cell, sim=True)

@@ -46,7 +46,7 @@ def test_home_job_through_the_service_references_the_axes(serve: Serve, demo_cel
     assert demo_cell.axes[0].sim.home_switch is not None  # the shipped demo cell's j1 has a home switch
     cell = _homing_cell(demo_cell)
     try:
-        backend = load_backend("streamer.runtime.backend:open_backend", cell, sim=True)
+        backend = load_backend("streamer.runtime.bus_backend:open_backend", cell, sim=True)
     except BackendUnavailable as exc:  # pragma: no cover - the runtime is part of the product
         pytest.skip(f"motion runtime not available: {exc}")
     try:

@@ -13,7 +13,7 @@ import pytest
 
 from planner.config import CellConfig
 from streamer.api.backend import CancelToken
-from streamer.runtime.backend import RuntimeBackend
+from streamer.runtime.bus_backend import RuntimeBackend
 from tests.api.conftest import Served
 from tests.api.test_change_service import wait_moving
 

@@ -19,7 +19,7 @@ Serve = Callable[..., Served]
 
 @pytest.fixture
 def real(serve: Serve, demo_cell: CellConfig) -> Iterator[Served]:
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     backend = RuntimeBackend(demo_cell.with_axes(3), sim=True)
     try:

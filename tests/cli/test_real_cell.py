@@ -1,4 +1,4 @@
-"""The same operations on the real motion runtime and the simulated drives (streamer.runtime.backend with
+"""The same operations on the real motion runtime and the simulated drives (streamer.runtime.bus_backend with
 sim=True), in real time: a cancel's `cancelling` events carry the true progress of the job's plan, the
 queue holds, a queued path planned from the cancelled job's end fails INFEASIBLE naming the axis and both
 positions (never INTERNAL), and the emergency stop (planned while a job runs, else the quick stop of every drive)
@@ -34,7 +34,7 @@ def _runtime(cell: CellConfig) -> Any:
     # service's behaviour, not that timeout: tests/streamer/test_streamer_core_faults.py has it)
     cell = dataclasses.replace(cell, drive=dataclasses.replace(cell.drive, tpdo_timeout_syncs=10))
     try:
-        return load_backend("streamer.runtime.backend:open_backend", cell, sim=True)
+        return load_backend("streamer.runtime.bus_backend:open_backend", cell, sim=True)
     except BackendUnavailable as exc:  # pragma: no cover - the runtime is part of the product
         pytest.skip(f"motion runtime not available: {exc}")
 

@@ -13,7 +13,7 @@ from streamer import demo
 from streamer.recording.model import JobRecording, build_recording
 from streamer.report import build_report
 from streamer.runtime.virtual import VirtualResult, VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 
 def drives_for(cell: CellConfig, traj: PvtTrajectory) -> VirtualCell:

@@ -104,7 +104,7 @@ def test_the_real_backend_records_the_drives_around_the_job(service: Any, demo_c
                                                             tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from planner.job import job_from_dict
     from planner.plan import plan_job
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     cell = demo_cell.with_axes(2)
     backend = RuntimeBackend(cell, sim=True)

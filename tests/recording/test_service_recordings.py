@@ -173,7 +173,7 @@ def test_recording_can_be_switched_off(service: Any, demo_cell: CellConfig, tmp_
 
 @pytest.mark.slow
 def test_the_real_backend_records_the_job_it_streamed(service: Any, demo_cell: CellConfig, tmp_path: Path) -> None:
-    from streamer.runtime.backend import RuntimeBackend
+    from streamer.runtime.bus_backend import RuntimeBackend
 
     cell = demo_cell.with_axes(2)
     backend = RuntimeBackend(cell, sim=True)

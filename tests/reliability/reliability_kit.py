@@ -41,7 +41,7 @@ from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
 from streamer.core.feeder import framed
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.virtual import ForeignTraffic, VirtualResult, VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 SEED = int(os.environ.get("PVT_FAULT_SEED", "20260"))

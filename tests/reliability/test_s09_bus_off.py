@@ -31,7 +31,7 @@ from streamer.core import outcome as oc
 from streamer.core.coordinator import Coordinator
 from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
 from streamer.runtime.realtime import RealtimeRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 OFF_AT_S, OFF_FOR_S = 1.5, 0.5
 

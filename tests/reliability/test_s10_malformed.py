@@ -31,7 +31,7 @@ from streamer.core import outcome as oc
 from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
 from streamer.runtime.realtime import RealtimeRuntime
 from streamer.runtime.virtual import ForeignTraffic
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 JOB_NODES = (1, 2, 3)
 

@@ -20,7 +20,7 @@ from streamer.api import keys
 from streamer.api.client import MotionClient
 from streamer.api.errors import MotionError
 from streamer.api.service import ServiceOptions
-from streamer.runtime.backend import RuntimeBackend
+from streamer.runtime.bus_backend import RuntimeBackend
 from tests.api.conftest import Served, serve  # noqa: F401  (the fixture)
 from tests.api.helpers import Collector, raw_session
 

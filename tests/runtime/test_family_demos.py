@@ -29,7 +29,7 @@ from streamer import demo
 from streamer.cli.demo import guarantees
 from streamer.report import decode_candump, decode_setpoints
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = {"xtrapuls": ROOT / "configs" / "xtrapuls.toml", "mixed": ROOT / "configs" / "mixed.toml"}

@@ -1,6 +1,6 @@
 """`run_homing` in real time (issue 14): the master's homing sequence over SDO on a python-can virtual bus while
 its periodic SYNC runs, against simulated drives in this process (bus/sim/node.py `SimulatedCell`), through
-the port the job service's runtime uses (streamer/runtime/backend.py). Two axes search switches in opposite
+the port the job service's runtime uses (streamer/runtime/bus_backend.py). Two axes search switches in opposite
 directions at once; both end attained at their switch edges, back in their streaming mode and enabled."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from bus.sim.node import SimulatedCell
 from planner.config import BusConfig, CellConfig
 from planner.job import job_from_dict
 from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
-from streamer.runtime.backend import _RealtimePort
+from streamer.runtime.bus_backend import _RealtimePort
 from streamer.runtime.homing import SW_HOMING_ATTAINED, run_homing
 
 INF = math.inf

@@ -20,7 +20,7 @@ from planner.trajectory import PvtTrajectory
 from streamer import demo
 from streamer.core import outcome as oc
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 

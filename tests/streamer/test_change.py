@@ -21,7 +21,7 @@ from streamer.core import JobResult, StreamPlan
 from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change, ChangeResult
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import ChangePlanner, make_stop_planner
+from streamer.splice_planners import ChangePlanner, make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 AXES = ["j1", "j2", "j3"]

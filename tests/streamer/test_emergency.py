@@ -23,7 +23,7 @@ from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import EmergencyStop, StopPlanner, StopRequest
 from streamer.core.positioning import PositioningState
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import make_emergency_planner, make_stop_planner
+from streamer.splice_planners import make_emergency_planner, make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 AXES = ["j1", "j2", "j3"]

@@ -32,7 +32,7 @@ from streamer.recording.model import build_recording
 from streamer.report import build_report
 from streamer.runtime.spill import temp_store
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 

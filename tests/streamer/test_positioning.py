@@ -17,7 +17,7 @@ from streamer.core import JobResult, StreamPlan
 from streamer.core.coordinator import Coordinator
 from streamer.core.positioning import BadTransition, PositioningState, PositioningTracker, plan_phases
 from streamer.runtime.virtual import VirtualResult, VirtualRuntime
-from streamer.stop import make_stop_planner
+from streamer.splice_planners import make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 AXES = ["j1", "j2", "j3"]

@@ -26,7 +26,7 @@ from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change, PvtTrajectoryLike
 from streamer.runtime.extension import VelocityChangePlanner
 from streamer.runtime.virtual import VirtualRuntime
-from streamer.stop import ChangePlanner, make_stop_planner
+from streamer.splice_planners import ChangePlanner, make_stop_planner
 
 ROOT = Path(__file__).resolve().parents[2]
 # three axes of each cell: EPOS only; EPOS and an XtrapulsPac (mixed); XtrapulsPac only

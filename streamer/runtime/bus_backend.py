@@ -74,7 +74,7 @@ from streamer.report import build_report
 from streamer.runtime.extension import VelocityChangePlanner
 from streamer.runtime.homing import Referencing, home_end_positions, run_homing
 from streamer.runtime.realtime import RealtimeRuntime
-from streamer.stop import ChangePlanner, make_emergency_planner, make_stop_planner
+from streamer.splice_planners import ChangePlanner, make_emergency_planner, make_stop_planner
 
 FIFO_SIZE = 64
 log = logging.getLogger(__name__)
