@@ -44,7 +44,7 @@ from bus.sim.cia402 import QUICK_STOP_OPTIONS, Cia402Drive, FaultRecord
 from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key
-from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, _first_violation
+from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, _first_violation
 from bus.sim.recorder import DataRecorder
 from planner import hermite
 from planner.config import AxisConfig, DriveSettings
@@ -138,10 +138,10 @@ class DriveDevice(Cia402Drive):
         self._hm_speeds = (0.0, 0.0, 0.0)  # search, zero (counts/ms), acceleration (counts/ms^2)
         self._hm_edge = 0
         self.homing_error_reason = ""
-        # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-step
-        # while it samples finer than the 1 ms tick: (plant constants, sub-steps per tick, units per sub-step)
+        # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-steps
+        # while it samples finer than the 1 ms tick (bus/sim/recorder_ticks.py)
         self.recorder: DataRecorder | None = None
-        self._fine: tuple[tuple[float, float, float, float], int, int] | None = None
+        self._fine: SubSteps | None = None
         # plant and controller state
         self._pos = float(initial_position)
         self._vel = 0.0
