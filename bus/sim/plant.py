@@ -14,14 +14,16 @@ scheduled as events (`_segment_limit_events`), and the loop runs from event to e
 
 `_integrate` is the one integration step and the hot spot (it runs on locals): a step of the plant per
 item, the position controller on the items that are demands. Every item is a tick of 1 ms, except while
-the data recorder samples finer than that (bus/sim/recorder_ticks.py runs the loop then): a tick is its
-demand and a None per further sub-step (`SubSteps`: the plant's constants over the sub-step, the sampling
-after each). `_coast` is the same step with the power stage off. A following error beyond 0x6065 stops
-`_integrate` after the tick (`_fe_tripped`) and faults (EMCY 0x8611).
+the data recorder samples finer than that: a tick is then its demand and a None per further sub-step
+(`SubSteps`: the plant's constants over the sub-step, the sampling after each). `_coast` is the same step
+with the power stage off. A following error beyond 0x6065 stops `_integrate` after the tick
+(`_fe_tripped`) and faults (EMCY 0x8611). While the data recorder runs, the loop stops at its sample
+instants (the hooks of bus/sim/recorder_ticks.py).
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable, Iterable
@@ -82,7 +84,10 @@ class PlantLoop(PdoLayer):
     """Position loop, motor and demand sources. See the module docstring."""
 
     # what the layers above provide (bus/sim/recorder_ticks.py, homing_mode.py, cia402.py)
-    _run_ticks_recorded: Callable[[int, float], None]
+    _fine: SubSteps | None
+    _recorder_chunk: Callable[[int], int]
+    _recorder_idle: Callable[[int], None]
+    _recorder_advance: Callable[[int], None]
     _homing_next: Callable[[], None]
     _transition: Callable[[Internal], None]
     _state: Cia402State
@@ -156,29 +161,39 @@ class PlantLoop(PdoLayer):
     # the control ticks
 
     def _run_ticks(self, n: int, t: float) -> None:
+        """Run n ticks from source event to source event. While the data recorder samples (it is active at
+        the call) the ticks run in chunks that end at its sample instants (`_recorder_chunk`), sampled
+        after each chunk (`_recorder_advance`), or sub-stepped and sampled inside each tick (`_fine`)."""
         rec = self.recorder
-        if rec is not None and rec.active:
-            self._run_ticks_recorded(n, t)  # the data recorder samples: see "data recorder ticks" below
-            return
+        recording = rec is not None and rec.active
+        sub = self._fine if recording else None
+        integrate = self._integrate if sub is None else functools.partial(self._integrate_substepped, sub=sub)
         while n > 0:
+            k = self._recorder_chunk(n) if recording else n
             src = self._src
             if src is None:
                 if self._powered:
-                    done = self._integrate(itertools.repeat(self._demand, n))
+                    done = integrate(itertools.repeat(self._demand, k))
                 elif self._vel != 0.0:
-                    done = self._coast(n)
-                else:
-                    self.counters.ticks += n
-                    return
+                    done = self._coast(k, sub)
+                else:  # standing without power: nothing moves
+                    self.counters.ticks += k
+                    if not recording:
+                        return
+                    self._recorder_idle(k)
+                    n -= k
+                    continue
             else:
                 i = self._src_i
-                m = min(n, self._next_event - i)
+                m = min(k, self._next_event - i)
                 if m <= 0:
                     self._on_source_event(t)
                     continue
-                done = self._integrate(src[i:i + m])
+                done = integrate(src[i:i + m])
                 self._src_i = i + done
             n -= done
+            if recording and sub is None:
+                self._recorder_advance(done)
             if self._fe_tripped:
                 self._fe_tripped = False
                 self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
@@ -287,6 +302,15 @@ class PlantLoop(PdoLayer):
         ticks = done if sub is None else n
         self.counters.ticks += ticks
         return ticks
+
+    def _integrate_substepped(self, demands: Iterable[int], sub: SubSteps) -> int:
+        """`_integrate` in sub-steps, tick by tick (each tick's following error checked after it)."""
+        done = 0
+        for demand in demands:
+            done += PlantLoop._integrate(self, sub.tick(demand), sub)
+            if self._fe_tripped:
+                break
+        return done
 
     def _clock_deadline(self) -> float | None:
         """With an own clock, the time of the next tick at which the active source has an event
