@@ -14,7 +14,8 @@ The drive is built in layers, each a class on the one below, each in a module na
 - bus/sim/pdo.py, `PdoLayer`: PDO mapping and traffic, TPDO timing (inhibit, event timer) and latency.
 - bus/sim/plant.py, `PlantLoop`: the control ticks, position controller and motor (`_integrate`,
   `_coast`), and the demand sources (interpolation segments, stop ramps).
-- bus/sim/recorder_ticks.py, `RecordedTicks`: the ticks while the data recorder samples.
+- bus/sim/recorder_ticks.py, `RecordedTicks`: the data recorder's side of the tick loop (where a chunk
+  ends, the sampling, the plant's sub-steps).
 - bus/sim/homing_mode.py, `HomingMode`: homing mode (6).
 - bus/sim/cia402.py, `Cia402Drive`: the power state machine, modes of operation, faults and EMCY.
 - bus/sim/device.py (here), `DriveDevice`: what a family sets, the drive's state (`__init__`), the object
