@@ -15,7 +15,7 @@ its control 0x2010 (start builds the configuration from 0x2011-0x2016 and this t
 0x2017, max samples 0x2018, offset 0x2019, the memory 0x201B (`read_domain`), and the triggers this
 family raises (movement start at activation, end of profile at a time-0 record, a digital input edge:
 `set_digital_inputs`); the error and halt-end triggers and the sampling ticks are the shared drive's
-(bus/sim/device.py). docs/drive-model.md has the table of behaviours with their seed references.
+(cia402.py, plant.py, recorder_ticks.py). docs/drive-model.md has the behaviours with their seed references.
 """
 
 from __future__ import annotations
