@@ -2,7 +2,8 @@
 
 The bottom layer of the simulated drive (bus/sim/device.py stacks the others on it: pdo.py, plant.py,
 recorder_ticks.py, homing_mode.py, cia402.py). It is a pure state machine: every entry point takes the
-time `t` (seconds, any monotonic origin) and returns the frames the drive sends in response.
+time `t` (seconds, any monotonic origin) and returns the frames the drive sends in response; after
+`power_on` each first brings the drive up to `t` (`_start_entry`: held TPDOs, then the ticks).
 
 - `power_on(t)`: boot (boot-up message, NMT pre-operational; a family may stay silent).
 - `on_frame(cob_id, data, t)`: NMT, SYNC, RPDOs (checked against the current mapping), heartbeats of a
@@ -161,14 +162,21 @@ class Cia301Node:
             self._boot(t)
         return self._out
 
-    def on_frame(self, cob_id: int, data: bytes, t: float) -> list[Frame]:
-        """A frame seen on the bus. Returns the frames the drive sends in response."""
+    def _start_entry(self, t: float) -> bool:
+        """What every entry point after `power_on` does first: the frames out start empty and a booted
+        drive runs up to `t` (TPDOs held for their latency, then its ticks). False before the boot."""
         self._t_now = t
         self._out = []
         if self._nmt == NmtState.BOOTUP:
-            return self._out
+            return False
         self._release_held(t)
         self._catch_up(t)
+        return True
+
+    def on_frame(self, cob_id: int, data: bytes, t: float) -> list[Frame]:
+        """A frame seen on the bus. Returns the frames the drive sends in response."""
+        if not self._start_entry(t):
+            return self._out
         if cob_id == 0:
             self._on_nmt(data, t)
         elif cob_id == self._sync_cob:
@@ -185,11 +193,7 @@ class Cia301Node:
 
     def on_sync(self, t: float, data: bytes = b"") -> list[Frame]:
         """A SYNC: run the period's ticks, apply synchronous RPDOs, send synchronous TPDOs."""
-        self._t_now = t
-        self._out = []
-        if self._nmt != NmtState.BOOTUP:
-            self._release_held(t)
-            self._catch_up(t)
+        if self._start_entry(t):
             self._sync(t, data)
             self._flush_event_tpdos()
         return self._out
@@ -197,12 +201,8 @@ class Cia301Node:
     def advance(self, t: float) -> list[Frame]:
         """Timers up to time `t`: heartbeat producer, SYNC loss, heartbeat consumer, the own clock's
         ticks, TPDOs held for their latency, event TPDO timers."""
-        self._t_now = t
-        self._out = []
-        if self._nmt == NmtState.BOOTUP:
+        if not self._start_entry(t):
             return self._out
-        self._release_held(t)
-        self._catch_up(t)
         if self._hb_next is not None and t >= self._hb_next:
             self._out.append(codec.heartbeat_frame(self.node_id, self._nmt))
             period = self._od[(0x1017, 0)] / 1000.0

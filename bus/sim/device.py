@@ -14,7 +14,8 @@ The drive is built in layers, each a class on the one below, each in a module na
 - bus/sim/pdo.py, `PdoLayer`: PDO mapping and traffic, TPDO timing (inhibit, event timer) and latency.
 - bus/sim/plant.py, `PlantLoop`: the control ticks, position controller and motor (`_integrate`,
   `_coast`), and the demand sources (interpolation segments, stop ramps).
-- bus/sim/recorder_ticks.py, `RecordedTicks`: the ticks while the data recorder samples.
+- bus/sim/recorder_ticks.py, `RecordedTicks`: the data recorder's side of the tick loop (where a chunk
+  ends, the sampling, the plant's sub-steps).
 - bus/sim/homing_mode.py, `HomingMode`: homing mode (6).
 - bus/sim/cia402.py, `Cia402Drive`: the power state machine, modes of operation, faults and EMCY.
 - bus/sim/device.py (here), `DriveDevice`: what a family sets, the drive's state (`__init__`), the object
@@ -44,7 +45,7 @@ from bus.sim.cia402 import QUICK_STOP_OPTIONS, Cia402Drive, FaultRecord
 from bus.sim.clock import MotionClock
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key
-from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, _first_violation
+from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, _first_violation
 from bus.sim.recorder import DataRecorder
 from planner import hermite
 from planner.config import AxisConfig, DriveSettings
@@ -138,10 +139,10 @@ class DriveDevice(Cia402Drive):
         self._hm_speeds = (0.0, 0.0, 0.0)  # search, zero (counts/ms), acceleration (counts/ms^2)
         self._hm_edge = 0
         self.homing_error_reason = ""
-        # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-step
-        # while it samples finer than the 1 ms tick: (plant constants, sub-steps per tick, units per sub-step)
+        # the family's data recorder (None: it has none; EPOS sets it at each reset) and the plant's sub-steps
+        # while it samples finer than the 1 ms tick (bus/sim/recorder_ticks.py)
         self.recorder: DataRecorder | None = None
-        self._fine: tuple[tuple[float, float, float, float], int, int] | None = None
+        self._fine: SubSteps | None = None
         # plant and controller state
         self._pos = float(initial_position)
         self._vel = 0.0

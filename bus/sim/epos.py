@@ -15,7 +15,7 @@ its control 0x2010 (start builds the configuration from 0x2011-0x2016 and this t
 0x2017, max samples 0x2018, offset 0x2019, the memory 0x201B (`read_domain`), and the triggers this
 family raises (movement start at activation, end of profile at a time-0 record, a digital input edge:
 `set_digital_inputs`); the error and halt-end triggers and the sampling ticks are the shared drive's
-(bus/sim/device.py). docs/drive-model.md has the table of behaviours with their seed references.
+(cia402.py, plant.py, recorder_ticks.py). docs/drive-model.md has the behaviours with their seed references.
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from bus.codec import (
     CW_ENABLE_IP,
     CW_HALT,
     Frame,
-    NmtState,
 )
 from bus.sim import od as odm
 from bus.sim.device import DriveDevice, Source, _first_violation
@@ -330,11 +329,7 @@ class EposDrive(DriveDevice):
     def set_digital_inputs(self, word: int, t: float) -> list[Frame]:
         """The drive's digital inputs change (the simulation has no I/O: tests and tools set the word);
         an edge of any input is the recorder's digital-input trigger (0x2011 bit 2)."""
-        self._t_now = t
-        self._out = []
-        if self._nmt != NmtState.BOOTUP:
-            self._release_held(t)
-            self._catch_up(t)
+        self._start_entry(t)
         if word != self._digital_inputs:
             self._digital_inputs = word
             self.recorder.trigger(TRIGGER_INPUT, "digital input", t)

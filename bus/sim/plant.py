@@ -12,16 +12,22 @@ stop, fault reaction: from the current demand velocity at a deceleration), or a 
 source: the demand list is computed once, the family's limit crossings are found once per segment and
 scheduled as events (`_segment_limit_events`), and the loop runs from event to event.
 
-`_integrate` is the hot spot: it runs on locals. A following error beyond 0x6065 stops it after the tick
-(`_fe_tripped`) and faults (EMCY 0x8611). While the data recorder samples, bus/sim/recorder_ticks.py runs
-the loop instead.
+`_integrate` is the one integration step and the hot spot (it runs on locals): a step of the plant per
+item, the position controller on the items that are demands. Every item is a tick of 1 ms, except while
+the data recorder samples finer than that: a tick is then its demand and a None per further sub-step
+(`SubSteps`: the plant's constants over the sub-step, the sampling after each). `_coast` is the same step
+with the power stage off. A following error beyond 0x6065 stops `_integrate` after the tick
+(`_fe_tripped`) and faults (EMCY 0x8611). While the data recorder runs, the loop stops at its sample
+instants (the hooks of bus/sim/recorder_ticks.py).
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from enum import Enum
 
 from bus import codec
@@ -47,6 +53,21 @@ class Source(Enum):
     HOMING = "homing"
 
 
+@dataclass(frozen=True, slots=True)
+class SubSteps:
+    """The plant sub-stepped inside each 1 ms tick (the data recorder sampling finer than a tick): its
+    constants over one sub-step (bus/sim/motor.py `plant_constants`), the sub-steps of a tick, and what runs
+    after each sub-step, the drive's state written back (the recorder's sampling)."""
+
+    constants: tuple[float, float, float, float]
+    steps: int
+    sample: Callable[[], None]
+
+    def tick(self, demand: int) -> list[int | None]:
+        """The items of one tick for `PlantLoop._integrate`: the demand, then None per further sub-step."""
+        return [demand] + [None] * (self.steps - 1)
+
+
 def _first_violation(
     values: Callable[[int], float], ticks: int, limit: float, candidates: Iterable[int]
 ) -> int:
@@ -63,7 +84,10 @@ class PlantLoop(PdoLayer):
     """Position loop, motor and demand sources. See the module docstring."""
 
     # what the layers above provide (bus/sim/recorder_ticks.py, homing_mode.py, cia402.py)
-    _run_ticks_recorded: Callable[[int, float], None]
+    _fine: SubSteps | None
+    _recorder_chunk: Callable[[int], int]
+    _recorder_idle: Callable[[int], None]
+    _recorder_advance: Callable[[int], None]
     _homing_next: Callable[[], None]
     _transition: Callable[[Internal], None]
     _state: Cia402State
@@ -137,29 +161,39 @@ class PlantLoop(PdoLayer):
     # the control ticks
 
     def _run_ticks(self, n: int, t: float) -> None:
+        """Run n ticks from source event to source event. While the data recorder samples (it is active at
+        the call) the ticks run in chunks that end at its sample instants (`_recorder_chunk`), sampled
+        after each chunk (`_recorder_advance`), or sub-stepped and sampled inside each tick (`_fine`)."""
         rec = self.recorder
-        if rec is not None and rec.active:
-            self._run_ticks_recorded(n, t)  # the data recorder samples: see "data recorder ticks" below
-            return
+        recording = rec is not None and rec.active
+        sub = self._fine if recording else None
+        integrate = self._integrate if sub is None else functools.partial(self._integrate_substepped, sub=sub)
         while n > 0:
+            k = self._recorder_chunk(n) if recording else n
             src = self._src
             if src is None:
                 if self._powered:
-                    done = self._integrate(itertools.repeat(self._demand, n))
+                    done = integrate(itertools.repeat(self._demand, k))
                 elif self._vel != 0.0:
-                    done = self._coast(n)
-                else:
-                    self.counters.ticks += n
-                    return
+                    done = self._coast(k, sub)
+                else:  # standing without power: nothing moves
+                    self.counters.ticks += k
+                    if not recording:
+                        return
+                    self._recorder_idle(k)
+                    n -= k
+                    continue
             else:
                 i = self._src_i
-                m = min(n, self._next_event - i)
+                m = min(k, self._next_event - i)
                 if m <= 0:
                     self._on_source_event(t)
                     continue
-                done = self._integrate(src[i:i + m])
+                done = integrate(src[i:i + m])
                 self._src_i = i + done
             n -= done
+            if recording and sub is None:
+                self._recorder_advance(done)
             if self._fe_tripped:
                 self._fe_tripped = False
                 self._fault(codec.EMCY_FOLLOWING_ERROR, 0, t)
@@ -167,32 +201,43 @@ class PlantLoop(PdoLayer):
             if self._src is not None and self._src_i == self._next_event:
                 self._on_source_event(t)
 
-    def _integrate(self, demands: Iterable[int]) -> int:
-        """Run one tick of position control + plant per demand. Stops after a tick whose following
-        error exceeds 0x6065 (sets _fe_tripped). Returns the ticks run."""
+    def _integrate(self, demands: Iterable[int | None], sub: SubSteps | None = None) -> int:
+        """The integration step: one step of the plant per item, the position controller on the items that
+        are demands (a new tick), its current held over the None items (the sub-steps of that tick). A tick's
+        following error beyond 0x6065 stops the loop after the tick and sets _fe_tripped. Without `sub` every
+        item is a tick of one step; with `sub` the items are one tick in sub-steps (`SubSteps.tick`) and
+        `sub.sample` runs after each, the state written back. Returns the ticks run."""
         c = self._c
-        kp, ki, kdf, kdg, imax = c.kp, c.ki, c.kd_f, c.kd_g, c.i_max
-        cou, phi, gam, psi, eta = c.coulomb_a, c.phi, c.gam, c.psi, c.eta
+        kp, ki, kdf, kdg, imax, cou = c.kp, c.ki, c.kd_f, c.kd_g, c.i_max, c.coulomb_a
+        few = self._fe_window if self._state is not ST.FAULT_REACTION_ACTIVE else math.inf
+        if sub is None:
+            phi, gam, psi, eta = c.phi, c.gam, c.psi, c.eta
+            sample, few_step = None, few  # a step is a tick: its following error is checked after it
+        else:
+            (phi, gam, psi, eta), sample, few_step = sub.constants, sub.sample, math.inf  # checked after the loop
         dist = self.disturbance_current_a
         pos, vel, integ, dterm, ep = self._pos, self._vel, self._integ, self._dterm, self._eprev
-        few = self._fe_window if self._state is not ST.FAULT_REACTION_ACTIVE else math.inf
         i = self._current
-        d = self._demand
+        demand = self._demand
+        e = ep
         done = 0
         for d in demands:
-            e = d - pos
-            integ += ki * e
-            if integ > imax:
-                integ = imax
-            elif integ < -imax:
-                integ = -imax
-            dterm = kdf * dterm + kdg * (e - ep)
-            ep = e
-            i = kp * e + integ + dterm
-            if i > imax:
-                i = imax
-            elif i < -imax:
-                i = -imax
+            if d is not None:
+                demand = d
+                e = d - pos
+                integ += ki * e
+                if integ > imax:
+                    integ = imax
+                elif integ < -imax:
+                    integ = -imax
+                dterm = kdf * dterm + kdg * (e - ep)
+                ep = e
+                i = kp * e + integ + dterm
+                if i > imax:
+                    i = imax
+                elif i < -imax:
+                    i = -imax
+                done += 1
             ie = i - dist
             if vel > 0.0:
                 ie -= cou
@@ -209,36 +254,62 @@ class PlantLoop(PdoLayer):
             if cou and ((vel > 0.0 and nv < 0.0) or (vel < 0.0 and nv > 0.0)):
                 nv = 0.0
             vel = nv
-            done += 1
-            if e > few or e < -few:
-                self._fe_tripped = True
+            if sample is not None:
+                self._pos, self._vel, self._integ, self._dterm, self._eprev = pos, vel, integ, dterm, ep
+                self._current, self._demand = i, demand
+                sample()
+            if e > few_step or e < -few_step:
                 break
+        if done and (e > few or e < -few):
+            self._fe_tripped = True
         self._pos, self._vel, self._integ, self._dterm, self._eprev = pos, vel, integ, dterm, ep
         self._current = i
-        self._demand = d
+        self._demand = demand
         self.counters.ticks += done
         return done
 
-    def _coast(self, n: int) -> int:
-        """Power stage off: the motor runs down on friction; the demand follows the actual position."""
+    def _coast(self, n: int, sub: SubSteps | None = None) -> int:
+        """Power stage off: the motor runs down on friction; the demand follows the actual position. Without
+        `sub`, n ticks of one step, returning at the tick the motor stops; with `sub`, all n ticks in
+        sub-steps, `sub.sample` after each. Returns the ticks run."""
         c = self._c
-        cou, phi, gam, psi, eta = c.coulomb_a, c.phi, c.gam, c.psi, c.eta
+        cou = c.coulomb_a
+        if sub is None:
+            phi, gam, psi, eta = c.phi, c.gam, c.psi, c.eta
+            sample, steps = None, n
+        else:
+            (phi, gam, psi, eta), sample, steps = sub.constants, sub.sample, n * sub.steps
         dist = self.disturbance_current_a
         pos, vel = self._pos, self._vel
-        done = 0
-        while done < n:
-            ie = -dist - (cou if vel > 0.0 else -cou)
-            nv = phi * vel + gam * ie
-            pos += psi * vel + eta * ie
-            done += 1
-            if (vel > 0.0 and nv <= 0.0) or (vel < 0.0 and nv >= 0.0) or abs(nv) < COAST_STOP_COUNTS_PER_MS:
-                vel = 0.0
-                break
-            vel = nv
-        self._pos, self._vel = pos, vel
         self._current = 0.0
+        done = 0
+        while done < steps:
+            if vel != 0.0:
+                ie = -dist - (cou if vel > 0.0 else -cou)
+                nv = phi * vel + gam * ie
+                pos += psi * vel + eta * ie
+                if (vel > 0.0 and nv <= 0.0) or (vel < 0.0 and nv >= 0.0) or abs(nv) < COAST_STOP_COUNTS_PER_MS:
+                    nv = 0.0
+                vel = nv
+            done += 1
+            if sample is not None:
+                self._pos, self._vel, self._demand = pos, vel, hermite.round_counts(pos)
+                sample()
+            elif vel == 0.0:
+                break
+        self._pos, self._vel = pos, vel
         self._demand = hermite.round_counts(pos)
-        self.counters.ticks += done
+        ticks = done if sub is None else n
+        self.counters.ticks += ticks
+        return ticks
+
+    def _integrate_substepped(self, demands: Iterable[int], sub: SubSteps) -> int:
+        """`_integrate` in sub-steps, tick by tick (each tick's following error checked after it)."""
+        done = 0
+        for demand in demands:
+            done += PlantLoop._integrate(self, sub.tick(demand), sub)
+            if self._fe_tripped:
+                break
         return done
 
     def _clock_deadline(self) -> float | None:
