@@ -49,7 +49,7 @@ def upload_frames(cell: CellConfig) -> dict[str, list[tuple[int, int]]]:
     import canopen
 
     from streamer.recording.drive import RecordRequest, parse_variable
-    from streamer.recording.recorder import Recorder
+    from streamer.recording.recorder_client import Recorder
 
     out: dict[str, list[tuple[int, int]]] = {}
     with SimulatedCell(cell, sync_gap_factor=5.0) as sim:

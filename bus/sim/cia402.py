@@ -20,10 +20,10 @@ from bus import codec
 from bus.codec import CW_FAULT_RESET, Cia402State, Command, Frame, Internal, InvalidTransition, NmtState
 from bus.sim import homing as hm
 from bus.sim import od as odm
+from bus.sim.data_recorder import TRIGGER_ERROR
 from bus.sim.homing_mode import HomingMode
 from bus.sim.od import SdoAbort
 from bus.sim.plant import ST, Source
-from bus.sim.recorder import TRIGGER_ERROR
 
 QUICK_STOP_OPTIONS = frozenset({0, 1, 2, 5, 6})
 

@@ -1,6 +1,6 @@
 """The cyclic synchronous position family (CiA 402 mode 8: the target 0x607A every SYNC; seed 000 2.6 and
 6.7 for EPOS3 over EtherCAT), on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part
-(bus/sim/cyclic.py).
+(bus/sim/cyclic_drive.py).
 
 Theory of operation. In operation enabled with mode 8 the drive follows the command value (statusword
 bit 12; no controlword bit starts it). At each SYNC k (after the period's ticks and the synchronous
@@ -24,7 +24,7 @@ from bus import codec
 from bus.codec import Cia402State
 from bus.families import CIA402_CSP
 from bus.sim import od as odm
-from bus.sim.cyclic import CyclicDrive, linear
+from bus.sim.cyclic_drive import CyclicDrive, linear
 from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key
 from planner.config import HOMING_METHODS

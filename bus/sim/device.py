@@ -43,10 +43,10 @@ from bus.sim import od as odm
 from bus.sim.cia301 import LOAD_SIGNATURE, SAVE_SIGNATURE, DriveCounters, _RxPdo, _TxPdo
 from bus.sim.cia402 import QUICK_STOP_OPTIONS, Cia402Drive, FaultRecord
 from bus.sim.clock import MotionClock
+from bus.sim.data_recorder import DataRecorder
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key
 from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, _first_violation
-from bus.sim.recorder import DataRecorder
 from planner import hermite
 from planner.config import AxisConfig, DriveSettings
 from planner.readings import SimDriveOptions

@@ -10,7 +10,7 @@ the ip velocity/acceleration warnings and errors against 0x6081/0x607F and 0x608
 (bit 8) with the profile deceleration. The readings of the manuals' open points (`fifo_count`,
 `first_record`, `underflow_check`; planner/readings.py) change how records are counted and consumed.
 
-And maxon's data recorder (seed 004: 0x2010-0x2019, 0x201B; the state machine is bus/sim/recorder.py):
+And maxon's data recorder (seed 004: 0x2010-0x2019, 0x201B; the state machine is bus/sim/data_recorder.py):
 its control 0x2010 (start builds the configuration from 0x2011-0x2016 and this table's types), status
 0x2017, max samples 0x2018, offset 0x2019, the memory 0x201B (`read_domain`), and the triggers this
 family raises (movement start at activation, end of profile at a time-0 record, a digital input edge:
@@ -42,10 +42,7 @@ from bus.codec import (
     Frame,
 )
 from bus.sim import od as odm
-from bus.sim.device import DriveDevice, Source, _first_violation
-from bus.sim.homing import HOMING_MODE
-from bus.sim.od import Key, SdoAbort
-from bus.sim.recorder import (
+from bus.sim.data_recorder import (
     CONTROL_FORCE_TRIGGER,
     CONTROL_START,
     TRIGGER_END,
@@ -54,6 +51,9 @@ from bus.sim.recorder import (
     DataRecorder,
     RecorderConfig,
 )
+from bus.sim.device import DriveDevice, Source, _first_violation
+from bus.sim.homing import HOMING_MODE
+from bus.sim.od import Key, SdoAbort
 from planner import hermite, record
 from planner.config import HOMING_METHODS
 from planner.record import PvtRecord

@@ -145,7 +145,7 @@ def plant_constants(motor: MotorParams, counts_per_rev: int, h_s: float) -> tupl
     """(phi, gam, psi, eta) of the plant over a step of `h_s` seconds with the current held (exact
     zero-order hold of J*dw/dt = k_M*i - r*w), in the model's units (counts, counts/ms, A):
     vel' = phi*vel + gam*i, pos' = pos + psi*vel + eta*i. `LoopConstants` uses the 1 ms tick; the data
-    recorder's sub-steps (bus/sim/recorder.py) use its sampling period when that is finer."""
+    recorder's sub-steps (bus/sim/data_recorder.py) use its sampling period when that is finer."""
     if counts_per_rev <= 0:
         raise ValueError(f"counts_per_rev must be > 0, got {counts_per_rev}")
     if not (math.isfinite(h_s) and h_s > 0.0):

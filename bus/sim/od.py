@@ -310,7 +310,7 @@ def _epos() -> _Builder:
     var, group = b.var, b.group
     # ---- manufacturer specific (seed 000 4.3.6)
     var(0x20C1, "Interpolation data record", U64, "wo", None, pdo=True)
-    # data recorder (seed 004 "Object description"; seed 000 8.5.2; bus/sim/recorder.py): EPOS only (the
+    # data recorder (seed 004 "Object description"; seed 000 8.5.2; bus/sim/data_recorder.py): EPOS only (the
     # XtrapulsPac has its boot-up object at 0x2010)
     var(0x2010, "Data recorder control", U16, "rw", 0, 0, 3)
     var(0x2011, "Data recorder configuration", U16, "rw", 0, 0, 15)

@@ -32,10 +32,10 @@ from enum import Enum
 
 from bus import codec
 from bus.codec import Cia402State, Internal
+from bus.sim.data_recorder import TRIGGER_END, DataRecorder
 from bus.sim.motor import LoopConstants, MotorParams
 from bus.sim.od import Key
 from bus.sim.pdo import PdoLayer
-from bus.sim.recorder import TRIGGER_END, DataRecorder
 from planner import hermite
 
 ST = Cia402State

@@ -1,6 +1,6 @@
 """The control ticks while the data recorder samples (seed 004): every sample instant is hit.
 
-The layer on the plant (bus/sim/plant.py). A family with a data recorder (EPOS: bus/sim/recorder.py, its
+The layer on the plant (bus/sim/plant.py). A family with a data recorder (EPOS: bus/sim/data_recorder.py, its
 objects in bus/sim/epos.py) sets `recorder`. While it runs, the plant's tick loop (`PlantLoop._run_ticks`)
 asks this layer how far to run (`_recorder_chunk`: to the next sample instant) and samples after each
 chunk (`_recorder_advance`), or, standing without power, over the idle ticks (`_recorder_idle`). A
@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import functools
 
+from bus.sim.data_recorder import TICK_UNITS, UNIT_S, RecorderConfig, substep_units
 from bus.sim.motor import plant_constants
 from bus.sim.plant import PlantLoop, SubSteps
-from bus.sim.recorder import TICK_UNITS, UNIT_S, RecorderConfig, substep_units
 
 
 class RecordedTicks(PlantLoop):

@@ -1,5 +1,5 @@
 """The XtrapulsPac family: Infranor's interpolated position mode, one set point per SYNC (seed 003 3.2.3.5),
-on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part (bus/sim/cyclic.py).
+on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part (bus/sim/cyclic_drive.py).
 
 Theory of operation, per SYNC k (after the ticks of the period that just ended and the synchronous
 RPDOs, `_after_sync_rpdos`):
@@ -47,7 +47,7 @@ from bus import codec
 from bus.codec import Cia402State, Internal
 from bus.families import XTRAPULS_IP
 from bus.sim import od as odm
-from bus.sim.cyclic import CyclicDrive, Poly, hermite_pv, linear, parabola_p3
+from bus.sim.cyclic_drive import CyclicDrive, Poly, hermite_pv, linear, parabola_p3
 from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key, SdoAbort
 from planner.config import HOMING_METHODS

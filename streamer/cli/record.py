@@ -76,7 +76,7 @@ class _FastSession:
 
     def __init__(self, cell: Any, traj: Any, nodes: Sequence[int], upload: str):
         from bus.sim.virtual import VirtualCell
-        from streamer.recording.recorder import ModelSdo, Recorder
+        from streamer.recording.recorder_client import ModelSdo, Recorder
         from streamer.runtime.virtual import VirtualRuntime
 
         positions = _start_positions(traj)
@@ -117,7 +117,7 @@ class _RealtimeSession:
 
     def __init__(self, cell: Any, traj: Any, nodes: Sequence[int], upload: str):
         from streamer.demo import realtime_cell
-        from streamer.recording.recorder import CanopenSdo, Recorder
+        from streamer.recording.recorder_client import CanopenSdo, Recorder
         from streamer.runtime.realtime import RealtimeRuntime
 
         self.cell = cell
@@ -227,7 +227,7 @@ def _record(console: Any, cell: Any, nodes: list[int], names: dict[int, str], re
             args: argparse.Namespace) -> int:
     from bus.errors import BusError
     from streamer.recording.drive import DriveRecording, DriveRecordingError
-    from streamer.recording.recorder import RecorderGroup
+    from streamer.recording.recorder_client import RecorderGroup
 
     d = request.describe()
     mode = "virtual time" if args.fast else f"real time on {cell.bus.interface}:{cell.bus.channel}"

@@ -1,10 +1,10 @@
 """The drive's own data recorder, host side: what to record, and the decoding of what was recorded.
 
 Theory of operation. An EPOS drive records up to four of its own objects at a period of n x 0.1 ms
-into 512 words of ring buffers (seed 004; the simulated one is bus/sim/recorder.py). This module is
+into 512 words of ring buffers (seed 004; the simulated one is bus/sim/data_recorder.py). This module is
 pure: no bus, no clock.
 
-- `RecordRequest` is what `pvt record`, the Python `Recorder` (streamer/recording/recorder.py) and a
+- `RecordRequest` is what `pvt record`, the Python `Recorder` (streamer/recording/recorder_client.py) and a
   job's `record` section ask for: the variables (`VARIABLES` by name, or any 8/16/32-bit readable
   object as "0xIIII:SS"), the sampling period or the total time the buffer must span, the trigger
   (movement, error, input, end, continuous, force) and the time to keep before the trigger. It is

@@ -15,7 +15,7 @@ process (streamer/recording/writer.py). The SYNC loop pays only the trace's appe
 A job with a `record` section (`planned.record`, a `RecordRequest`) also gets what the drives' own data
 recorders sampled (seed 004): before the motion `execute` configures and arms the recorder of every
 recorded axis over SDO (a drive that refuses fails the job before anything moves, code RECORDER), after
-it waits for them to stop, uploads and decodes their buffers (streamer/recording/recorder.py), puts the
+it waits for them to stop, uploads and decodes their buffers (streamer/recording/recorder_client.py), puts the
 result into the job's recording (its MCAP: `/recorder/<node>` channels) and a summary into the report
 (`drive_recording`); a recorder that cannot be read after the motion leaves the job's result as it is.
 
@@ -563,7 +563,7 @@ class RuntimeBackend(MotionBackend):
     # ---- the drives' own data recorders (a job's `record` section)
     def _arm_recorders(self, request: Any, traj: Any) -> Any:
         from streamer.recording.drive import recorded_axes
-        from streamer.recording.recorder import CanopenSdo, Recorder, RecorderGroup
+        from streamer.recording.recorder_client import CanopenSdo, Recorder, RecorderGroup
 
         names = recorded_axes([self._axes[str(n)] for n in traj.axis_names], request.axes)
         nodes = [self._axes[name].node_id for name in names]

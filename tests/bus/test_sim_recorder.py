@@ -20,10 +20,7 @@ from bus_testkit import VDrive, make_axis, make_cell, ramp_records, remote_netwo
 
 from bus import codec
 from bus.sim import od as odm
-from bus.sim.eds import EDS_PATH
-from bus.sim.node import SdoBlockUploadServer, SimulatedCell
-from bus.sim.od import SdoAbort
-from bus.sim.recorder import (
+from bus.sim.data_recorder import (
     STATUS_RUNNING,
     STATUS_TRIGGERED,
     TRIGGER_END,
@@ -34,6 +31,9 @@ from bus.sim.recorder import (
     ring_starts,
     substep_units,
 )
+from bus.sim.eds import EDS_PATH
+from bus.sim.node import SdoBlockUploadServer, SimulatedCell
+from bus.sim.od import SdoAbort
 from planner import record
 from planner.readings import SimDriveOptions
 
@@ -192,7 +192,7 @@ def test_segmented_upload_where_the_drive_has_no_block_upload() -> None:
     """A drive without block upload (canopen's own SdoServer answers a block request as a normal upload):
     the product's `Recorder` falls back to segmented upload, with the same bytes."""
     from streamer.recording.drive import RecordRequest, parse_variable
-    from streamer.recording.recorder import Recorder
+    from streamer.recording.recorder_client import Recorder
 
     channel = unique_channel("recorder-noblock")
     cell = make_cell(1, sync_period_ms=10, channel=channel)

@@ -34,7 +34,7 @@ from streamer.recording.drive import (
     parse_variable,
     recorded_axes,
 )
-from streamer.recording.recorder import ModelSdo, Recorder
+from streamer.recording.recorder_client import ModelSdo, Recorder
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "configs" / "demo.toml"
@@ -219,7 +219,7 @@ POOL = ["position_demand", "position_actual", "velocity_actual", "current_actual
 # forced trigger's sample: not a triggered recording (found by hypothesis in make test)
 def test_decoding_agrees_with_the_simulated_drive(names: list[str], period: int, preceding: int, trigger: str,
                                                   run_ms: int) -> None:
-    """The host's decoding (streamer/recording/drive.py) and the drive's layout (bus/sim/recorder.py) are
+    """The host's decoding (streamer/recording/drive.py) and the drive's layout (bus/sim/data_recorder.py) are
     written separately from seed 004: for any variables, period and preceding samples, the decoded series
     are the drive's rings unwrapped from 0x2019 (sign and width per variable)."""
     cell = load_cell(CONFIG)

@@ -1,6 +1,6 @@
 """`Recorder`: one drive's data recorder (seed 004) over SDO: configure, arm, wait, upload, decode.
 
-    from streamer.recording.recorder import Recorder
+    from streamer.recording.recorder_client import Recorder
     from streamer.recording.drive import RecordRequest, parse_variable
 
     request = RecordRequest((parse_variable("position_demand"), parse_variable("velocity_actual")),
