@@ -11,11 +11,13 @@ STAMP := $(VENV)/.installed
 DEV := $(VENV)/.installed-dev
 KERNELS := $(VENV)/.kernels
 # uv when it installs (put into the venv by the system's pip: a venv without pip is made in 0.1 s, with it in 5 s),
-# else pip (then the venv's own, from ensurepip). --compile-bytecode as pip does: where PYTHONDONTWRITEBYTECODE is
-# set (this machine, CI) nothing would write the .pyc files later, and every process would compile what it imports
-# (measured: 3.4-5.3 s to import the demo's modules without them, 1.1 s with)
+# else pip (then the venv's own, from ensurepip). $(2): --compile-bytecode, as pip does, for the tests (they start
+# hundreds of processes) and wherever PYTHONDONTWRITEBYTECODE is set (this machine, CI): nothing would write the
+# .pyc files later, and every process would compile what it imports (measured: 3.4-5.3 s to import the demo's
+# modules without them, 1.1 s with). Elsewhere the demo's first imports write the ones it needs.
+BYTECODE := $(if $(PYTHONDONTWRITEBYTECODE),--compile-bytecode)
 INSTALL = (([ -x $(VENV)/bin/uv ] || $(PYTHON) -m pip --python $(PY) install -q --disable-pip-version-check uv) \
-	  && $(VENV)/bin/uv pip install -q --compile-bytecode --python $(PY) -e '$(1)') \
+	  && $(VENV)/bin/uv pip install -q $(2) --python $(PY) -e '$(1)') \
 	  || ($(PY) -m ensurepip -q && $(PY) -m pip install -q -e '$(1)')
 
 .PHONY: demo test lint bench vcan-test rt-test clean chromium
@@ -23,12 +25,12 @@ INSTALL = (([ -x $(VENV)/bin/uv ] || $(PYTHON) -m pip --python $(PY) install -q 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv --without-pip $(VENV)
 	@echo "installing pvt and its dependencies into $(VENV)"
-	$(call INSTALL,.)
+	$(call INSTALL,.,$(BYTECODE))
 	touch $(STAMP)
 
 $(DEV): $(STAMP)
 	@echo "installing the dev extra (tests, lint) into $(VENV)"
-	$(call INSTALL,.[dev])
+	$(call INSTALL,.[dev],--compile-bytecode)
 	touch $(DEV)
 
 $(KERNELS): $(STAMP)
