@@ -108,7 +108,7 @@ def test_a_first_make_demo_plans_with_the_kernels_interpreted(tmp_path: Path) ->
     import os
 
     make = (ROOT / "Makefile").read_text()
-    assert "NUMBA_DISABLE_JIT=1 $(VENV)/bin/pvt demo" in make and "test: $(KERNELS)" in make
+    assert "NUMBA_DISABLE_JIT=1 $(VENV)/bin/pvt demo" in make and "-j3 $(KERNELS) lint chromium" in make
     env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
     out = subprocess.run([sys.executable, "-m", "streamer.cli", "demo", "--fast", "--quiet", "--out", str(tmp_path)],
                          cwd=ROOT, capture_output=True, text=True, timeout=600, env=env)
