@@ -527,23 +527,6 @@ def compile_all(out: Callable[[str], None] = print) -> int:
     return len(seen)
 
 
-_M_TOP_PAD = -2  # glibc malloc.h
-KEEP_HEAP_BYTES = 64 << 20
-
-
-def keep_heap() -> bool:
-    """Keep `KEEP_HEAP_BYTES` of freed heap in this process for the next plan (glibc's M_TOP_PAD; see the
-    module docstring). False where the C library has no mallopt (not glibc)."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c"))
-        return bool(libc.mallopt(_M_TOP_PAD, KEEP_HEAP_BYTES))
-    except (OSError, AttributeError):
-        return False
-
-
 if __name__ == "__main__":
     print("compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)",
           flush=True)
