@@ -357,10 +357,15 @@ def _to_frame(msg: can.Message) -> Frame:
 
 
 def _to_msg(frame: Frame, like: can.Message | None = None, timestamp: float | None = None) -> can.Message:
+    """`frame` as a python-can message with the kind of `like` (the message it was made from: 11- or 29-bit
+    identifier, data or remote frame), its channel and direction; an 11-bit data frame without one."""
+    remote = like is not None and like.is_remote_frame
     return can.Message(
         arbitration_id=frame.cob_id,
-        data=frame.data,
-        is_extended_id=False,
+        data=None if remote else frame.data,
+        dlc=like.dlc if like is not None and remote else None,
+        is_extended_id=like.is_extended_id if like is not None else False,
+        is_remote_frame=remote,
         timestamp=timestamp if timestamp is not None else (like.timestamp if like is not None else 0.0),
         is_rx=like.is_rx if like is not None else True,
         channel=like.channel if like is not None else None,
@@ -415,7 +420,7 @@ class FaultyBus(can.BusABC):
             now = [d.frame for d in deliveries if d.delay_s <= 0]
             for d in deliveries:
                 if d.delay_s > 0:
-                    self._schedule(t + d.delay_s, "tx", d.frame, None)
+                    self._schedule(t + d.delay_s, "tx", d.frame, msg)
             self._wake_for_holds()
         for f in now:
             self._sent(f)
@@ -497,7 +502,7 @@ class FaultyBus(can.BusABC):
                 while self._timers and self._timers[0][0] <= now:
                     _, _, where, frame, like = heapq.heappop(self._timers)
                     if where == "tx":
-                        sends.append(_to_msg(frame))
+                        sends.append(_to_msg(frame, like, now))
                     else:
                         self._rx_ready.append(_to_msg(frame, like, now))
                 for d in self.model.release(now, self._tx_dir):
