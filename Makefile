@@ -57,7 +57,7 @@ chromium:
 
 lint: $(DEV)
 	$(VENV)/bin/ruff check planner streamer bus tests benchmarks tools examples
-	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime/virtual.py streamer/runtime/trace.py streamer/runtime/homing.py streamer/runtime/extension.py \
+	$(VENV)/bin/mypy --strict planner streamer/core bus streamer/runtime streamer/report.py \
 		streamer/recording streamer/live streamer/view streamer/api
 	$(PY) -m pytest -q -p no:cacheprovider tests/test_architecture.py  # import contracts, module sizes (issue 24)
 

@@ -81,7 +81,7 @@ def build_report(
         for s, d in zip(log.sync if log is not None else (), log.demand if log is not None else (), strict=True):
             if core.start_sync is not None and s > core.start_sync + traj.duration_ms // sync_period_ms + 1:
                 break  # after the plan's end: the stop or hold is not the plan
-            k = _plan_index(s, core.start_sync, sync_period_ms, traj.duration_ms)
+            k = _plan_index(int(s), core.start_sync, sync_period_ms, traj.duration_ms)
             dev = abs(int(d) - int(planned[i, k]))
             sampled_dev = max(sampled_dev, dev)
             if own_clock:

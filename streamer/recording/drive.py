@@ -130,9 +130,12 @@ RECORDER_PROFILES = frozenset({"epos-ipm"})
 
 
 class _Axis(Protocol):
-    name: str
-    node_id: int
-    profile: str
+    @property
+    def name(self) -> str: ...
+    @property
+    def node_id(self) -> int: ...
+    @property
+    def profile(self) -> str: ...
 
 
 def recorded_axes(axes: Sequence[_Axis], requested: Sequence[str] = (), *, path: str = "record.axes") -> list[str]:

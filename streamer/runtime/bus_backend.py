@@ -325,7 +325,7 @@ class RuntimeBackend(MotionBackend):
                 info = rep.cancel
                 info_stop[0] = str(info.get("stop", ""))
                 stopping["end"] = (float(rep.duration_ms) or 1.0) - pc.t0_ms
-                cut = info.get("time_ms") - pc.t0_ms if info.get("stop") == "trajectory" else (
+                cut = info["time_ms"] - pc.t0_ms if info.get("stop") == "trajectory" else (
                     planned_ms if info.get("stop") == "plan_end" else None)
                 stopping["cut"] = float(cut) if cut is not None else min(planned_ms, elapsed)
             cut = stopping["cut"]
@@ -536,7 +536,8 @@ class RuntimeBackend(MotionBackend):
                         "message": f"emergency stop planned at each axis' emergency deceleration: "
                                    f"{info['stop_duration_ms']} ms long, from {info['time_ms']} ms into the motion "
                                    "(after what is queued)"}
-            why = (info or {}).get("reason") or "the running job did not take the emergency stop in time"
+            why = ((info.get("reason") if info is not None else None)
+                   or "the running job did not take the emergency stop in time")
             return {"method": "quick_stop", "message": self._quick_stop_all() + f" (no emergency stop plan: {why})"}
         return {"method": "quick_stop", "message": self._quick_stop_all()}
 

@@ -138,7 +138,7 @@ class _Tap(can.Listener):
             if self.writer is not None:
                 self.writer.on_message_received(msg)
             if self.trace is not None:
-                self.trace.on_frame(msg.arbitration_id, msg.dlc, msg.data, msg.timestamp)
+                self.trace.on_frame(msg.arbitration_id, msg.dlc, bytes(msg.data), msg.timestamp)
 
     def stop(self) -> None:
         with self._lock:
@@ -449,13 +449,14 @@ class RealtimeRuntime:
                     # PVT records only: the FIFOs take them whenever they come, and the core counts them from the
                     # SYNC after their echo (RecordOnWire), which the bus's order brings before any answer with them
                     continue
+                fed: object = ev
                 if isinstance(ev, Sync):
                     first_sync = ev.count if first_sync is None else first_sync
                     last_sync = ev.count
                     trace.on_sync(ev.count, ev.t)
                     if ahead is not None:  # the core was fed this SYNC ahead of the wire: now it is out
-                        ev = SyncOnWire(ev.count, ev.t)
-                self._feed(core, trace, ev, ahead)
+                        fed = SyncOnWire(ev.count, ev.t)
+                self._feed(core, trace, fed, ahead)
                 if on_change is not None:
                     on_change(core)
                 if core.state in TERMINAL:
