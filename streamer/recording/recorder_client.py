@@ -128,6 +128,12 @@ class ModelSdo:
         return data
 
 
+def _sdo_failure(e: Exception) -> str:
+    """Why an SDO transfer failed, for an error message: the abort code when the drive gave one."""
+    code = _abort_code(e)
+    return f"abort 0x{code:08X}" if code is not None else f"{type(e).__name__}: {e}"
+
+
 def _abort_code(e: BaseException) -> int | None:
     code = getattr(e, "code", None)
     return code if isinstance(code, int) else None
@@ -167,10 +173,8 @@ class Recorder:
         except DriveRecordingError:
             raise
         except Exception as e:
-            code = _abort_code(e)
-            why = f"abort 0x{code:08X}" if code is not None else f"{type(e).__name__}: {e}"
             raise DriveRecordingError(RECORDER, f"node {self.node_id} refused {what} (0x{index:04X}:{sub:02X} = "
-                                      f"{value}): {why}", f"0x{index:04X}:{sub:02X}") from None
+                                      f"{value}): {_sdo_failure(e)}", f"0x{index:04X}:{sub:02X}") from None
 
     def _read(self, index: int, sub: int, what: str) -> int:
         try:
@@ -178,10 +182,8 @@ class Recorder:
         except DriveRecordingError:
             raise
         except Exception as e:
-            code = _abort_code(e)
-            why = f"abort 0x{code:08X}" if code is not None else f"{type(e).__name__}: {e}"
             raise DriveRecordingError(RECORDER, f"node {self.node_id}: cannot read {what} (0x{index:04X}:{sub:02X}):"
-                                      f" {why}", f"0x{index:04X}:{sub:02X}") from None
+                                      f" {_sdo_failure(e)}", f"0x{index:04X}:{sub:02X}") from None
 
     # ---- control
     def configure(self, request: RecordRequest) -> None:
