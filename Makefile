@@ -1,9 +1,10 @@
 # The two commands of the README: `make demo` and `make test`. Both create .venv and install the project when it
 # is missing or pyproject.toml changed (`make test` and the other targets also its dev extra): with uv (installed
 # into the venv first), which installs the same wheels as pip in a fraction of the time (measured here from empty
-# caches: 9 s, pip 53 s), or with pip where uv cannot be had. The planner's kernels (planner/jit.py) compile once per machine, about a
-# minute: `make test` compiles them first; a machine's first `make demo` plans with them interpreted (about 10 s
-# for the demo's job, NUMBA_DISABLE_JIT=1) so that motion shows at once, and compiles them after it.
+# caches: 9 s, pip 53 s), or with pip where uv cannot be had. The planner's kernels (planner/jit.py) compile once
+# per machine, about a minute: `make test` compiles them first; a machine's first `make demo` plans with them
+# interpreted (2-4 s for the demo's job, NUMBA_DISABLE_JIT=1) so that motion shows at once, and compiles them
+# after it.
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python

@@ -12,7 +12,7 @@ interpreter overhead whatever its size; compiled, the whole loop costs about wha
   compiling only what the demo needs would not save much). `make test` compiles them first
   (`python -m planner.plan`, which reports each kernel as it is compiled: `compiling`), a service when it
   starts (planner.plan.warm_up). A machine's first `make demo` plans with the kernels interpreted
-  (`NUMBA_DISABLE_JIT=1`, about 10 s for the demo's job) and compiles them after it, so that motion shows
+  (`NUMBA_DISABLE_JIT=1`: 2-4 s for the demo's job) and compiles them after it, so that motion shows
   within seconds of the install. The demo's child processes (bus/sim/process.py, bus/engine.py) import no
   kernel, so they never compile (tests/cli/test_first_run.py).
 - `nogil=True`: a kernel releases the GIL, so planning on one thread does not stall the streaming

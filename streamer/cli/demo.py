@@ -76,7 +76,7 @@ def guarantees(report: dict[str, Any], tolerance_counts: int) -> list[str]:
 PLANNING_LINE = ("pvt demo: planning the job (the first run on a machine compiles the planner's kernels first, "
                  "once, then they load from the cache in about a second)")
 INTERPRETED_LINE = ("pvt demo: planning the job with the planner's kernels interpreted (NUMBA_DISABLE_JIT=1: a "
-                    "machine's first `make demo`, which compiles them after the demo; about 10 s)")
+                    "machine's first `make demo`, which compiles them after the demo; a few seconds)")
 
 
 def planning_line() -> str:
