@@ -15,7 +15,11 @@ Exit status: 0 jogged and stopped (also when the position limit stopped it), 1 t
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from typing import Any
 
 from streamer.cli import connect
@@ -103,20 +107,43 @@ def _refusal(args: argparse.Namespace, status: dict[str, Any]) -> str:
     return ""
 
 
+@contextlib.contextmanager
+def _interrupt_flag() -> Iterator[threading.Event]:
+    """An event set by Ctrl-C (SIGINT) while in the block, instead of a KeyboardInterrupt. A KeyboardInterrupt
+    raised while the main thread waits inside the Zenoh binding (a status query) could be lost there, and the
+    jog would then run on to its software limit; a flag is seen at the next poll whatever the binding does with
+    the signal. Outside the main thread (no signal handler can be set there) the flag is never set and
+    KeyboardInterrupt keeps its meaning."""
+    flag = threading.Event()
+    try:
+        previous = signal.signal(signal.SIGINT, lambda _sig, _frame: flag.set())
+    except ValueError:  # not the main thread
+        yield flag
+        return
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _jog(client: Any, job: Any, args: argparse.Namespace, unit: str, say: Any, err: Any) -> int:
     """Wait while the jog runs (Ctrl-C or --for ends it), then halt it and wait until it has ended."""
     started: float | None = None
     interrupted = False
     try:
-        while True:
-            st = job.status()
-            if st.final:  # ended by itself: the position limit, a fault, or someone else's stop
-                return _ended(job, st, args, unit, say, err)
-            if st.state.value == "running" and started is None:
-                started = time.monotonic()
-            if args.for_s is not None and started is not None and time.monotonic() - started >= args.for_s:
-                break
-            time.sleep(POLL_S)
+        with _interrupt_flag() as ctrl_c:
+            while not ctrl_c.is_set():
+                st = job.status()
+                if ctrl_c.is_set():
+                    break
+                if st.final:  # ended by itself: the position limit, a fault, or someone else's stop
+                    return _ended(job, st, args, unit, say, err)
+                if st.state.value == "running" and started is None:
+                    started = time.monotonic()
+                if args.for_s is not None and started is not None and time.monotonic() - started >= args.for_s:
+                    break
+                ctrl_c.wait(POLL_S)
+            interrupted = ctrl_c.is_set()
     except KeyboardInterrupt:
         interrupted = True
     # stop it: a halt when it is the running job (the queue is not held), else a cancel of this job
