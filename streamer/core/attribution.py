@@ -17,7 +17,12 @@ The candidates for one TPDO of one node are the SYNCs it can answer:
   before its SYNC);
 - after `after`, the last SYNC this PDO of the node answered (once, in order), and for TPDO1 also after the
   last SYNC its TPDO2 answered (a drive sends a SYNC's TPDOs in PDO order, TPDO1 first);
-- not before `upper - REACH` (a few SYNCs: a starved SYNC sender puts several on the wire at once);
+- not before `upper - reach`: the SYNCs whose answers may still be on their way. The caller measures it on
+  the wire (streamer/core/feedback.py `_reach`): at least REACH, and every SYNC sent within the TPDO timeout
+  before the newest, so a sender that stalled and then put the SYNCs it owed on the wire back to back (or a
+  host that held the drives' answers up as long as the timeout allows) leaves the answers in reach. A reach
+  counted in SYNCs alone took the answer to SYNC k, arriving after a burst up to k + 4, for k + 1's: content
+  that fitted both (a FIFO's fill) was then one SYNC off, content that did not was a false PROTOCOL;
 - TPDO2 every n-th SYNC: only SYNCs whose counter carries the node (the feedback schedule, 0x1019).
 The order's choice is the earliest of them: with no answer lost it is the one (the drive answers every
 SYNC, in order). If the content fits it (or content has no say: the axis at rest, a state with nothing to
@@ -35,7 +40,7 @@ from collections.abc import Callable, Sequence
 
 from streamer.core.spool import Column, StoreFactory
 
-REACH = 3  # an answer can reach the master this many SYNCs after the newest on the wire, no more
+REACH = 3  # the least reach: an answer can reach the master this many SYNCs after the newest on the wire
 
 Fits = Callable[[int], bool | None]  # does the TPDO's content fit SYNC m? None: content has no say
 
@@ -60,15 +65,17 @@ def choose(options: Sequence[int], fits: Fits) -> int | None:
     return next((m for m in options[1:] if fits(m)), order)
 
 
-def attribute(upper: int, after: int, fits: Fits, *,
+def attribute(upper: int, after: int, fits: Fits, *, reach: int = REACH,
               scheduled: Callable[[int], bool] | None = None, schedule_reach: int = 0) -> int | None:
     """The SYNC a TPDO answers (see the module docstring). `after`: the last SYNC it cannot answer (the
-    last one this PDO of the node answered; for TPDO1 also its TPDO2's). `scheduled`/`schedule_reach`: a
-    PDO sent every n-th SYNC, with how far back its schedule looks (2n - 1)."""
+    last one this PDO of the node answered; for TPDO1 also its TPDO2's). `reach`: how many SYNCs before
+    `upper` it may answer. `scheduled`/`schedule_reach`: a PDO sent every n-th SYNC, with how far back its
+    schedule looks (2n - 1)."""
+    reach = max(reach, REACH)
     if scheduled is not None:
-        return choose(candidates(upper, after, reach=max(schedule_reach, REACH), scheduled=scheduled), fits)
+        return choose(candidates(upper, after, reach=max(schedule_reach, reach), scheduled=scheduled), fits)
     # `choose` over `candidates`, without building the list (this runs for every TPDO)
-    first = max(after + 1, upper - REACH)
+    first = max(after + 1, upper - reach)
     if first > upper:
         return None
     ok = fits(first)

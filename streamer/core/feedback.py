@@ -86,16 +86,33 @@ class Feedback(Sending):
                 )
             upper = sync_count
         fb = self._feedback
+        timeout = self._settings.tpdo_timeout_syncs
         if pdo == 2:
             if fb is not None and fb.every > 1:
                 counters, node = self._sync_counters, f.node_id
                 return attribution.attribute(
-                    upper, f.last_tpdo2, fits,
+                    upper, f.last_tpdo2, fits, reach=self._reach(upper, timeout * fb.every),
                     scheduled=lambda m: m in counters and fb.carries(node, counters[m]),
                     schedule_reach=2 * fb.every - 1)
-            return attribution.attribute(upper, f.last_tpdo2, fits)
+            return attribution.attribute(upper, f.last_tpdo2, fits, reach=self._reach(upper, timeout))
         # a SYNC's TPDO1 goes out before its TPDO2: a TPDO1 answers a SYNC after the one TPDO2 last answered
-        return attribution.attribute(upper, max(f.last_tpdo1, f.last_tpdo2), fits)
+        return attribution.attribute(upper, max(f.last_tpdo1, f.last_tpdo2), fits,
+                                     reach=self._reach(upper, timeout))
+
+    def _reach(self, upper: int, syncs: int) -> int:
+        """How many SYNCs before `upper` an answer arriving after it may answer: those on the wire within
+        `syncs` periods (the TPDO timeout: an answer not in by then is lost) before it, by their times on
+        the wire: SYNCs a stalled sender put out back to back all count, as the timeout does not count them
+        as silence either (attribution.REACH at least; the SYNCs the core still remembers at most)."""
+        times = self._wire_times
+        t_up = times.get(upper)
+        reach = attribution.REACH
+        if t_up is None:
+            return reach
+        window_s = (syncs + 0.5) * self._period / 1000.0
+        while (t := times.get(upper - reach - 1)) is not None and t_up - t <= window_s:
+            reach += 1
+        return reach
 
     def _progress_at(self, f: FifoFeeder, m: int, active: bool) -> tuple[bool, bool, int, int]:
         """(started, activated, least ms, most ms interpolated) of `f`'s drive at SYNC m, given whether it

@@ -181,7 +181,7 @@ class JobCore:
         self._first_sync: int | None = None
         self._sync_since: float | None = None  # when the SYNC's current run began (Sync.since, or our first)
         self._sync_times: dict[int, float] = {}  # recent SYNC count -> time sent
-        self._wire_times: dict[int, float] = {}  # fed ahead (`ahead_syncs`): recent SYNC count -> time on the wire
+        self._wire_times: dict[int, float] = {}  # recent SYNC count -> time on the wire
         self._sync_counters: dict[int, int | None] = {}  # recent SYNC count -> its counter byte
         self._t = 0.0
         self._last_sync_t: float | None = None

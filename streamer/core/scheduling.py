@@ -164,8 +164,13 @@ class Scheduler(OpenStream):
         self._last_sync_t = ev.t
         self._cycle_used_bits = 0.0
         self._extra_bits = self._budget.streamer_bits
-        if not self._settings.ahead_syncs and self._tpdo_overdue(m):
-            return
+        if not self._settings.ahead_syncs:
+            # fed as it goes out: its time is its time on the wire (SYNCs a stalled sender bunched are no
+            # silence of the drives)
+            self._wire_times[m] = ev.t
+            self._wire_times.pop(m - 64, None)
+            if self._tpdo_overdue(m, ev.t):
+                return
         if m == self._start_sync:
             for clock in self._clocks.values():
                 clock.start(m, ev.t)
