@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
+from wire_context import explain_failure
 
 from streamer import demo
 from streamer.cli import main as pvt
@@ -14,9 +15,9 @@ from streamer.cli.demo import guarantees
 from streamer.report import decode_candump
 
 
-def _check(report: dict, traj, out: Path, cell) -> None:
+def _check(report: dict, traj, out: Path, cell, trace=None) -> None:
     axes = report["axes"]
-    assert report["result"] == "done", report
+    assert report["result"] == "done", explain_failure(report, out, trace)
     assert len(axes) == traj.n_axes
     assert len({a["start_sync"] for a in axes}) == 1 and axes[0]["start_sync"] is not None
     low, high = cell.drive.underflow_warning, cell.drive.overflow_warning
@@ -87,5 +88,5 @@ def test_cli_demo_rejects_bad_bus_spec(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_demo_real_time_on_virtual_bus(tmp_path: Path) -> None:
     cell, _job, traj = demo.prepare(axes=6)
-    report, _trace = demo.run_realtime(cell, traj, tmp_path)
-    _check(report, traj, tmp_path, cell)
+    report, trace = demo.run_realtime(cell, traj, tmp_path)
+    _check(report, traj, tmp_path, cell, trace)

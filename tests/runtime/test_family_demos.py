@@ -20,6 +20,7 @@ from typing import Any
 import can
 import numpy as np
 import pytest
+from wire_context import explain_failure
 
 from bus.cob import SYNC_COB_ID
 from bus.families import setpoint_slots
@@ -106,7 +107,7 @@ def check_cyclic_wire(report: dict[str, Any], out: Path, cell: Any, traj: Any, t
 
 def check_family_demo(report: dict[str, Any], traj: Any, out: Path, cell: Any, trace: Any) -> None:
     axes = report["axes"]
-    assert report["result"] == "done", report
+    assert report["result"] == "done", explain_failure(report, out, trace)
     assert len({a["start_sync"] for a in axes}) == 1 and axes[0]["start_sync"] is not None
     for a, st in zip(axes, traj.stats, strict=True):
         assert a["errors"] == [], a
