@@ -26,8 +26,8 @@ import numpy as np
 from bus.sim.virtual import VirtualCell
 from planner.config import load_cell
 from planner.job import job_from_dict
+from planner.motion.stop import plan_change_from_wire, plan_stop_from_wire
 from planner.plan import plan_job
-from planner.stop import plan_change_from_wire, plan_stop_from_wire
 from streamer import demo
 from streamer.core.coordinator import Coordinator
 from streamer.core.plan_source import Change

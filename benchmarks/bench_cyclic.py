@@ -9,7 +9,7 @@ measured in this run, next to its baseline:
   axes to DONE and measures the busiest cycle;
 - deviation: the demo path on configs/xtrapuls.toml's axes, per axis, the drive's own interpolation at 10 ms
   in each sub-mode (linear, PV, P3) against the EPOS PVT encoding of the same plan (the baseline), in counts
-  at every ms (planner/cyclic.py, planner.hermite);
+  at every ms (planner/encoding/cyclic.py, planner.encoding.hermite);
 - timing: in real time (drives simulated in this process, python-can virtual bus), the share of set points
   that reached the bus less than 100 us before the SYNC that latches them (the XtrapulsPac's error 50), at
   2 and 10 ms, from the timestamps of bus.log.
@@ -91,7 +91,7 @@ def capacity() -> None:
 
 
 def deviation() -> None:
-    from planner import cyclic
+    from planner.encoding import cyclic
     from planner.job import load_job
     from planner.plan import plan_job
 

@@ -6,7 +6,7 @@ jobs of each kind (`--jobs`, default 200 per kind: paths, paths with sharp corne
 and small paths: 2-200 counts between waypoints, as in fine positioning).
 
 - points / uniform: the encoding's PVT points over those of the coarsest uniform grid that meets the same
-  tolerance on the same plan (planner/uniform.py: rounded values, checked at every ms). Target <= 1 for
+  tolerance on the same plan (planner/encoding/uniform.py: rounded values, checked at every ms). Target <= 1 for
   every job; <= 0.35 on moves and paths. `>1 (margins)` counts the jobs above the coarsest uniform grid
   that also keeps the planner's velocity/acceleration margins (what the property test guarantees).
 - duration / optimum: paths against raw toppra on the same geometric path (the blended segments, or the
@@ -16,7 +16,7 @@ and small paths: 2-200 counts between waypoints, as in fine positioning).
   up to 30 % too short). Moves against ruckig's continuous optimum along the line. Target <= 1.02.
 - planning time / raw toppra: plan + encode + verify (planner.plan_job) over raw toppra on the same
   path and gridpoints, CPU time of the thread (medians of interleaved runs for bench-20, with where
-  plan_job's time goes: time-optimal solves (planner/topp.py), chain fits, encodings, the rest; median, 90th
+  plan_job's time goes: time-optimal solves (planner/motion/topp.py), chain fits, encodings, the rest; median, 90th
   percentile and worst of single runs for the corpus paths). Target <= 1.5.
 - refused: the share of random jobs the planner rejects (every random job is feasible).
 """
@@ -35,12 +35,12 @@ from typing import Any
 import numpy as np
 
 from planner.config import CellConfig, load_cell
-from planner.encoder import Knots, planned_demand, reconstruct
+from planner.encoding.encoder import Knots, planned_demand, reconstruct
+from planner.encoding.uniform import coarsest_uniform
 from planner.errors import PlanningError
 from planner.job import Job, PathData, effective_limits, job_from_dict, job_to_dict, load_job, path_tolerance
 from planner.plan import _merge_close, axis_configs, axis_scales, lines_geometry, plan_job, snap, warm_up
 from planner.trajectory import PvtTrajectory
-from planner.uniform import coarsest_uniform
 
 ROOT = Path(__file__).resolve().parent.parent
 LATENCY_RUNS = 11
@@ -74,8 +74,8 @@ def uniform_points(job: Job, cell: CellConfig, traj: PvtTrajectory, margins: boo
 
 def path_geometry(job: Job, cell: CellConfig) -> list[Any]:
     """The geometric path(s) the planner traverses for this path job (its runs between exact stops)."""
-    from planner.encoder import segment_bounds
-    from planner.path import SplineGeometry
+    from planner.encoding.encoder import segment_bounds
+    from planner.motion.path import SplineGeometry
 
     assert isinstance(job.data, PathData)
     lim = effective_limits(job, cell)
@@ -99,7 +99,7 @@ def raw_toppra(job: Job, cell: CellConfig, *, refine: bool = True) -> tuple[floa
     from toppra.algorithm import TOPPRA
     from toppra.constraint import JointAccelerationConstraint, JointVelocityConstraint
 
-    from planner.topp import toppra_path
+    from planner.motion.topp import toppra_path
 
     lim = effective_limits(job, cell)
     vlim, alim = lim["velocity"], lim["acceleration"]
@@ -248,12 +248,12 @@ def measure(job: Job, cell: CellConfig) -> dict[str, Any]:
 
 def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, float]:
     """Median plan_job time against raw toppra's (interleaved runs), and where plan_job's time goes: its
-    time-optimal solves, chain fits and encodings, timed by wrapping planner.topp.solve,
-    planner.chain.fit_chain and planner.pipeline.encode during the measurement. CPU time of this thread
+    time-optimal solves, chain fits and encodings, timed by wrapping planner.motion.topp.solve,
+    planner.encoding.chain.fit_chain and planner.pipeline.encode during the measurement. CPU time of this thread
     (time.thread_time) throughout: on a shared machine, wall time also counts the other processes."""
-    import planner.chain
+    import planner.encoding.chain
+    import planner.motion.topp
     import planner.pipeline
-    import planner.topp
 
     spent: dict[str, float] = {"topp": 0.0, "chain": 0.0, "encode": 0.0}
 
@@ -268,8 +268,8 @@ def latency(cell: CellConfig, job: Job, runs: int = LATENCY_RUNS) -> dict[str, f
         return run
 
     patches = [
-        (planner.topp, "solve", "topp"),
-        (planner.chain, "fit_chain", "chain"),
+        (planner.motion.topp, "solve", "topp"),
+        (planner.encoding.chain, "fit_chain", "chain"),
         (planner.pipeline, "encode", "encode"),
     ]
     plan_job(job, cell)  # warm up imports and caches
@@ -332,7 +332,7 @@ def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]
 def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     """Duration (s) of the jerk-limited moves (ruckig, along the line) from waypoint to waypoint, stopping at
     every corner: what a user gets today who wants the jerk limits kept along a path."""
-    from planner.jerk import move_reference
+    from planner.motion.jerk import move_reference
 
     lim = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in axis_configs(job.axes, cell)])
@@ -346,11 +346,11 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
 
 def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> int | None:
     """Points of the coarsest uniform grid that meets the tolerance and keeps the same jerk bound as the
-    encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/continuity.py's
+    encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/encoding/continuity.py's
     `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`);
     None when none of the `tries` coarsest grids that meet the tolerance does."""
-    from planner.continuity import smooth_values, worst_ratio
-    from planner.uniform import uniform_knots
+    from planner.encoding.continuity import smooth_values, worst_ratio
+    from planner.encoding.uniform import uniform_knots
 
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
     jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
@@ -467,12 +467,12 @@ UNIT_TIMES = (10, 20, 30, 50, 75, 100, 150, 200, 255)
 
 def cruise_floor(cpu: float, jerk: float, acc: float, counts_per_rev: int, t_ms: int, tol: float,
                  segments: int = 24) -> float:
-    """Largest knot step / (J x 1 ms) that the knot values' search (planner/continuity.py) leaves on a
+    """Largest knot step / (J x 1 ms) that the knot values' search (planner/encoding/continuity.py) leaves on a
     cruise at n + f rpm (the worst f of 0, 0.1, .., 0.5) on knots every `t_ms` ms; inf: no values keep the
     tolerance and the jerk (+5 %)."""
-    from planner import hermite
-    from planner.continuity import _axis, knot_steps
-    from planner.reconstruction import AxisScales
+    from planner.encoding import hermite
+    from planner.encoding.continuity import _axis, knot_steps
+    from planner.encoding.reconstruction import AxisScales
 
     q = counts_per_rev / 60000.0
     bound = jerk * cpu / 1.0e9
@@ -500,7 +500,7 @@ def cruise_free_times(cpu: float, jerk: float, counts_per_rev: int, x_rpm: float
     """The smallest largest knot step / (J x 1 ms) over a cruise at `x_rpm` when the knot *times* are free
     too (whole ms, segments of lo..hi ms; whole counts within `tol` of the plan; the two rpm around x;
     in-segment jerk within 1.05 J): a bottleneck shortest path over pairs of knots. Slow (tens of s)."""
-    from planner import hermite
+    from planner.encoding import hermite
 
     q = counts_per_rev / 60000.0
     bound = jerk * cpu / 1.0e9
@@ -545,8 +545,8 @@ def cruise_free_times(cpu: float, jerk: float, counts_per_rev: int, x_rpm: float
 
 
 def print_units(cell: CellConfig, free_times: bool) -> None:
-    from planner.continuity import knot_step_units
-    from planner.reconstruction import AxisScales
+    from planner.encoding.continuity import knot_step_units
+    from planner.encoding.reconstruction import AxisScales
 
     print("the drive's units against the knot step bound J x 1 ms, per axis and segment length T (ms): "
           "1 count of a neighbour's position / 1 rpm of the knot's own velocity, over the bound; then the "

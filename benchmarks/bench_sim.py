@@ -20,9 +20,9 @@ from dataclasses import replace
 
 from bus import cob, codec
 from bus.sim.virtual import VirtualCell
-from planner import record
 from planner.config import CellConfig, load_cell
-from planner.hermite import counts_per_ms_to_rpm
+from planner.encoding import record
+from planner.encoding.hermite import counts_per_ms_to_rpm
 
 AMPLITUDE_COUNTS = 30_000.0
 PERIOD_S = 2.0

@@ -25,8 +25,8 @@ from collections.abc import Callable
 
 from bus.cob import classify, pack_tpdo1, pack_tpdo2, unpack_controlword, unpack_tpdo1, unpack_tpdo2
 from bus.events import BufferStatus, PositionFeedback, Send, Sync
-from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
-from planner.record import PvtRecord, unpack
+from planner.encoding.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
+from planner.encoding.record import PvtRecord, unpack
 from streamer.core import Coordinator, JobState, StreamerSettings, StreamPlan
 
 CPR = 8192

@@ -1,4 +1,4 @@
-"""Travel-command planning time (planner/travel.py, planner/stop.py), as ratios against the planner's own
+"""Travel-command planning time (planner/motion/travel.py, planner/motion/stop.py), as ratios against the planner's own
 stop measured in the same run (`python -m benchmarks travel`, part of `make bench`).
 
 The streaming side plans these while a motion runs, from the state at the end of what is queued: the
@@ -34,9 +34,9 @@ import numpy as np
 
 from planner.config import load_cell
 from planner.job import job_from_dict
+from planner.motion.stop import plan_emergency_stop_from_wire, plan_stop_from_wire
+from planner.motion.travel import MotionState, extend_velocity, plan_velocity
 from planner.plan import plan_job, warm_up
-from planner.stop import plan_emergency_stop_from_wire, plan_stop_from_wire
-from planner.travel import MotionState, extend_velocity, plan_velocity
 
 ROOT = Path(__file__).resolve().parent.parent
 RUNS = 15
@@ -84,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         lambda: plan_job(absolute, cell, start=here),
     ], runs)
     # the emergency stop from EMERGENCY_STATES random states (velocities and accelerations up to the limits):
-    # its steep jerk makes the encoder work harder on some of them (planner/stop.py)
+    # its steep jerk makes the encoder work harder on some of them (planner/motion/stop.py)
     rng = np.random.default_rng(5)
     cpu = move.counts_per_unit
     conv = move.counts_per_rev / 60000.0

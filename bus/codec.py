@@ -13,7 +13,7 @@ mode (seed 000 chapter 4, seed 001):
 - the bit length of a classic 11-bit CAN frame with worst-case bit stuffing (`frame_bits`) for
   bus-load accounting.
 
-The PVT record 0x20C1 itself is `planner.record` (the one codec for it). Every decoder either returns
+The PVT record 0x20C1 itself is `planner.encoding.record` (the one codec for it). Every decoder either returns
 a value or raises `ProtocolError`; nothing else escapes, nothing wraps silently.
 """
 

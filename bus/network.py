@@ -252,7 +252,7 @@ class MasterAdapter:
 
     def survey(self, node_id: int) -> tuple[int, ...]:
         """The optional objects a drive lacks; checks an EPOS' interpolation period (0x60C2) is 1 ms, the
-        tick the product's interpolation model (planner.hermite) assumes. Raises BusError for anything else."""
+        tick the product's interpolation model (planner.encoding.hermite) assumes. Raises BusError for anything else."""
         profile = self.profiles[node_id]
         self.read(node_id, profile.obj("device_type").index)
         absent: list[int] = []

@@ -38,7 +38,7 @@ from enum import Enum
 from bus import cob, codec
 from bus.codec import Frame
 from bus.profile import DriveProfile, FeedbackSchedule
-from planner import record
+from planner.encoding import record
 from planner.readings import OPEN_POINTS, OPTIONAL_OBJECTS, DriveReadings
 
 CW_ENABLE_OPERATION = 0x000F

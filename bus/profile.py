@@ -327,9 +327,9 @@ class DriveProfile:
         return False
 
     def submode(self, axis: AxisConfig) -> str:
-        """The interpolation the drive applies to the stream (planner/cyclic.py): "pvt" for the EPOS
+        """The interpolation the drive applies to the stream (planner/encoding/cyclic.py): "pvt" for the EPOS
         FIFO, "linear", "pv" or "p3" for one set point per SYNC."""
-        from planner.cyclic import interpolation_of
+        from planner.encoding.cyclic import interpolation_of
 
         return interpolation_of(axis) or "pvt"
 

@@ -1,11 +1,11 @@
 """Pure math, no I/O: cell configs and jobs -> time-optimal trajectories -> PVT points.
 
-Public API (imported lazily, so `import planner.record` stays cheap for the bus layer):
+Public API (imported lazily, so `import planner.encoding.record` stays cheap for the bus layer):
 
     planner.plan_job(job, cell, *, start=None) -> PvtTrajectory
     planner.PvtTrajectory, planner.AxisStats
     planner.Job, planner.job_from_dict, planner.job_to_dict, planner.load_job
-    planner.plan_stop (also planner.stop.plan_stop), planner.plan_stop_from_wire
+    planner.plan_stop (also planner.motion.stop.plan_stop), planner.plan_stop_from_wire
     planner.warm_up() (load the compiled kernels and the solvers ahead of the first job)
 """
 
@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from planner.job import Job, job_from_dict, job_to_dict, load_job
+    from planner.motion.stop import plan_stop, plan_stop_from_wire
     from planner.plan import plan_job, warm_up
-    from planner.stop import plan_stop, plan_stop_from_wire
     from planner.trajectory import AxisStats, PvtTrajectory
 
 _EXPORTS = {
@@ -28,8 +28,8 @@ _EXPORTS = {
     "job_from_dict": "planner.job",
     "job_to_dict": "planner.job",
     "load_job": "planner.job",
-    "plan_stop": "planner.stop",
-    "plan_stop_from_wire": "planner.stop",
+    "plan_stop": "planner.motion.stop",
+    "plan_stop_from_wire": "planner.motion.stop",
 }
 
 __all__ = [

@@ -114,7 +114,7 @@ class AxisConfig:
     ip_submode: str = "pv"
     mux_group: int = 0
     unit: str = DEFAULT_UNIT  # the user unit's name ("rad", "mm", ...): labels of tables and plots
-    # travel commands (seed 002, planner/travel.py): a modulo axis' period (user units; 0 = not a modulo axis)
+    # travel commands (seed 002, planner/motion/travel.py): a modulo axis' period (user units; 0 = not a modulo axis)
     # and its tolerance window (+- user units around a modulo target, 8020:0F); the emergency stop's
     # deceleration (user units/s^2; 0 = the default, `emergency_stop_deceleration`); the target window
     # (user units; 0 = the default, `target_window_user`) and the in-target timeout the streaming side

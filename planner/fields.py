@@ -20,7 +20,7 @@ import numpy as np
 
 from planner.config import check_name
 from planner.errors import AXIS_COUNT, LIMITS, NONFINITE, SCHEMA, TOO_LARGE, TYPE, PlanningError
-from planner.reference import FloatArray
+from planner.motion.reference import FloatArray
 
 MAX_EXACT_INT = 2**53  # larger integers are not exact as float64 (TYPE)
 MAX_TEXT = 1000  # characters of a free text field (description)

@@ -15,7 +15,7 @@ Kinds (docs/formats.md has the full schema):
          per axis, user units, >= 0; default `DEFAULT_PATH_TOLERANCE_SHARE` of each axis' travel), or
          through a spline with `geometry = "spline"`;
 - move:  `target = [...]`, `mode` (absolute, relative, additive, modulo_short/plus/minus/current: how the
-         target is read, planner/travel.py), optional `start = [...]` (where the axes are assumed to stand
+         target is read, planner/motion/travel.py), optional `start = [...]` (where the axes are assumed to stand
          when the caller gives no current position): jerk-limited point to point; or `mode = "velocity"`
          with `velocity = [...]` (signed, user units/s): endless travel, planned open-ended; optional
          `ramps = {accel_ms, decel_ms}` (seed 002's ramp times for 0 -> 100 % of the axis' velocity
@@ -46,6 +46,7 @@ from typing import Any, Literal, cast
 import numpy as np
 
 from planner.config import HOMING_METHODS, AxisConfig, CellConfig
+from planner.encoding.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
 from planner.errors import (
     AXIS_COUNT,
     AXIS_ID,
@@ -74,8 +75,7 @@ from planner.fields import (
     read_vector,
     show,
 )
-from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS, VELOCITY_MAX, VELOCITY_MIN
-from planner.reference import FloatArray
+from planner.motion.reference import FloatArray
 
 Kind = Literal["path", "move", "timed", "pvt", "home"]
 KINDS: tuple[str, ...] = ("path", "move", "timed", "pvt", "home")
@@ -151,7 +151,7 @@ class PathData:
     geometry: Literal["lines", "spline"] = "lines"
     path_tolerance: tuple[float, ...] | None = None  # per axis, user units; None = the default
     scalar_tolerance: bool = False  # given as one number (kept for job_to_dict)
-    # keep every axis' jerk limit (planner/jerkpath.py); None: the default (`jerk_limited_default`)
+    # keep every axis' jerk limit (planner/motion/jerkpath.py); None: the default (`jerk_limited_default`)
     jerk_limited: bool | None = None
 
 

@@ -19,10 +19,10 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from planner.config import AxisConfig, CellConfig
-from planner.encoder import EncodingFailed, EncodingNeedsTime, encode
+from planner.encoding.encoder import EncodingFailed, EncodingNeedsTime, encode
+from planner.encoding.reconstruction import AxisScales, Knots, Reconstruction, acceleration_excess, planned_demand
 from planner.errors import ENCODING_RANGE, INFEASIBLE, PlanningError
-from planner.reconstruction import AxisScales, Knots, Reconstruction, acceleration_excess, planned_demand
-from planner.reference import FloatArray, IntArray, Reference
+from planner.motion.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, CruiseState, PvtTrajectory
 
 # attempts at encoding a planned motion: the placements (3, or 4 with a path's smooth plan), then slower

@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planner.config import AxisConfig, CellConfig
-from planner.cyclic import with_cyclic_stats
-from planner.encoder import ACC_EXCESS_LIMIT, load_kernels, segment_bounds
+from planner.encoding.cyclic import with_cyclic_stats
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, load_kernels, segment_bounds
+from planner.encoding.reconstruction import reconstruct
 from planner.errors import INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
 from planner.job import (
     MAX_DURATION_S,
@@ -43,14 +44,13 @@ from planner.job import (
     jerk_limited,
     path_tolerance,
 )
+from planner.motion.reference import FloatArray, Reference
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
-from planner.reconstruction import reconstruct
-from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
 
 if TYPE_CHECKING:
-    from planner.geometry import PiecewisePath
-    from planner.path import ChainSpec
+    from planner.motion.geometry import PiecewisePath
+    from planner.motion.path import ChainSpec
 
 TINY_PATH_COUNTS = 1.0  # a path whose every axis spans less than this is planned as a straight move
 MIN_BLEND_SEGMENTS = 3.0  # a blend shorter than this many shortest segments is an exact stop (geometry)
@@ -79,13 +79,13 @@ def plan_job(
     moves are relative to it); path, timed and pvt jobs start at their first row, which must then be
     within `tolerance_counts` of it (the first row is replaced by `start` so knot 0 is the drive's
     position). Without `start`, a move starts at its `start` field, else at 0. `last_target` and
-    `last_direction` serve the additive and modulo_current modes (planner/travel.py). A velocity move is
+    `last_direction` serve the additive and modulo_current modes (planner/motion/travel.py). A velocity move is
     planned open-ended from rest there (`travel.plan_velocity`, which also takes a moving start).
     `max_segment_ms` bounds the PVT segments (a job with a short lead: `StreamerSettings.segment_cap_ms`).
     """
     d0 = job.data
     if isinstance(d0, MoveData) and d0.mode == "velocity":
-        from planner.travel import MotionState, plan_velocity
+        from planner.motion.travel import MotionState, plan_velocity
 
         rest = None
         if start is not None:
@@ -124,7 +124,7 @@ def plan_job(
             first, last = wp[0], wp[-1]
 
             def build(f: float, smooth: bool = False) -> Reference:
-                from planner.jerk import move_reference
+                from planner.motion.jerk import move_reference
 
                 return move_reference(
                     first,
@@ -158,10 +158,10 @@ def plan_job(
             smooth_differs = not jerk  # a jerk-limited plan has no smoother variant
 
             def build(f: float, smooth: bool = False) -> Reference:
-                from planner.path import SplineGeometry, plan_path
+                from planner.motion.path import SplineGeometry, plan_path
 
                 if jerk:
-                    from planner.jerkpath import plan_jerk_path
+                    from planner.motion.jerkpath import plan_jerk_path
 
                     ref, path_info = plan_jerk_path(
                         runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
@@ -176,7 +176,7 @@ def plan_job(
                     info["jerk_stops"] = 0.0
                     if runs is not None:
                         # along the segments: stopping at every corner with jerk-limited moves, where faster
-                        from planner.jerkpath import stop_at_corners
+                        from planner.motion.jerkpath import stop_at_corners
 
                         stops = stop_at_corners(wp, cpu, limits["velocity"], limits["acceleration"],
                                                 limits["jerk"], time_scale=f, max_duration_s=MAX_DURATION_S)
@@ -207,8 +207,8 @@ def plan_job(
             check_relative_target(origin, d.target, job.axes, cfg, "current position" if here is not None else "start")
         if d.mode in ("absolute", "relative"):
             target = origin + np.array(d.target) if d.mode == "relative" else np.array(d.target)
-        else:  # additive, modulo: what the target means (planner/travel.py)
-            from planner.travel import resolve_target
+        else:  # additive, modulo: what the target means (planner/motion/travel.py)
+            from planner.motion.travel import resolve_target
 
             target = resolve_target(job, cell, origin, last_target, last_direction=last_direction)
         _check_within(target, cfg, job.axes, "target")
@@ -216,7 +216,7 @@ def plan_job(
         _check_duration_bound(np.abs(b - a), limits["velocity"])
 
         def build(f: float, smooth: bool = False) -> Reference:
-            from planner.jerk import move_reference
+            from planner.motion.jerk import move_reference
 
             return move_reference(
                 a,
@@ -239,7 +239,7 @@ def plan_job(
         times = np.array(d.times)
 
         def build(f: float, smooth: bool = False) -> Reference:
-            from planner.timed import check_user_timing, timed_reference
+            from planner.motion.timed import check_user_timing, timed_reference
 
             ref = timed_reference(times, pos, cpu)
             check_user_timing(ref, scales.velocity_limit, scales.acceleration_limit, job.axes, cpu)
@@ -263,7 +263,7 @@ def plan_job(
             _check_start(here, pos[0], cpu, tol, job.axes, "positions[0]")
             pos[0] = here
         pos[0], pos[-1] = snap(pos[0], cpu), snap(pos[-1], cpu)
-        from planner.timed import check_user_timing, pvt_reference
+        from planner.motion.timed import check_user_timing, pvt_reference
 
         pvt_ref, _rows_ms = pvt_reference(np.array(d.times), pos, vel, cpu)
         # the rows' own Hermite may exceed the limits; quantisation adds up to the 5 % excess budget
@@ -307,8 +307,8 @@ def plan_job(
     if isinstance(d, MoveData):
         info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
     if info.get("jerk_limited", 0.0) == 1.0:
-        # the knot values re-chosen so that the drive's acceleration stays continuous (planner/continuity.py)
-        from planner.continuity import smooth_values
+        # the knot values re-chosen so that the drive's acceleration stays continuous (planner/encoding/continuity.py)
+        from planner.encoding.continuity import smooth_values
 
         smoothed = smooth_values(ref, knots, scales, float(tol), limits["jerk"] * cpu / 1.0e9)
         if smoothed is not knots:
@@ -423,8 +423,8 @@ def lines_geometry(
     box: tuple[FloatArray, FloatArray],
     info: dict[str, float],
 ) -> tuple[list[PiecewisePath], ChainSpec]:
-    """The straight segments with blended corners (planner/geometry.py) for a path job, and how the
-    plan becomes a Hermite chain (planner/chain.py).
+    """The straight segments with blended corners (planner/motion/geometry.py) for a path job, and how the
+    plan becomes a Hermite chain (planner/encoding/chain.py).
 
     What the encoding may add (the drive's rounded demand within `tolerance_counts` of the rounded
     plan, half a count of rounding, half a count of snapping the end points) is taken off the path
@@ -432,8 +432,8 @@ def lines_geometry(
     is exact (its corners are stops). Of the rest, `BLEND_SHARE` goes to the blends and the remainder
     to the chain's deviation from the exact profile.
     """
-    from planner.geometry import blended_runs
-    from planner.path import ChainSpec
+    from planner.motion.geometry import blended_runs
+    from planner.motion.path import ChainSpec
 
     margin = (tolerance_counts + 1.0) / cpu
     free = path_tolerance - margin
@@ -508,8 +508,8 @@ def compile_all(out: Callable[[str], None] = print) -> int:
 
     from planner.jit import KERNELS, compiling
 
-    for info in pkgutil.iter_modules([str(Path(__file__).parent)]):  # every kernel registered, for the total
-        importlib.import_module(f"planner.{info.name}")
+    for info in pkgutil.walk_packages([str(Path(__file__).parent)], prefix="planner."):  # every kernel registered
+        importlib.import_module(info.name)
     t0, seen = time.monotonic(), set[str]()
 
     def done(name: str) -> None:
@@ -528,7 +528,7 @@ def compile_all(out: Callable[[str], None] = print) -> int:
 
 
 if __name__ == "__main__":
-    print("compiling the planner's kernels (once per machine; cached beside planner/*.py for every later process)",
+    print("compiling the planner's kernels (once per machine; cached for every later process)",
           flush=True)
     from planner.plan import compile_all as _compile_all  # this file runs as __main__: the kernels are planner's
 

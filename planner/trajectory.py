@@ -3,7 +3,7 @@
 Theory of operation. This is the planner's product and the streamer's input. It holds the knots
 exactly as they go on the wire (positions int32 counts, velocities int24 rpm, one shared list of
 segment times 1..255 ms), the plan they were encoded from (the `Reference`, every ms, in counts) and
-per-axis statistics measured on the drive's own reconstruction (planner.hermite). Everything else
+per-axis statistics measured on the drive's own reconstruction (planner.encoding.hermite). Everything else
 is derived: records per axis (N records then the end record), the plan and the reconstruction at
 any time, the drive's position demand at every ms, and the state at any knot (for the stop planner).
 
@@ -11,7 +11,7 @@ Deviation is measured in whole counts: drive demand (the Hermite rounded as the 
 planned demand (the plan rounded the same way), at every ms of every axis; the encoder guarantees it
 is within `tolerance_counts`. Against the unrounded plan that is within tolerance + 0.5 counts.
 
-Open-ended trajectories (a velocity move, planner/travel.py) end moving: `open_end` holds the cruise they end
+Open-ended trajectories (a velocity move, planner/motion/travel.py) end moving: `open_end` holds the cruise they end
 in (`CruiseState`, below: the trajectory carries it, so it lives here), their last knot has the cruise
 velocity, and `records()` leaves out the end record (time 0 would end the drive's interpolation): the streamer
 sends the records of `travel.extend_velocity(traj)` next, whose knot 0 is exactly this trajectory's last knot.
@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from planner import hermite
 from planner.config import AxisConfig, CellConfig
+from planner.encoding import hermite
+from planner.encoding.record import PvtRecord, pack
 from planner.errors import ENCODING_RANGE, PlanningError
-from planner.record import PvtRecord, pack
-from planner.reference import FloatArray, IntArray, Reference
+from planner.motion.reference import FloatArray, IntArray, Reference
 
-DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension, planner/travel.py)
+DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension, planner/motion/travel.py)
 _RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
 
 CSV_COLUMNS = ("axis", "node_id", "index", "time_s", "dt_ms", "position_counts", "velocity_rpm")
@@ -58,7 +58,7 @@ class AxisStats:
     drive_acceleration_limit: float  # 0x60C5, user units/s^2
     acceleration_excess: float  # max over segments of reconstruction peak - planned peak, user units/s^2
     acceleration_excess_share: float  # acceleration_excess / axis_acceleration_limit
-    # how the axis' drive interpolates what it is sent (planner/cyclic.py): "pvt" (EPOS FIFO, the
+    # how the axis' drive interpolates what it is sent (planner/encoding/cyclic.py): "pvt" (EPOS FIFO, the
     # deviations above are the encoder's), or "linear" / "pv" / "p3" (one set point per SYNC period
     # `setpoint_period_ms`; the deviations above are then the drive's interpolation against the plan, and
     # `interpolation_alternatives` the deviation the other sub-modes would make)
@@ -249,7 +249,7 @@ class PvtTrajectory:
         """(positions, velocities, accelerations) of all axes at knot k, user units (/s, /s^2).
 
         Position and velocity are the knot's wire values; the acceleration is the drive's Hermite
-        acceleration at the end of segment k (0 at knot 0). Feed this to planner.stop.plan_stop to stop
+        acceleration at the end of segment k (0 at knot 0). Feed this to planner.motion.stop.plan_stop to stop
         from the end of what is queued.
         """
         if not 0 <= k <= self.n_segments:
@@ -311,7 +311,7 @@ class PvtTrajectory:
 @dataclass(frozen=True)
 class CruiseState:
     """Where an open-ended velocity move stands at the end of a chunk, and what extending it needs
-    (planner/travel.py plans and extends the chunks).
+    (planner/motion/travel.py plans and extends the chunks).
 
     Cruise knots lie at `position_at(e)` for e ms since the anchor, exactly (integers): see the module
     docstring. `elapsed_ms` is the cruise time at the end of the trajectory that carries this state.

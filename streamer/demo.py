@@ -119,7 +119,7 @@ def whole_stream(first: PvtTrajectory, chunks: list[PvtTrajectory], core: Coordi
         return first
     import numpy as np
 
-    from planner.reference import Reference
+    from planner.motion.reference import Reference
 
     parts = [first, *used]
     offsets = {dropped + j: offset for j, (offset, _plan) in enumerate(pieces)}
@@ -242,7 +242,7 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
 
         rt = VirtualRuntime(cell, vcell=vcell, log=log)
         wall0 = time.time()  # virtual time starts at 0: the recording's wall clock is the run's start
-        from planner.travel import extend_velocity
+        from planner.motion.travel import extend_velocity
 
         kept = KeptChunks(extend_velocity)
         started: list[Any] = []

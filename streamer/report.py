@@ -10,7 +10,7 @@ two ways and the larger is reported:
   plan rounded as the drive rounds. Each sample is taken at the SYNC the streamer core attributed it to
   (`JobReport.feedback`, streamer/core/attribution.py: by what it contains), never by when it arrived: a
   drive that answers late has its answers reach the master after the next SYNC.
-An axis whose drive takes one set point per SYNC (planner/cyclic.py) is measured the same two ways: at every
+An axis whose drive takes one set point per SYNC (planner/encoding/cyclic.py) is measured the same two ways: at every
 ms from the set points the core sent (`setpoints`, which `decode_setpoints` reads back from the candump),
 through the drive's own interpolation, and at every SYNC from its reported demand.
 """
@@ -27,10 +27,10 @@ import numpy as np
 
 from bus.cob import RPDO2_BASE
 from bus.profile import SetpointSlot
-from planner import cyclic
 from planner.config import DEFAULT_UNIT
+from planner.encoding import cyclic
+from planner.encoding.record import PvtRecord, unpack
 from planner.readings import DriveReadings
-from planner.record import PvtRecord, unpack
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import JobReport
 from streamer.core.settings import REFERENCE_READINGS

@@ -1,16 +1,16 @@
 """The streamer core's stop and change planners, backed by the planner's jerk-limited motions (ruckig).
 
 The core asks for a stop from the state at the end of what is queued, in drive units (counts, rpm,
-counts/ms^2, see `StopRequest`); `planner.stop.plan_stop_from_wire` plans it from exactly those wire
+counts/ms^2, see `StopRequest`); `planner.motion.stop.plan_stop_from_wire` plans it from exactly those wire
 values, so knot 0 of the stop is the queued knot to the count and the rpm. Planning runs on whatever
 thread handles the cancel (a stop for 6 axes plans in a few ms; the core has a SYNC period of margin
 per queued record).
 
 The emergency stop (`make_emergency_planner`, fed as `streamer.core.EmergencyStop`) is the same stop at each
-axis' emergency deceleration (`planner.stop.plan_emergency_stop_from_wire`).
+axis' emergency deceleration (`planner.motion.stop.plan_emergency_stop_from_wire`).
 
 A change (a new target while the axes move, `streamer.core.Change`) is asked for the same state and
-planned by `planner.stop.plan_change_from_wire` to the new target; `ChangePlanner` keeps what it planned
+planned by `planner.motion.stop.plan_change_from_wire` to the new target; `ChangePlanner` keeps what it planned
 (the trajectory, the axes that overrun their target, the planning time) for the job that asked.
 """
 
@@ -20,13 +20,13 @@ import time
 from collections.abc import Callable, Sequence
 
 from planner.config import CellConfig
-from planner.stop import ChangePlan, plan_change_from_wire, plan_emergency_stop_from_wire, plan_stop_from_wire
+from planner.motion.stop import ChangePlan, plan_change_from_wire, plan_emergency_stop_from_wire, plan_stop_from_wire
 from planner.trajectory import PvtTrajectory
 from streamer.core.plan_source import StopPlanner, StopRequest
 
 
 def _wire_planner(cell: CellConfig, traj: PvtTrajectory, plan_from_wire: Callable[..., PvtTrajectory]) -> StopPlanner:
-    """A core StopPlanner calling `plan_from_wire` (planner/stop.py) with the request's state in drive units."""
+    """A core StopPlanner calling `plan_from_wire` (planner/motion/stop.py) with the request's state in drive units."""
     names_by_node = dict(zip(traj.node_ids, traj.axis_names, strict=True))
 
     def plan(request: StopRequest) -> PvtTrajectory:

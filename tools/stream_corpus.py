@@ -139,7 +139,7 @@ def run_case(cell: CellConfig, traj: PvtTrajectory, events: Sequence[tuple[int, 
             out.append(pending.pop(0)[1](cell, traj, t))
         return out
 
-    from planner.travel import extend_velocity
+    from planner.motion.travel import extend_velocity
 
     kept = demo.KeptChunks(extend_velocity)
     result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), feed=feed, extender=kept)

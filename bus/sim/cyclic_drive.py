@@ -30,7 +30,7 @@ from typing import Any
 
 from bus.sim.device import DriveDevice, Source
 from bus.sim.od import Key
-from planner import hermite
+from planner.encoding import hermite
 
 Poly = tuple[float, float, float, float]  # p(s) = a0 + a1 s + a2 s^2 + a3 s^3
 

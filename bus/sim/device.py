@@ -47,8 +47,8 @@ from bus.sim.data_recorder import DataRecorder
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key
 from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, _first_violation
-from planner import hermite
 from planner.config import AxisConfig, DriveSettings
+from planner.encoding import hermite
 from planner.readings import SimDriveOptions
 
 __all__ = [

@@ -4,7 +4,7 @@ seed 001), on the shared CiA 402 drive (bus/sim/device.py).
 What this family adds: the FIFO of PVT records 0x20C1 (fed by an asynchronous RPDO or SDO), the buffer
 status 0x20C4:01 (warnings against the watermarks 0x20C4:02/03, latched errors, buffer enabled, ip mode
 active), 0x60C4 (free size, buffer position, buffer clear), activation by the controlword's bit 4 rising
-edge (>= 2 records, else the underflow error), one cubic Hermite segment per record (planner.hermite:
+edge (>= 2 records, else the underflow error), one cubic Hermite segment per record (planner.encoding.hermite:
 the very formula the encoder verifies with), the end record (time 0), underflow and overflow errors,
 the ip velocity/acceleration warnings and errors against 0x6081/0x607F and 0x6083/0x60C5, and halt
 (bit 8) with the profile deceleration. The readings of the manuals' open points (`fifo_count`,
@@ -54,9 +54,9 @@ from bus.sim.data_recorder import (
 from bus.sim.device import DriveDevice, Source, _first_violation
 from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key, SdoAbort
-from planner import hermite, record
 from planner.config import HOMING_METHODS
-from planner.record import PvtRecord
+from planner.encoding import hermite, record
+from planner.encoding.record import PvtRecord
 
 IP_MODE = 7
 

@@ -6,7 +6,7 @@ motor model (bus/sim/motor.py: friction, inertia; the discretised constants `Loo
 power stage off the motor coasts down on friction and the demand follows the actual position.
 
 The demand comes from a source: a list of per-tick demands being played (`Source`): an interpolation
-segment (a cubic over n ticks, planner.hermite, rounded as the drive rounds), a stop ramp (halt, quick
+segment (a cubic over n ticks, planner.encoding.hermite, rounded as the drive rounds), a stop ramp (halt, quick
 stop, fault reaction: from the current demand velocity at a deceleration), or a homing search
 (bus/sim/homing_mode.py). Without a source the demand holds. Work that need not be per tick is done per
 source: the demand list is computed once, the family's limit crossings are found once per segment and
@@ -36,7 +36,7 @@ from bus.sim.data_recorder import TRIGGER_END, DataRecorder
 from bus.sim.motor import LoopConstants, MotorParams
 from bus.sim.od import Key
 from bus.sim.pdo import PdoLayer
-from planner import hermite
+from planner.encoding import hermite
 
 ST = Cia402State
 MAX_RAMP_TICKS = 600_000  # a stop ramp longer than 10 min of drive time ends with an abrupt stop
@@ -378,7 +378,7 @@ class PlantLoop(PdoLayer):
             self.recorder.trigger(TRIGGER_END, "end of profile (halt)", self._t_now)
 
     def _start_segment(self, coeffs: tuple[float, float, float, float], n_ms: int) -> None:
-        """Interpolate the demand along the seed's cubic (planner.hermite) over the next n_ms ticks,
+        """Interpolate the demand along the seed's cubic (planner.encoding.hermite) over the next n_ms ticks,
         rounded as the drive rounds; the family's limit checks become events at their ticks."""
         self._set_source(hermite.demand_from_coefficients(coeffs, n_ms, self._toward_zero), Source.SEGMENT)
         self._seg_coeffs = coeffs

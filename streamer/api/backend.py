@@ -43,7 +43,7 @@ Contract, method by method (which service thread calls it, what it may raise):
   `plan_job(job, cell, start=[start.get(a, current[a]) for a in job.axes])`. `last_target` and
   `last_direction` (axis name -> the last commanded target, None for none, and the sign of the last
   commanded motion; the service keeps them from every job it accepted: `Planned.commanded_target` /
-  `commanded_direction`) serve the additive and modulo_current modes (planner/travel.py); a backend that has
+  `commanded_direction`) serve the additive and modulo_current modes (planner/motion/travel.py); a backend that has
   no use for them ignores them (additive then counts from the start position). `lead_ms` (given only when
   the job set its own lead): segments bounded so that a change or stop acts within about that lead.
 - `execute(planned, emit, cancel)`: runs the motion and blocks until it has ended. Called on the
@@ -149,7 +149,7 @@ class Planned:
     start_positions: Mapping[str, float] = field(default_factory=dict)  # axis -> user units at knot 0
     record: Any = None  # the job's `record` section (a streamer.recording.drive.RecordRequest), or None
     lead_ms: int | None = None  # the job's own lead (`lead_ms`, checked by the service), None: the cell's
-    # what the job leaves as each axis' last commanded target and direction (planner/travel.py's contract: a
+    # what the job leaves as each axis' last commanded target and direction (planner/motion/travel.py's contract: a
     # move's resolved target, a path/timed/pvt job's last row, None after a velocity move; the sign of the
     # last commanded motion, 0 none): the service keeps them for the next job's additive and modulo modes
     commanded_target: Mapping[str, float | None] = field(default_factory=dict)

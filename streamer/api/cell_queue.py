@@ -12,7 +12,7 @@ job before it may have been cancelled or stopped elsewhere. A move is re-planned
 timed or pvt job fails INFEASIBLE naming the axis, where it stands and where the job starts, unless the
 job said `start = "current"` (a path is then planned from where the axes stand through its waypoints).
 
-Travel memory (planner/travel.py's `last_target` contract): per axis the last commanded target and the
+Travel memory (planner/motion/travel.py's `last_target` contract): per axis the last commanded target and the
 sign of the last commanded motion, from every job accepted (`_remember`), passed to `backend.plan` and
 `backend.change` (`_travel`); a queued job re-planned at its start keeps those it was accepted with.
 

@@ -138,7 +138,7 @@ class ServiceState:
         # where the axes moved by queued/running jobs stand when the queue has run (the next plan's start)
         self._queue_end: dict[str, float] = {}
         # per axis the last commanded target (None: none, or a velocity move's) and the sign of the last commanded
-        # motion, from every job accepted (planner/travel.py's contract): the additive and modulo modes plan from
+        # motion, from every job accepted (planner/motion/travel.py's contract): the additive and modulo modes plan from
         # them, so an additive move after a stop at an arbitrary position still counts from the last target
         self._last_target: dict[str, float | None] = {}
         self._last_direction: dict[str, int] = {}

@@ -155,7 +155,7 @@ def geometry_note(job: Any, info: dict[str, float]) -> str:
             return "a straight move (the path spans less than a count)"
         return (f"along the straight segments: {int(info['blended_corners'])} corner(s) blended within "
                 f"path_tolerance, {int(info.get('exact_stops', 0))} exact stop(s)")
-    if isinstance(d, MoveData) and d.mode == "velocity":  # planner/travel.py: no line, a ramp and a cruise
+    if isinstance(d, MoveData) and d.mode == "velocity":  # planner/motion/travel.py: no line, a ramp and a cruise
         if info.get("position_limit_stop", 0.0) == 1.0:
             return "endless travel: a ramp to the velocities, then it stops before the software position limits"
         return ("endless travel: a ramp to the velocities, then cruising (the first chunk of an open-ended plan; "

@@ -10,7 +10,7 @@ reach the master after SYNC k + 1 (reordered with it). When it arrived (its bus 
 a late stamp made the master take the answer to k for the answer to k + 1 (a false PROTOCOL one SYNC of
 travel off, or a false "record arrived twice"). What the answer says is a key: a running axis' position
 demand is known in advance for every SYNC (the coordinator predicts it from the queued records with
-planner.hermite), and so are the fill the FIFO can show and whether ip mode can be active.
+planner.encoding.hermite), and so are the fill the FIFO can show and whether ip mode can be active.
 
 The candidates for one TPDO of one node are the SYNCs it can answer:
 - not after `upper`, the newest SYNC on the wire when it arrived (the runtime's tag: an answer never comes

@@ -74,7 +74,7 @@ from __future__ import annotations
 from typing import Any
 
 from bus.events import AdapterError, Bootup, BusLoad, Emcy, HeartbeatLost, SendFailed
-from planner.cyclic import Setpoints
+from planner.encoding.cyclic import Setpoints
 from streamer.core import outcome as oc
 from streamer.core.cyclic import CyclicFeeder
 from streamer.core.feedback import Feedback

@@ -2,7 +2,7 @@
 
 A drive of a cyclic family (bus/families.py: XtrapulsPac interpolated position, CiA 402 cyclic
 synchronous position) has no FIFO: it latches the set point that arrived since the last SYNC at each
-SYNC and interpolates towards it over the next period (planner/cyclic.py has the model and the deviation
+SYNC and interpolates towards it over the next period (planner/encoding/cyclic.py has the model and the deviation
 bound). So this feeder holds no stream position to account for; it owns, for one axis, which set point
 goes out after each SYNC, the start and end of its interpolation, and its telemetry. The coordinator
 (coordinator.py) drives it next to the FIFO feeders, through the same states and inputs
@@ -41,8 +41,8 @@ import numpy as np
 
 from bus.events import Send
 from bus.profile import SetpointSlot, pack_setpoints
-from planner.cyclic import Setpoints, sample
-from planner.reference import FloatArray
+from planner.encoding.cyclic import Setpoints, sample
+from planner.motion.reference import FloatArray
 from streamer.core.axis_state import CYCLIC_TRANSITIONS, AxisStateMachine, FeederInput, FeederState
 from streamer.core.feeder import AxisTelemetry
 

@@ -10,7 +10,7 @@ plays no part. The start check, the fill accounting, the demand check and the re
 per node, every TPDO2 and the last ip-active SYNC as attributed) all use this one decision.
 
 Position demand check: every TPDO2 is compared with the demand the drive must have after the ms it
-interpolated, predicted from the queued records with planner.hermite (exact with counts_per_rev, at
+interpolated, predicted from the queued records with planner.encoding.hermite (exact with counts_per_rev, at
 knots only without). A difference over demand_tolerance_counts is PROTOCOL (records executed out of
 order, twice or not at all: this is what catches two records of one batch swapped, which the fill
 cannot see), or START_MISMATCH before the start. Off while halting (no plan to compare with).

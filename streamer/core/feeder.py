@@ -72,8 +72,8 @@ from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 from bus.events import Send
-from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms, truncate_counts
-from planner.record import PvtRecord
+from planner.encoding.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms, truncate_counts
+from planner.encoding.record import PvtRecord
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FIFO_TRANSITIONS, AxisStateMachine, FeederState
 from streamer.core.window import Window, bisect_right

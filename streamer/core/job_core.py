@@ -20,8 +20,8 @@ import numpy as np
 from bus.budget import CONTROLWORD_FRAME_BITS, CycleBudget, cycle_budget, setpoint_frame_bits
 from bus.cob import pack_controlword, rpdo1_id, rpdo2_id
 from bus.events import Send
-from planner import hermite
-from planner.record import PvtRecord, pack
+from planner.encoding import hermite
+from planner.encoding.record import PvtRecord, pack
 from streamer.core import attribution
 from streamer.core.attribution import FeedbackLog
 from streamer.core.axis_state import FeederInput, FeederState

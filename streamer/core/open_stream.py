@@ -1,4 +1,4 @@
-"""Open-ended streams (a velocity move, planner/travel.py): the plan's last knot moves and it has no end
+"""Open-ended streams (a velocity move, planner/motion/travel.py): the plan's last knot moves and it has no end
 record; the stream goes on in chunks. Every SYNC (from PRIMING on, while the job streams), when the stream
 ends less than `extend_ahead_ms` after the fastest drive's interpolation time, the core asks the `extender`
 (a callable given to the constructor) for the next chunk, given the chunk before it; the chunk must start

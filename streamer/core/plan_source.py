@@ -12,7 +12,7 @@ The core does not import the planner's `PvtTrajectory`: it takes anything with
 
 and turns it into a `StreamPlan` once, at job construction: every record checked against the shared
 grid and packed to its 8 wire bytes (so nothing can fail to encode on the SYNC thread). A stop planner
-is any callable `StopRequest -> trajectory-like` (planner.stop.plan_stop behind a small adapter): it is
+is any callable `StopRequest -> trajectory-like` (planner.motion.stop.plan_stop behind a small adapter): it is
 asked, on cancel, for a trajectory from the state at the end of what is already queued to standstill,
 on one shared grid, whose knot 0 is exactly that state.
 
@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
-from planner.record import PvtRecord, pack
+from planner.encoding.record import PvtRecord, pack
 
 
 class PvtTrajectoryLike(Protocol):
@@ -93,7 +93,7 @@ class Change:
 @dataclass(frozen=True)
 class EmergencyStop:
     """Stop every axis at its emergency deceleration, fed to the core like `Cancel`: `planner` plans the stop
-    from the state at the end of what is queued (planner.stop.plan_emergency_stop_from_wire behind
+    from the state at the end of what is queued (planner.motion.stop.plan_emergency_stop_from_wire behind
     streamer.splice_planners.make_emergency_planner) and the core splices it as the cancel's stop; when no plan is
     possible in time (none given, it raised, or it cannot be streamed in time) the core falls back to the
     drives' quick stop (controlword 0x000B) and the job fails EMERGENCY_STOP. `Coordinator.emergency` says

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 
 from bus.cob import rpdo2_id
 from bus.events import Cancel, Send
-from planner import hermite
+from planner.encoding import hermite
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.feeder import FifoFeeder

@@ -61,8 +61,8 @@ from bus.network import MasterAdapter
 from planner.config import BusConfig, CellConfig
 from planner.errors import PlanningError
 from planner.job import Job, MoveData, job_from_dict
+from planner.motion.travel import resolve_target
 from planner.plan import plan_job
-from planner.travel import resolve_target
 from streamer.api import errors as E
 from streamer.api.backend import CancelToken, Emit, MotionBackend, Planned, planned_from_trajectory
 from streamer.api.errors import MotionError
@@ -177,7 +177,7 @@ class RuntimeBackend(MotionBackend):
              last_target: Mapping[str, float | None] | None = None,
              last_direction: Mapping[str, int] | None = None, lead_ms: int | None = None) -> Planned:
         """Plan `job` from `start` (else where the axes stand); `last_target`/`last_direction` by axis name
-        serve the additive and modulo modes (planner/travel.py). The Planned carries the move's resolved
+        serve the additive and modulo modes (planner/motion/travel.py). The Planned carries the move's resolved
         target as the axes' new last commanded target. `lead_ms` (the job's own, shorter than the cell's):
         segments bounded so that a change or stop acts within about that lead (StreamerSettings.segment_cap_ms)."""
         if job.kind == "home":  # nothing to plan: the drives search; they end at their home positions
@@ -472,7 +472,7 @@ class RuntimeBackend(MotionBackend):
     def _change_target(self, job: Job, piece: _Piece, last_target: Mapping[str, float | None] | None = None,
                        last_direction: Mapping[str, int] | None = None) -> dict[str, float]:
         """The absolute target of a change, by axis name. The one place a move mode becomes a target
-        (planner/travel.py's `resolve_target`): relative and modulo modes from where the running job's demand
+        (planner/motion/travel.py's `resolve_target`): relative and modulo modes from where the running job's demand
         stands now, additive from the last commanded target (the running job's, kept by the service)."""
         data = job.data
         target = [float(x) for x in getattr(data, "target", ())]

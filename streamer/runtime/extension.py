@@ -4,7 +4,7 @@ velocity mode.
 Theory of operation. The streamer core asks its `Extender` for the next chunk of an open-ended stream on
 the thread that feeds it events (streamer/core/open_stream.py); on the real-time runtime that is
 the SYNC loop, which must answer every SYNC within a period (10 ms on the demo cell). Planning a chunk
-(`planner.travel.extend_velocity`) takes about 1 ms for 3 axes and 2 ms for 6 on an idle machine, and
+(`planner.motion.travel.extend_velocity`) takes about 1 ms for 3 axes and 2 ms for 6 on an idle machine, and
 several times that for the chunk that brakes before a position limit or on a loaded machine: too large a
 share of a period to take on that thread. `PrefetchExtender` therefore plans each chunk on a worker thread
 as soon as the chunk before it is known (the job's plan at the start, then every chunk it hands out), so
@@ -19,7 +19,7 @@ stream still ends with that chunk; after a change the core asks about another tr
 extender has not seen: it starts planning it then (the core's 500 ms of early asking cover that).
 
 `VelocityChangePlanner` is the `Change` planner of a velocity move replacing a running motion (buffer
-"aborting"): `planner.travel.plan_velocity` from the exact state at the end of the queue, open-ended, so
+"aborting"): `planner.motion.travel.plan_velocity` from the exact state at the end of the queue, open-ended, so
 the core goes on extending it.
 """
 
@@ -34,8 +34,8 @@ from typing import Any
 
 from planner.config import CellConfig
 from planner.job import Job
+from planner.motion.travel import MotionState, extend_velocity, plan_velocity
 from planner.trajectory import PvtTrajectory
-from planner.travel import MotionState, extend_velocity, plan_velocity
 from streamer.core.plan_source import PvtTrajectoryLike, StopRequest
 
 
@@ -94,7 +94,7 @@ class PrefetchExtender:
 
 @dataclass(frozen=True)
 class VelocityPlan:
-    """What a `VelocityChangePlanner` planned (the shape of planner.stop.ChangePlan: a velocity has no target
+    """What a `VelocityChangePlanner` planned (the shape of planner.motion.stop.ChangePlan: a velocity has no target
     to pass, so no overrun)."""
 
     trajectory: PvtTrajectory

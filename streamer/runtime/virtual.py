@@ -607,7 +607,7 @@ class VirtualRuntime:
 
         `feed(core, sync, t)`, after each SYNC: events to feed the core at that moment (a `Change`, a
         `Cancel`), as the real-time runtime feeds what another thread asked for. `extender`: the next chunk of
-        an open-ended (velocity) stream; default `planner.travel.extend_velocity`, called on the SYNC (virtual
+        an open-ended (velocity) stream; default `planner.motion.travel.extend_velocity`, called on the SYNC (virtual
         time has no deadline to miss)."""
         self.ensure_readings()
         t_enable = self._cycle_time(self._cycle + 1) - self.period_s / 2
@@ -615,7 +615,7 @@ class VirtualRuntime:
         self._run_until(t_enable)  # frames still in flight from before belong to no job
         self.enable_drives(t_enable)
         if extender is None:
-            from planner.travel import extend_velocity
+            from planner.motion.travel import extend_velocity
 
             extender = extend_velocity  # type: ignore[assignment]
         # an endless job's per-SYNC logs keep their old samples in temporary files (streamer/runtime/spill.py)

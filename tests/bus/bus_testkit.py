@@ -18,9 +18,9 @@ import canopen
 from bus import cob, codec
 from bus.codec import Frame
 from bus.sim.epos import EposDrive
-from planner import record
 from planner.config import AxisConfig, BusConfig, CellConfig, DriveSettings
-from planner.hermite import counts_per_ms_to_rpm
+from planner.encoding import record
+from planner.encoding.hermite import counts_per_ms_to_rpm
 
 CPR = 8192
 _channels = itertools.count()

@@ -28,8 +28,8 @@ from bus.families import EPOS_IPM, EposProfile
 from bus.network import MasterAdapter, open_bus
 from bus.profile import SdoWrite
 from bus.sim.node import SimulatedCell
-from planner import record
 from planner.config import AxisConfig, BusConfig, CellConfig, DriveSettings
+from planner.encoding import record
 from planner.errors import PlanningError
 
 SETTINGS = DriveSettings(heartbeat_ms=20, heartbeat_timeout_ms=300)

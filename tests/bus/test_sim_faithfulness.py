@@ -23,7 +23,7 @@ from bus import codec
 from bus.codec import Cia402State as S
 from bus.sim.eds import EDS_PATH
 from bus.sim.node import SimulatedCell
-from planner import record
+from planner.encoding import record
 
 SEG_MS = 50  # long segments: the SDO-fed FIFO has slack on a loaded machine
 

@@ -1,4 +1,4 @@
-"""The simulated drive interpolates exactly as seed 000 4.2.3 (and planner.hermite) says, at every ms."""
+"""The simulated drive interpolates exactly as seed 000 4.2.3 (and planner.encoding.hermite) says, at every ms."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bus import cob, codec
-from planner import hermite
+from planner.encoding import hermite
 
 # counts_per_rev = 60000: 1 rpm is exactly 1 count/ms, so the seed's coefficients are exact numbers
 AXIS = make_axis(1, counts_per_unit=60000.0, counts_per_rev=60000, max_acceleration=10000.0,

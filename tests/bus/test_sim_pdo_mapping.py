@@ -13,7 +13,7 @@ from bus_testkit import make_cell, remote_network, unique_channel, wait_until
 from bus.codec import Cia402State as S
 from bus.sim.eds import EDS_PATH
 from bus.sim.node import SimulatedCell
-from planner import record
+from planner.encoding import record
 
 
 def test_master_written_mapping_takes_effect() -> None:

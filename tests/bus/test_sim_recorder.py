@@ -34,7 +34,7 @@ from bus.sim.data_recorder import (
 from bus.sim.eds import EDS_PATH
 from bus.sim.node import SdoBlockUploadServer, SimulatedCell
 from bus.sim.od import SdoAbort
-from planner import record
+from planner.encoding import record
 from planner.readings import SimDriveOptions
 
 SEG_MS = 50
@@ -316,7 +316,7 @@ def test_samples_follow_the_drive_ticks_in_both_clock_modes(options: dict[str, o
     pending = d.start(records, prime=6)
     d.run(pending, until=lambda m: m.recorder.status == STATUS_TRIGGERED)
     rec = vector(d)
-    from planner import hermite
+    from planner.encoding import hermite
 
     expected = [0]
     prev = (0, 0.0)

@@ -1,5 +1,5 @@
-"""The PVT encoder's value search and verification as NumPy had them (planner/encoder.py at 60b5382, before
-they were compiled into planner/quantise.py): the reference the compiled kernels must reproduce bit for
+"""The PVT encoder's value search and verification as NumPy had them (planner/encoding/encoder.py at 60b5382, before
+they were compiled into planner/encoding/quantise.py): the reference the compiled kernels must reproduce bit for
 bit (tests/planner/test_planner_value_search.py). Vectorised over axes, segments, candidate pairs and
 ticks with (n, N, C, C) temporaries; kept only as that reference, the encoder never calls it."""
 
@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import hermite
-from planner.encoder import (
+from planner.encoding import hermite
+from planner.encoding.encoder import (
     _DP_POSITIONS,
     _PROX,
     ACC_EXCESS_LIMIT,
@@ -18,8 +18,8 @@ from planner.encoder import (
     Knots,
     Reconstruction,
 )
-from planner.record import VELOCITY_MAX, VELOCITY_MIN
-from planner.reference import FloatArray, IntArray, Reference
+from planner.encoding.record import VELOCITY_MAX, VELOCITY_MIN
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 _HARD = 1.0e6
 

@@ -1,12 +1,26 @@
-"""The blended geometry's NumPy formulation (planner/geometry.py at 60b5382, before its loops were compiled): the
+"""The blended geometry's NumPy formulation (planner/motion/geometry.py at 60b5382, before its loops were compiled): the
 reference the kernels are compared with (tests/planner/test_planner_geometry.py). Kept only as that reference."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from planner.geometry import _CHUNK, _F1, _F2, _FS, _G1, _G2, _GS, _P1, _P2, _T, REVERSAL_COS, RHOS, _shape_coefficients
-from planner.reference import FloatArray
+from planner.motion.geometry import (
+    _CHUNK,
+    _F1,
+    _F2,
+    _FS,
+    _G1,
+    _G2,
+    _GS,
+    _P1,
+    _P2,
+    _T,
+    REVERSAL_COS,
+    RHOS,
+    _shape_coefficients,
+)
+from planner.motion.reference import FloatArray
 
 
 def blend_duration_ms(

@@ -1,4 +1,4 @@
-"""The PVT encoder's knot placement as NumPy had it (planner/encoder.py at 60b5382, before it was compiled):
+"""The PVT encoder's knot placement as NumPy had it (planner/encoding/encoder.py at 60b5382, before it was compiled):
 the reference the compiled placement must reproduce (tests/planner/test_planner_placement.py). Kept only as
 that reference; the encoder never calls it."""
 
@@ -10,7 +10,7 @@ import numpy as np
 from encoder_reference import _hermite_basis
 from numpy.typing import NDArray
 
-from planner.encoder import (
+from planner.encoding.encoder import (
     _LADDER,
     _PROX,
     ACC_PLACEMENT_SHARE,
@@ -20,7 +20,7 @@ from planner.encoder import (
     AxisScales,
     drive_round,
 )
-from planner.reference import FloatArray, IntArray, Reference
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 
 def _placement_errors(

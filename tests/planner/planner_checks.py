@@ -6,15 +6,15 @@ from pathlib import Path
 
 import numpy as np
 
-from planner import hermite
 from planner.config import CellConfig
-from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, Knots, planned_demand
-from planner.geometry import point_to_path, polyline_deviation
+from planner.encoding import hermite
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, Knots, planned_demand
+from planner.encoding.record import PvtRecord, pack, unpack
+from planner.encoding.uniform import meets
 from planner.job import Job, PathData, effective_limits, path_tolerance
+from planner.motion.geometry import point_to_path, polyline_deviation
 from planner.plan import axis_configs, axis_scales
-from planner.record import PvtRecord, pack, unpack
 from planner.trajectory import PvtTrajectory
-from planner.uniform import meets
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -22,7 +22,7 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 def assert_invariants(
     traj: PvtTrajectory, cell: CellConfig, *, target_counts: np.ndarray | None = None
 ) -> None:
-    """Everything the encoder promises, checked from the outside (through planner.hermite)."""
+    """Everything the encoder promises, checked from the outside (through planner.encoding.hermite)."""
     n = traj.n_axes
     dt = np.asarray(traj.dt_ms)
     # shared grid of whole ms in 1..255
@@ -96,7 +96,7 @@ def assert_path_within(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
 def assert_not_more_than_uniform(traj: PvtTrajectory, job: Job, cell: CellConfig) -> None:
     """No uniform grid with fewer points than the encoding meets the tolerance on the same plan and
     keeps the planner's margins (the encoding never needs more records than the coarsest uniform
-    grid that is a valid encoding, planner/uniform.py; the benchmark also counts against grids that
+    grid that is a valid encoding, planner/encoding/uniform.py; the benchmark also counts against grids that
     only meet the tolerance)."""
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
     first = Knots(np.array([0]), traj.positions[:, :1], traj.velocities[:, :1])

@@ -1,4 +1,4 @@
-"""The Hermite chain's search (planner/chain.py) on seeded paths: what its shortcuts rely on.
+"""The Hermite chain's search (planner/encoding/chain.py) on seeded paths: what its shortcuts rely on.
 
 The greedy search tries the candidates in their order of preference and samples only those that pass
 the cheap limit checks (`_first_passing`); this must place the same knots as checking every candidate
@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-import planner.chain as chain_mod
+import planner.encoding.chain as chain_mod
 from planner import plan_job
 from planner.config import CellConfig
 from planner.job import job_from_dict

@@ -1,4 +1,4 @@
-"""planner/cyclic.py: set points per SYNC, the cyclic drives' interpolation, the deviation bound and refusals."""
+"""planner/encoding/cyclic.py: one set point per SYNC, the cyclic drives' interpolation, its bound, refusals."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from planner import cyclic
 from planner.config import CellConfig, load_cell
+from planner.encoding import cyclic
 from planner.errors import AXIS_ID, CONFIG, ENCODING_RANGE, INFEASIBLE, PlanningError
 from planner.job import load_job
 from planner.plan import plan_job

@@ -1,4 +1,4 @@
-"""planner/geometry.py's compiled loops against the formulations they replaced: the blends' sizes and shapes
+"""planner/motion/geometry.py's compiled loops against the formulations they replaced: the blends' sizes and shapes
 (to the bit), the time a blend takes at least (to 1e-12: the kernel sums the trapezoids in order, NumPy
 pairwise), and the path's values and derivatives (scipy's PPoly, to the bit), on random corners of 1-8
 axes, reversals and near-straight corners included."""
@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy.interpolate import PPoly
 
-from planner import geometry
+from planner.motion import geometry
 
 
 def _corners(rng: np.random.Generator) -> tuple[np.ndarray, ...]:

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from planner import hermite
+from planner.encoding import hermite
 
 
 def test_seed_coefficients_two_point_example() -> None:
@@ -19,7 +19,7 @@ def test_seed_coefficients_two_point_example() -> None:
     # The seed's extracted text prints b = T^-2 (3 dP + T (V[n] + 2 V[n-1])) = (300 + 280) / 1600 = 0.3625
     # and a = T^-3 (2 dP + T (V[n] + V[n-1])) = 400 / 64000 = 0.00625: with tau = t - t0 in [-T, 0]
     # that polynomial gives P(-T) = -400 + 580 - 120 + 1100 = 1160, not P[n-1] = 1000 (the minus signs
-    # were lost when the PDF became text; see planner/hermite.py). The corrected form is the unique
+    # were lost when the PDF became text; see planner/encoding/hermite.py). The corrected form is the unique
     # cubic through both points with both velocities, which is what the seed defines in words.
     a, b, c, d = hermite.coefficients(1000, 2.0, 1100, 3.0, 40)
     assert (a, b, c, d) == pytest.approx((0.0, 0.0125, 3.0, 1100.0))

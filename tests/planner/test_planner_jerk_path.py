@@ -1,4 +1,4 @@
-"""Jerk-limited path jobs (`jerk_limited`, planner/jerkpath.py): the job field, the re-timing, and the
+"""Jerk-limited path jobs (`jerk_limited`, planner/motion/jerkpath.py): the job field, the re-timing, and the
 bounds of the plan over random paths (Hypothesis) and the example jobs."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import planner.job as job_module
 from planner import plan_job
 from planner.config import CellConfig
 from planner.errors import TYPE, PlanningError
-from planner.jerkpath import fir_retime
 from planner.job import jerk_limited, job_from_dict, job_to_dict, load_job
+from planner.motion.jerkpath import fir_retime
 
 SETTINGS = settings(max_examples=int(os.environ.get("JERK_EXAMPLES", "12")), deadline=None)
 
@@ -129,8 +129,8 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
     if jd["geometry"] == "lines":
         assert_path_within(traj, job, cell8)
         # never slower than jerk-limited moves stopping at every waypoint (but for the encoder's slow-down)
-        from planner.jerkpath import stop_at_corners
         from planner.job import effective_limits
+        from planner.motion.jerkpath import stop_at_corners
         from planner.plan import _merge_close, snap
 
         cpu = traj.counts_per_unit
@@ -146,15 +146,15 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
 
 
 def _check_drive_knots(traj: Any, job: Any, cell: CellConfig) -> None:
-    """The drive's reconstruction of what plan_job sends (planner/continuity.py): on the encoder's own knot
+    """The drive's reconstruction of what plan_job sends (planner/encoding/continuity.py): on the encoder's own knot
     times, its in-segment jerk within the larger of 1.05 J and the encoder's own peak on each axis, and its
     largest step at a knot or in-segment jerk over the limit (`worst_ratio`) no larger than the encoder's.
     (The issue's bound, steps <= J x 1 ms, is not reachable on these knots: docs/formats.md.)"""
-    from planner.continuity import JERK_SLACK, knot_steps, worst_ratio
-    from planner.encoder import encode
+    from planner.encoding.continuity import JERK_SLACK, knot_steps, worst_ratio
+    from planner.encoding.encoder import encode
+    from planner.encoding.reconstruction import Knots
     from planner.job import effective_limits
     from planner.plan import axis_configs, axis_scales
-    from planner.reconstruction import Knots
 
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
     raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
@@ -180,11 +180,11 @@ def test_example_jobs(cell: CellConfig, name: str) -> None:
 
 
 def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfig) -> None:
-    """planner/continuity.py: on the encoder's own knot times, the re-chosen values keep every promise of
+    """planner/encoding/continuity.py: on the encoder's own knot times, the re-chosen values keep every promise of
     the encoding and make the largest acceleration step at a knot (and in-segment jerk) smaller: on the
     example path from 2-3x the jerk limit over the tick where the encoder's values leave 8-12x."""
-    from planner.continuity import knot_steps, smooth_values, worst_ratio
-    from planner.encoder import encode, within_contract
+    from planner.encoding.continuity import knot_steps, smooth_values, worst_ratio
+    from planner.encoding.encoder import encode, within_contract
     from planner.job import effective_limits
     from planner.plan import axis_configs, axis_scales
 
@@ -213,7 +213,7 @@ def test_speed_changes_match_ruckig() -> None:
     at full acceleration."""
     import ruckig
 
-    from planner.jerkpath import _change
+    from planner.motion.jerkpath import _change
 
     for dv, a, j in ((0.5, 2.0, 20.0), (3.0, 2.0, 20.0), (0.01, 8.0, 80.0)):
         otg = ruckig.Ruckig(1, 0.001)
@@ -229,9 +229,9 @@ def test_speed_changes_match_ruckig() -> None:
 def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
     every ms."""
-    from planner.encoder import segment_bounds
-    from planner.jerkpath import PLAN_JERK_SHARE, plan_corner_run
+    from planner.encoding.encoder import segment_bounds
     from planner.job import effective_limits, path_tolerance
+    from planner.motion.jerkpath import PLAN_JERK_SHARE, plan_corner_run
     from planner.plan import axis_configs, axis_scales, lines_geometry
 
     job = job_from_dict({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
@@ -258,9 +258,9 @@ def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
     """_choose_stops: a blend of a tight tolerance at a sharp corner is crossed so slowly (its third
     derivative is large) that stopping on the waypoint is faster: the plan stops there, and is faster than the plan
     that blends every corner."""
-    from planner.encoder import segment_bounds
-    from planner.jerkpath import PLAN_JERK_SHARE, _choose_stops, _corner_motion, _geometry_pieces, _with_stops
+    from planner.encoding.encoder import segment_bounds
     from planner.job import effective_limits, path_tolerance
+    from planner.motion.jerkpath import PLAN_JERK_SHARE, _choose_stops, _corner_motion, _geometry_pieces, _with_stops
     from planner.plan import axis_configs, axis_scales, lines_geometry
 
     job = job_from_dict({"kind": "path", "axes": ["j1", "j2"],
@@ -322,14 +322,14 @@ _ZIGZAG = {
 
 
 def test_continuity_bounds_the_jerk_per_axis_not_per_segment(cell: CellConfig) -> None:
-    """planner/continuity.py: a segment's jerk may go up to the larger of the limit (+5 %) and the
+    """planner/encoding/continuity.py: a segment's jerk may go up to the larger of the limit (+5 %) and the
     encoder's own peak on that axis, never above it; on this path that takes j1's largest knot step from
     12 to 2.3 times the bound (J x 1 ms), where a bound per segment (the encoder's own jerk in each) left 12."""
-    from planner.continuity import JERK_SLACK, knot_steps
-    from planner.encoder import encode
+    from planner.encoding.continuity import JERK_SLACK, knot_steps
+    from planner.encoding.encoder import encode
+    from planner.encoding.reconstruction import Knots
     from planner.job import effective_limits
     from planner.plan import axis_configs, axis_scales
-    from planner.reconstruction import Knots
 
     job = job_from_dict({**_ZIGZAG, "jerk_limited": True}, cell)
     traj = plan_job(job, cell)
@@ -348,10 +348,10 @@ def test_knot_step_units_are_the_reconstructions(cell: CellConfig) -> None:
     """continuity.knot_step_units (the table of the drive's units in docs/formats.md): one count of a
     neighbour's position and one rpm of a knot's own velocity change the drive's acceleration step at
     that knot (`knot_steps`, the reconstruction's) by what it says, for every segment length."""
-    from planner.continuity import knot_step_units, knot_steps
+    from planner.encoding.continuity import knot_step_units, knot_steps
+    from planner.encoding.reconstruction import Knots
     from planner.job import effective_limits
     from planner.plan import axis_configs, axis_scales
-    from planner.reconstruction import Knots
 
     job = load_job(CONFIGS / "jobs" / "demo-path.toml", cell)
     cfgs = axis_configs(job.axes, cell)

@@ -1,4 +1,4 @@
-"""The encoder's knot placement (planner/encoder.py, step 1), compiled: the same knots as the NumPy placement
+"""The encoder's knot placement (planner/encoding/encoder.py, step 1), compiled: the same knots as the NumPy placement
 it replaced (placement_reference.py) on random plans with acceleration steps and hints, for random
 budgets, segment bounds and variants; the rebalancing of short segments and the coarsening on knot times
 full of short segments (where neighbouring changes collide); the uniform grids' quick check."""
@@ -10,9 +10,9 @@ import placement_reference as numpy_ref
 from hypothesis import given
 from hypothesis import strategies as st
 
-from planner import encoder
-from planner.encoder import AxisScales
-from planner.reference import Reference
+from planner.encoding import encoder
+from planner.encoding.encoder import AxisScales
+from planner.motion.reference import Reference
 
 
 def _plan(rng: np.random.Generator) -> tuple[Reference, AxisScales]:

@@ -19,7 +19,7 @@ from planner import plan_job
 from planner.config import CellConfig
 from planner.errors import PlanningError
 from planner.job import job_from_dict
-from planner.stop import plan_stop
+from planner.motion.stop import plan_stop
 
 SETTINGS = settings()  # the profile of tests/conftest.py (60 examples, no deadline)
 

@@ -6,8 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from planner.errors import ENCODING_RANGE, EncodingRangeError
-from planner.record import (
+from planner.encoding.record import (
     POSITION_MAX,
     POSITION_MIN,
     TIME_MAX_MS,
@@ -17,6 +16,7 @@ from planner.record import (
     pack,
     unpack,
 )
+from planner.errors import ENCODING_RANGE, EncodingRangeError
 
 positions = st.integers(POSITION_MIN, POSITION_MAX)
 velocities = st.integers(VELOCITY_MIN, VELOCITY_MAX)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from planner_checks import assert_invariants
 
-import planner.chain as chain_mod
-import planner.path as path_mod
+import planner.encoding.chain as chain_mod
+import planner.motion.path as path_mod
 from planner import plan_job
 from planner.config import CellConfig
 from planner.job import job_from_dict
@@ -114,7 +114,7 @@ def test_the_blend_margin_spares_a_repair(cell: CellConfig, monkeypatch: pytest.
 def test_the_reported_optimum_does_not_depend_on_the_slow_down(waypoints: list[list[float]]) -> None:
     """`optimal_s` is the optimum on the path, whatever `time_scale` the encoder asks for: a straight run's
     closed form computes it from the slowed-down limits, and once reported it times time_scale squared."""
-    from planner.geometry import blended_runs
+    from planner.motion.geometry import blended_runs
 
     vlim, alim = np.array([2.0, 1.5]), np.array([8.0, 6.0])
     runs, _corners = blended_runs(np.array(waypoints), vlim, np.full(2, 0.01), alim, 10.0)

@@ -1,4 +1,4 @@
-"""planner/topp.py, the compiled TOPP-RA, against toppra itself (the reference): the same rows on the same
+"""planner/motion/topp.py, the compiled TOPP-RA, against toppra itself (the reference): the same rows on the same
 gridpoints give the same profile, on blended paths and splines of 1-6 axes, with and without tightened
 rows; and a problem without an admissible profile is refused, naming the gridpoint."""
 
@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from planner import topp
 from planner.errors import INFEASIBLE, PlanningError
-from planner.geometry import blended_runs
-from planner.path import SplineGeometry
+from planner.motion import topp
+from planner.motion.geometry import blended_runs
+from planner.motion.path import SplineGeometry
 
 
 def _duration(sd: np.ndarray, grid: np.ndarray) -> float:

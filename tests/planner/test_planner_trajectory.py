@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 from planner_checks import CONFIGS, assert_invariants
 
-from planner import hermite, plan_job
+from planner import plan_job
 from planner.config import CellConfig
+from planner.encoding import hermite
+from planner.encoding.record import PvtRecord
 from planner.job import load_job
-from planner.record import PvtRecord
-from planner.stop import plan_stop, plan_stop_from_wire
+from planner.motion.stop import plan_stop, plan_stop_from_wire
 from planner.trajectory import CSV_COLUMNS, PvtTrajectory
 
 

@@ -1,5 +1,5 @@
-"""The encoder's value search (planner/encoder.py, step 2 and the refinement of step 3) and its verification,
-compiled in planner/quantise.py: the pruning before the check at every tick keeps exactly the candidates
+"""The encoder's value search (planner/encoding/encoder.py, step 2 and the refinement of step 3) and its verification,
+compiled in planner/encoding/quantise.py: the pruning before the check at every tick keeps exactly the candidates
 that lie on a path of feasible pairs, so it never removes one the full search could have chosen; and the
 compiled kernels reproduce the NumPy formulation they replaced (encoder_reference.py) bit for bit: the
 pair costs (float32 near the plan, as NumPy computed them), the joint choice, the refinement, the drive's
@@ -17,9 +17,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner import encoder, quantise
-from planner.encoder import ACC_EXCESS_LIMIT, AxisScales, Knots
-from planner.reference import Reference
+from planner.encoding import encoder, quantise
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, AxisScales, Knots
+from planner.motion.reference import Reference
 
 
 def _on_a_feasible_path(feasible: np.ndarray, fixed: list[int]) -> np.ndarray:

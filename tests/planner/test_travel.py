@@ -1,4 +1,4 @@
-"""Travel commands (planner/travel.py, seed 002): position modes, modulo vectors, velocity mode, ramps,
+"""Travel commands (planner/motion/travel.py, seed 002): position modes, modulo vectors, velocity mode, ramps,
 emergency stop, and the cell's travel settings."""
 
 from __future__ import annotations
@@ -14,15 +14,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from planner_checks import CONFIGS, assert_invariants
 
-from planner import hermite
 from planner.config import CellConfig, cell_from_dict, load_cell
-from planner.encoder import ACC_EXCESS_LIMIT
+from planner.encoding import hermite
+from planner.encoding.encoder import ACC_EXCESS_LIMIT
 from planner.errors import PlanningError
 from planner.job import effective_limits, job_from_dict, job_to_dict
-from planner.plan import plan_job
-from planner.stop import plan_emergency_stop_from_wire, plan_stop_from_wire
-from planner.trajectory import PvtTrajectory
-from planner.travel import (
+from planner.motion.stop import plan_emergency_stop_from_wire, plan_stop_from_wire
+from planner.motion.travel import (
     CruiseState,
     MotionState,
     extend_velocity,
@@ -30,6 +28,8 @@ from planner.travel import (
     plan_velocity,
     resolve_target,
 )
+from planner.plan import plan_job
+from planner.trajectory import PvtTrajectory
 
 DEG_CPU = 8192 * 10 / 360.0  # a rotary table: 10:1 gear, degrees
 

@@ -12,7 +12,7 @@ from typing import Any
 from mcap.reader import make_reader
 
 from bus.cob import RPDO2_BASE, SYNC_COB_ID
-from planner.record import unpack
+from planner.encoding.record import unpack
 from streamer.cli import main as pvt
 from streamer.report import decode_candump
 

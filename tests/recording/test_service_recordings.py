@@ -15,7 +15,7 @@ import zenoh
 
 from bus.cob import RPDO2_BASE
 from planner.config import CellConfig
-from planner.record import unpack
+from planner.encoding.record import unpack
 from streamer.api.backend import CancelToken, Emit, Planned
 from streamer.api.client import MotionClient
 from streamer.api.service import JobService, ServiceOptions

@@ -32,10 +32,10 @@ from bus.faults import FaultLink, FaultModel
 from bus.sim.epos import EposDrive
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig, load_cell
+from planner.encoding.record import PvtRecord
 from planner.job import job_from_dict
 from planner.plan import plan_job
 from planner.readings import DriveReadings, SimDriveOptions
-from planner.record import PvtRecord
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
 from streamer.core.feeder import framed

@@ -22,7 +22,7 @@ from reliability_kit import (
 )
 
 from bus.faults import TO_DRIVES, duplicate, reorder
-from planner.record import PvtRecord
+from planner.encoding.record import PvtRecord
 from streamer.core import JobState
 from streamer.core import outcome as oc
 

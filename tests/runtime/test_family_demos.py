@@ -25,7 +25,7 @@ from wire_context import explain_failure
 from bus.cob import SYNC_COB_ID
 from bus.families import setpoint_slots
 from bus.sim.virtual import VirtualCell
-from planner import cyclic
+from planner.encoding import cyclic
 from streamer import demo
 from streamer.cli.demo import guarantees
 from streamer.report import decode_candump, decode_setpoints

@@ -7,7 +7,7 @@ the lead's integration tests).
   SYNC, needing fill >= 2; underflow error when a segment completes with nothing behind it; a time-0
   head ends interpolation without error; overflow error when a record arrives at 64; warnings against
   the watermarks; on each SYNC: ticks of the period that ended, then the controlword, then TPDO1 and
-  TPDO2. Position demand from planner.hermite, the same module the product uses.
+  TPDO2. Position demand from planner.encoding.hermite, the same module the product uses.
 - plan builders (`make_plan`, `FakeTrajectory`), a simple stop planner (`decel_stop_planner`), and
   `Rig`, which runs a Coordinator against the doubles in virtual time with fault injection hooks.
 """
@@ -28,8 +28,8 @@ from bus.events import (
     Send,
     Sync,
 )
-from planner.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
-from planner.record import PvtRecord, unpack
+from planner.encoding.hermite import coefficients, evaluate, round_counts, rpm_to_counts_per_ms
+from planner.encoding.record import PvtRecord, unpack
 from streamer.core import Coordinator, JobState, StateChange, StopRequest, StreamerSettings, StreamPlan
 from streamer.core.coordinator import TERMINAL
 

@@ -78,7 +78,7 @@ def endless() -> dict[str, Any]:
         if s is not None and m > s and (m - s) % per_minute == 0:
             seen[(m - s) // per_minute] = (held_records(core), held_samples(core, rt))
 
-    from planner.travel import extend_velocity
+    from planner.motion.travel import extend_velocity
 
     kept = demo.KeptChunks(extend_velocity)
     result = rt.run(traj, stop_planner=make_stop_planner(cell, traj), on_sync=on_sync, extender=kept,

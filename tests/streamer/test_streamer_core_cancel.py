@@ -9,7 +9,7 @@ from streamer_doubles import CPR, FakeTrajectory, Rig, decel_stop_planner, make_
 
 from bus.cob import RPDO2_BASE
 from bus.events import Cancel, Send
-from planner.record import unpack
+from planner.encoding.record import unpack
 from streamer.core import JobResult, JobState, StopRequest, StreamerSettings, StreamPlan
 from streamer.core.coordinator import CW_ENABLE_OPERATION, CW_HALT, TERMINAL
 

@@ -1,7 +1,7 @@
 """The coordinator's cyclic feeder: one set point per SYNC (XtrapulsPac IP, CSP), alone and next to EPOS FIFOs.
 
 `CyclicDriveDouble` is a TEST DOUBLE of one set-point-per-SYNC drive, reduced to what the streamer's
-contract with such a drive is (streamer/core/cyclic.py, planner/cyclic.py): at each SYNC the demand
+contract with such a drive is (streamer/core/cyclic.py, planner/encoding/cyclic.py): at each SYNC the demand
 reaches the set point latched at the previous SYNC, the controlword (RPDO1 type 1) applies, a drive with
 ip mode active that got no set point since the last SYNC faults (EMCY 0x8782, XtrapulsPac error 50; a CSP
 drive, which follows its target without bit 4, holds the last one), the

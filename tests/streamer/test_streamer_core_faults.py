@@ -23,7 +23,7 @@ from bus.events import (
     SendFailed,
     Sync,
 )
-from planner.record import unpack
+from planner.encoding.record import unpack
 from streamer.core import Coordinator, JobState, StreamerSettings, StreamPlan
 from streamer.core import outcome as oc
 from streamer.core.coordinator import CW_QUICK_STOP, CW_START_IP, TERMINAL

@@ -15,8 +15,8 @@ from bus.budget import cycle_budget
 from bus.cob import rpdo3_id
 from bus.events import BufferStatus, Cancel, Sync
 from bus.profile import SetpointSlot
+from planner.encoding.record import PvtRecord
 from planner.errors import EncodingRangeError
-from planner.record import PvtRecord
 from streamer.core import (
     Coordinator,
     FeederState,

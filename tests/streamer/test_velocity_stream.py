@@ -17,9 +17,9 @@ from bus.events import Cancel
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig, load_cell
 from planner.job import job_from_dict
+from planner.motion.travel import CruiseState, extend_velocity
 from planner.plan import plan_job
 from planner.trajectory import PvtTrajectory
-from planner.travel import CruiseState, extend_velocity
 from streamer import demo
 from streamer.core import JobResult
 from streamer.core.coordinator import Coordinator

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from planner.errors import INFEASIBLE, PlanningError
-from planner.reference import FloatArray, IntArray, Reference
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 
 def timed_reference(times: FloatArray, positions: FloatArray, cpu: FloatArray) -> Reference:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
-from planner.reference import FloatArray, Reference, hold
+from planner.motion.reference import FloatArray, Reference, hold
 
 CYCLE_S = 0.001
 

@@ -1,4 +1,4 @@
-"""The PVT encoder's value search and verification, compiled (planner/encoder.py, steps 2 and 3).
+"""The PVT encoder's value search and verification, compiled (planner/encoding/encoder.py, steps 2 and 3).
 
 Theory of operation: encoder.py's module docstring; this module is its arithmetic, in loops compiled with
 numba (planner/jit.py). The value search scores every (start candidate, end candidate) pair of every
@@ -26,7 +26,7 @@ array argument costs an atomic reference count per call).
 
 The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/
 encoder_reference.py keeps it as the reference): the drive's interpolation and rounding as
-planner/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
+planner/encoding/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
 counts subtracted first, so the numbers are small), cast where NumPy cast; maxima as np.maximum
 (nan propagates); ties to the first candidate, as numpy's argmin.
 """
@@ -35,9 +35,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from planner.encoding.record import VELOCITY_MAX, VELOCITY_MIN
 from planner.jit import kernel
-from planner.record import VELOCITY_MAX, VELOCITY_MIN
-from planner.reference import FloatArray, IntArray
+from planner.motion.reference import FloatArray, IntArray
 
 BoolArray = NDArray[np.bool_]
 Float32Array = NDArray[np.float32]
@@ -50,7 +50,7 @@ _VMAX = float(VELOCITY_MAX)
 
 @kernel
 def drive_round(x: float, toward_zero: bool) -> float:
-    """`x` rounded as the drive rounds its demand, as planner/hermite.py computes it: half away from zero
+    """`x` rounded as the drive rounds its demand, as planner/encoding/hermite.py computes it: half away from zero
     (`round_counts_array`: trunc(x +- 0.5)) or toward zero (`truncate_counts_array`)."""
     if toward_zero:
         return float(np.trunc(x))
@@ -63,7 +63,7 @@ def drive_round(x: float, toward_zero: bool) -> float:
 
 @kernel
 def _segment(p0: float, v0: float, p1: float, v1: float, t: float) -> tuple[float, float, float, float]:
-    """One segment's a and b (planner/hermite.py's polynomial, anchored at its end) and its start and
+    """One segment's a and b (planner/encoding/hermite.py's polynomial, anchored at its end) and its start and
     end accelerations; velocities in counts/ms, t in ms (t * t * t is t**3 exactly: whole ms)."""
     dp = p1 - p0
     a = (-2.0 * dp + t * (v1 + v0)) / (t * t * t)
@@ -78,7 +78,7 @@ def reconstruct(
     positions: FloatArray, velocities_rpm: FloatArray, times: IntArray, conv: FloatArray, toward_zero: BoolArray
 ) -> tuple[IntArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """The drive's rounded demand, unrounded position and velocity at every ms 0..times[-1], and every
-    segment's start and end acceleration, of every axis: planner.hermite.reconstruct, evaluated in the
+    segment's start and end acceleration, of every axis: planner.encoding.hermite.reconstruct, evaluated in the
     same order (tau in [-T + 1, 0] from the segment's end)."""
     n, nk = positions.shape
     total = times[-1]

@@ -1,11 +1,11 @@
 """The drive's reconstruction of PVT knots: what the encoder hands the drive, and what the drive makes of it.
 
-Theory of operation. The encoder (planner/encoder.py) produces `Knots`: shared integer-ms knot times and,
+Theory of operation. The encoder (planner/encoding/encoder.py) produces `Knots`: shared integer-ms knot times and,
 per axis, whole-count positions and whole-rpm velocities, for axes described by `AxisScales` (unit
 conversions and the job's and the drive's limits, in counts and ms). The drive interpolates each segment
 with the cubic Hermite of seed 000 4.2.3 every 1 ms and rounds the result to whole counts, to nearest or,
 on drives known to truncate, toward zero (`drive_round`). `reconstruct` recomputes exactly that (compiled:
-planner/quantise.py) as a `Reconstruction`: the demand at every ms and each segment's end accelerations;
+planner/encoding/quantise.py) as a `Reconstruction`: the demand at every ms and each segment's end accelerations;
 `planned_demand` is the plan rounded the same way, the demand a perfect encoding would command. The
 encoder's contract and its acceleration budget (`segment_envelope`, `acceleration_excess`) are stated
 against these; the encoder, the uniform baseline and the tests all judge an encoding through them.
@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import hermite, quantise
-from planner.reference import FloatArray, IntArray, Reference
+from planner.encoding import hermite, quantise
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 
 @dataclass(frozen=True, eq=False)
@@ -96,7 +96,7 @@ def planned_demand(ref: Reference, toward_zero: NDArray[np.bool_] | None = None)
 
 
 # ----------------------------------------------------------------------------------------------------
-# reconstruction (planner.hermite's interpolation and rounding, compiled: quantise.reconstruct)
+# reconstruction (planner.encoding.hermite's interpolation and rounding, compiled: quantise.reconstruct)
 
 
 def toward_zero_flags(scales: AxisScales) -> NDArray[np.bool_]:

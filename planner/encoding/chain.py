@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner.jit import kernel
-from planner.reference import FloatArray, IntArray
+from planner.motion.reference import FloatArray, IntArray
 
 ACC_SLACK = 1.0e-3
 VEL_SLACK = 1.0e-4

@@ -47,8 +47,8 @@ import numpy as np
 
 from planner.config import AxisConfig, CellConfig
 from planner.errors import AXIS_COUNT, INFEASIBLE, NONFINITE, POSITION_LIMIT, PlanningError
+from planner.motion.reference import FloatArray, Reference
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
-from planner.reference import FloatArray, Reference
 from planner.trajectory import PvtTrajectory
 
 EMERGENCY_RISE_MS = 20.0  # ms from zero to the full emergency deceleration (sets the emergency jerk)
@@ -144,7 +144,7 @@ def _stop(
     info: dict[str, float] = {}
 
     def build(f: float, smooth: bool = False) -> Reference:
-        from planner.jerk import stop_reference
+        from planner.motion.jerk import stop_reference
 
         vlim = np.maximum(limits["velocity_axis"], np.abs(v_exact))
         alim = np.maximum(limits["acceleration"], np.abs(a))
@@ -328,7 +328,7 @@ def _change_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """ruckig's position interface from the given state to the target at rest, time-synchronised."""
-    from planner.jerk import _input, _reference, _ruckig, solve_sampled
+    from planner.motion.jerk import _input, _reference, _ruckig, solve_sampled
 
     n = position.size
     _ruckig()  # imported (and its absence reported) before the input is built

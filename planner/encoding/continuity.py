@@ -1,9 +1,9 @@
 """Knot values that keep the drive's acceleration continuous: the encoder's values re-chosen for a
-jerk-limited plan (planner/jerkpath.py, `jerk_limited` path jobs).
+jerk-limited plan (planner/motion/jerkpath.py, `jerk_limited` path jobs).
 
 Theory of operation. A cubic Hermite chain is C2 only where its knot velocities make it so: at a knot,
 the acceleration the drive ends one segment with and the one it starts the next with both depend on the
-knot's position and velocity and on its two neighbours'. The encoder (planner/encoder.py) rounds each
+knot's position and velocity and on its two neighbours'. The encoder (planner/encoding/encoder.py) rounds each
 knot to whole counts and whole rpm choosing values that keep the drive within the tolerance and the
 acceleration-excess budget, pair of knots by pair of knots (a Viterbi pass over the segments); the
 steps of acceleration that rounding leaves at the knots are a jerk over the 1 ms tick, typically 10-20
@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from planner import hermite
-from planner.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
-from planner.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
-from planner.reference import FloatArray, IntArray, Reference
+from planner.encoding import hermite
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
+from planner.encoding.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 JERK_SLACK = 0.05  # in-segment jerk allowed above the limit (the issue's +5 %)
 OVER = 1.0e4  # weight of a step or jerk beyond the limit (against 1 for a step at the limit)

@@ -1,11 +1,11 @@
 """Jerk-limited traversal of a path (`jerk_limited` path jobs): what plan_job plans instead of the
-acceleration-only optimum of planner/path.py when every axis' jerk limit must hold too.
+acceleration-only optimum of planner/motion/path.py when every axis' jerk limit must hold too.
 
 Theory of operation. Fed the runs of a path (rest to rest, between exact stops) and the joints' velocity,
 acceleration and jerk limits; emits the plan at every ms (a `Reference` in counts whose acceleration is
 continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per run:
 
-1. Along straight pieces and blends (`plan_corner_run`, planner/geometry.py's runs): every blend crossed
+1. Along straight pieces and blends (`plan_corner_run`, planner/motion/geometry.py's runs): every blend crossed
    at one constant path speed, the largest at which every joint's velocity q' s', acceleration q'' s'^2
    and jerk q''' s'^3 stay within their limits (the jerk within `PLAN_JERK_SHARE`); every straight piece
    a time-optimal jerk-limited 1-DoF motion (ruckig, along the line) between the speeds at its two
@@ -27,7 +27,7 @@ continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per ru
    those path intervals and solves again (`REPAIR_ROUNDS`), then the run is played slower.
 3. Every run is checked at every ms on the joint motion itself (`ratios`): velocity and acceleration
    within their limits, the change of acceleration over every ms within `PLAN_JERK_SHARE` of the jerk
-   limit (the rest is left to the drive's quantisation: planner/continuity.py), and slowed down where
+   limit (the rest is left to the drive's quantisation: planner/encoding/continuity.py), and slowed down where
    it is not.
 
 Why (measured on benchmarks/bench_planner.py's path corpora, docs/formats.md "jerk_limited"): the filter
@@ -49,10 +49,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import topp
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
-from planner.path import GeometricPath, Profile, solve_profile
-from planner.reference import FloatArray, IntArray, Reference
+from planner.motion import topp
+from planner.motion.path import GeometricPath, Profile, solve_profile
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 JERK_SHARE = 0.7  # of each joint's jerk limit, for the path-jerk term q' s''' (the window's choice)
 PLAN_JERK_SHARE = 0.9  # the plan's jerk over every ms within this share of the limit (the rest: encoder)
@@ -98,7 +98,7 @@ def dip_caps(grid: FloatArray, sd: FloatArray, window_ms: float) -> FloatArray:
 def solve_capped(
     samples: topp.PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: FloatArray | None, caps: FloatArray
 ) -> FloatArray:
-    """TOPP-RA's optimum (planner/topp.py) with s_dot at most `caps` at the gridpoints as well."""
+    """TOPP-RA's optimum (planner/motion/topp.py) with s_dot at most `caps` at the gridpoints as well."""
     a, b, g = topp.constraint_rows(samples.q1, samples.q2, samples.deltas, vlim, alim, row_scale)
     xmax = np.minimum(topp.velocity_bound(samples.q1, vlim), caps * caps)
     return topp.parametrize(a, b, g, xmax, samples.gridpoints)
@@ -357,11 +357,11 @@ def stop_at_corners(
     time_scale: float = 1.0,
     max_duration_s: float = 900.0,
 ) -> Reference:
-    """The jerk-limited moves along the straight line from waypoint to waypoint (planner/jerk.py, ruckig),
+    """The jerk-limited moves along the straight line from waypoint to waypoint (planner/motion/jerk.py, ruckig),
     each from rest to rest, one after the other: the polyline exactly, with every axis' jerk limit, and
     the alternative a lines path takes where it is faster than the blended traversal (`plan_job`).
     `waypoints` in user units (already snapped at the ends)."""
-    from planner.jerk import move_reference
+    from planner.motion.jerk import move_reference
 
     parts: list[Reference] = []
     spent = 0.0
@@ -414,7 +414,7 @@ def _reach(v: float, length: float, vmax: float, a: float, j: float) -> float:
 
 def _line_move(length: float, v_in: float, v_out: float, vmax: float, a: float, j: float) -> Any:
     """ruckig's time-optimal 1-DoF motion along a line piece, from speed `v_in` to `v_out` at zero acceleration."""
-    from planner.jerk import _ruckig, _solve
+    from planner.motion.jerk import _ruckig, _solve
 
     rk = _ruckig()
     inp = rk.InputParameter(1)
@@ -478,7 +478,7 @@ def _blend_cap(geom: Any, s0: float, s1: float, vlim: FloatArray, alim: FloatArr
 
 
 def _geometry_pieces(geom: Any, vlim: FloatArray, alim: FloatArray, jplan: FloatArray) -> list[_Line | _Blend] | None:
-    """The pieces of a run of straight pieces and blends (planner/geometry.py), None for other geometries."""
+    """The pieces of a run of straight pieces and blends (planner/motion/geometry.py), None for other geometries."""
     blends = getattr(geom, "blends", None)
     bp = getattr(geom, "breakpoints", None)
     if blends is None or bp is None:
@@ -735,7 +735,7 @@ def _choose_stops(
 def plan_corner_run(
     geom: Any, vlim: FloatArray, alim: FloatArray, jlim: FloatArray, *, time_scale: float = 1.0
 ) -> JerkRun | None:
-    """A rest-to-rest, jerk-limited traversal of one run of straight pieces and blends (planner/geometry.py).
+    """A rest-to-rest, jerk-limited traversal of one run of straight pieces and blends (planner/motion/geometry.py).
 
     Every blend is crossed at a constant path speed (there the joints' acceleration is q'' s'^2 and their
     jerk q''' s'^3: the speed is the largest that keeps both, and the joint velocity, within the limits),

@@ -3,7 +3,7 @@
 Theory of operation. A machine builder expects a path job to go along the segments between its
 waypoints and to round the corners within a tolerance (G64 in CNC, the blends of MoveIt's TOTG), not
 to swing through them on a spline. This module turns waypoints and a per-axis tolerance into that
-geometry, as rest-to-rest *runs* that the time-optimal parametrisation traverses (planner/path.py):
+geometry, as rest-to-rest *runs* that the time-optimal parametrisation traverses (planner/motion/path.py):
 
 1. Parametrisation. Everything is built in time-normalised coordinates z = q / v_max (per axis), where
    the arc length of a segment is the time it takes at full speed; the path parameter s is that
@@ -31,7 +31,7 @@ geometry, as rest-to-rest *runs* that the time-optimal parametrisation traverses
    traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
 
 `blended_runs` returns the runs as `PiecewisePath` objects (a piecewise polynomial of degree 5 per axis) with
-`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what the solver (planner/topp.py) and path.py evaluate.
+`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what the solver (planner/motion/topp.py) and path.py evaluate.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner.jit import kernel
-from planner.reference import FloatArray, IntArray
+from planner.motion.reference import FloatArray, IntArray
 
 # candidate blend shapes d / l (module docstring, 2); 1/2 puts the two middle control points on c
 RHOS = np.array([0.06, 0.09, 0.12, 0.16, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5])

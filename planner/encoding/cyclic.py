@@ -38,10 +38,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planner import hermite
 from planner.config import AxisConfig
+from planner.encoding import hermite
 from planner.errors import AXIS_ID, ENCODING_RANGE, INFEASIBLE, PlanningError
-from planner.reference import FloatArray, IntArray
+from planner.motion.reference import FloatArray, IntArray
 
 if TYPE_CHECKING:
     from planner.trajectory import PvtTrajectory
@@ -52,7 +52,7 @@ VELOCITY_16BIT = 32767
 
 
 def interpolation_of(axis: AxisConfig) -> str | None:
-    """How the axis' drive interpolates what it is sent: None for the EPOS PVT FIFO (planner.hermite),
+    """How the axis' drive interpolates what it is sent: None for the EPOS PVT FIFO (planner.encoding.hermite),
     else "linear", "pv" or "p3" (one set point per SYNC)."""
     if axis.profile == "epos-ipm":
         return None

@@ -20,10 +20,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from planner.encoder import within_contract
-from planner.reconstruction import AxisScales, Knots, planned_demand, reconstruct
-from planner.record import SEGMENT_TIME_MAX_MS
-from planner.reference import IntArray, Reference
+from planner.encoding.encoder import within_contract
+from planner.encoding.reconstruction import AxisScales, Knots, planned_demand, reconstruct
+from planner.encoding.record import SEGMENT_TIME_MAX_MS
+from planner.motion.reference import IntArray, Reference
 
 
 def uniform_knots(ref: Reference, scales: AxisScales, dt: int, first: Knots) -> Knots:

@@ -37,7 +37,7 @@ import numpy as np
 
 from planner.errors import INFEASIBLE, PlanningError
 from planner.jit import kernel
-from planner.reference import FloatArray
+from planner.motion.reference import FloatArray
 
 THETAS = np.array([0.0, 0.25, 0.5, 0.75, 1.0])  # where inside each interval the constraints are imposed
 U_MAX = 1.0e8  # bound on |u| that keeps every linear program bounded

@@ -78,8 +78,8 @@ from planner.errors import (
     PlanningError,
 )
 from planner.job import MODULO_MODES, Job, MoveData, check_relative_target, effective_limits
+from planner.motion.reference import FloatArray, IntArray, Reference, hold
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
-from planner.reference import FloatArray, IntArray, Reference, hold
 from planner.trajectory import _RPM_MS, DEFAULT_CHUNK_MS, CruiseState, PvtTrajectory
 
 MIN_CHUNK_MS = 100  # shorter cruise segments turn the knots' rounding (<= 1 count) into acceleration noise
@@ -335,8 +335,8 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
     """The next chunk of an open-ended velocity move: knot 0 is exactly the previous chunk's last knot;
     `chunk_ms` of cruise (default: the plan's), or up to the limit stop (closed) where the position
     limits come first (see the module docstring)."""
-    from planner.encoder import ACC_EXCESS_LIMIT
-    from planner.reconstruction import Knots, acceleration_excess, planned_demand, reconstruct
+    from planner.encoding.encoder import ACC_EXCESS_LIMIT
+    from planner.encoding.reconstruction import Knots, acceleration_excess, planned_demand, reconstruct
 
     st = traj_or_state.open_end if isinstance(traj_or_state, PvtTrajectory) else traj_or_state
     if st is None:
@@ -408,11 +408,18 @@ def extend_velocity(traj_or_state: PvtTrajectory | CruiseState, chunk_ms: int | 
 
 
 def _with_cyclic_stats(traj: PvtTrajectory, cfg: Sequence[AxisConfig], cell: CellConfig) -> PvtTrajectory:
-    """planner/cyclic.py's stats of the axes fed one set point per SYNC. An open-ended chunk does not end at
+    """planner/encoding/cyclic.py's stats of the axes fed one set point per SYNC. An open-ended chunk does not end at
     rest (what `cyclic.assess` assumes of a plan's end): its set points are sampled from the plan carried
     on at the cruise velocity for two more periods, and the drive's deviation is measured up to the
     chunk's end."""
-    from planner.cyclic import INTERPOLATIONS, deviation, interpolation_of, sample, wire_problem, with_cyclic_stats
+    from planner.encoding.cyclic import (
+        INTERPOLATIONS,
+        deviation,
+        interpolation_of,
+        sample,
+        wire_problem,
+        with_cyclic_stats,
+    )
 
     if traj.open_end is None or all(interpolation_of(c) is None for c in cfg):
         return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
@@ -471,7 +478,7 @@ def _velocity_ramp(
 ) -> Reference:
     """Jerk-limited ramp (user units) from (p, v, a) to velocity `target` at acceleration 0, all axes
     arriving together (ruckig's velocity interface, time-synchronised, whole ms)."""
-    from planner.jerk import _input, _ruckig, solve_sampled
+    from planner.motion.jerk import _input, _ruckig, solve_sampled
 
     n = p.size
     if np.all(v == target) and np.all(a == 0.0):
@@ -519,7 +526,7 @@ def _stop_from_cruise(
     time_scale: float = 1.0,
 ) -> Reference:
     """The stop from cruising at `v_cpm` (counts/ms) at `p_counts`: jerk-limited at the deceleration."""
-    from planner.jerk import stop_reference
+    from planner.motion.jerk import stop_reference
 
     if np.all(v_cpm == 0.0):
         return hold(p_counts, 1)

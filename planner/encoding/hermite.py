@@ -26,7 +26,7 @@ polynomial rounded half away from zero to whole counts at every 1 ms tick tau = 
 k = T it is exactly P[n].
 
 The encoder evaluates the same polynomial, operation for operation, in compiled loops
-(planner/quantise.py); tests/planner/test_planner_value_search.py holds the two equal bit for bit.
+(planner/encoding/quantise.py); tests/planner/test_planner_value_search.py holds the two equal bit for bit.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Theory of operation.
 
-1. Geometry (planner/geometry.py, or `SplineGeometry` here): by default the straight segments between
+1. Geometry (planner/motion/geometry.py, or `SplineGeometry` here): by default the straight segments between
    the waypoints with C2 blends at the corners, cut into rest-to-rest runs at exact stops; on request
    (`geometry = "spline"`) a C2 cubic spline through the waypoints (scipy, not-a-knot). Both are
    parametrised by the time-normalised arc length (delta q / v_max per axis), squeezed into [0.01, 2]
@@ -10,7 +10,7 @@ Theory of operation.
    on long parametrisations). Consecutive waypoints closer than half a count are merged and the end
    points snapped to whole counts before (plan.py). Every run is planned on its own and the runs are
    played one after the other.
-2. Time-optimal parametrisation: toppra's reachability algorithm, compiled (planner/topp.py). Checking
+2. Time-optimal parametrisation: toppra's reachability algorithm, compiled (planner/motion/topp.py). Checking
    the constraints only at the gridpoints, as toppra does, lets the constant-acceleration profile
    overshoot between them (by 5-25 % on wiggly 20-waypoint paths with 100-400 gridpoints, measured
    with toppra). So the acceleration and velocity limits are also imposed at interior points of every
@@ -24,7 +24,7 @@ Theory of operation.
    (each piece's acceleration is an average of the solver's, so it never exceeds them), short transitions
    between two switches merged where the path is straight, path position rescaled to end exactly at
    the end of the path.
-4. Blended paths: the plan is the Hermite chain through the re-timed profile (planner/chain.py), the
+4. Blended paths: the plan is the Hermite chain through the re-timed profile (planner/encoding/chain.py), the
    motion the drive itself reproduces with segments long enough for its quantisation; a run that is
    one straight segment is the closed-form trapezoid instead (`straight_run`: no solve, no chain).
 5. Verification at every ms of every joint (of the chain, for blended paths): velocity and
@@ -52,14 +52,14 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import topp
 from planner.errors import INFEASIBLE, TOO_LARGE, PlanningError
 from planner.jit import kernel
-from planner.reference import FloatArray, IntArray, Reference
-from planner.topp import PathSamples
+from planner.motion import topp
+from planner.motion.reference import FloatArray, IntArray, Reference
+from planner.motion.topp import PathSamples
 
 if TYPE_CHECKING:
-    from planner.chain import ChainFit
+    from planner.encoding.chain import ChainFit
 
 # one evaluation of a profile (plan_run): q, v, acc_left, acc_right, the chain (if any), acc and vel ratios
 _Evaluation = tuple[FloatArray, FloatArray, FloatArray, FloatArray, "ChainFit | None", FloatArray, FloatArray]
@@ -170,7 +170,7 @@ class SplineGeometry:
 def solve_profile(
     samples: PathSamples, vlim: FloatArray, alim: FloatArray, row_scale: FloatArray | None = None
 ) -> FloatArray:
-    """The optimal path velocities s_dot at the gridpoints (planner/topp.py; raises PlanningError(INFEASIBLE))."""
+    """The optimal path velocities s_dot at the gridpoints (motion/topp.py; raises PlanningError(INFEASIBLE))."""
     return topp.solve(samples, vlim, alim, row_scale)
 
 
@@ -457,7 +457,7 @@ class RunPlan:
 
 @dataclass(frozen=True)
 class ChainSpec:
-    """How a run becomes a Hermite chain (planner/chain.py): geometric budget per axis (user units)
+    """How a run becomes a Hermite chain (planner/encoding/chain.py): geometric budget per axis (user units)
     and the encoder's segment bounds (ms)."""
 
     budget: FloatArray
@@ -506,10 +506,10 @@ def plan_run(
 ) -> RunPlan:
     """A rest-to-rest traversal of one geometric path (TOPP-RA, re-timed, verified; module docstring).
 
-    With `chain`, the plan is the Hermite chain fitted to the re-timed profile (planner/chain.py) and
+    With `chain`, the plan is the Hermite chain fitted to the re-timed profile (planner/encoding/chain.py) and
     the verification and repairs apply to the chain.
     """
-    from planner.chain import fit_chain
+    from planner.encoding.chain import fit_chain
 
     grid = geom.gridpoints()
     samples = topp.sample_path(geom, grid)  # once: the repairs only tighten the rows

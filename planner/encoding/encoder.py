@@ -1,7 +1,7 @@
 """PVT encoder: a `Reference` (the planned motion at every ms) -> knots on one shared integer-ms grid.
 
 Theory of operation. The drive rebuilds each axis' motion from PVT knots with the cubic Hermite
-polynomial of seed 000 4.2.3 (planner/hermite.py), evaluated every 1 ms and rounded to whole counts.
+polynomial of seed 000 4.2.3 (planner/encoding/hermite.py), evaluated every 1 ms and rounded to whole counts.
 The encoder's contract, checked at every ms of every axis on the quantised values:
 
     |drive demand - planned demand| <= tolerance        (both in whole counts; planned demand =
@@ -24,7 +24,7 @@ both the tolerance and the acceleration budget below.)
    `SECTION_MS`; knots one segment makes unnecessary are dropped again (`_coarsen`). A placement
    allowed up to 255 ms, and the coarsest uniform grid's number of knots spread evenly, are tried too
    (`_uniform_alternative`): the fewest knots that pass every check win, so an encoding never needs
-   more records than the coarsest uniform grid that is itself a valid encoding (planner/uniform.py).
+   more records than the coarsest uniform grid that is itself a valid encoding (planner/encoding/uniform.py).
    Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
    moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
    rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
@@ -35,7 +35,7 @@ both the tolerance and the acceleration budget below.)
    within the tolerance at every tick and minimises the acceleration excess over the plan (the costs at
    a few sample ticks bound those at every tick from below: only the pairs the best path passes are
    checked at every tick). Rounding each value on its own is not enough (docs/formats.md, section 3).
-3. Verification of the drive's reconstruction (planner.hermite, rounded as the drive rounds) at every
+3. Verification of the drive's reconstruction (planner.encoding.hermite, rounded as the drive rounds) at every
    ms. Segments that fail are refined locally, on the axes that fail there (7 velocity candidates,
    every tick checked), then split: those that miss the tolerance in two; where only the acceleration
    budget fails, the failing segments and their neighbours where both halves stay at least
@@ -48,13 +48,13 @@ both the tolerance and the acceleration budget below.)
    planned motions slower (sub-count moves need it).
 
 What the encoder emits (`Knots`, for axes described by `AxisScales`) and what the drive makes of it
-(`reconstruct`, `planned_demand`, the acceleration budget's `segment_envelope`) are planner/reconstruction.py.
+(`reconstruct`, `planned_demand`, the acceleration budget's `segment_envelope`) are planner/encoding/reconstruction.py.
 
 Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
 the last knot is the plan's end rounded to counts with velocity 0 (or the given end velocity of an
 open-ended velocity move), exactly.
 
-Compiled: steps 2 and 3 run in planner/quantise.py (numba, planner/jit.py). The Viterbi pass scores
+Compiled: steps 2 and 3 run in planner/encoding/quantise.py (numba, planner/jit.py). The Viterbi pass scores
 every pair of candidates of every segment and the refinement checks every tick of them; in NumPy that
 took (n, N, C, C) temporaries and tens of array operations per window (15-90 ms a plan, most of the
 encoder's time). Compiled, the costs need no temporaries, and the passes check at every tick only the
@@ -73,9 +73,8 @@ import contextlib
 import numpy as np
 from numpy.typing import NDArray
 
-from planner import hermite, quantise
-from planner.jit import kernel
-from planner.reconstruction import (  # the callers' and tests' `encoder.X` for these still work
+from planner.encoding import hermite, quantise
+from planner.encoding.reconstruction import (  # the callers' and tests' `encoder.X` for these still work
     AxisScales,
     Knots,
     Reconstruction,
@@ -84,10 +83,11 @@ from planner.reconstruction import (  # the callers' and tests' `encoder.X` for 
     reconstruct,
     segment_envelope,
 )
-from planner.reconstruction import drive_round as drive_round  # tests/planner/placement_reference.py
-from planner.reconstruction import toward_zero_flags as _toward_zero
-from planner.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
-from planner.reference import FloatArray, IntArray, Reference
+from planner.encoding.reconstruction import drive_round as drive_round  # tests/planner/placement_reference.py
+from planner.encoding.reconstruction import toward_zero_flags as _toward_zero
+from planner.encoding.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
+from planner.jit import kernel
+from planner.motion.reference import FloatArray, IntArray, Reference
 
 PLACEMENT_SHARE = 0.7  # share of the tolerance the exact-value Hermite may use (the rest: quantisation)
 SECTION_MS = 250  # a plan without hints is placed in sections of at most this length
@@ -669,7 +669,7 @@ def _uniform_alternative(
     the acceleration budget gives way to the next finer one).
 
     An encoding should never need more knots than the coarsest plain uniform grid that meets the
-    tolerance (planner/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
+    tolerance (planner/encoding/uniform.py: rounded values, the tolerance at every ms). Where that grid has fewer
     knots than `best`, the same number spread evenly (no short last segment, which the acceleration
     budget would not allow) and the uniform grid itself have their values chosen and verified like any
     other placement, and the one with the fewest knots replaces `best`. Only grids with fewer knots
@@ -870,7 +870,7 @@ def _misses(
 
 def within_contract(ref: Reference, knots: Knots, scales: AxisScales, tol: float) -> bool:
     """Does this encoding keep everything `encode` guarantees (tolerance at every ms, velocity and
-    acceleration limits, the acceleration-excess budget)? For baselines (planner/uniform.py)."""
+    acceleration limits, the acceleration-excess budget)? For baselines (planner/encoding/uniform.py)."""
     want = planned_demand(ref, scales.toward_zero)
     off_tol, off_budget = _misses(knots, scales, tol, want, segment_envelope(ref, knots.times_ms))
     if off_tol.any() or off_budget.any():
