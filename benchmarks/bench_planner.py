@@ -84,11 +84,11 @@ def path_geometry(job: Job, cell: CellConfig) -> list[Any]:
     wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)
     wp[0], wp[-1] = snap(wp[0], cpu), snap(wp[-1], cpu)
     if job.data.geometry == "spline":
-        return [SplineGeometry(wp, lim["velocity"])]
+        return [SplineGeometry(wp, lim.velocity)]
     scales = axis_scales(cfg, lim)
     box = (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg]))
     runs, _chain = lines_geometry(
-        wp, cpu, lim["velocity"], lim["acceleration"], path_tolerance(job, cell), job.tolerance_counts,
+        wp, cpu, lim.velocity, lim.acceleration, path_tolerance(job, cell), job.tolerance_counts,
         segment_bounds(scales, float(job.tolerance_counts)), box, {},
     )
     return list(runs)
@@ -102,7 +102,7 @@ def raw_toppra(job: Job, cell: CellConfig, *, refine: bool = True) -> tuple[floa
     from planner.motion.topp import toppra_path
 
     lim = effective_limits(job, cell)
-    vlim, alim = lim["velocity"], lim["acceleration"]
+    vlim, alim = lim.velocity, lim.acceleration
     elapsed, duration = 0.0, 0.0
     for geom in path_geometry(job, cell):
         grid = geom.gridpoints()
@@ -339,7 +339,7 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)  # type: ignore[union-attr]
     total = 0
     for a, b in itertools.pairwise(wp):
-        total += move_reference(snap(a, cpu), snap(b, cpu), lim["velocity"], lim["acceleration"], lim["jerk"],
+        total += move_reference(snap(a, cpu), snap(b, cpu), lim.velocity, lim.acceleration, lim.jerk,
                                 cpu).duration_ms
     return total / 1000.0
 

@@ -75,6 +75,7 @@ from planner.fields import (
     read_vector,
     show,
 )
+from planner.limits import AxisLimits
 from planner.motion.reference import FloatArray
 
 Kind = Literal["path", "move", "timed", "pvt", "home"]
@@ -958,11 +959,11 @@ def jerk_limited(job: Job, cell: CellConfig) -> bool:
         return False
     if d.jerk_limited is not None:
         return d.jerk_limited
-    jerk = effective_limits(job, cell)["jerk"]
+    jerk = effective_limits(job, cell).jerk
     return JERK_LIMITED_DEFAULT and bool(np.all(np.isfinite(jerk) & (jerk > 0.0)))
 
 
-def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:
+def effective_limits(job: Job, cell: CellConfig) -> AxisLimits:
     """Per-axis limits the job is planned with (user units): overrides, then scales, applied."""
     cfg = [cell.axis(a) for a in job.axes]
     vel = np.array(job.velocity_limit if job.velocity_limit is not None else [c.velocity for c in cfg])
@@ -977,13 +978,13 @@ def effective_limits(job: Job, cell: CellConfig) -> dict[str, FloatArray]:
         acc = speed_range / (np.array(ramps.accel_ms) / 1000.0)
         dec = speed_range / (np.array(ramps.decel_ms) / 1000.0)
     scale = np.array(job.acceleration_scale)
-    return {
-        "velocity": vel * np.array(job.velocity_scale),
+    return AxisLimits(
+        velocity=vel * np.array(job.velocity_scale),
         # the bound every check uses: the larger of the two ramps (moves plan with each where it applies)
-        "acceleration": np.maximum(acc, dec) * scale,
-        "acceleration_up": acc * scale,  # speeding up
-        "deceleration": dec * scale,  # slowing down
-        "jerk": jerk,
-        "velocity_axis": vel,  # before scaling: what "the axis limit" means in the checks
-        "acceleration_axis": np.maximum(acc, dec),
-    }
+        acceleration=np.maximum(acc, dec) * scale,
+        acceleration_up=acc * scale,  # speeding up
+        deceleration=dec * scale,  # slowing down
+        jerk=jerk,
+        velocity_axis=vel,  # before scaling: what "the axis limit" means in the checks
+        acceleration_axis=np.maximum(acc, dec),
+    )

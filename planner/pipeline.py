@@ -22,6 +22,7 @@ from planner.config import AxisConfig, CellConfig
 from planner.encoding.encoder import EncodingFailed, EncodingNeedsTime, encode
 from planner.encoding.reconstruction import AxisScales, Knots, Reconstruction, acceleration_excess, planned_demand
 from planner.errors import ENCODING_RANGE, INFEASIBLE, PlanningError
+from planner.limits import AxisLimits
 from planner.motion.reference import FloatArray, IntArray, Reference
 from planner.trajectory import AxisStats, CruiseState, PvtTrajectory
 
@@ -36,14 +37,14 @@ def axis_configs(axes: Sequence[str], cell: CellConfig) -> list[AxisConfig]:
 
 
 def axis_scales(
-    cfg: Sequence[AxisConfig], limits: dict[str, FloatArray], max_segment_ms: int | None = None
+    cfg: Sequence[AxisConfig], limits: AxisLimits, max_segment_ms: int | None = None
 ) -> AxisScales:
     cpu = np.array([c.counts_per_unit for c in cfg])
     return AxisScales(
         counts_per_ms_per_rpm=np.array([c.counts_per_rev / 60000.0 for c in cfg]),
-        velocity_limit=limits["velocity"] * cpu / 1000.0,
-        acceleration_limit=limits["acceleration"] * cpu / 1.0e6,
-        acceleration_axis=limits["acceleration_axis"] * cpu / 1.0e6,
+        velocity_limit=limits.velocity * cpu / 1000.0,
+        acceleration_limit=limits.acceleration * cpu / 1.0e6,
+        acceleration_axis=limits.acceleration_axis * cpu / 1.0e6,
         drive_velocity=np.array([c.max_profile_velocity for c in cfg]) * cpu / 1000.0,
         drive_acceleration=np.array([c.max_acceleration for c in cfg]) * cpu / 1.0e6,
         # the drive's rounding of its demand where `pvt probe` found it truncates (else to nearest)
@@ -186,7 +187,7 @@ def build_trajectory(
     rec: Reconstruction,
     scales: AxisScales,
     tol: int,
-    limits: dict[str, FloatArray],
+    limits: AxisLimits,
     info: dict[str, float],
     open_end: CruiseState | None = None,
 ) -> PvtTrajectory:
@@ -212,16 +213,16 @@ def build_trajectory(
                 max_deviation_from_plan_counts=float(dev_plan[i]),
                 peak_velocity=vpk * 1000.0 / cpu[i],
                 peak_velocity_rpm=vpk / conv[i],
-                velocity_limit=float(limits["velocity"][i]),
+                velocity_limit=float(limits.velocity[i]),
                 drive_velocity_limit_rpm=float(c.max_profile_velocity_rpm),
                 planned_peak_acceleration=float(env[i].max()) * 1.0e6 / cpu[i],
                 peak_acceleration=(float(peak_acc[i].max()) if peak_acc.size else 0.0) * 1.0e6 / cpu[i],
-                acceleration_limit=float(limits["acceleration"][i]),
-                axis_acceleration_limit=float(limits["acceleration_axis"][i]),
+                acceleration_limit=float(limits.acceleration[i]),
+                axis_acceleration_limit=float(limits.acceleration_axis[i]),
                 drive_acceleration_limit=float(c.max_acceleration),
                 acceleration_excess=ex * 1.0e6 / cpu[i],
                 acceleration_excess_share=ex / float(scales.acceleration_axis[i]),
-                jerk_limit=float(limits["jerk"][i]),
+                jerk_limit=float(limits.jerk[i]),
                 planned_peak_jerk=float(plan_jerk[i]) * 1.0e9 / cpu[i],
                 peak_jerk=float(seg_jerk[i]) * 1.0e9 / cpu[i],
                 knot_acceleration_step=float(knot_step[i]) * 1.0e6 / cpu[i],

@@ -118,7 +118,7 @@ def plan_job(
             wp[0] = here
         wp = _merge_close(wp, cpu)
         wp[0], wp[-1] = snap(wp[0], cpu), snap(wp[-1], cpu)
-        _check_duration_bound(np.abs(np.diff(wp, axis=0)).sum(axis=0), limits["velocity"])
+        _check_duration_bound(np.abs(np.diff(wp, axis=0)).sum(axis=0), limits.velocity)
         extent = (wp.max(axis=0) - wp.min(axis=0)) * cpu
         if wp.shape[0] < 2 or float(extent.max()) < TINY_PATH_COUNTS:
             first, last = wp[0], wp[-1]
@@ -129,9 +129,9 @@ def plan_job(
                 return move_reference(
                     first,
                     last,
-                    limits["velocity"],
-                    limits["acceleration"],
-                    limits["jerk"],
+                    limits.velocity,
+                    limits.acceleration,
+                    limits.jerk,
                     cpu,
                     time_scale=f,
                     max_duration_s=MAX_DURATION_S,
@@ -143,8 +143,8 @@ def plan_job(
                 runs, chain = lines_geometry(
                     wp,
                     cpu,
-                    limits["velocity"],
-                    limits["acceleration"],
+                    limits.velocity,
+                    limits.acceleration,
                     path_tolerance(job, cell),
                     tol,
                     segment_bounds(scales, tol),
@@ -164,11 +164,11 @@ def plan_job(
                     from planner.motion.jerkpath import plan_jerk_path
 
                     ref, path_info = plan_jerk_path(
-                        runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
+                        runs if runs is not None else [SplineGeometry(wp, limits.velocity, shape[0])],
                         cpu,
-                        limits["velocity"],
-                        limits["acceleration"],
-                        limits["jerk"],
+                        limits.velocity,
+                        limits.acceleration,
+                        limits.jerk,
                         time_scale=f,
                         max_duration_s=MAX_DURATION_S,
                     )
@@ -178,8 +178,8 @@ def plan_job(
                         # along the segments: stopping at every corner with jerk-limited moves, where faster
                         from planner.motion.jerkpath import stop_at_corners
 
-                        stops = stop_at_corners(wp, cpu, limits["velocity"], limits["acceleration"],
-                                                limits["jerk"], time_scale=f, max_duration_s=MAX_DURATION_S)
+                        stops = stop_at_corners(wp, cpu, limits.velocity, limits.acceleration,
+                                                limits.jerk, time_scale=f, max_duration_s=MAX_DURATION_S)
                         if stops.duration_ms < ref.duration_ms:
                             info["jerk_stops"] = 1.0
                             return stops
@@ -187,10 +187,10 @@ def plan_job(
                 # the smooth retry (the encoder failed on short pieces): a chain without short segments
                 spec = None if chain is None else dataclasses.replace(chain, short=not smooth)
                 ref, path_info = plan_path(
-                    runs if runs is not None else [SplineGeometry(wp, limits["velocity"], shape[0])],
+                    runs if runs is not None else [SplineGeometry(wp, limits.velocity, shape[0])],
                     cpu,
-                    limits["velocity"],
-                    limits["acceleration"],
+                    limits.velocity,
+                    limits.acceleration,
                     time_scale=f,
                     min_piece_ms=max(MIN_SWITCH_PIECE_MS, min_seg)
                     if smooth
@@ -213,7 +213,7 @@ def plan_job(
             target = resolve_target(job, cell, origin, last_target, last_direction=last_direction)
         _check_within(target, cfg, job.axes, "target")
         a, b = snap(origin, cpu), snap(target, cpu)
-        _check_duration_bound(np.abs(b - a), limits["velocity"])
+        _check_duration_bound(np.abs(b - a), limits.velocity)
 
         def build(f: float, smooth: bool = False) -> Reference:
             from planner.motion.jerk import move_reference
@@ -221,14 +221,14 @@ def plan_job(
             return move_reference(
                 a,
                 b,
-                limits["velocity"],
-                limits["acceleration_up"],
-                limits["jerk"],
+                limits.velocity,
+                limits.acceleration_up,
+                limits.jerk,
                 cpu,
                 time_scale=f,
                 max_duration_s=MAX_DURATION_S,
                 info=info,
-                dlim=limits["deceleration"] if d.ramps is not None else None,
+                dlim=limits.deceleration if d.ramps is not None else None,
             )
     elif isinstance(d, TimedData):
         pos = np.array(d.positions, dtype=np.float64)
@@ -310,7 +310,7 @@ def plan_job(
         # the knot values re-chosen so that the drive's acceleration stays continuous (planner/encoding/continuity.py)
         from planner.encoding.continuity import smooth_values
 
-        smoothed = smooth_values(ref, knots, scales, float(tol), limits["jerk"] * cpu / 1.0e9)
+        smoothed = smooth_values(ref, knots, scales, float(tol), limits.jerk * cpu / 1.0e9)
         if smoothed is not knots:
             knots, rec = smoothed, reconstruct(smoothed, scales)
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)

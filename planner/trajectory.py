@@ -31,6 +31,7 @@ from planner.config import AxisConfig, CellConfig
 from planner.encoding import hermite
 from planner.encoding.record import PvtRecord, pack
 from planner.errors import ENCODING_RANGE, PlanningError
+from planner.limits import AxisLimits
 from planner.motion.reference import FloatArray, IntArray, Reference
 
 DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension, planner/motion/travel.py)
@@ -345,11 +346,6 @@ class CruiseState:
     def velocity_counts_per_ms(self) -> FloatArray:
         return np.array([v * c.counts_per_rev / _RPM_MS for v, c in zip(self.velocity_rpm, self.cfg, strict=True)])
 
-    def limits(self) -> dict[str, FloatArray]:
-        return {
-            "velocity": np.array(self.velocity_limit),
-            "acceleration": np.array(self.acceleration_limit),
-            "jerk": np.array(self.jerk),
-            "velocity_axis": np.array(self.velocity_limit),
-            "acceleration_axis": np.array(self.acceleration_axis),
-        }
+    def limits(self) -> AxisLimits:
+        return AxisLimits.of(np.array(self.velocity_limit), np.array(self.acceleration_limit), np.array(self.jerk),
+                             acceleration_axis=np.array(self.acceleration_axis))

@@ -47,6 +47,7 @@ import numpy as np
 
 from planner.config import AxisConfig, CellConfig
 from planner.errors import AXIS_COUNT, INFEASIBLE, NONFINITE, POSITION_LIMIT, PlanningError
+from planner.limits import AxisLimits
 from planner.motion.reference import FloatArray, Reference
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
 from planner.trajectory import PvtTrajectory
@@ -123,16 +124,10 @@ def _stop(
     v = _vec(velocities, "velocities", n)
     a = _vec(accelerations, "accelerations", n)
     cpu = np.array([c.counts_per_unit for c in cfg])
-    limits = {
-        "velocity": np.array([c.velocity for c in cfg]),
-        "acceleration": deceleration,
-        "jerk": jerk,
-        "velocity_axis": np.array([c.velocity for c in cfg]),
-        "acceleration_axis": deceleration,
-    }
     # a stop that starts while accelerating at full speed briefly goes faster than the axis limit
     # (it must first bring the acceleration to zero): the hard bound it is checked against is 0x607F
-    limits["velocity"] = np.array([c.max_profile_velocity for c in cfg])
+    limits = AxisLimits.of(np.array([c.max_profile_velocity for c in cfg]), deceleration, jerk,
+                           velocity_axis=np.array([c.velocity for c in cfg]))
     scales = axis_scales(cfg, limits)
     conv = scales.counts_per_ms_per_rpm
     p0 = np.round(p * cpu).astype(np.int64)
@@ -146,9 +141,9 @@ def _stop(
     def build(f: float, smooth: bool = False) -> Reference:
         from planner.motion.jerk import stop_reference
 
-        vlim = np.maximum(limits["velocity_axis"], np.abs(v_exact))
-        alim = np.maximum(limits["acceleration"], np.abs(a))
-        return stop_reference(p_exact, v_exact, a, vlim, alim, limits["jerk"], cpu, time_scale=f)
+        vlim = np.maximum(limits.velocity_axis, np.abs(v_exact))
+        alim = np.maximum(limits.acceleration, np.abs(a))
+        return stop_reference(p_exact, v_exact, a, vlim, alim, limits.jerk, cpu, time_scale=f)
 
     ref, knots, rec = encode_with_retries(
         build,
@@ -230,13 +225,8 @@ def plan_change(
         [c.acceleration for c in cfg])
     jlim = _vec(jerk_limit, "jerk_limit", n) if jerk_limit is not None else np.array([c.jerk for c in cfg])
     _check_target(goal, cfg, names)
-    limits = {
-        "velocity": np.array([c.max_profile_velocity for c in cfg]),  # as a stop: braking from above vlim
-        "acceleration": alim,
-        "jerk": jlim,
-        "velocity_axis": vlim,
-        "acceleration_axis": alim,
-    }
+    # as a stop: braking from above vlim
+    limits = AxisLimits.of(np.array([c.max_profile_velocity for c in cfg]), alim, jlim, velocity_axis=vlim)
     scales = axis_scales(cfg, limits)
     conv = scales.counts_per_ms_per_rpm
     p0 = np.round(p * cpu).astype(np.int64)

@@ -251,9 +251,9 @@ def plan_velocity(
     v_rpm = np.trunc(np.asarray(d.velocity) * cpu / 1000.0 / conv).astype(np.int64)
     v_cpm = v_rpm * conv  # counts/ms
     moving = bool(np.any(v0 != 0) or np.any(a0 != 0.0))
-    checks = dict(limits)
+    checks = limits
     if moving:  # a ramp from a moving state may briefly exceed the job's limit: 0x607F bounds it (as stops)
-        checks["velocity"] = np.maximum(limits["velocity"], np.array([c.max_profile_velocity for c in cfg]))
+        checks = limits.with_velocity(np.maximum(limits.velocity, np.array([c.max_profile_velocity for c in cfg])))
     scales = axis_scales(cfg, checks)
     tol = job.tolerance_counts
     lo = np.array([c.position_min for c in cfg]) * cpu + LIMIT_MARGIN_COUNTS
@@ -263,11 +263,11 @@ def plan_velocity(
     # ramps), a reversal with the smaller one
     up = (v_rpm * v0 >= 0) & (np.abs(v_rpm) >= np.abs(v0))
     down = (v_rpm * v0 >= 0) & (np.abs(v_rpm) < np.abs(v0))
-    slower = np.minimum(limits["acceleration_up"], limits["deceleration"])
-    ramp_acc = np.where(up, limits["acceleration_up"], np.where(down, limits["deceleration"], slower))
+    slower = np.minimum(limits.acceleration_up, limits.deceleration)
+    ramp_acc = np.where(up, limits.acceleration_up, np.where(down, limits.deceleration, slower))
     v_user = v_cpm * 1000.0 / cpu
     asked = np.asarray(d.velocity)
-    decel, jerk = limits["deceleration"], limits["jerk"]
+    decel, jerk = limits.deceleration, limits.jerk
     open_ended = bool(np.any(v_rpm != 0))
     info: dict[str, float] = {}
     # open-ended if a stop from the chunk's end still fits with STOP_RESERVE to spare (decided once, at the
@@ -319,11 +319,11 @@ def plan_velocity(
             anchor_counts=tuple(int(x) for x in knots.positions[:, -1]),
             velocity_rpm=tuple(int(x) for x in v_rpm),
             elapsed_ms=0,
-            deceleration=tuple(float(x) for x in limits["deceleration"]),
-            jerk=tuple(float(x) for x in limits["jerk"]),
-            velocity_limit=tuple(float(x) for x in limits["velocity"]),
-            acceleration_limit=tuple(float(x) for x in limits["acceleration"]),
-            acceleration_axis=tuple(float(x) for x in limits["acceleration_axis"]),
+            deceleration=tuple(float(x) for x in limits.deceleration),
+            jerk=tuple(float(x) for x in limits.jerk),
+            velocity_limit=tuple(float(x) for x in limits.velocity),
+            acceleration_limit=tuple(float(x) for x in limits.acceleration),
+            acceleration_axis=tuple(float(x) for x in limits.acceleration_axis),
             tolerance_counts=tol,
             chunk_ms=chunk_ms,
         )

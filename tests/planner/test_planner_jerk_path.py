@@ -138,7 +138,7 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
         merged = _merge_close(wp.copy(), cpu)
         merged[0], merged[-1] = snap(merged[0], cpu), snap(merged[-1], cpu)
         if merged.shape[0] >= 2 and "jerk_stops" in traj.info:
-            stops = stop_at_corners(merged, cpu, lim["velocity"], lim["acceleration"], lim["jerk"])
+            stops = stop_at_corners(merged, cpu, lim.velocity, lim.acceleration, lim.jerk)
             assert traj.duration_ms <= np.ceil(stops.duration_ms * traj.info["time_scale"]) + 1
     if "optimal_s" in traj.info:
         assert traj.duration_s >= traj.info["optimal_s"] * 0.999
@@ -239,13 +239,13 @@ def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
     cfg = axis_configs(job.axes, cell)
     lim = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
-    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim.velocity, lim.acceleration,  # type: ignore[union-attr]
                                   path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
                                   (np.full(2, -3.0), np.full(2, 3.0)), {})
     assert len(runs) == 1 and runs[0].blends.tolist() == [0, 1, 0]
-    run = plan_corner_run(runs[0], lim["velocity"], lim["acceleration"], lim["jerk"])
+    run = plan_corner_run(runs[0], lim.velocity, lim.acceleration, lim.jerk)
     assert run is not None
-    vl, al, jl = lim["velocity"] / 1e3, lim["acceleration"] / 1e6, lim["jerk"] / 1e9
+    vl, al, jl = lim.velocity / 1e3, lim.acceleration / 1e6, lim.jerk / 1e9
     assert np.all(np.abs(run.v) <= vl[:, None] * (1 + 1e-4))
     assert np.all(np.abs(run.acc) <= al[:, None] * (1 + 1e-3))
     assert np.all(np.abs(np.diff(run.acc, axis=1)) <= jl[:, None] * PLAN_JERK_SHARE * (1 + 1e-9))
@@ -269,19 +269,19 @@ def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
     cfg = axis_configs(job.axes, cell)
     lim = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
-    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim["velocity"], lim["acceleration"],  # type: ignore[union-attr]
+    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim.velocity, lim.acceleration,  # type: ignore[union-attr]
                                   path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
                                   (np.full(2, -3.0), np.full(2, 3.0)), {})
     assert len(runs) == 1
-    jplan = lim["jerk"] * PLAN_JERK_SHARE
-    pieces = _geometry_pieces(runs[0], lim["velocity"], lim["acceleration"], jplan)
+    jplan = lim.jerk * PLAN_JERK_SHARE
+    pieces = _geometry_pieces(runs[0], lim.velocity, lim.acceleration, jplan)
     assert pieces is not None
-    stops = _choose_stops(pieces, lim["velocity"], lim["acceleration"], jplan)
+    stops = _choose_stops(pieces, lim.velocity, lim.acceleration, jplan)
     assert any(stops)
     mixed, at_rest = _with_stops(pieces, stops)
     assert len(at_rest) == sum(stops)
-    blended = _corner_motion(pieces, [], lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
-    chosen = _corner_motion(mixed, at_rest, lim["velocity"], lim["acceleration"], lim["jerk"], 1.0)
+    blended = _corner_motion(pieces, [], lim.velocity, lim.acceleration, lim.jerk, 1.0)
+    chosen = _corner_motion(mixed, at_rest, lim.velocity, lim.acceleration, lim.jerk, 1.0)
     assert blended is not None and chosen is not None
     assert chosen.q.shape[1] < blended.q.shape[1]
     # at a stop the motion is at rest on the waypoint

@@ -21,8 +21,8 @@ from planner.plan import plan_job, warm_up
 
 def signatures():
     out = {}
-    for info in pkgutil.iter_modules(planner.__path__):
-        module = importlib.import_module(f"planner.{info.name}")
+    for info in pkgutil.walk_packages(planner.__path__, prefix="planner."):
+        module = importlib.import_module(info.name)
         for name, value in vars(module).items():
             if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
                 out[f"{module.__name__}.{name}"] = len(value.signatures)

@@ -212,8 +212,8 @@ def test_ramps_become_accelerations_from_the_speed_range(cell: CellConfig) -> No
                          "ramps": {"accel_ms": 500, "decel_ms": [1000, 400]}}, cell)
     lim = effective_limits(job, cell)
     # j1: 2 rad/s (its velocity limit) in 0.5 s = 4 rad/s^2 up, in 1 s = 2 down; j4: 3 rad/s in 0.5 / 0.4 s
-    assert lim["acceleration_up"].tolist() == pytest.approx([4.0, 6.0])
-    assert lim["deceleration"].tolist() == pytest.approx([2.0, 7.5])
+    assert lim.acceleration_up.tolist() == pytest.approx([4.0, 6.0])
+    assert lim.deceleration.tolist() == pytest.approx([2.0, 7.5])
     traj = plan_job(job, cell, start=[0.0, 0.0])
     assert_invariants(traj, cell)
     acc = np.maximum(traj.plan.acc_left[0], traj.plan.acc_right[0]) * 1.0e6 / traj.counts_per_unit[0]
@@ -221,7 +221,7 @@ def test_ramps_become_accelerations_from_the_speed_range(cell: CellConfig) -> No
     assert acc.max() == pytest.approx(4.0, rel=0.01) and dec.min() == pytest.approx(-2.0, rel=0.01)
     # one ramp alone serves both ways; a round trip through job_to_dict keeps what was written
     one = job_from_dict({"kind": "move", "axes": ["j1"], "target": [1.0], "ramps": {"decel_ms": 250}}, cell)
-    assert effective_limits(one, cell)["acceleration_up"].tolist() == pytest.approx([8.0])
+    assert effective_limits(one, cell).acceleration_up.tolist() == pytest.approx([8.0])
     assert job_to_dict(one)["ramps"] == {"decel_ms": 250.0}
     assert job_from_dict(job_to_dict(job), cell) == job
 
