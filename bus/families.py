@@ -34,8 +34,8 @@ from bus.profile import (
     PdoLayout,
     SdoWrite,
     SetpointSlot,
-    _u32,
     rpm_per_s,
+    u32,
 )
 from planner.config import AxisConfig, DriveSettings
 
@@ -112,17 +112,17 @@ class EposProfile(DriveProfile):
         w = self._w
         decel = settings.profile_deceleration if settings.profile_deceleration > 0 else axis.acceleration
         return [
-            w("max_profile_velocity", _u32(axis.max_profile_velocity_rpm),
+            w("max_profile_velocity", u32(axis.max_profile_velocity_rpm),
               "max profile velocity (rpm)", "the drive's own velocity limit"),
-            w("profile_velocity", _u32(axis.velocity_rpm(axis.velocity)),
+            w("profile_velocity", u32(axis.velocity_rpm(axis.velocity)),
               "profile velocity (rpm)", essential=False),
-            w("profile_acceleration", _u32(rpm_per_s(axis, axis.acceleration)),
+            w("profile_acceleration", u32(rpm_per_s(axis, axis.acceleration)),
               "profile acceleration (rpm/s)", essential=False),
-            w("max_acceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
+            w("max_acceleration", u32(rpm_per_s(axis, axis.max_acceleration)),
               "max acceleration (rpm/s)", "the drive's own acceleration limit"),
-            w("profile_deceleration", _u32(rpm_per_s(axis, decel)),
+            w("profile_deceleration", u32(rpm_per_s(axis, decel)),
               "profile deceleration (rpm/s)", "halt decelerates with it"),
-            w("quick_stop_deceleration", _u32(rpm_per_s(axis, axis.max_acceleration)),
+            w("quick_stop_deceleration", u32(rpm_per_s(axis, axis.max_acceleration)),
               "quick stop deceleration (rpm/s)", essential=False),
         ]
 
@@ -170,7 +170,7 @@ XTRAPULS_MOTOR_INCREMENTS = 4096  # 0x6093:01 "must be set at 4096" (seed 003 5)
 
 
 def _counts_per_s(axis: AxisConfig, user_per_s: float) -> int:
-    return _u32(user_per_s * axis.counts_per_unit)
+    return u32(user_per_s * axis.counts_per_unit)
 
 
 @dataclass(frozen=True)
@@ -204,7 +204,7 @@ class XtrapulsProfile(DriveProfile):
         w = self._w
         decel = settings.profile_deceleration if settings.profile_deceleration > 0 else axis.acceleration
         return [
-            w("max_motor_speed", max(100, min(60000, _u32(axis.max_profile_velocity_rpm))),
+            w("max_motor_speed", max(100, min(60000, u32(axis.max_profile_velocity_rpm))),
               "max motor speed (rpm)", "the drive's own velocity limit"),
             w("profile_velocity", _counts_per_s(axis, axis.velocity), "profile velocity (counts/s)",
               essential=False),

@@ -201,7 +201,7 @@ def rpm_per_s(axis: AxisConfig, user_per_s2: float) -> float:
     return user_per_s2 * axis.counts_per_unit * 60.0 / axis.counts_per_rev
 
 
-def _u32(x: float) -> int:
+def u32(x: float) -> int:
     return max(0, min(0xFFFFFFFF, math.ceil(x)))
 
 

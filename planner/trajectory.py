@@ -35,7 +35,7 @@ from planner.limits import AxisLimits
 from planner.motion.reference import FloatArray, IntArray, Reference
 
 DEFAULT_CHUNK_MS = 2000  # cruise per chunk of a velocity move (plan and each extension, planner/motion/travel.py)
-_RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
+RPM_MS = 60000  # counts per ms = rpm * counts_per_rev / 60000
 
 CSV_COLUMNS = ("axis", "node_id", "index", "time_s", "dt_ms", "position_counts", "velocity_rpm")
 
@@ -340,11 +340,11 @@ class CruiseState:
         out = []
         for a, v, c in zip(self.anchor_counts, self.velocity_rpm, self.cfg, strict=True):
             q = v * c.counts_per_rev * int(elapsed_ms)
-            out.append(a + (2 * q + _RPM_MS) // (2 * _RPM_MS))
+            out.append(a + (2 * q + RPM_MS) // (2 * RPM_MS))
         return out
 
     def velocity_counts_per_ms(self) -> FloatArray:
-        return np.array([v * c.counts_per_rev / _RPM_MS for v, c in zip(self.velocity_rpm, self.cfg, strict=True)])
+        return np.array([v * c.counts_per_rev / RPM_MS for v, c in zip(self.velocity_rpm, self.cfg, strict=True)])
 
     def limits(self) -> AxisLimits:
         return AxisLimits.of(np.array(self.velocity_limit), np.array(self.acceleration_limit), np.array(self.jerk),

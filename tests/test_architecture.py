@@ -5,7 +5,9 @@
 - planner/ imports neither bus/ nor streamer/ (the planner is pure computation on a cell and a job);
 - streamer/core imports no I/O, directly or through what it imports: no sockets, CAN, Zenoh, threads,
   processes, clocks or the runtimes (time is an argument of the core);
-- no module over MAX_LINES lines.
+- no module over MAX_LINES lines;
+- no module imports another's private names (`from x import _name`): what a module shares it names
+  publicly, so a reader can tell a module's interface from its insides.
 """
 
 from __future__ import annotations
@@ -183,3 +185,27 @@ def test_no_module_over_the_line_limit() -> None:
     that grows over the limit is split too."""
     over = sorted(f"{p}: {n} lines" for p, n in _line_counts().items() if n > MAX_LINES)
     assert not over, f"over {MAX_LINES} lines (split them): {over}"
+
+
+def private_imports(known: Mapping[str, Path]) -> list[str]:
+    """`module: from other import _name` for every private name a module imports from another of `known`."""
+    out = []
+    for name, path in known.items():
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module in known and node.module != name:
+                out += [f"{name}: from {node.module} import {a.name}" for a in node.names
+                        if a.name.startswith("_") and not a.name.startswith("__")]
+    return sorted(out)
+
+
+def test_the_private_import_check_sees_a_private_import(tmp_path: Path) -> None:
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "a.py").write_text("_x = 1\n__all__ = []\n")
+    (tmp_path / "pkg" / "b.py").write_text("from pkg.a import _x, __all__\ndef f():\n    from pkg.a import _x as y\n")
+    known = modules(tmp_path, ("pkg",))
+    assert private_imports(known) == ["pkg.b: from pkg.a import _x", "pkg.b: from pkg.a import _x"]
+
+
+def test_no_module_imports_another_s_private_names() -> None:
+    bad = private_imports(modules())
+    assert not bad, "private names imported across modules (name them publicly):\n" + "\n".join(bad)

@@ -72,7 +72,7 @@ class DriveCounters:
 
 # the PDO tables the node routes frames by (built from the mapping by bus/sim/pdo.py)
 @dataclass
-class _RxPdo:
+class RxPdo:
     number: int
     cob_id: int
     synchronous: bool
@@ -85,7 +85,7 @@ class _RxPdo:
 
 
 @dataclass
-class _TxPdo:
+class TxPdo:
     number: int
     cob_id: int
     trans_type: int
@@ -106,7 +106,7 @@ class Cia301Node:
     # what a family sets (bus/sim/device.py lists the family's class attributes)
     not_stored: frozenset[tuple[int, int]]
     # what the layers above provide (bus/sim/pdo.py, plant.py, cia402.py, device.py)
-    _on_rpdo: Callable[[_RxPdo, bytes, float], None]
+    _on_rpdo: Callable[[RxPdo, bytes, float], None]
     _apply_pdo_pairs: Callable[[list[tuple[Key, int, int]]], None]
     _sample_sync_tpdos: Callable[[int | None], list[Frame]]
     _send_sync_tpdos: Callable[[list[Frame], float], None]
@@ -139,9 +139,9 @@ class Cia301Node:
     _nmt: NmtState
     _pending_sync: dict[int, list[tuple[Key, int, int]]]
     _od: dict[Key, int]
-    _rx_by_cob: dict[int, _RxPdo]
-    _tx_sync: list[_TxPdo]
-    _tx_event: list[_TxPdo]
+    _rx_by_cob: dict[int, RxPdo]
+    _tx_sync: list[TxPdo]
+    _tx_event: list[TxPdo]
     _t_now: float
     _t_last_sync: float | None
     _tick_acc_us: int

@@ -40,20 +40,20 @@ from bus.families import EPOS_IPM
 from bus.profile import DriveProfile
 from bus.sim import homing as hm
 from bus.sim import od as odm
-from bus.sim.cia301 import LOAD_SIGNATURE, SAVE_SIGNATURE, DriveCounters, _RxPdo, _TxPdo
+from bus.sim.cia301 import LOAD_SIGNATURE, SAVE_SIGNATURE, DriveCounters, RxPdo, TxPdo
 from bus.sim.cia402 import QUICK_STOP_OPTIONS, Cia402Drive, FaultRecord
 from bus.sim.clock import MotionClock
 from bus.sim.data_recorder import DataRecorder
 from bus.sim.motor import DEFAULT_MOTOR, LoopConstants, MotorParams
 from bus.sim.od import Key
-from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, _first_violation
+from bus.sim.plant import COAST_STOP_COUNTS_PER_MS, MAX_RAMP_TICKS, ST, Source, SubSteps, first_violation
 from planner.config import AxisConfig, DriveSettings
 from planner.encoding import hermite
 from planner.readings import SimDriveOptions
 
 __all__ = [
     "COAST_STOP_COUNTS_PER_MS", "LOAD_SIGNATURE", "MAX_RAMP_TICKS", "QUICK_STOP_OPTIONS", "SAVE_SIGNATURE",
-    "DriveCounters", "DriveDevice", "FaultRecord", "Source", "_first_violation",
+    "DriveCounters", "DriveDevice", "FaultRecord", "Source", "first_violation",
 ]
 
 
@@ -171,9 +171,9 @@ class DriveDevice(Cia402Drive):
         self._error_register = 0
         self._pending_sync: dict[int, list[tuple[Key, int, int]]] = {}
         self._od: dict[Key, int] = {}
-        self._rx_by_cob: dict[int, _RxPdo] = {}
-        self._tx_sync: list[_TxPdo] = []
-        self._tx_event: list[_TxPdo] = []
+        self._rx_by_cob: dict[int, RxPdo] = {}
+        self._tx_sync: list[TxPdo] = []
+        self._tx_event: list[TxPdo] = []
         self.pdo_config_version = 0
         # timers
         self._t_now = 0.0

@@ -51,7 +51,7 @@ from bus.sim.data_recorder import (
     DataRecorder,
     RecorderConfig,
 )
-from bus.sim.device import DriveDevice, Source, _first_violation
+from bus.sim.device import DriveDevice, Source, first_violation
 from bus.sim.homing import HOMING_MODE
 from bus.sim.od import Key, SdoAbort
 from planner.config import HOMING_METHODS
@@ -284,7 +284,7 @@ class EposDrive(DriveDevice):
             (acc, (0x60C5, 0), BS_ACCELERATION_ERROR, {1, n_ms}),
         ):
             limit = self._rpm_limit(limit_key) if fn is vel else self._acc_limit(limit_key)
-            k = _first_violation(fn, n_ms, limit, cand)
+            k = first_violation(fn, n_ms, limit, cand)
             if k:
                 events.append((k, bit))
         events.sort()

@@ -26,7 +26,7 @@ from collections.abc import Callable
 from bus import codec
 from bus.codec import Frame, NmtState
 from bus.sim import od as odm
-from bus.sim.cia301 import Cia301Node, _RxPdo, _TxPdo
+from bus.sim.cia301 import Cia301Node, RxPdo, TxPdo
 from bus.sim.od import Key, SdoAbort
 
 
@@ -154,9 +154,9 @@ class PdoLayer(Cia301Node):
 
     def _rebuild_pdos(self) -> None:
         od = self._od
-        rx: dict[int, _RxPdo] = {}
-        tx_sync: list[_TxPdo] = []
-        tx_event: list[_TxPdo] = []
+        rx: dict[int, RxPdo] = {}
+        tx_sync: list[TxPdo] = []
+        tx_event: list[TxPdo] = []
         for n in range(4):
             cob = od[(0x1400 + n, 1)]
             count = od[(0x1600 + n, 0)]
@@ -167,7 +167,7 @@ class PdoLayer(Cia301Node):
                 fmt = "<" + "".join(self._entry_code(k, b) for k, b in zip(keys, bits, strict=True))
                 st = struct.Struct(fmt)
                 short = any(b != self.objects.objects[k].dtype.bits for k, b in zip(keys, bits, strict=True))
-                rx[cob & 0x7FF] = _RxPdo(n + 1, cob & 0x7FF, od[(0x1400 + n, 2)] <= 240, st.size, keys, st,
+                rx[cob & 0x7FF] = RxPdo(n + 1, cob & 0x7FF, od[(0x1400 + n, 2)] <= 240, st.size, keys, st,
                                          self._is_record_pdo(keys), bits, short)
             cob = od[(0x1800 + n, 1)]
             count = od[(0x1A00 + n, 0)]
@@ -179,7 +179,7 @@ class PdoLayer(Cia301Node):
                 if ttype in (252, 253):
                     continue  # RTR only: this simulation serves no remote requests, so it is never sent
                 # a family's table may lack the optional sub-indices 3/5/6 (seed 003: TPDO parameters 1-2)
-                pdo = _TxPdo(n + 1, cob & 0x7FF, ttype,
+                pdo = TxPdo(n + 1, cob & 0x7FF, ttype,
                              _builder(struct.Struct(fmt), tuple(self._getter(k) for k in keys)),
                              inhibit_s=od.get((0x1800 + n, 3), 0) * 1e-4,
                              event_timer_s=od.get((0x1800 + n, 5), 0) * 1e-3,
@@ -194,7 +194,7 @@ class PdoLayer(Cia301Node):
     # ============================================================================================
     # PDO traffic
 
-    def _on_rpdo(self, pdo: _RxPdo, data: bytes, t: float) -> None:
+    def _on_rpdo(self, pdo: RxPdo, data: bytes, t: float) -> None:
         if len(data) != pdo.length:
             if len(data) > pdo.length and self.accepts_longer_rpdo:
                 data = data[:pdo.length]

@@ -68,7 +68,7 @@ class SubSteps:
         return [demand] + [None] * (self.steps - 1)
 
 
-def _first_violation(
+def first_violation(
     values: Callable[[int], float], ticks: int, limit: float, candidates: Iterable[int]
 ) -> int:
     """First tick k in 1..ticks with |values(k)| > limit, or 0. `candidates` contain the maximiser."""

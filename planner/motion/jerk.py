@@ -38,14 +38,16 @@ from planner.motion.reference import FloatArray, Reference, hold
 CYCLE_S = 0.001
 
 
-def _ruckig() -> Any:
+def ruckig_module() -> Any:
+    """ruckig, imported when a motion first needs it (its absence is then reported where it matters)."""
     import ruckig
 
     return ruckig
 
 
-def _solve(inp: Any, n: int) -> Any:
-    rk = _ruckig()
+def solve_ruckig(inp: Any, n: int) -> Any:
+    """ruckig's trajectory for `inp` (n degrees of freedom, 1 ms cycle); INFEASIBLE when it finds none."""
+    rk = ruckig_module()
     otg = rk.Ruckig(n, CYCLE_S)
     traj = rk.Trajectory(n)
     try:
@@ -66,8 +68,11 @@ def _solve(inp: Any, n: int) -> Any:
     return traj
 
 
-def _input(n: int, vlim: FloatArray, alim: FloatArray, jlim: FloatArray) -> Any:
-    rk = _ruckig()
+def ruckig_input(n: int, vlim: FloatArray, alim: FloatArray, jlim: FloatArray) -> Any:
+    """The one ruckig set-up every move, stop, change and ramp of the planner uses: these limits, the axes
+    time-synchronised, the duration a whole number of 1 ms cycles. No intermediate waypoints, ever (the
+    community edition would call a cloud API for them)."""
+    rk = ruckig_module()
     inp = rk.InputParameter(n)
     inp.max_velocity = [float(x) for x in vlim]
     inp.max_acceleration = [float(x) for x in alim]
@@ -80,10 +85,10 @@ def _input(n: int, vlim: FloatArray, alim: FloatArray, jlim: FloatArray) -> Any:
 def solve_sampled(inp: Any, n: int, time_scale: float = 1.0) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Solve `inp` (stretched to `time_scale` times its duration, on whole ms, when > 1) and sample the
     profiles at every ms: (position, velocity, acceleration), each (n, duration_ms + 1)."""
-    traj = _solve(inp, n)
+    traj = solve_ruckig(inp, n)
     if time_scale > 1.0:
         inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
-        traj = _solve(inp, n)
+        traj = solve_ruckig(inp, n)
     return sample_profiles(traj, n, max(round(traj.duration * 1000.0), 1))
 
 
@@ -148,7 +153,24 @@ def sample_at(traj: Any, n: int, t: FloatArray) -> tuple[FloatArray, FloatArray,
     return pos, vel, acc
 
 
-def _reference(pos: FloatArray, vel: FloatArray, acc: FloatArray, cpu: FloatArray) -> Reference:
+def line_input(length: float, v_max: float, a_max: float, j_max: float, *, v_in: float = 0.0, v_out: float = 0.0,
+               a_min: float | None = None) -> Any:
+    """The one ruckig set-up of a motion along a line (one degree of freedom, the path length): from 0 at
+    speed `v_in` to `length` at `v_out`, at zero acceleration at both ends, under these limits (`a_min`: a
+    slower deceleration). Straight-line moves (`move_reference`) and the jerk-limited path's line pieces
+    (planner/motion/jerkpath.py) use it."""
+    rk = ruckig_module()
+    inp = rk.InputParameter(1)
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [v_in], [0.0]
+    inp.target_position, inp.target_velocity, inp.target_acceleration = [length], [v_out], [0.0]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [v_max], [a_max], [j_max]
+    if a_min is not None:
+        inp.min_acceleration = [-a_min]
+    return inp
+
+
+def counts_reference(pos: FloatArray, vel: FloatArray, acc: FloatArray, cpu: FloatArray) -> Reference:
+    """ruckig's samples at every ms (user units) as a `Reference` in counts (acceleration continuous)."""
     c = cpu[:, None]
     a = acc * c / 1.0e6  # continuous (jerk-limited): the same on both sides of every tick
     return Reference(pos * c, vel * c / 1000.0, a, a, np.zeros(0, dtype=np.int64))
@@ -195,15 +217,9 @@ def move_reference(
         return hold(start * cpu, 1)
     delta = target - start
     length, v, a, j = line_limits(delta, vlim, alim, jlim)
-    rk = _ruckig()
-    inp = rk.InputParameter(1)
-    inp.current_position = [0.0]
-    inp.target_position = [length]
-    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [v], [a], [j]
-    if dlim is not None:
-        inp.min_acceleration = [-line_limits(delta, vlim, dlim, jlim)[2]]
+    inp = line_input(length, v, a, j, a_min=None if dlim is None else line_limits(delta, vlim, dlim, jlim)[2])
     try:
-        traj = _solve(inp, 1)
+        traj = solve_ruckig(inp, 1)
     except PlanningError:
         return _time_synchronised(start, target, vlim, alim, jlim, cpu, time_scale, max_duration_s, info, dlim)
     optimal = float(traj.duration)
@@ -229,7 +245,7 @@ def move_reference(
     if info is not None:
         info["straight_line"] = 1.0
         info["line_optimal_s"] = optimal
-    ref = _reference(pos, vel, acc, cpu)
+    ref = counts_reference(pos, vel, acc, cpu)
     return Reference(ref.positions, ref.velocities, ref.acc_left, ref.acc_right, ref.breaks, hints)
 
 
@@ -247,7 +263,7 @@ def _time_synchronised(
 ) -> Reference:
     """The fallback: every axis its own profile, all arriving together (leaves the straight line)."""
     n = start.size
-    inp = _input(n, vlim, alim, jlim)
+    inp = ruckig_input(n, vlim, alim, jlim)
     if dlim is not None:  # an axis moving down speeds up with negative acceleration, brakes with positive
         up = target >= start
         inp.max_acceleration = [float(x) for x in np.where(up, alim, dlim)]
@@ -258,13 +274,13 @@ def _time_synchronised(
     inp.target_position = [float(x) for x in target]
     inp.target_velocity = [0.0] * n
     inp.target_acceleration = [0.0] * n
-    traj = _solve(inp, n)
+    traj = solve_ruckig(inp, n)
     if info is not None:
         info["straight_line"] = 0.0
         info["line_optimal_s"] = float(traj.duration)
     if time_scale > 1.0:
         inp.minimum_duration = float(np.ceil(traj.duration * time_scale * 1000.0 - 1e-6)) / 1000.0
-        traj = _solve(inp, n)
+        traj = solve_ruckig(inp, n)
     duration_ms = round(traj.duration * 1000.0)
     if duration_ms > max_duration_s * 1000.0:
         raise PlanningError(
@@ -276,7 +292,7 @@ def _time_synchronised(
         return hold(target * cpu, 1)
     pos, vel, acc = sample_profiles(traj, n, duration_ms)
     pos[:, -1] = target
-    return _reference(pos, vel, acc, cpu)
+    return counts_reference(pos, vel, acc, cpu)
 
 
 def stop_reference(
@@ -291,11 +307,11 @@ def stop_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """Jerk-limited stop to rest from (position, velocity, acceleration), all axes stopping together."""
-    rk = _ruckig()
+    rk = ruckig_module()
     n = position.size
     if np.all(velocity == 0.0) and np.all(acceleration == 0.0):
         return hold(position * cpu, 1)
-    inp = _input(n, vlim, alim, jlim)
+    inp = ruckig_input(n, vlim, alim, jlim)
     inp.control_interface = rk.ControlInterface.Velocity
     inp.current_position = [float(x) for x in position]
     inp.current_velocity = [float(x) for x in velocity]
@@ -305,4 +321,4 @@ def stop_reference(
     pos, vel, acc = solve_sampled(inp, n, time_scale)
     pos[:, 0] = position
     vel[:, 0] = velocity
-    return _reference(pos, vel, acc, cpu)
+    return counts_reference(pos, vel, acc, cpu)

@@ -414,14 +414,9 @@ def _reach(v: float, length: float, vmax: float, a: float, j: float) -> float:
 
 def _line_move(length: float, v_in: float, v_out: float, vmax: float, a: float, j: float) -> Any:
     """ruckig's time-optimal 1-DoF motion along a line piece, from speed `v_in` to `v_out` at zero acceleration."""
-    from planner.motion.jerk import _ruckig, _solve
+    from planner.motion.jerk import line_input, solve_ruckig
 
-    rk = _ruckig()
-    inp = rk.InputParameter(1)
-    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [v_in], [0.0]
-    inp.target_position, inp.target_velocity, inp.target_acceleration = [length], [v_out], [0.0]
-    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [vmax], [a], [j]
-    return _solve(inp, 1)
+    return solve_ruckig(line_input(length, vmax, a, j, v_in=v_in, v_out=v_out), 1)
 
 
 def _phases(traj: Any) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:

@@ -318,11 +318,11 @@ def _change_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """ruckig's position interface from the given state to the target at rest, time-synchronised."""
-    from planner.motion.jerk import _input, _reference, _ruckig, solve_sampled
+    from planner.motion.jerk import counts_reference, ruckig_input, ruckig_module, solve_sampled
 
     n = position.size
-    _ruckig()  # imported (and its absence reported) before the input is built
-    inp = _input(n, vlim, alim, jlim)
+    ruckig_module()  # imported (and its absence reported) before the input is built
+    inp = ruckig_input(n, vlim, alim, jlim)
     inp.current_position = [float(x) for x in position]
     inp.current_velocity = [float(x) for x in velocity]
     inp.current_acceleration = [float(x) for x in acceleration]
@@ -333,7 +333,7 @@ def _change_reference(
     pos[:, 0] = position
     vel[:, 0] = velocity
     pos[:, -1] = target
-    return _reference(pos, vel, acc, cpu)
+    return counts_reference(pos, vel, acc, cpu)
 
 
 def _check_target(goal: FloatArray, cfg: Sequence[AxisConfig], names: Sequence[str]) -> None:

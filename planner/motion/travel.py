@@ -80,7 +80,7 @@ from planner.errors import (
 from planner.job import MODULO_MODES, Job, MoveData, check_relative_target, effective_limits
 from planner.motion.reference import FloatArray, IntArray, Reference, hold
 from planner.pipeline import axis_configs, axis_scales, build_trajectory, encode_with_retries
-from planner.trajectory import _RPM_MS, DEFAULT_CHUNK_MS, CruiseState, PvtTrajectory
+from planner.trajectory import DEFAULT_CHUNK_MS, RPM_MS, CruiseState, PvtTrajectory
 
 MIN_CHUNK_MS = 100  # shorter cruise segments turn the knots' rounding (<= 1 count) into acceleration noise
 MAX_CHUNK_MS = 60_000
@@ -235,7 +235,7 @@ def plan_velocity(
     cfg = axis_configs(job.axes, cell)
     n = len(cfg)
     cpu = np.array([c.counts_per_unit for c in cfg])
-    conv = np.array([c.counts_per_rev / _RPM_MS for c in cfg])  # counts/ms per rpm
+    conv = np.array([c.counts_per_rev / RPM_MS for c in cfg])  # counts/ms per rpm
     if start_state is None:
         origin = np.array(d.start) if d.start is not None else np.zeros(n)
         start_state = MotionState.at_rest(np.round(origin * cpu).astype(np.int64).tolist())
@@ -478,13 +478,13 @@ def _velocity_ramp(
 ) -> Reference:
     """Jerk-limited ramp (user units) from (p, v, a) to velocity `target` at acceleration 0, all axes
     arriving together (ruckig's velocity interface, time-synchronised, whole ms)."""
-    from planner.motion.jerk import _input, _ruckig, solve_sampled
+    from planner.motion.jerk import ruckig_input, ruckig_module, solve_sampled
 
     n = p.size
     if np.all(v == target) and np.all(a == 0.0):
         return _line(p * cpu, target * cpu / 1000.0, 0)
-    rk = _ruckig()
-    inp = _input(n, np.maximum(np.abs(target), np.abs(v)) + 1.0, np.maximum(alim, np.abs(a)), jlim)
+    rk = ruckig_module()
+    inp = ruckig_input(n, np.maximum(np.abs(target), np.abs(v)) + 1.0, np.maximum(alim, np.abs(a)), jlim)
     inp.control_interface = rk.ControlInterface.Velocity
     inp.current_position = [float(x) for x in p]
     inp.current_velocity = [float(x) for x in v]

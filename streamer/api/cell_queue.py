@@ -33,11 +33,11 @@ from typing import Any
 from streamer.api import errors as E
 from streamer.api.backend import Planned
 from streamer.api.errors import MotionError, error_from_exception
-from streamer.api.journal import _Post
+from streamer.api.journal import Post
 from streamer.api.model import EventType
 from streamer.api.payload import plain
-from streamer.api.progress import _Emitter
-from streamer.api.service_state import ServiceState, _Queued
+from streamer.api.progress import Emitter
+from streamer.api.service_state import Queued, ServiceState
 
 # every part of the service logs as `streamer.api.service`, the logger it always had (log filters name it)
 log = logging.getLogger("streamer.api.service")
@@ -84,7 +84,7 @@ class CellQueueMixin(ServiceState):
                     self._current = None
                     self._cv.notify_all()
 
-    def _run_one(self, item: _Queued, min_interval: float) -> None:
+    def _run_one(self, item: Queued, min_interval: float) -> None:
         if item.token.cancelled:
             self._journal.post_final_queued(
                 item.job_id, EventType.CANCELLED, None, "cancelled before it started"
@@ -107,8 +107,8 @@ class CellQueueMixin(ServiceState):
                 log.exception("checking the start of job %s failed", item.job_id)
             self._journal.post_failed_queued(item.job_id, err).wait(60)
             return
-        emitter = _Emitter(self._journal, item.job_id, min_interval)
-        priming: _Post | None = None
+        emitter = Emitter(self._journal, item.job_id, min_interval)
+        priming: Post | None = None
         with self._cv:  # `started`, the emitter and the priming event together: a cancel sees all or none
             if not item.token.cancelled:
                 item.started = True
@@ -179,7 +179,7 @@ class CellQueueMixin(ServiceState):
             return None
         return {**body, "waypoints": [here, *rows]}
 
-    def _check_start(self, item: _Queued) -> Planned:
+    def _check_start(self, item: Queued) -> Planned:
         """The plan to run: `item.planned` when its start is where the axes stand; else a move re-planned from
         there, a `start = "current"` path re-planned through a waypoint there, anything else INFEASIBLE."""
         here = self._positions()
@@ -278,7 +278,7 @@ class CellQueueMixin(ServiceState):
         )
 
     # -- cancel and hold (the control verbs and close() use them) ------------------------------------
-    def _cancel_running(self, item: _Queued, reason: str, hold: str | None = None) -> bool:
+    def _cancel_running(self, item: Queued, reason: str, hold: str | None = None) -> bool:
         """Cancel the job the executor holds; True if this request had an effect (the first one does).
         `hold`: also hold the queue, for this reason, in the same step (a job that ends at once must not let
         the executor start the next one before the hold is in place)."""

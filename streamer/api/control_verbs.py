@@ -28,9 +28,9 @@ from streamer.api import errors as E
 from streamer.api import keys
 from streamer.api.cell_queue import CellQueueMixin
 from streamer.api.errors import MotionError
-from streamer.api.journal import _Post
+from streamer.api.journal import Post
 from streamer.api.model import EventType
-from streamer.api.service_state import _Queued
+from streamer.api.service_state import Queued
 from streamer.api.telemetry import TelemetryMixin
 
 # every part of the service logs as `streamer.api.service`, the logger it always had (log filters name it)
@@ -49,8 +49,8 @@ class ControlVerbsMixin(CellQueueMixin, TelemetryMixin):
 
     def _q_cancel(self, query: zenoh.Query) -> None:
         job_id = self._query_job_id(query)
-        post: _Post | None = None
-        running: _Queued | None = None
+        post: Post | None = None
+        running: Queued | None = None
         with self._cv:
             if job_id in self._pending:
                 del self._pending[job_id]

@@ -22,9 +22,9 @@ from streamer.api import keys
 from streamer.api.control_verbs import ControlVerbsMixin
 from streamer.api.errors import MotionError
 from streamer.api.intake import IntakeMixin
-from streamer.api.journal import _STOP
+from streamer.api.journal import STOP
 from streamer.api.model import JobState
-from streamer.api.service_state import _Submit
+from streamer.api.service_state import Submit
 
 # every part of the service logs as `streamer.api.service`, the logger it always had (log filters name it)
 log = logging.getLogger("streamer.api.service")
@@ -56,16 +56,16 @@ class ZenohHandlersMixin(IntakeMixin, ControlVerbsMixin):
         payload = query.payload
         size = len(payload) if payload is not None else 0
         data = payload.to_bytes() if payload is not None and size <= self.options.limits.max_bytes else None
-        self._queue_submit(_Submit(data, size, "query", query))
+        self._queue_submit(Submit(data, size, "query", query))
 
     def _on_submit_put(self, sample: zenoh.Sample) -> None:
         if sample.kind != zenoh.SampleKind.PUT:
             return
         size = len(sample.payload)
         data = sample.payload.to_bytes() if size <= self.options.limits.max_bytes else None
-        self._queue_submit(_Submit(data, size, "put", None))
+        self._queue_submit(Submit(data, size, "put", None))
 
-    def _queue_submit(self, sub: _Submit) -> None:
+    def _queue_submit(self, sub: Submit) -> None:
         try:
             self._intake_q.put_nowait(sub)
         except queue.Full:
@@ -93,7 +93,7 @@ class ZenohHandlersMixin(IntakeMixin, ControlVerbsMixin):
         }
         while True:
             item = self._control_q.get()
-            if item is _STOP:
+            if item is STOP:
                 return
             kind, query = item
             try:

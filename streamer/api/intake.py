@@ -30,11 +30,11 @@ from streamer.api import keys
 from streamer.api.backend import Planned
 from streamer.api.cell_queue import CellQueueMixin
 from streamer.api.errors import MotionError, error_from_exception
-from streamer.api.journal import _STOP, _Post
+from streamer.api.journal import STOP, Post
 from streamer.api.model import EventType, JobRecord, JobState
 from streamer.api.payload import Submission, decode_submission
-from streamer.api.progress import _Emitter
-from streamer.api.service_state import REPAIR_SYNCS, _Queued, _Submit
+from streamer.api.progress import Emitter
+from streamer.api.service_state import REPAIR_SYNCS, Queued, Submit
 
 # every part of the service logs as `streamer.api.service`, the logger it always had (log filters name it)
 log = logging.getLogger("streamer.api.service")
@@ -95,14 +95,14 @@ class IntakeMixin(CellQueueMixin):
     def _intake_loop(self) -> None:
         while True:
             item = self._intake_q.get()
-            if item is _STOP:
+            if item is STOP:
                 return
             try:
                 self._handle_submit(item)
             except Exception:  # a bug: keep serving, but say so
                 log.exception("intake failed on a submission")
 
-    def _handle_submit(self, sub: _Submit) -> None:
+    def _handle_submit(self, sub: Submit) -> None:
         t0 = time.perf_counter()
         job_id: str | None = None
         try:
@@ -210,7 +210,7 @@ class IntakeMixin(CellQueueMixin):
         if lead_ms is not None:
             planned = dataclasses.replace(planned, lead_ms=lead_ms)
         planning_s = time.perf_counter() - t0
-        post = _Post(
+        post = Post(
             job_id=job_id,
             events=[
                 (EventType.ACCEPTED, {"via": via, "kind": sub.kind}, {}),
@@ -237,7 +237,7 @@ class IntakeMixin(CellQueueMixin):
                 self._queue_end.clear()
             self._queue_end.update(planned.end_positions)
             self._remember(planned)
-            self._pending[job_id] = _Queued(job_id, planned, body=sub.body, start_current=sub.start_current,
+            self._pending[job_id] = Queued(job_id, planned, body=sub.body, start_current=sub.start_current,
                                             travel=travel)
             self._cv.notify_all()
         if record is None:
@@ -264,7 +264,7 @@ class IntakeMixin(CellQueueMixin):
             raise MotionError(E.COMMAND_REJECTED, f"the change's target cannot be reached: {err.message}",
                               path=err.path or "target", detail={"planner_code": code}) from None
 
-    def _admit_change(self, sub: Submission, via: str, job_id: str, job: Any, current: _Queued, t0: float,
+    def _admit_change(self, sub: Submission, via: str, job_id: str, job: Any, current: Queued, t0: float,
                       body: bytes) -> tuple[JobRecord, bool, float]:
         """`buffer = "aborting"` while `current` moves: the backend splices the job in after what is queued
         (or refuses, COMMAND_REJECTED, and nothing changes); the running job ends `aborted` naming this one,
@@ -277,12 +277,12 @@ class IntakeMixin(CellQueueMixin):
             raise MotionError(E.COMMAND_REJECTED, f"the running job {current.job_id!r} is "
                               f"{'stopping' if current.cancel_requested else 'not moving yet'}: nothing to change",
                               path="buffer")
-        emitter = _Emitter(self._journal, job_id, 1.0 / self.options.progress_hz, paused=True)
+        emitter = Emitter(self._journal, job_id, 1.0 / self.options.progress_hz, paused=True)
         planned, info = self.backend.change(job, "aborting", emitter, **self._travel())
         if not isinstance(planned, Planned):
             raise MotionError(E.INTERNAL, f"backend.change returned {type(planned).__name__}, not Planned")
         planning_s = time.perf_counter() - t0
-        item = _Queued(job_id, planned, token=current.token, body=sub.body, started=True, emitter=emitter)
+        item = Queued(job_id, planned, token=current.token, body=sub.body, started=True, emitter=emitter)
         old = current.emitter
         with self._cv:
             current.replaced_by = item
@@ -297,7 +297,7 @@ class IntakeMixin(CellQueueMixin):
             "replaced_by": job_id, "message": f"replaced by job {job_id!r} (buffer aborting) at "
             f"{info.get('time_ms')} ms of the running stream", "progress": old.progress if old else None,
         }, {"finished_t": now})])
-        post = _Post(
+        post = Post(
             job_id=job_id,
             events=[
                 (EventType.ACCEPTED, {"via": via, "kind": sub.kind, "buffer": "aborting"}, {}),
@@ -324,7 +324,7 @@ class IntakeMixin(CellQueueMixin):
                  current.job_id, info.get("time_ms"), info.get("reaction_ms"))
         return record, False, planning_s
 
-    def _answer_rejection(self, sub: _Submit, job_id: str | None, err: MotionError) -> None:
+    def _answer_rejection(self, sub: Submit, job_id: str | None, err: MotionError) -> None:
         if sub.query is not None:
             self._reply_err(sub.query, err)
             return

@@ -2,12 +2,12 @@
 
 Theory of operation. Every part of the service that has something to say about a job (intake's
 `accepted` + `planned`, the executor's `priming` and final event, a progress update, a cancel) builds a
-`_Post` (a batch of events for one job, with the row updates and, for a new job, the row to insert) and
+`Post` (a batch of events for one job, with the row updates and, for a new job, the row to insert) and
 hands it to `Journal.submit`; it never writes the store itself. The events thread (`Journal.run`) takes
 the posts in order: each event gets the job's next sequence number, passes the transition table
 (model.py), the batch is committed in one transaction, and the events are then logged and published on
 the job's events key, in that order. A caller that must not answer before the journal has the events
-waits on the post (`_Post.wait`). `recover()` fails the jobs a previous process left unfinished
+waits on the post (`Post.wait`). `recover()` fails the jobs a previous process left unfinished
 (SERVICE_RESTART) before the service answers anything.
 """
 
@@ -31,7 +31,7 @@ from streamer.api.store import JobStore
 log = logging.getLogger("streamer.api.service")
 
 @dataclass
-class _Post:
+class Post:
     """A batch of events for one job, written in one transaction, then published in order."""
 
     job_id: str
@@ -49,7 +49,7 @@ class _Post:
         return self.result
 
 
-_STOP = object()
+STOP = object()
 
 
 class Journal:
@@ -65,33 +65,33 @@ class Journal:
         self._accepted_kind: dict[str, str] = {}  # events thread only: the kind, for the acceptance log line
         self._job_cache: dict[str, tuple[JobState, int]] = {}
 
-    def submit(self, post: _Post) -> _Post:
+    def submit(self, post: Post) -> Post:
         self.queue.put(post)
         return post
 
     def stop(self) -> None:
         """The events thread ends after the posts submitted before this."""
-        self.queue.put(_STOP)
+        self.queue.put(STOP)
 
     def post(
         self,
         job_id: str,
         events: list[tuple[EventType, dict[str, Any], dict[str, Any]]],
         new_job: dict[str, Any] | None = None,
-    ) -> _Post:
-        return self.submit(_Post(job_id, events, new_job))
+    ) -> Post:
+        return self.submit(Post(job_id, events, new_job))
 
-    def post_progress(self, job_id: str, etype: EventType, data: dict[str, Any]) -> _Post:
-        return self.submit(_Post(job_id, [(etype, data, {"progress": data["progress"]})]))
+    def post_progress(self, job_id: str, etype: EventType, data: dict[str, Any]) -> Post:
+        return self.submit(Post(job_id, [(etype, data, {"progress": data["progress"]})]))
 
-    def post_failed_queued(self, job_id: str, err: MotionError) -> _Post:
+    def post_failed_queued(self, job_id: str, err: MotionError) -> Post:
         """A queued job that fails before it starts, with the whole error (code, path, detail)."""
         error = {"code": err.code, "path": err.path, "node": None, "message": err.message,
                  **({"detail": err.detail} if err.detail else {})}
         updates = {"error": error, "finished_t": self._clock()}
         return self.post(job_id, [(EventType.FAILED, {"error": error, "report": None}, updates)])
 
-    def post_final_queued(self, job_id: str, etype: EventType, code: str | None, message: str) -> _Post:
+    def post_final_queued(self, job_id: str, etype: EventType, code: str | None, message: str) -> Post:
         if etype == EventType.FAILED:
             err = {"code": code or E.INTERNAL, "path": "", "node": None, "message": message}
             return self.post(
@@ -105,7 +105,7 @@ class Journal:
         """The events thread: until `stop()`."""
         while True:
             post = self.queue.get()
-            if post is _STOP:
+            if post is STOP:
                 return
             try:
                 post.result = self._write(post)
@@ -145,7 +145,7 @@ class Journal:
         elif ev.type == EventType.CANCELLED:
             log.info("job %s cancelled%s", ev.job_id, f": {d['message']}" if d.get("message") else "")
 
-    def _write(self, post: _Post) -> list[Event]:
+    def _write(self, post: Post) -> list[Event]:
         if post.new_job is not None:
             state: JobState | None = None
             seq = 0

@@ -1,7 +1,7 @@
 """Progress publishing of the job service: the `emit` handed to `backend.execute` and `backend.change`.
 
 Theory of operation. A backend reports a running job's progress from any thread, as often as it likes;
-the `_Emitter` turns that into `running` events on the job's events key (through the journal, in
+the `Emitter` turns that into `running` events on the job's events key (through the journal, in
 order), at most `progress_hz` per second: an update that comes too soon is held and goes out with the
 next one allowed (a timer, latest wins) or when the job ends (`close`), so the final progress is seen.
 After a cancel (`mark_cancelling`) every update is a `cancelling` event instead. Emitting never blocks
@@ -17,7 +17,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from streamer.api.journal import Journal, _Post
+from streamer.api.journal import Journal, Post
 from streamer.api.model import EventType
 from streamer.api.payload import plain
 
@@ -25,7 +25,7 @@ from streamer.api.payload import plain
 log = logging.getLogger("streamer.api.service")
 
 
-class _Emitter:
+class Emitter:
     """The `emit` handed to `backend.execute`: thread-safe, non-blocking, throttled, inert after use.
 
     After `mark_cancelling()` every update is published as a `cancelling` event (the job's state is then
@@ -101,7 +101,7 @@ class _Emitter:
     def _type(self) -> EventType:
         return EventType.CANCELLING if self._cancelling else EventType.RUNNING
 
-    def mark_cancelling(self, reason: str) -> _Post | None:
+    def mark_cancelling(self, reason: str) -> Post | None:
         """Publish the `cancelling` event now (state CANCELLING); None if the job already ended."""
         with self._lock:
             if self._closed:

@@ -39,7 +39,7 @@ from streamer.api import errors as E
 from streamer.api import keys
 from streamer.api.handlers import ZenohHandlersMixin
 from streamer.api.intake import BUFFER_MODES, LEAD_MS_MAX
-from streamer.api.journal import _STOP
+from streamer.api.journal import STOP
 from streamer.api.model import EventType
 from streamer.api.service_state import API_VERSION, ENCODING, REPAIR_SYNCS, ServiceOptions
 
@@ -96,7 +96,7 @@ class JobService(ZenohHandlersMixin):
         self._token = None
         self._declared = []
         threads = dict((t.name.rsplit("-", 1)[-1], t) for t in self._threads)
-        self._intake_q.put(_STOP)
+        self._intake_q.put(STOP)
         threads["intake"].join(timeout=30.0)
         with self._cv:
             self._stopping = True
@@ -118,7 +118,7 @@ class JobService(ZenohHandlersMixin):
         threads["executor"].join(timeout=self.options.shutdown_timeout_s)
         if self._writer is not None:
             self._writer.close()
-        self._control_q.put(_STOP)
+        self._control_q.put(STOP)
         threads["control"].join(timeout=10.0)
         self._stop_telemetry.set()
         threads["telemetry"].join(timeout=10.0)

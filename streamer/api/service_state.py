@@ -32,7 +32,7 @@ from streamer.api.backend import CancelToken, MotionBackend, Planned
 from streamer.api.errors import MotionError
 from streamer.api.journal import Journal
 from streamer.api.payload import DEFAULT_LIMITS, PayloadLimits, pack
-from streamer.api.progress import _Emitter
+from streamer.api.progress import Emitter
 from streamer.api.store import JobStore
 from streamer.core.settings import StreamerSettings
 from streamer.recording.files import RecordingFiles, RecordingRetention, default_recordings_dir
@@ -73,7 +73,7 @@ class ServiceOptions:
 
 
 @dataclass
-class _Queued:
+class Queued:
     """A job accepted and waiting for (or in) execution; the plan lives only in memory."""
 
     job_id: str
@@ -84,8 +84,8 @@ class _Queued:
     started: bool = False  # its `priming` event is posted (under the service's lock)
     cancel_requested: bool = False
     emergency: bool = False  # an emergency stop hit it
-    emitter: _Emitter | None = None
-    replaced_by: _Queued | None = None  # a change took the running motion over (this job ended aborted)
+    emitter: Emitter | None = None
+    replaced_by: Queued | None = None  # a change took the running motion over (this job ended aborted)
     travel: dict[str, Any] = field(default_factory=dict)  # the last target/direction it was planned with
 
     @property
@@ -95,7 +95,7 @@ class _Queued:
 
 
 @dataclass
-class _Submit:
+class Submit:
     data: bytes | None
     size: int
     via: str  # "query" | "put"
@@ -133,8 +133,8 @@ class ServiceState:
         # the only journal writer (the events thread): every event of every job goes through it
         self._journal = Journal(store, self.cell, clock, lambda key, obj: self._put(key, obj, reliable=True))
         self._cv = threading.Condition()
-        self._pending: collections.OrderedDict[str, _Queued] = collections.OrderedDict()
-        self._current: _Queued | None = None
+        self._pending: collections.OrderedDict[str, Queued] = collections.OrderedDict()
+        self._current: Queued | None = None
         # where the axes moved by queued/running jobs stand when the queue has run (the next plan's start)
         self._queue_end: dict[str, float] = {}
         # per axis the last commanded target (None: none, or a velocity move's) and the sign of the last commanded

@@ -79,16 +79,16 @@ from streamer.core import outcome as oc
 from streamer.core.cyclic import CyclicFeeder
 from streamer.core.feedback import Feedback
 from streamer.core.feeder import AxisTelemetry, FifoFeeder
-
-# re-exported: the job's states, tables and control words are read from here by the runtime and the tests
-from streamer.core.job_state import _DISPATCH as _DISPATCH
-from streamer.core.job_state import _EVENT_TYPES as _EVENT_TYPES
-from streamer.core.job_state import _JOB_TRANSITIONS as _JOB_TRANSITIONS
-from streamer.core.job_state import _NOTHING
 from streamer.core.job_state import CW_ENABLE_OPERATION as CW_ENABLE_OPERATION
 from streamer.core.job_state import CW_HALT as CW_HALT
 from streamer.core.job_state import CW_QUICK_STOP as CW_QUICK_STOP
 from streamer.core.job_state import CW_START_IP as CW_START_IP
+
+# re-exported: the job's states, tables and control words are read from here by the runtime and the tests
+from streamer.core.job_state import DISPATCH as DISPATCH
+from streamer.core.job_state import EVENT_TYPES as EVENT_TYPES
+from streamer.core.job_state import JOB_TRANSITIONS as JOB_TRANSITIONS
+from streamer.core.job_state import NOTHING
 from streamer.core.job_state import TERMINAL as TERMINAL
 from streamer.core.job_state import JobReport as JobReport
 from streamer.core.job_state import JobState as JobState
@@ -134,7 +134,7 @@ class Coordinator(Scheduler, Feedback):
         self._memo_progress = self._memo_demand = self._memo_match = None
         fn(event)
         if not self._out and not self._changes:
-            return _NOTHING
+            return NOTHING
         reaction = Reaction(self._out, self._changes)
         self._out = []
         self._changes = []

@@ -33,14 +33,14 @@ from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder
 from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
-    _FEEDING,
-    _SENDING,
     BS_ERRORS,
     BS_IP_ACTIVE,
     BS_OVERFLOW_ERROR,
     BS_UNDERFLOW_ERROR,
     BS_VELOCITY_ERROR,
     CW_ENABLE_OPERATION,
+    FEEDING,
+    SENDING,
     SW_FAULT,
     SW_IP_ACTIVE,
     SW_OPERATION_ENABLED,
@@ -376,7 +376,7 @@ class Feedback(Sending):
         if fs is FeederState.DRAINING:
             if started and hi_ms >= self._t_end and not active and sw & SW_TARGET_REACHED:
                 f.stopped(m)
-        elif fs in _FEEDING and self._state in _SENDING:
+        elif fs in FEEDING and self._state in SENDING:
             self._feed(f, fill, ev.free_size)
         self._progress_job()
 

@@ -29,13 +29,13 @@ from streamer.core.cyclic import CyclicFeeder
 from streamer.core.drive_time import DriveTime
 from streamer.core.feeder import FifoFeeder, stream_framing
 from streamer.core.job_state import (
-    _DISPATCH,
-    _JOB_TRANSITIONS,
     CW_ENABLE_OPERATION,
     CW_HALT,
     CW_QUICK_STOP,
     CW_START_IP,
+    DISPATCH,
     EXTEND_EARLY_MS,
+    JOB_TRANSITIONS,
     LONGEST_SEGMENT_MS,
     RETAIN_MIN_MS,
     TERMINAL,
@@ -43,7 +43,7 @@ from streamer.core.job_state import (
     JobState,
     StateChange,
     UnexpectedEvent,
-    _stream_ends,
+    stream_ends,
 )
 from streamer.core.outcome import JobOutcome, JobResult
 from streamer.core.plan_source import ChangeResult, Extender, PvtTrajectoryLike, StopPlanner, StreamPlan
@@ -92,7 +92,7 @@ class JobCore:
             s.sync_period_ms, s.underflow_watermark + (1 if hide else 0), s.overflow_watermark, s.lead_ms,
             s.repair_syncs
         )
-        self._ends: Window[int] = Window(_stream_ends(self._plan))  # by record index; an endless job drops its past
+        self._ends: Window[int] = Window(stream_ends(self._plan))  # by record index; an endless job drops its past
         self._t_end = self._ends[-1]
         self.extend_need_ms = s.sync_period_ms + max(s.repair_syncs * s.sync_period_ms, s.lead_ms) + (
             self._policy.underflow_watermark + 2) * LONGEST_SEGMENT_MS
@@ -171,7 +171,7 @@ class JobCore:
         self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
         self._points = sum(len(f.sends) for f in self._feeders) + sum(f.n + 1 for f in self._cyclic)
         self._dispatch: dict[tuple[JobState, type], Callable[[Any], None]] = {
-            key: getattr(self, name) for key, name in _DISPATCH.items()
+            key: getattr(self, name) for key, name in DISPATCH.items()
         }
         self._state = JobState.CONFIGURING
         self._outcome: JobOutcome | None = None
@@ -261,7 +261,7 @@ class JobCore:
         return self._elapsed(self._sync)
 
     def _set_state(self, new: JobState, outcome: JobOutcome | None = None) -> None:
-        if new not in _JOB_TRANSITIONS[self._state]:
+        if new not in JOB_TRANSITIONS[self._state]:
             raise UnexpectedEvent(f"job state {self._state.name} cannot go to {new.name}")
         self._state = new
         if outcome is not None:

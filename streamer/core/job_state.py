@@ -2,7 +2,7 @@
 they are inspectable and testable), the CiA 402 control words and status bits the core uses, and what the
 core hands back (`Reaction`, `StateChange`, `JobReport`). No behaviour.
 
-- Event-triggered: `_DISPATCH`, (job state, event type) -> the handler that takes the event.
+- Event-triggered: `DISPATCH`, (job state, event type) -> the handler that takes the event.
 - State-triggered: `STATE_TRIGGERED`, (job state, the states every axis must be in, an extra guard) -> the
   move that takes the job on ("all axes active -> RUNNING"). After anything that may change an axis' state,
   `JobCore._progress_job` applies the entries to a fixed point: the first entry of the current state whose
@@ -77,22 +77,22 @@ class JobState(Enum):
 
 _J = JobState
 TERMINAL = frozenset({_J.DONE, _J.CANCELLED, _J.FAILED})
-_SENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING, _J.CANCELLING})
-_FEEDING = frozenset({FeederState.PRIMING, FeederState.STARTING, FeederState.STREAMING})
-_IN_MOTION = frozenset({_J.STARTING, _J.RUNNING, _J.FINISHING, _J.CANCELLING})
+SENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING, _J.CANCELLING})
+FEEDING = frozenset({FeederState.PRIMING, FeederState.STARTING, FeederState.STREAMING})
+IN_MOTION = frozenset({_J.STARTING, _J.RUNNING, _J.FINISHING, _J.CANCELLING})
 _F = FeederState
-_CYCLIC_SENDING = frozenset({_F.PRIMING, _F.PRIMED, _F.STARTING, _F.STREAMING, _F.DRAINING})
-_ALL_PRIMED = frozenset({_F.PRIMED})
+CYCLIC_SENDING = frozenset({_F.PRIMING, _F.PRIMED, _F.STARTING, _F.STREAMING, _F.DRAINING})
+ALL_PRIMED = frozenset({_F.PRIMED})
 _ALL_ACTIVE = frozenset({_F.STREAMING, _F.DRAINING, _F.FINISHED})
 _ALL_QUEUED = frozenset({_F.DRAINING, _F.FINISHED})
-_ALL_FINISHED = frozenset({_F.FINISHED})
-_EXTENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING})  # job states in which an open stream is extended
+ALL_FINISHED = frozenset({_F.FINISHED})
+EXTENDING = frozenset({_J.PRIMING, _J.STARTING, _J.RUNNING})  # job states in which an open stream is extended
 RETAIN_MIN_MS = 1000  # an endless job keeps at least this much of its past records (see `_retire`)
 EXTEND_EARLY_MS = 500  # ask the extender this long before the chunk is needed (it may plan on another thread)
 MAX_EXTENSIONS_PER_SYNC = 4  # short chunks: several may be needed at once; bounded so one SYNC stays short
 LONGEST_SEGMENT_MS = 255  # the PVT time field
 
-_JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
+JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
     _J.CONFIGURING: frozenset({_J.PRIMING, _J.CANCELLED, _J.FAILED}),
     _J.PRIMING: frozenset({_J.STARTING, _J.CANCELLED, _J.FAILED}),
     _J.STARTING: frozenset({_J.RUNNING, _J.CANCELLING, _J.HALTING, _J.FAILED}),
@@ -129,7 +129,7 @@ _CANCEL_HANDLERS: dict[JobState, str] = {
     _J.CANCELLING: "_ignore",
     _J.HALTING: "_ignore",
 }
-_EVENT_TYPES: dict[str, type] = {
+EVENT_TYPES: dict[str, type] = {
     "Sync": Sync,
     "SyncOnWire": SyncOnWire,
     "RecordOnWire": RecordOnWire,
@@ -165,7 +165,7 @@ _EMERGENCY_HANDLERS: dict[JobState, str] = {
 }
 
 
-def _stream_ends(plan: StreamPlan) -> list[int]:
+def stream_ends(plan: StreamPlan) -> list[int]:
     """ends[i] of a plan's records (schedule.segment_ends), without the end record when it is open-ended."""
     ends = segment_ends(plan.segment_ms)
     return ends[:-1] if plan.open_end else ends
@@ -174,7 +174,7 @@ def _stream_ends(plan: StreamPlan) -> list[int]:
 def dispatch_table() -> dict[tuple[JobState, type], str]:
     table: dict[tuple[JobState, type], str] = {}
     for state in JobState:
-        for name, etype in _EVENT_TYPES.items():
+        for name, etype in EVENT_TYPES.items():
             if name == "Change":
                 table[(state, etype)] = _CHANGE_HANDLERS[state]
             elif state in TERMINAL:
@@ -188,7 +188,7 @@ def dispatch_table() -> dict[tuple[JobState, type], str]:
     return table
 
 
-_DISPATCH = dispatch_table()
+DISPATCH = dispatch_table()
 
 
 class StateTrigger(NamedTuple):
@@ -205,9 +205,9 @@ STATE_TRIGGERED: tuple[StateTrigger, ...] = (
     StateTrigger(_J.STARTING, _ALL_ACTIVE, None, "_to_running"),
     StateTrigger(_J.RUNNING, _ALL_QUEUED, None, "_to_finishing"),
     # PRE_TARGET: the plan is done but an axis is not yet in its target window (nor timed out there)
-    StateTrigger(_J.FINISHING, _ALL_FINISHED, "_settled", "_finish_done"),
-    StateTrigger(_J.CANCELLING, _ALL_FINISHED, None, "_cancel_done"),
-    StateTrigger(_J.HALTING, _ALL_FINISHED, None, "_halt_done"),
+    StateTrigger(_J.FINISHING, ALL_FINISHED, "_settled", "_finish_done"),
+    StateTrigger(_J.CANCELLING, ALL_FINISHED, None, "_cancel_done"),
+    StateTrigger(_J.HALTING, ALL_FINISHED, None, "_halt_done"),
 )
 TRIGGERS_BY_STATE: dict[JobState, tuple[StateTrigger, ...]] = {
     st: tuple(t for t in STATE_TRIGGERED if t.state is st) for st in dict.fromkeys(t.state for t in STATE_TRIGGERED)}
@@ -228,7 +228,7 @@ class Reaction(NamedTuple):
     changes: Sequence[StateChange]
 
 
-_NOTHING = Reaction((), ())
+NOTHING = Reaction((), ())
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ import dataclasses
 
 from bus.events import Cancel
 from streamer.core import outcome as oc
-from streamer.core.job_state import MAX_EXTENSIONS_PER_SYNC, JobState, _stream_ends
+from streamer.core.job_state import MAX_EXTENSIONS_PER_SYNC, JobState, stream_ends
 from streamer.core.plan_source import PvtTrajectoryLike, StreamPlan
 from streamer.core.schedule import consumed_at, dry_run
 from streamer.core.splices import Splices
@@ -92,7 +92,7 @@ class OpenStream(Splices):
                           f"counts, {list(start_rpm or ())} rpm; the stream ends at {list(positions)} counts, "
                           f"{[r.velocity for r in knots]} rpm)")
         if self._feeders:
-            ends = self._ends.spliced(len(self._ends), [self._t_end + e for e in _stream_ends(plan)])
+            ends = self._ends.spliced(len(self._ends), [self._t_end + e for e in stream_ends(plan)])
             short = dry_run(ends, self._policy, self._step, self._lockstep, now_hi)
             if short is not None:
                 return None, (f"the next chunk cannot be streamed in time ({short.fill} records left at "

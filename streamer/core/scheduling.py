@@ -33,13 +33,13 @@ from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder
 from streamer.core.feeder import FifoFeeder
 from streamer.core.job_state import (
-    _ALL_FINISHED,
-    _ALL_PRIMED,
-    _EXTENDING,
-    _FEEDING,
-    _IN_MOTION,
-    _SENDING,
+    ALL_FINISHED,
+    ALL_PRIMED,
     CW_START_IP,
+    EXTENDING,
+    FEEDING,
+    IN_MOTION,
+    SENDING,
     TERMINAL,
     JobState,
 )
@@ -174,7 +174,7 @@ class Scheduler(OpenStream):
         if m == self._start_sync:
             for clock in self._clocks.values():
                 clock.start(m, ev.t)
-        if self._open_plan is not None and self._state in _EXTENDING:
+        if self._open_plan is not None and self._state in EXTENDING:
             self._keep_open(m, ev.t)
             self._retire(m, ev.t)
         st = self._state
@@ -183,13 +183,13 @@ class Scheduler(OpenStream):
                 self._prime_cyclic(cf, m)
                 if self._state in TERMINAL:
                     return
-            if self._all_feeders(_ALL_PRIMED):
+            if self._all_feeders(ALL_PRIMED):
                 self._start(m)
             elif self._feeders:
                 self._advance_lockstep(
                     self._prime_level, min(self._step, self._settings.prime_records_per_sync)
                 )
-        elif st in _SENDING and self._feeders:
+        elif st in SENDING and self._feeders:
             now_lo, _ = self._elapsed_bounds(m, ev.t)
             _, next_hi = self._elapsed_bounds(m + 1, ev.t + self._period / 1000.0)
             self._advance_lockstep(
@@ -199,8 +199,8 @@ class Scheduler(OpenStream):
         if self._cyclic and self._state not in TERMINAL:
             self._send_setpoints(m)
         self._track_time(m)
-        if (st in _IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms
-                and not self._all_feeders(_ALL_FINISHED)):  # all finished: the in-target timeout bounds the wait
+        if (st in IN_MOTION and self._elapsed(m) > self._job_end_ms + self._settings.finish_timeout_ms
+                and not self._all_feeders(ALL_FINISHED)):  # all finished: the in-target timeout bounds the wait
             late = next(f for f in self._axes if f.state is not FeederState.FINISHED)
             self._fail(
                 oc.FINISH_TIMEOUT,
@@ -282,7 +282,7 @@ class Scheduler(OpenStream):
         self._lock_prev = old
         self._lockstep = new
         if new > old:
-            feeding = sum(1 for f in self._feeders if f.state in _FEEDING)
+            feeding = sum(1 for f in self._feeders if f.state in FEEDING)
             self._extra_bits -= feeding * (new - old) * RECORD_FRAME_BITS
 
     def _start(self, m: int) -> None:

@@ -12,7 +12,7 @@ from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.cyclic import CyclicFeeder, pack_frame
 from streamer.core.feeder import FifoFeeder
 from streamer.core.job_core import JobCore
-from streamer.core.job_state import _CYCLIC_SENDING, CW_ENABLE_OPERATION, CW_START_IP, JobState
+from streamer.core.job_state import CW_ENABLE_OPERATION, CW_START_IP, CYCLIC_SENDING, JobState
 
 
 class Sending(JobCore):
@@ -77,7 +77,7 @@ class Sending(JobCore):
         for f in self._cyclic:
             j = f.index_after(m, s) if f.state is not FeederState.FINISHED else f.n
             values[f.node_id] = f.value(j)
-            if f.state in _CYCLIC_SENDING:
+            if f.state in CYCLIC_SENDING:
                 sending.add(f.node_id)
                 f.sent(j)
                 if f.state is FeederState.STREAMING and j >= f.n and self._open_plan is None:

@@ -34,7 +34,7 @@ from planner.encoding import hermite
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FeederInput, FeederState
 from streamer.core.feeder import FifoFeeder
-from streamer.core.job_state import _J, CW_ENABLE_OPERATION, CW_HALT, CW_QUICK_STOP, JobState, _stream_ends
+from streamer.core.job_state import CW_ENABLE_OPERATION, CW_HALT, CW_QUICK_STOP, JobState, stream_ends
 from streamer.core.outcome import JobResult
 from streamer.core.plan_source import Change, ChangeResult, EmergencyStop, PvtTrajectoryLike, StopRequest, StreamPlan
 from streamer.core.schedule import dry_run
@@ -136,7 +136,7 @@ class Splices(Sending):
                 f"(starts {list(plan.start_positions)}, queued {list(request.positions_counts)})"
             )
         if self._feeders:
-            new_ends = self._ends.spliced(k, [t0 + e for e in _stream_ends(plan)])
+            new_ends = self._ends.spliced(k, [t0 + e for e in stream_ends(plan)])
             assert self._sync is not None
             _, now_hi = self._elapsed_bounds(self._sync, self._sync_time(self._sync))
             short = dry_run(new_ends, self._policy, self._step, k, now_hi)
@@ -166,7 +166,7 @@ class Splices(Sending):
             self._ends = Window()
         else:
             self._ends.truncate(k)
-        self._ends.extend(t0 + e for e in _stream_ends(plan))
+        self._ends.extend(t0 + e for e in stream_ends(plan))
         self._t_end = self._ends[-1]
         self._job_end_ms = max([self._t_end] + [f.end_ms for f in self._cyclic])
         self._lockstep = min(self._lockstep, k)
@@ -231,11 +231,11 @@ class Splices(Sending):
     def _change_refused(self, ev: Change) -> None:
         st = self._state
         why = {
-            _J.CONFIGURING: "the job has not started moving yet",
-            _J.PRIMING: "the job has not started moving yet",
-            _J.CANCELLING: "the job is stopping",
-            _J.HALTING: "the job is halting",
-            _J.FINISHING: "the running plan's end is already queued: the axes come to rest at its target (submit "
+            JobState.CONFIGURING: "the job has not started moving yet",
+            JobState.PRIMING: "the job has not started moving yet",
+            JobState.CANCELLING: "the job is stopping",
+            JobState.HALTING: "the job is halting",
+            JobState.FINISHING: "the running plan's end is already queued: the axes come to rest at its target (submit "
                           "the move as a new job)",
         }.get(st, f"the job has ended ({st.value})")
         self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, sync=self._sync))

@@ -32,7 +32,7 @@ from streamer.core import (
 )
 from streamer.core import outcome as oc
 from streamer.core.axis_state import CYCLIC_TRANSITIONS, FIFO_TRANSITIONS, FeederInput
-from streamer.core.coordinator import _DISPATCH, _EVENT_TYPES, _JOB_TRANSITIONS, TERMINAL
+from streamer.core.coordinator import DISPATCH, EVENT_TYPES, JOB_TRANSITIONS, TERMINAL
 from streamer.core.cyclic import CyclicAxis, CyclicFeeder
 from streamer.core.job_state import STATE_TRIGGERED, TRIGGERS_BY_STATE
 from streamer.core.schedule import (
@@ -209,9 +209,9 @@ def test_the_cells_tpdo_timeout_reaches_the_settings() -> None:
 # ---- state machines ----------------------------------------------------------------------------------
 def test_every_state_has_an_entry_for_every_event_type() -> None:
     for state in JobState:
-        for etype in _EVENT_TYPES.values():
-            assert (state, etype) in _DISPATCH
-    assert all(_JOB_TRANSITIONS[s] == frozenset() for s in TERMINAL)
+        for etype in EVENT_TYPES.values():
+            assert (state, etype) in DISPATCH
+    assert all(JOB_TRANSITIONS[s] == frozenset() for s in TERMINAL)
 
 
 def test_the_state_triggered_table_names_moves_of_the_core() -> None:
