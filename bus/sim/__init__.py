@@ -5,7 +5,7 @@
 - `epos.py`: maxon EPOS interpolated position mode, PVT records into a 64-entry FIFO;
 - `xtrapuls.py`: Infranor XtrapulsPac interpolated position mode, one set point per SYNC;
 - `csp.py`: CiA 402 cyclic synchronous position (0x607A every SYNC);
-- `cyclic.py`: what the two families fed one set point per SYNC share (the period's polynomial played
+- `cyclic_drive.py`: what the two families fed one set point per SYNC share (the period's polynomial played
   over its 1 ms ticks, user units);
 - `od.py` / `eds.py`: each family's object dictionary and its EDS; `motor.py`, `clock.py`: the plant
   and the drive's own clock; `virtual.py` / `node.py`: the drives of a cell in virtual time, or in real

@@ -24,7 +24,7 @@ RPDOs, `_after_sync_rpdos`):
    first does not start on a request it could not serve).
 5. The period's polynomial by sub-mode 0x60C0: 0 linear x_{k-1} -> x_k; -1 PV the cubic Hermite from
    (x_{k-1}, v_{k-1}) to (x_k, v_k); -2 P3 the parabola through x_{k-2}, x_{k-1}, x_k; played over the
-   ticks of the coming period (cyclic.py), so x_k is the demand at SYNC k+1.
+   ticks of the coming period (cyclic_drive.py), so x_k is the demand at SYNC k+1.
 
 Set points arrive in RPDO3 (type 1: applied at the next SYNC); with 0x3350 = 1 mapped 16 bits, the
 upper word rebuilt as the value nearest the previous set point; a multiplexed frame (one COB-ID, dummy

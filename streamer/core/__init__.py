@@ -3,7 +3,7 @@
 A runtime creates one `Coordinator(plan, settings, stop_planner)` per job and feeds it `bus.events`;
 each `handle(event)` returns the frames to send and the job's state changes. See coordinator.py for
 the life cycle, the contract with the runtime and its parts (job_core, sending, splices, open_stream,
-feedback, scheduling), axis_state.py for the two axis kinds' states and tables, feeder.py and cyclic.py
+feedback, scheduling), axis_state.py for the two axis kinds' states and tables, fifo_fifo_feeder.py and cyclic_feeder.py
 for each kind (the FIFO accounting and loss repair; one set point per SYNC), schedule.py for the fill
 model, bus/budget.py for the frame budget.
 """
@@ -18,7 +18,7 @@ from streamer.core.coordinator import (
     StateChange,
     UnexpectedEvent,
 )
-from streamer.core.feeder import AxisTelemetry, FifoFeeder
+from streamer.core.fifo_feeder import AxisTelemetry, FifoFeeder
 from streamer.core.outcome import FAILURE_CODES, JobOutcome, JobResult
 from streamer.core.plan_source import PvtTrajectoryLike, StopPlanner, StopRequest, StreamPlan
 from streamer.core.settings import StreamerSettings

@@ -1,7 +1,7 @@
 """Axis state machine: the states, inputs and transition tables of the two axis kinds, and the moves on them.
 
-Both kinds of axis (a FIFO drive fed PVT records, feeder.py; a cyclic drive fed one set point per SYNC,
-cyclic.py) go through the same states on the same inputs, so the coordinator drives them alike:
+Both kinds of axis (a FIFO drive fed PVT records, fifo_feeder.py; a cyclic drive fed one set point per SYNC,
+cyclic_feeder.py) go through the same states on the same inputs, so the coordinator drives them alike:
 
     WAITING --READY--> PRIMING --PRIMED--> PRIMED --START--> STARTING --ACTIVE--> STREAMING
     STREAMING --END_QUEUED--> DRAINING --STOPPED--> FINISHED
@@ -18,7 +18,7 @@ only stopped or faulted). A missing entry raises `InvalidTransition` (a bug in t
 makes on an axis (`activated`, `stopped`; attribution: `answers_from`, `answered`; telemetry:
 `controlword_sent`, `demand_checked`, `failed`), so that no coordinator part writes a feeder's state, its
 attribution marks or its telemetry itself (a cyclic axis adds its own moves: `ready`, `ip_requested`,
-`seen_active`, `ip_released`, in cyclic.py). The readings recorded for the configuration check
+`seen_active`, `ip_released`, in cyclic_feeder.py). The readings recorded for the configuration check
 (`first_status`, `first_demand`) and a cyclic axis' `last_statusword` are still written by feedback.py.
 """
 

@@ -29,7 +29,7 @@ Job life cycle (JobState):
                priming begins with the next SYNC.
   PRIMING      fill every FIFO to the priming level P = min(O, max(2, what the first cycle needs for
                the lead time and the repair margin)), `prime_records_per_sync` records per axis per
-               cycle, each batch confirmed before the next (feeder.py).
+               cycle, each batch confirmed before the next (fifo_feeder.py).
   STARTING     on the first SYNC at which every FIFO is confirmed primed, controlword 0x001F to every
                axis in that one cycle; RPDO1 is synchronous, so all drives apply it, and enter ip mode
                active, at the next SYNC s = the recorded start SYNC. Each drive must report ip mode
@@ -76,9 +76,9 @@ from typing import Any
 from bus.events import AdapterError, Bootup, BusLoad, Emcy, HeartbeatLost, SendFailed
 from planner.encoding.cyclic import Setpoints
 from streamer.core import outcome as oc
-from streamer.core.cyclic import CyclicFeeder
+from streamer.core.cyclic_feeder import CyclicFeeder
 from streamer.core.feedback import Feedback
-from streamer.core.feeder import AxisTelemetry, FifoFeeder
+from streamer.core.fifo_feeder import AxisTelemetry, FifoFeeder
 from streamer.core.job_state import CW_ENABLE_OPERATION as CW_ENABLE_OPERATION
 from streamer.core.job_state import CW_HALT as CW_HALT
 from streamer.core.job_state import CW_QUICK_STOP as CW_QUICK_STOP

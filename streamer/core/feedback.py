@@ -30,8 +30,8 @@ from bus.events import BufferStatus, PositionFeedback, StatusWord
 from streamer.core import attribution
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FeederInput, FeederState
-from streamer.core.cyclic import CyclicFeeder
-from streamer.core.feeder import FifoFeeder
+from streamer.core.cyclic_feeder import CyclicFeeder
+from streamer.core.fifo_feeder import FifoFeeder
 from streamer.core.job_state import (
     BS_ERRORS,
     BS_IP_ACTIVE,

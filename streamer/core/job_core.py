@@ -25,9 +25,9 @@ from planner.encoding.record import PvtRecord, pack
 from streamer.core import attribution
 from streamer.core.attribution import FeedbackLog
 from streamer.core.axis_state import FeederInput, FeederState
-from streamer.core.cyclic import CyclicFeeder
+from streamer.core.cyclic_feeder import CyclicFeeder
 from streamer.core.drive_time import DriveTime
-from streamer.core.feeder import FifoFeeder, stream_framing
+from streamer.core.fifo_feeder import FifoFeeder, stream_framing
 from streamer.core.job_state import (
     CW_ENABLE_OPERATION,
     CW_HALT,

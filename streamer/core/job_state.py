@@ -34,7 +34,7 @@ from bus.events import (
 )
 from streamer.core.attribution import FeedbackLog
 from streamer.core.axis_state import FeederState
-from streamer.core.feeder import AxisTelemetry
+from streamer.core.fifo_feeder import AxisTelemetry
 from streamer.core.outcome import JobOutcome
 from streamer.core.plan_source import Change, EmergencyStop, StreamPlan
 from streamer.core.positioning import NotInTarget

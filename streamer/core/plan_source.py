@@ -139,7 +139,7 @@ class StreamPlan:
     frames: tuple[tuple[bytes, ...], ...]  # the packed records (same shape as `records`)
     # the planned motion at every ms, when the trajectory carries it (planner.Reference: positions counts,
     # velocities counts/ms, accelerations counts/ms^2, each (n_axes, M+1)): what the set points of a cyclic
-    # drive are sampled from (streamer/core/cyclic.py); None: sampled from the records' own Hermite curve
+    # drive are sampled from (streamer/core/cyclic_feeder.py); None: sampled from the records' own Hermite curve
     reference: tuple[Any, Any, Any] | None = field(default=None, compare=False, repr=False)
     # open-ended (a velocity move's chunk): no end record, the last knot moves; the stream goes on with the
     # next chunk (per axis N records instead of N + 1)

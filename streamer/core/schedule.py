@@ -13,7 +13,7 @@ every axis, all axes sharing one grid) is raised to
          consumed at next SYNC + lead_ms + 1 )      the lead time, in motion
 capped by consumed-now + O (the fill never exceeds the overflow watermark, even before any pop) and
 by the stream length. In steady state this sends exactly what the last period consumed: the smallest
-possible batch per cycle, which is what makes losses repairable (see feeder.py).
+possible batch per cycle, which is what makes losses repairable (see fifo_feeder.py).
 """
 
 from __future__ import annotations

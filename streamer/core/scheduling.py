@@ -30,8 +30,8 @@ from bus.budget import RECORD_FRAME_BITS
 from bus.events import RecordOnWire, Sync, SyncOnWire
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FeederInput, FeederState
-from streamer.core.cyclic import HOLD_AFTER_ACTIVE, CyclicFeeder
-from streamer.core.feeder import FifoFeeder
+from streamer.core.cyclic_feeder import HOLD_AFTER_ACTIVE, CyclicFeeder
+from streamer.core.fifo_feeder import FifoFeeder
 from streamer.core.job_state import (
     ALL_FINISHED,
     ALL_PRIMED,

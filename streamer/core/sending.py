@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from bus.budget import RECORD_FRAME_BITS, setpoint_frame_bits
 from streamer.core.axis_state import FeederInput, FeederState
-from streamer.core.cyclic import CyclicFeeder, pack_frame
-from streamer.core.feeder import FifoFeeder
+from streamer.core.cyclic_feeder import CyclicFeeder, pack_frame
+from streamer.core.fifo_feeder import FifoFeeder
 from streamer.core.job_core import JobCore
 from streamer.core.job_state import CW_ENABLE_OPERATION, CW_START_IP, CYCLIC_SENDING, JobState
 

@@ -8,7 +8,7 @@ Policy knobs and why they exist:
 - `lead_ms`: how much motion (in time) to keep queued ahead of the drive. More lead survives longer
   bus trouble; less lead makes cancel react sooner (the stop starts after what is queued).
 - `repair_syncs`: extra SYNC periods of records kept queued so a lost batch can be detected,
-  confirmed lost and resent before the FIFO drops below the underflow watermark (see feeder.py).
+  confirmed lost and resent before the FIFO drops below the underflow watermark (see fifo_feeder.py).
 - `loss_confirm_syncs`: SYNCs to wait after a fill deficit before declaring records lost (1 tells a
   record delayed past one SYNC from a lost one, and avoids resending a record that then arrives twice).
 - `repair_margin_ms`: a resend must arrive this long before its record becomes the interpolation
@@ -27,7 +27,7 @@ runtime sends 0x1013 after every SYNC, so drives with their own clock follow the
 (planner.config's `target_window`, `in_target_timeout_ms`): a job ends DONE only once every axis is in its
 window after the plan's end, or its timeout ran out (a `not_in_target` warning; positioning.py).
 
-`cyclic`: the nodes whose drives take one set point per SYNC (streamer/core/cyclic.py; bus/families.py),
+`cyclic`: the nodes whose drives take one set point per SYNC (streamer/core/cyclic_feeder.py; bus/families.py),
 with their set point slot and interpolation; every other node is an EPOS FIFO. The FIFO settings
 (watermarks, lead, repair) apply to the FIFO nodes only.
 """
@@ -42,7 +42,7 @@ from typing import Any
 
 from bus.profile import FeedbackSchedule
 from planner.readings import MUST_KNOW, DriveReadings, SimDriveOptions
-from streamer.core.cyclic import CyclicAxis
+from streamer.core.cyclic_feeder import CyclicAxis
 
 FIFO_SIZE = 64
 _EMPTY_CPR: Mapping[int, int] = MappingProxyType({})

@@ -33,7 +33,7 @@ from bus.events import Cancel, Send
 from planner.encoding import hermite
 from streamer.core import outcome as oc
 from streamer.core.axis_state import FeederInput, FeederState
-from streamer.core.feeder import FifoFeeder
+from streamer.core.fifo_feeder import FifoFeeder
 from streamer.core.job_state import CW_ENABLE_OPERATION, CW_HALT, CW_QUICK_STOP, JobState, stream_ends
 from streamer.core.outcome import JobResult
 from streamer.core.plan_source import Change, ChangeResult, EmergencyStop, PvtTrajectoryLike, StopRequest, StreamPlan

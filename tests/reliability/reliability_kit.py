@@ -38,7 +38,7 @@ from planner.plan import plan_job
 from planner.readings import DriveReadings, SimDriveOptions
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import CW_QUICK_STOP, Coordinator
-from streamer.core.feeder import framed
+from streamer.core.fifo_feeder import framed
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.virtual import ForeignTraffic, VirtualResult, VirtualRuntime
 from streamer.splice_planners import make_stop_planner
@@ -136,7 +136,7 @@ class Rig:
     def stream(self, i: int) -> list[PvtRecord]:
         """The records the master sends axis i: the plan's, framed as the drive's readings need (an origin
         record for a drive that takes the first record as time zero, a second end record for one that
-        counts the target out of its FIFO; streamer/core/feeder.py)."""
+        counts the target out of its FIFO; streamer/core/fifo_feeder.py)."""
         r = self.cell.axes[[a.node_id for a in self.cell.axes].index(self.traj.node_ids[i])].probed
         return framed(self.traj.records(i), int(self.traj.positions[i, 0]), r.first_record, r.fifo_count)
 

@@ -38,7 +38,7 @@ def check_run(rig: Rig, model: FaultModel) -> tuple[int, int]:
     # every loss detected within 2 SYNCs: its resend goes out at most 2 SYNCs after the lost frame,
     # or the job has already failed by then. A drive with its own clock is known to about a tick: when a
     # record boundary falls inside that tick the fill cannot tell a lost record from one consumed early,
-    # and the core waits one SYNC more (streamer/core/feeder.py)
+    # and the core waits one SYNC more (streamer/core/fifo_feeder.py)
     within = 3 if rig.cell.axes[0].probed.clock == "own" else 2
     # a drive whose answers may come after the next SYNC shows the loss that much later (the first answer
     # that can show it is the late one): one SYNC more

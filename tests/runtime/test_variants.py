@@ -21,7 +21,7 @@ from planner.readings import OPEN_POINTS, DriveReadings, SimDriveOptions
 from streamer import demo
 from streamer.cli import main as pvt
 from streamer.cli.demo import guarantees
-from streamer.core.feeder import framed
+from streamer.core.fifo_feeder import framed
 from streamer.report import decode_candump
 from streamer.runtime.virtual import VirtualRuntime
 

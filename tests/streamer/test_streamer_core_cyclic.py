@@ -1,7 +1,7 @@
 """The coordinator's cyclic feeder: one set point per SYNC (XtrapulsPac IP, CSP), alone and next to EPOS FIFOs.
 
 `CyclicDriveDouble` is a TEST DOUBLE of one set-point-per-SYNC drive, reduced to what the streamer's
-contract with such a drive is (streamer/core/cyclic.py, planner/encoding/cyclic.py): at each SYNC the demand
+contract with such a drive is (streamer/core/cyclic_feeder.py, planner/encoding/cyclic.py): at each SYNC the demand
 reaches the set point latched at the previous SYNC, the controlword (RPDO1 type 1) applies, a drive with
 ip mode active that got no set point since the last SYNC faults (EMCY 0x8782, XtrapulsPac error 50; a CSP
 drive, which follows its target without bit 4, holds the last one), the
@@ -22,7 +22,7 @@ from bus.profile import SetpointSlot
 from streamer.core import JobResult, JobState, StopRequest, StreamerSettings, StreamPlan
 from streamer.core import outcome as oc
 from streamer.core.coordinator import CW_ENABLE_OPERATION, CW_QUICK_STOP, CW_START_IP
-from streamer.core.cyclic import CyclicAxis
+from streamer.core.cyclic_feeder import CyclicAxis
 
 
 class CyclicDriveDouble:

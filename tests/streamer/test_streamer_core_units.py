@@ -33,7 +33,7 @@ from streamer.core import (
 from streamer.core import outcome as oc
 from streamer.core.axis_state import CYCLIC_TRANSITIONS, FIFO_TRANSITIONS, FeederInput
 from streamer.core.coordinator import DISPATCH, EVENT_TYPES, JOB_TRANSITIONS, TERMINAL
-from streamer.core.cyclic import CyclicAxis, CyclicFeeder
+from streamer.core.cyclic_feeder import CyclicAxis, CyclicFeeder
 from streamer.core.job_state import STATE_TRIGGERED, TRIGGERS_BY_STATE
 from streamer.core.schedule import (
     FillPolicy,

@@ -44,7 +44,7 @@ from bus.profile import SetpointSlot, pack_setpoints
 from planner.encoding.cyclic import Setpoints, sample
 from planner.motion.reference import FloatArray
 from streamer.core.axis_state import CYCLIC_TRANSITIONS, AxisStateMachine, FeederInput, FeederState
-from streamer.core.feeder import AxisTelemetry
+from streamer.core.fifo_feeder import AxisTelemetry
 
 HOLD_AFTER_ACTIVE = 2  # holds sent after the SYNC ip mode was seen active, before the axis counts as primed
 
