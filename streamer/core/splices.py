@@ -1,7 +1,12 @@
 """Splices: one place for cancel, change and emergency stop (and, through `_splice`, an open stream's
-next chunk). Each takes the state at the end of what is queued (`_queue_end`, `_state_request`), asks a
-planner for a trajectory from there, checks it starts there and can be streamed in time (`_splice_problem`),
-and splices it after knot K of every axis (`_splice`); nothing sent is taken back.
+next chunk). One sequence serves the three verbs (`_plan_splice`): take the state at the end of what is
+queued (`_queue_end`, `_state_request`), ask the verb's planner for a trajectory from there, check it starts
+there and can be streamed in time (`_splice_problem`), and splice it after knot K of every axis (`_splice`);
+nothing sent is taken back. Where it stops short (the plan's end already queued, no planner, the planner
+failed, a trajectory that does not fit) it says so in a `SpliceAttempt`, and each verb reacts in its own
+way: a cancel halts, a change is refused, an emergency stop quick-stops. An open stream's next chunk is the
+one splice with another request (the stream's last chunk, not a state) and another check (it must go on
+exactly from the last knot): open_stream.py, through `_splice`.
 
 Cancel: the stop follows a trajectory from the state at the end of what is already queued, K = the
 most records sent to any axis: the stop planner (a callable given to the constructor) is asked for a
@@ -26,7 +31,8 @@ cancel's stop; the drives' quick stop (and FAILED EMERGENCY_STOP) only when no p
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 from bus.cob import rpdo2_id
 from bus.events import Cancel, Send
@@ -40,6 +46,21 @@ from streamer.core.plan_source import Change, ChangeResult, EmergencyStop, PvtTr
 from streamer.core.schedule import dry_run
 from streamer.core.sending import Sending
 from streamer.core.window import Window
+
+
+@dataclass(frozen=True)
+class SpliceAttempt:
+    """What `_plan_splice` did: spliced `plan` after knot `k` (time `t0`), or stopped short. `failed`: "" (spliced),
+    "end_queued" (the plan's end is already queued: nothing can follow it), "no_planner", "planner" (it raised
+    `error`) or "unfit" (the trajectory does not start at the request's state or cannot be streamed in time:
+    `why`)."""
+
+    k: int
+    t0: int
+    failed: str = ""
+    plan: StreamPlan | None = None
+    why: str = ""
+    error: Exception | None = None
 
 
 class Splices(Sending):
@@ -177,10 +198,32 @@ class Splices(Sending):
         self._open_plan = plan if plan.open_end else None
         self._open_source = source if plan.open_end else None
 
+    def _plan_splice(self, planner: Callable[[StopRequest], PvtTrajectoryLike] | None, kind: str, *,
+                     at_plan_end: bool = False, keep_source: bool = False) -> SpliceAttempt:
+        """The one splice sequence of cancel, change and emergency stop (see the module docstring): from the end
+        of what is queued (`at_plan_end`: after the plan's end), `planner`'s trajectory, spliced as `kind`
+        (`keep_source`: an open-ended one is what the next extension extends)."""
+        k, t0, done = self._queue_end(at_plan_end=at_plan_end)
+        if done:
+            return SpliceAttempt(k, t0, "end_queued")
+        if planner is None:
+            return SpliceAttempt(k, t0, "no_planner")
+        request = self._state_request(k, t0)
+        try:
+            planned = planner(request)
+        except Exception as exc:  # the planner's failure is the verb's to report
+            return SpliceAttempt(k, t0, "planner", error=exc)
+        plan, why = self._splice_problem(request, planned)
+        if plan is None:
+            return SpliceAttempt(k, t0, "unfit", why=why)
+        self._splice(k, t0, plan, kind, request.velocities_rpm, source=planned if keep_source else None)
+        return SpliceAttempt(k, t0, plan=plan)
+
     def _cancel_in_motion(self, ev: Cancel) -> None:
         self._t = ev.t
-        k, t0, done = self._queue_end()
-        if done:
+        done = self._plan_splice(self._stop_planner, "stop")
+        k, t0, stop = done.k, done.t0, done.plan
+        if done.failed == "end_queued":
             self._cancel_info = {
                 "stop": "plan_end",
                 "knot": k,
@@ -188,20 +231,12 @@ class Splices(Sending):
             }
             self._set_state(JobState.CANCELLING)
             return
-        if self._stop_planner is None:
-            self._halt("no stop planner was given")
-            return
-        request = self._state_request(k, t0)
-        try:
-            planned = self._stop_planner(request)
-        except Exception as exc:  # the planner's failure is recorded in the outcome, and halt takes over
-            self._halt(f"the stop planner failed: {type(exc).__name__}: {exc}")
-            return
-        stop, why = self._splice_problem(request, planned)
         if stop is None:
-            self._halt(why.replace("the trajectory", "the stop trajectory", 1))
+            exc = done.error
+            self._halt("no stop planner was given" if done.failed == "no_planner"
+                       else f"the stop planner failed: {type(exc).__name__}: {exc}" if done.failed == "planner"
+                       else done.why.replace("the trajectory", "the stop trajectory", 1))
             return
-        self._splice(k, t0, stop, "stop", request.velocities_rpm)
         self._cancel_info = {
             "stop": "trajectory",
             "knot": k,
@@ -254,25 +289,16 @@ class Splices(Sending):
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, "a velocity move has no end to buffer "
                                                      "after: change it with buffer aborting", sync=self._sync))
             return
-        k, t0, done = self._queue_end(at_plan_end=buffered)
-        if done:
-            self._change_results.append(ChangeResult(
-                ev.tag, ev.mode, False, "the running plan's end is already queued: the axes come to rest at its "
-                "target (submit the move as a new job)", knot=k, time_ms=t0, sync=self._sync))
-            return
-        request = self._state_request(k, t0)
-        try:
-            planned = ev.planner(request)
-        except Exception as exc:
-            self._change_results.append(ChangeResult(ev.tag, ev.mode, False, str(exc) or type(exc).__name__,
-                                                     knot=k, time_ms=t0, sync=self._sync))
-            return
-        plan, why = self._splice_problem(request, planned)
+        done = self._plan_splice(ev.planner, "change", at_plan_end=buffered, keep_source=True)
+        k, t0, plan = done.k, done.t0, done.plan
         if plan is None:
+            exc = done.error
+            why = ("the running plan's end is already queued: the axes come to rest at its target (submit the "
+                   "move as a new job)" if done.failed == "end_queued"
+                   else (str(exc) or type(exc).__name__) if done.failed == "planner" else done.why)
             self._change_results.append(ChangeResult(ev.tag, ev.mode, False, why, knot=k, time_ms=t0,
                                                      sync=self._sync))
             return
-        self._splice(k, t0, plan, "change", request.velocities_rpm, source=planned)
         self._change_results.append(ChangeResult(ev.tag, ev.mode, True, "", knot=k, time_ms=t0,
                                                  duration_ms=plan.duration_ms, sync=self._sync))
 
@@ -300,18 +326,13 @@ class Splices(Sending):
             return "the job is halting (no plan to append to)"
         if ev.planner is None:
             return "no emergency stop planner was given"
-        k, t0, done = self._queue_end()
-        if done:
-            return "the plan's end is already queued (nothing can follow it)"
-        request = self._state_request(k, t0)
-        try:
-            planned = ev.planner(request)
-        except Exception as exc:
-            return f"the emergency stop planner failed: {type(exc).__name__}: {exc}"
-        stop, why = self._splice_problem(request, planned)
+        done = self._plan_splice(ev.planner, "emergency")
+        k, t0, stop = done.k, done.t0, done.plan
         if stop is None:
-            return why.replace("the trajectory", "the emergency stop trajectory", 1)
-        self._splice(k, t0, stop, "emergency", request.velocities_rpm)
+            exc = done.error
+            return ("the plan's end is already queued (nothing can follow it)" if done.failed == "end_queued"
+                    else f"the emergency stop planner failed: {type(exc).__name__}: {exc}" if done.failed == "planner"
+                    else done.why.replace("the trajectory", "the emergency stop trajectory", 1))
         self._emergency = {"method": "emergency_trajectory", "knot": k, "time_ms": t0,
                            "stop_duration_ms": stop.duration_ms, "sync": self._sync}
         self._cancel_info = {
