@@ -251,7 +251,7 @@ _AXIS_NOT_NUMBERS = ("name", "node_id", "probed", "sim", "unit", "profile", "ip_
 PROFILE_NAMES = ("epos-ipm", "xtrapuls-ip", "cia402-csp")
 IP_SUBMODES = ("linear", "pv", "p3")
 
-# ---- homing (issue 14; docs/drive-model.md "Homing") -------------------------------------------------------
+# ---- homing (docs/drive-model.md "Homing") -----------------------------------------------------------------
 # The homing methods (0x6098) the simulated drive of each family performs, the master's single list: a home
 # job asking another method of an axis is refused, and the simulated drive raises homing error (statusword bit
 # 13) for a method it does not perform, as seed 003 says of "an unimplemented selected method". CiA 402's:
@@ -414,7 +414,7 @@ class CellConfig:
     # TPDO2 (position feedback) every n-th SYNC, staggered over the axes; 0 = the smallest n that fits
     # the bus budget (1 on small cells)
     feedback_every_syncs: int = 0
-    # homing (issue 14): jobs that move an axis the master has not referenced (no home job since the drive's
+    # homing: jobs that move an axis the master has not referenced (no home job since the drive's
     # last fault or power cycle) are refused NOT_HOMED
     require_homing: bool = False
 

@@ -488,7 +488,7 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
     return job
 
 
-# ---- home jobs (issue 14) ------------------------------------------------------------------------------
+# ---- home jobs ----------------------------------------------------------------------------------------
 _HOME_COMMON = {"kind", "axes", "job_id", "description"}
 # defaults from the axis' limits: search at a tenth of its velocity, the zero (final approach) at a tenth of that
 HOME_SEARCH_SHARE = 0.1

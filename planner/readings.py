@@ -129,7 +129,7 @@ class SimDriveOptions:
     tpdo_jitter_ms: float = 0.0
     absent: tuple[int, ...] = ()  # optional objects this drive does not have
     seed: int = 0  # for the TPDO latency draws (node id is added)
-    # homing inputs (issue 14; docs/drive-model.md "Homing"), in the axis' user units of the drive's position
+    # homing inputs (docs/drive-model.md "Homing"), in the axis' user units of the drive's position
     # at power-on (the machine's frame, which homing does not move): the home switch is active on [low, high]
     # (-inf / inf: a switch active on one side of an edge; finite: a cam), the negative limit switch at and
     # below limit_switches[0], the positive one at and above limit_switches[1]; a homing search that travels

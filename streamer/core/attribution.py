@@ -21,8 +21,8 @@ The candidates for one TPDO of one node are the SYNCs it can answer:
   the wire (streamer/core/feedback.py `_reach`): at least REACH, and every SYNC sent within the TPDO timeout
   before the newest, so a sender that stalled and then put the SYNCs it owed on the wire back to back (or a
   host that held the drives' answers up as long as the timeout allows) leaves the answers in reach. A reach
-  counted in SYNCs alone took the answer to SYNC k, arriving after a burst up to k + 4, for k + 1's: content
-  that fitted both (a FIFO's fill) was then one SYNC off, content that did not was a false PROTOCOL;
+  counted in SYNCs alone would take the answer to SYNC k, arriving after a burst up to k + 4, for k + 1's:
+  content that fits both (a FIFO's fill) would be one SYNC off, content that does not a false PROTOCOL;
 - TPDO2 every n-th SYNC: only SYNCs whose counter carries the node (the feedback schedule, 0x1019).
 The order's choice is the earliest of them: with no answer lost it is the one (the drive answers every
 SYNC, in order). If the content fits it (or content has no say: the axis at rest, a state with nothing to

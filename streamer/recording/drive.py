@@ -80,7 +80,7 @@ class DriveVariable:
         return f"0x{self.index:04X}:{self.sub:02X}"
 
 
-# the named variables of `pvt record --var` (issue 16; seed 004's example records the first four)
+# the named variables of `pvt record --var` (seed 004's example records the first four)
 VARIABLES: Mapping[str, DriveVariable] = {v.name: v for v in (
     DriveVariable("position_demand", 0x6062, 0, 32, True, "counts"),
     DriveVariable("position_actual", 0x6064, 0, 32, True, "counts"),
