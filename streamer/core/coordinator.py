@@ -132,6 +132,7 @@ class Coordinator(Scheduler, Feedback):
         self._wire_sync = wire_sync
         # what the attribution worked out for a TPDO, kept for the checks of that same TPDO only
         self._memo_progress = self._memo_demand = self._memo_match = None
+        self._answered = None
         fn(event)
         if not self._out and not self._changes:
             return NOTHING
@@ -143,6 +144,13 @@ class Coordinator(Scheduler, Feedback):
     @property
     def state(self) -> JobState:
         return self._state
+
+    @property
+    def answered_sync(self) -> int | None:
+        """The SYNC the event just handled answers, as attributed (streamer/core/attribution.py), when it was a
+        drive's TPDO the core attributed; None otherwise. A trace or a live view that keys the drives' answers
+        by SYNC takes it from here, not from the arrival tag (a late answer arrives after the next SYNC)."""
+        return self._answered
 
     @property
     def outcome(self) -> JobOutcome | None:

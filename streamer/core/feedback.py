@@ -202,6 +202,7 @@ class Feedback(Sending):
         m = self._attribute(f, 1, ev.sync_count, lambda _m: None)
         if m is None or m <= f.last_tpdo1:
             return
+        self._answered = m
         f.answered(1, m)
         self._t = ev.t
         sw, node = ev.statusword, f.node_id
@@ -254,6 +255,7 @@ class Feedback(Sending):
         m = self._attribute(f, 1, ev.sync_count, lambda k: self._status_fits(f, k, sw, bs, fill))
         if m is None or m <= f.last_tpdo1:
             return
+        self._answered = m
         f.answered(1, m)
         self._t = ev.t
         if bs & BS_IP_ACTIVE or sw & SW_IP_ACTIVE:
@@ -449,6 +451,7 @@ class Feedback(Sending):
         m = self._attribute(f, 2, ev.sync_count, lambda k: self._demand_fits_at(f, k, demand))
         if m is None or m <= f.last_tpdo2:
             return
+        self._answered = m
         f.answered(2, m)
         self._t = ev.t
         self._feedback_log[f.node_id].position(m, demand, ev.position_actual)

@@ -126,6 +126,7 @@ class JobCore:
         self._feedback_log: dict[int, FeedbackLog] = {node: FeedbackLog(log_store) for node in self._plan.node_ids}
         self._memo_progress: tuple[tuple[int, int, bool], tuple[bool, bool, int, int]] | None = None
         self._memo_demand: tuple[tuple[int, int], tuple[int, ...]] | None = None
+        self._answered: int | None = None  # the SYNC the TPDO just handled answers (`answered_sync`)
         self._memo_match: tuple[tuple[int, int, int], tuple[list[int], int]] | None = None
         for axis, node in enumerate(self._plan.node_ids):
             r = readings[node]

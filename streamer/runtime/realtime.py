@@ -55,7 +55,7 @@ from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.extension import PrefetchExtender
 from streamer.runtime.spill import temp_store
-from streamer.runtime.trace import JobTrace
+from streamer.runtime.trace import JobTrace, answered
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
 CYCLIC_AHEAD_MS = 50.0  # cells with drives fed one set point per SYNC: what a stall of this process may take
@@ -492,8 +492,8 @@ class RealtimeRuntime:
         pending = [ev]
         while pending:
             e = pending.pop(0)
-            trace.on_event(e)
             reaction = core.handle(e, wire_sync=self.adapter.latest_sync if ahead is None else None)
+            trace.on_event(answered(e, core.answered_sync))
             if reaction.changes:
                 trace.on_changes(reaction.changes)
             if not reaction.sends:

@@ -56,6 +56,14 @@ _NOTED = (Emcy, HeartbeatLost, Bootup, Cancel, SendFailed, AdapterError)
 _PAD = bytes(8)
 
 
+def answered(ev: object, sync: int | None) -> object:
+    """`ev` as the trace keeps it: a drive's answer tagged with the SYNC the core attributed it to (`sync`,
+    Coordinator.answered_sync), not the one it arrived after; anything else as it is."""
+    if sync is None or not isinstance(ev, (BufferStatus, StatusWord, PositionFeedback)):
+        return ev
+    return dataclasses.replace(ev, sync_count=sync)
+
+
 @dataclass(frozen=True)
 class NotedEvent:
     """An event of the job that is not a per-SYNC sample, with the last SYNC fed before it."""

@@ -71,7 +71,7 @@ from streamer.core.coordinator import Coordinator, JobState, Reaction
 from streamer.core.plan_source import Extender, PvtTrajectoryLike, StopPlanner
 from streamer.core.settings import StreamerSettings
 from streamer.runtime.spill import temp_store
-from streamer.runtime.trace import JobTrace
+from streamer.runtime.trace import JobTrace, answered
 
 TERMINAL = frozenset({JobState.DONE, JobState.CANCELLED, JobState.FAILED})
 
@@ -407,11 +407,11 @@ class VirtualRuntime:
         pending: list[Event] = [ev]
         while pending:
             e = pending.pop(0)
-            if self.trace is not None:
-                self.trace.on_event(e)
             reaction: Reaction = core.handle(e)
-            if reaction.changes and self.trace is not None:
-                self.trace.on_changes(reaction.changes)
+            if self.trace is not None:
+                self.trace.on_event(answered(e, core.answered_sync))
+                if reaction.changes:
+                    self.trace.on_changes(reaction.changes)
             for s in reaction.sends:
                 reason = self._send(Frame(s.cob_id, s.data), t)
                 if reason is not None:

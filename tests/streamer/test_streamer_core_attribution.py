@@ -70,9 +70,11 @@ def _late_run(rig: Rig, late_s: float, max_syncs: int = 2000, burst_every: int =
 
     def deliver(answers: list[tuple[int, object]], tag: int) -> None:
         for m, ev in answers:
+            rig.feed(dataclasses.replace(ev, t=ev.t + late_s, sync_count=tag) if hasattr(ev, "sync_count") else ev)
             if getattr(ev, "node", None) == 1 and type(ev).__name__ == "PositionFeedback":
                 truth.append(m)
-            rig.feed(dataclasses.replace(ev, t=ev.t + late_s, sync_count=tag) if hasattr(ev, "sync_count") else ev)
+                # what the core tells a trace or a live view: the SYNC it attributed this answer to
+                assert rig.core.answered_sync in (m, None), (m, rig.core.answered_sync)
 
     for _ in range(max_syncs):
         first = rig.count
