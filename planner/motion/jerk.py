@@ -169,6 +169,32 @@ def line_input(length: float, v_max: float, a_max: float, j_max: float, *, v_in:
     return inp
 
 
+def from_state(position: FloatArray, velocity: FloatArray, acceleration: FloatArray, vlim: FloatArray,
+               alim: FloatArray, jlim: FloatArray, *, target_position: FloatArray | None = None,
+               target_velocity: FloatArray | None = None, time_scale: float = 1.0,
+               ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The one ruckig set-up of a motion from a state (user units), all axes arriving together at
+    acceleration 0: stops (to rest, the velocity interface), changes (to `target_position` at rest) and
+    velocity ramps (to `target_velocity`). Samples at every ms of the motion played `time_scale` times slower,
+    the first pinned to the given state."""
+    n = position.size
+    rk = ruckig_module()
+    inp = ruckig_input(n, vlim, alim, jlim)
+    if target_position is None:
+        inp.control_interface = rk.ControlInterface.Velocity
+    else:
+        inp.target_position = [float(x) for x in target_position]
+    inp.current_position = [float(x) for x in position]
+    inp.current_velocity = [float(x) for x in velocity]
+    inp.current_acceleration = [float(x) for x in acceleration]
+    inp.target_velocity = [0.0] * n if target_velocity is None else [float(x) for x in target_velocity]
+    inp.target_acceleration = [0.0] * n
+    pos, vel, acc = solve_sampled(inp, n, time_scale)
+    pos[:, 0] = position
+    vel[:, 0] = velocity
+    return pos, vel, acc
+
+
 def counts_reference(pos: FloatArray, vel: FloatArray, acc: FloatArray, cpu: FloatArray) -> Reference:
     """ruckig's samples at every ms (user units) as a `Reference` in counts (acceleration continuous)."""
     c = cpu[:, None]
@@ -307,18 +333,8 @@ def stop_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """Jerk-limited stop to rest from (position, velocity, acceleration), all axes stopping together."""
-    rk = ruckig_module()
-    n = position.size
+    ruckig_module()  # imported (and its absence reported) even for a stop from rest
     if np.all(velocity == 0.0) and np.all(acceleration == 0.0):
         return hold(position * cpu, 1)
-    inp = ruckig_input(n, vlim, alim, jlim)
-    inp.control_interface = rk.ControlInterface.Velocity
-    inp.current_position = [float(x) for x in position]
-    inp.current_velocity = [float(x) for x in velocity]
-    inp.current_acceleration = [float(x) for x in acceleration]
-    inp.target_velocity = [0.0] * n
-    inp.target_acceleration = [0.0] * n
-    pos, vel, acc = solve_sampled(inp, n, time_scale)
-    pos[:, 0] = position
-    vel[:, 0] = velocity
+    pos, vel, acc = from_state(position, velocity, acceleration, vlim, alim, jlim, time_scale=time_scale)
     return counts_reference(pos, vel, acc, cpu)

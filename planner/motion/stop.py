@@ -318,20 +318,10 @@ def _change_reference(
     time_scale: float = 1.0,
 ) -> Reference:
     """ruckig's position interface from the given state to the target at rest, time-synchronised."""
-    from planner.motion.jerk import counts_reference, ruckig_input, ruckig_module, solve_sampled
+    from planner.motion.jerk import counts_reference, from_state
 
-    n = position.size
-    ruckig_module()  # imported (and its absence reported) before the input is built
-    inp = ruckig_input(n, vlim, alim, jlim)
-    inp.current_position = [float(x) for x in position]
-    inp.current_velocity = [float(x) for x in velocity]
-    inp.current_acceleration = [float(x) for x in acceleration]
-    inp.target_position = [float(x) for x in target]
-    inp.target_velocity = [0.0] * n
-    inp.target_acceleration = [0.0] * n
-    pos, vel, acc = solve_sampled(inp, n, time_scale)
-    pos[:, 0] = position
-    vel[:, 0] = velocity
+    pos, vel, acc = from_state(position, velocity, acceleration, vlim, alim, jlim, target_position=target,
+                               time_scale=time_scale)
     pos[:, -1] = target
     return counts_reference(pos, vel, acc, cpu)
 

@@ -478,26 +478,15 @@ def _velocity_ramp(
 ) -> Reference:
     """Jerk-limited ramp (user units) from (p, v, a) to velocity `target` at acceleration 0, all axes
     arriving together (ruckig's velocity interface, time-synchronised, whole ms)."""
-    from planner.motion.jerk import ruckig_input, ruckig_module, solve_sampled
+    from planner.motion.jerk import counts_reference, from_state
 
-    n = p.size
     if np.all(v == target) and np.all(a == 0.0):
         return _line(p * cpu, target * cpu / 1000.0, 0)
-    rk = ruckig_module()
-    inp = ruckig_input(n, np.maximum(np.abs(target), np.abs(v)) + 1.0, np.maximum(alim, np.abs(a)), jlim)
-    inp.control_interface = rk.ControlInterface.Velocity
-    inp.current_position = [float(x) for x in p]
-    inp.current_velocity = [float(x) for x in v]
-    inp.current_acceleration = [float(x) for x in a]
-    inp.target_velocity = [float(x) for x in target]
-    inp.target_acceleration = [0.0] * n
-    pos, vel, acc = solve_sampled(inp, n, time_scale)
-    pos[:, 0], vel[:, 0] = p, v
+    pos, vel, acc = from_state(p, v, a, np.maximum(np.abs(target), np.abs(v)) + 1.0, np.maximum(alim, np.abs(a)),
+                               jlim, target_velocity=target, time_scale=time_scale)
     vel[:, -1] = target  # sample_profiles pins a rest end; this ramp ends cruising
     acc[:, -1] = 0.0
-    c = cpu[:, None]
-    ac = acc * c / 1.0e6
-    return Reference(pos * c, vel * c / 1000.0, ac, ac, np.zeros(0, dtype=np.int64))
+    return counts_reference(pos, vel, acc, cpu)
 
 
 def _line(start_counts: FloatArray, v_cpm: FloatArray, duration_ms: int) -> Reference:
