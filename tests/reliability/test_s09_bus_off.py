@@ -66,7 +66,7 @@ def test_bus_off_in_virtual_time(faults) -> None:
     here = {n: m.position_demand for n, m in rig.vcell.models.items()}
     again = home_from(rig.cell, here, names)
     result = rig.rt.run(again, stop_planner=make_stop_planner(rig.cell, again))
-    assert result.coordinator.state is JobState.DONE, result.coordinator.outcome
+    assert result.coordinator.state is JobState.DONE, str(result.coordinator.outcome)
     assert result.settled
     for node, m in rig.vcell.models.items():
         assert m.position_demand == m.position_actual == 0 and m.state == Cia402State.OPERATION_ENABLED, node
@@ -118,7 +118,7 @@ def test_bus_off_in_real_time_on_the_virtual_bus() -> None:
         here = {a.node_id: adapter.read(a.node_id, 0x6062) for a in cell.axes}
         again = home_from(cell, here, traj.axis_names)
         result = rt.run(again, stop_planner=make_stop_planner(cell, again))
-        assert result.coordinator.state is JobState.DONE, result.coordinator.outcome
+        assert result.coordinator.state is JobState.DONE, str(result.coordinator.outcome)
         with sim.locked() as models:
             for node, m in models.items():
                 assert m.position_demand == 0, node
