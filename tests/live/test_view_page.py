@@ -76,8 +76,14 @@ def test_the_page_plots_the_motion_and_its_stop_button_stops_the_job(service: st
                 moving = client.submit({"kind": "move", "axes": ["j1", "j2"], "target": [2.5, -2.0],
                                         "velocity_scale": 0.2, "mode": "absolute"})
                 queued = client.submit({"kind": "move", "axes": ["j1"], "target": [0.0], "mode": "absolute"})
-                browser.wait_for("window.pvtView.last && window.pvtView.last.job_state === 'running' && "
-                                 "window.pvtView.last.progress > 0.15", timeout_s=60)
+                try:
+                    browser.wait_for("window.pvtView.last && window.pvtView.last.job_state === 'running' && "
+                                     "window.pvtView.last.progress > 0.15", timeout_s=60)
+                except TimeoutError as e:  # say where the job was: it failed, or the page saw nothing of it
+                    events = [(ev.type, ev.data.get("error")) for ev in moving.history(timeout=5)]
+                    last = browser.evaluate("JSON.stringify(window.pvtView.last)")
+                    raise AssertionError(f"{e}; the job: {moving.status(timeout=5)}; its events: {events}; "
+                                         f"the page's last: {last}") from e
                 plotted_1 = browser.evaluate("Array.from(window.pvtView.charts.j1.position.data[1])")
                 browser.wait_for(f"window.pvtView.charts.j1.position.data[1].slice(-1)[0] > {plotted_1[-1] + 0.05}",
                                  timeout_s=30)
