@@ -139,7 +139,10 @@ def plan_job(
         else:
             runs = None
             chain = None
+            jerk = jerk_limited(job, cell)
             if d.geometry == "lines":
+                from planner.motion.jerkpath import PLAN_JERK_SHARE
+
                 runs, chain = lines_geometry(
                     wp,
                     cpu,
@@ -150,9 +153,9 @@ def plan_job(
                     segment_bounds(scales, tol),
                     (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg])),
                     info,
+                    jerk=limits.jerk * PLAN_JERK_SHARE if jerk else None,
                 )
 
-            jerk = jerk_limited(job, cell)
             if jerk:
                 info["jerk_limited"] = 1.0
             smooth_differs = not jerk  # a jerk-limited plan has no smoother variant
@@ -422,6 +425,8 @@ def lines_geometry(
     segments: tuple[int, int],
     box: tuple[FloatArray, FloatArray],
     info: dict[str, float],
+    *,
+    jerk: FloatArray | None = None,
 ) -> tuple[list[PiecewisePath], ChainSpec]:
     """The straight segments with blended corners (planner/motion/geometry.py) for a path job, and how the
     plan becomes a Hermite chain (planner/encoding/chain.py).
@@ -430,7 +435,10 @@ def lines_geometry(
     plan, half a count of rounding, half a count of snapping the end points) is taken off the path
     tolerance first, so the drive itself stays within it; an axis whose tolerance does not exceed that
     is exact (its corners are stops). Of the rest, `BLEND_SHARE` goes to the blends and the remainder
-    to the chain's deviation from the exact profile.
+    to the chain's deviation from the exact profile. With `jerk` (a jerk-limited plan: the jerk each
+    joint may use), the blends are shaped for their constant-speed crossing (geometry.corner_blends).
+    That plan has no chain, but giving the blends its share too made them meet on short segments, where
+    one speed holds for both, and the plan slower (docs/formats.md, "jerk_limited").
     """
     from planner.motion.geometry import blended_runs
     from planner.motion.path import ChainSpec
@@ -438,7 +446,7 @@ def lines_geometry(
     margin = (tolerance_counts + 1.0) / cpu
     free = path_tolerance - margin
     runs, corners = blended_runs(
-        wp, vlim, np.where(free > 0.0, BLEND_SHARE * free, free), alim, MIN_BLEND_SEGMENTS * segments[0]
+        wp, vlim, np.where(free > 0.0, BLEND_SHARE * free, free), alim, MIN_BLEND_SEGMENTS * segments[0], jerk
     )
     info["blended_corners"] = float(sum(1 for c in corners if c.half_length > 0))
     info["exact_stops"] = float(sum(1 for c in corners if c.half_length < 0))

@@ -372,3 +372,43 @@ def test_knot_step_units_are_the_reconstructions(cell: CellConfig) -> None:
         got_rpm = np.abs(knot_steps(Knots(times, pos, rpm), scales)[1][:, 0] - base) / jerk
         np.testing.assert_allclose(got_count, per_count[:, 0], rtol=1e-9)
         np.testing.assert_allclose(got_rpm, per_rpm[:, 0], rtol=1e-9)
+
+
+def test_blends_are_shaped_for_their_constant_speed_crossing(cell: CellConfig) -> None:
+    """geometry.corner_blends with `jerk`: each blend of the demo path takes the shape crossed fastest at
+    one constant speed (velocity, acceleration q'' v^2 and jerk q''' v^3 within the limits), which is
+    never slower than the largest-radius shape; the jerk-limited plan on those blends is shorter, and
+    every blend stays within its tolerance."""
+    from planner.job import effective_limits, path_tolerance
+    from planner.motion.geometry import blended_runs
+    from planner.motion.jerkpath import PLAN_JERK_SHARE, _blend_cap, plan_corner_run
+
+    job = load_job("configs/jobs/demo-path.toml", cell)
+    lim = effective_limits(job, cell)
+    wp = np.array(job.data.waypoints)  # type: ignore[union-attr]
+    tol = 0.8 * path_tolerance(job, cell)
+    jplan = lim.jerk * PLAN_JERK_SHARE
+
+    def caps(runs: Any) -> np.ndarray:
+        out = []
+        for g in runs:
+            bp = g.breakpoints
+            # path speed in z units (time at full speed): q'(s) / vlim is a unit vector times the
+            # run's rescaling of s on a straight piece (geometry._run)
+            scale = 1.0 / float(np.linalg.norm(g(np.array([0.5 * (bp[0] + bp[1])]), 1)[0] / lim.velocity))
+            out += [_blend_cap(g, bp[p], bp[p + 1], lim.velocity, lim.acceleration, jplan) / scale
+                    for p in range(g.blends.size) if g.blends[p]]
+        return np.array(out)
+
+    radius, rc = blended_runs(wp, lim.velocity, tol, lim.acceleration)
+    shaped, sc = blended_runs(wp, lim.velocity, tol, lim.acceleration, jerk=jplan)
+    assert len(radius) == len(shaped) == 1
+    assert [c.half_length > 0 for c in rc] == [c.half_length > 0 for c in sc]
+    assert all(c.deviation <= 1.0 + 1e-9 for c in sc)
+    before, after = caps(radius), caps(shaped)
+    assert np.all(after >= before * (1.0 - 0.03)), (before, after)  # the cap is sampled: a few % of noise
+    assert after.sum() > 1.5 * before.sum(), (before, after)
+    slow = plan_corner_run(radius[0], lim.velocity, lim.acceleration, lim.jerk)
+    fast = plan_corner_run(shaped[0], lim.velocity, lim.acceleration, lim.jerk)
+    assert slow is not None and fast is not None
+    assert fast.q.shape[1] < 0.95 * slow.q.shape[1]
