@@ -475,6 +475,9 @@ _WARM_AXIS = {"node_id": 1, "counts_per_unit": 65189.86, "counts_per_rev": 8192,
 _WARM_JOBS = (
     {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4], [0.0, 0.0]]},
     {"kind": "path", "axes": ["a"], "waypoints": [[0.0], [0.2]]},
+    {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4]], "jerk_limited": True},
+    {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4]], "jerk_limited": True,
+     "geometry": "spline"},
     {"kind": "move", "axes": ["a", "b"], "start": [0.0, 0.0], "target": [0.3, -0.2]},
     {"kind": "timed", "axes": ["a"], "times": [0.0, 0.4, 0.43, 0.8], "positions": [[0.0], [0.1], [0.104], [0.0]]},
 )

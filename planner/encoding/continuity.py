@@ -21,15 +21,17 @@ times the bound on one random path); its
 cost penalises an in-segment jerk above the limit; a knot's cost is its acceleration step over the
 tick against the jerk limit (squared, and heavily beyond the limit). The result is checked with the
 encoder's own verification (`encoder.within_contract`); an encoding that does not pass is not used.
+The pass is a compiled kernel (`_viterbi`, planner/jit.py): up to 10 candidates per knot make 1,000
+transitions per knot, which in NumPy cost most of a jerk-limited plan's time.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from planner.encoding import hermite
 from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
 from planner.encoding.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
+from planner.jit import kernel
 from planner.motion.reference import FloatArray, IntArray, Reference
 
 JERK_SLACK = 0.05  # in-segment jerk allowed above the limit (the issue's +5 %)
@@ -53,22 +55,126 @@ def knot_steps(knots: Knots, scales: AxisScales) -> tuple[FloatArray, FloatArray
     return out
 
 
-def _segment(
-    p0: FloatArray, v0: FloatArray, p1: FloatArray, v1: FloatArray, t: int
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """For every pair (start candidate, end candidate): the position and velocity at the inner ticks
-    (Ca, Cb, T-1), the accelerations at both ends and the jerk (Ca, Cb)."""
-    tf = float(t)
-    dp = p1[None, :] - p0[:, None]
-    b = (-3.0 * dp + tf * (2.0 * v1[None, :] + v0[:, None])) / (tf * tf)
-    a = (-2.0 * dp + tf * (v1[None, :] + v0[:, None])) / (tf * tf * tf)
-    c = np.broadcast_to(v1[None, :], dp.shape)
-    d = np.broadcast_to(p1[None, :], dp.shape)
-    tau = np.arange(1, t, dtype=np.float64) - tf
-    aa, bb, cc, dd = a[..., None], b[..., None], c[..., None], d[..., None]
-    pos = ((aa * tau + bb) * tau + cc) * tau + dd
-    vel = (3.0 * aa * tau + 2.0 * bb) * tau + cc
-    return pos, vel, -6.0 * a * tf + 2.0 * b, 2.0 * b, 6.0 * a
+def _candidates(
+    want: IntArray, v_plan: FloatArray, times: IntArray, p_orig: IntArray, v_orig: IntArray, conv: float
+) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Every knot's candidate values (positions, rpm), sorted, padded to one width: (n+1, C) each, and the
+    count per knot. The end knots keep the encoder's values (the start is where the drive stands)."""
+    n = times.size - 1
+    width = len(_POSITIONS) * len(_VELOCITIES) + 1
+    cp = np.zeros((n + 1, width))
+    cv = np.zeros((n + 1, width))
+    count = np.ones(n + 1, dtype=np.int64)
+    cp[0, 0], cv[0, 0] = float(p_orig[0]), float(v_orig[0])
+    cp[n, 0], cv[n, 0] = float(p_orig[n]), float(v_orig[n])
+    for k in range(1, n):
+        w = float(want[times[k]])
+        r = float(np.round(v_plan[times[k]] / conv))
+        pairs = {(w + dp, r + dv) for dp in _POSITIONS for dv in _VELOCITIES}
+        pairs.add((float(p_orig[k]), float(v_orig[k])))
+        arr = np.array(sorted(pairs))
+        count[k] = arr.shape[0]
+        cp[k, : count[k]], cv[k, : count[k]] = arr[:, 0], arr[:, 1]
+    return cp, cv, count
+
+
+@kernel
+def _viterbi(
+    cp: FloatArray, cv: FloatArray, count: IntArray, times: IntArray, want: IntArray, envelope: FloatArray,
+    conv: float, vlim: float, drive_acc: float, budget: float, jlim: float, jerk_cap: float, tol: float,
+    over: float,
+) -> IntArray:
+    """The second-order Viterbi pass of `_axis` over the candidates: the index of the chosen candidate at
+    every knot, or an empty array when no path is admissible. States are pairs of consecutive knots'
+    candidates; a segment's pair is admissible when it keeps the encoder's promises at every ms, and
+    costs its in-segment jerk above the limit; a transition costs the step at the knot between."""
+    n = times.size - 1
+    width = cp.shape[1]
+    inf = np.inf
+    cost = np.full((width, width), inf)  # (c_{k-1}, c_k): best cost of the paths ending in that pair
+    new_cost = np.full((width, width), inf)
+    seg_cost = np.full((width, width), inf)
+    acc_s = np.zeros((width, width))
+    acc_e = np.zeros((width, width))
+    prev_acc_end = np.zeros((width, width))
+    back = np.zeros((n, width, width), dtype=np.int64)
+    for k in range(n):
+        t = times[k + 1] - times[k]
+        tf = float(t)
+        for i in range(count[k]):
+            p0 = cp[k, i]
+            v0 = cv[k, i] * conv
+            for j in range(count[k + 1]):
+                p1 = cp[k + 1, j]
+                v1 = cv[k + 1, j] * conv
+                dp = p1 - p0
+                b = (-3.0 * dp + tf * (2.0 * v1 + v0)) / (tf * tf)
+                a = (-2.0 * dp + tf * (v1 + v0)) / (tf * tf * tf)
+                s0 = -6.0 * a * tf + 2.0 * b
+                e0 = 2.0 * b
+                jerk = 6.0 * a
+                acc_s[i, j] = s0
+                acc_e[i, j] = e0
+                ok = True
+                for m in range(1, t):
+                    tau = float(m) - tf
+                    pos = ((a * tau + b) * tau + v1) * tau + p1
+                    vel = (3.0 * a * tau + 2.0 * b) * tau + v1
+                    demand = np.trunc(pos + np.copysign(0.5, pos))
+                    if abs(demand - float(want[times[k] + m])) > tol or abs(vel) > vlim + 1e-12:
+                        ok = False
+                        break
+                peak = max(abs(s0), abs(e0))
+                ok = ok and peak <= drive_acc and peak - envelope[k] <= budget and abs(jerk) <= jerk_cap
+                if ok:
+                    excess = max(abs(jerk) / jlim - 1.0, 0.0)
+                    seg_cost[i, j] = over * (excess * excess)
+                else:
+                    seg_cost[i, j] = inf
+        any_finite = False
+        if k == 0:
+            for j in range(count[1]):
+                cost[0, j] = seg_cost[0, j]
+                any_finite = any_finite or cost[0, j] < inf
+        else:
+            # transition (c_{k-1}, c_k) -> (c_k, c_{k+1}): the step at knot k
+            for j in range(count[k]):
+                for m in range(count[k + 1]):
+                    best = inf
+                    arg = 0
+                    for i in range(count[k - 1]):
+                        step = abs(acc_s[j, m] - prev_acc_end[i, j]) / jlim
+                        beyond = max(step - 1.0, 0.0)
+                        total = cost[i, j] + (step * step + over * (beyond * beyond))
+                        if i == 0 or total < best:  # np.argmin: the first of equal ones
+                            best = total
+                            arg = i
+                    back[k, j, m] = arg
+                    new_cost[j, m] = best + seg_cost[j, m]
+                    any_finite = any_finite or new_cost[j, m] < inf
+            for j in range(count[k]):
+                for m in range(count[k + 1]):
+                    cost[j, m] = new_cost[j, m]
+        for i in range(count[k]):
+            for j in range(count[k + 1]):
+                prev_acc_end[i, j] = acc_e[i, j]
+        if not any_finite:
+            return np.zeros(0, dtype=np.int64)
+    # the end knot has one candidate: the best pair ending there, then back through the choices
+    best = inf
+    ck, cn = 0, 0
+    for i in range(count[n - 1]):
+        for j in range(count[n]):
+            if (i == 0 and j == 0) or cost[i, j] < best:
+                best = cost[i, j]
+                ck, cn = i, j
+    if not best < inf:
+        return np.zeros(0, dtype=np.int64)
+    chosen = np.zeros(n + 1, dtype=np.int64)
+    chosen[n], chosen[n - 1] = cn, ck
+    for k in range(n - 1, 0, -1):
+        chosen[k - 1] = back[k, chosen[k], chosen[k + 1]]
+    return chosen
 
 
 def _axis(
@@ -87,68 +193,15 @@ def _axis(
     own_jerk: float,
 ) -> tuple[IntArray, IntArray] | None:
     """One axis' values (positions, rpm) by the second-order Viterbi pass; None when no path is admissible."""
-    n = times.size - 1
-    cands_p: list[FloatArray] = []
-    cands_v: list[FloatArray] = []
-    for k in range(n + 1):
-        if k in (0, n):
-            cp, cv = np.array([float(p_orig[k])]), np.array([float(v_orig[k])])
-        else:
-            w = float(want[times[k]])
-            r = float(np.round(v_plan[times[k]] / conv))
-            pairs = {(w + dp, r + dv) for dp in _POSITIONS for dv in _VELOCITIES}
-            pairs.add((float(p_orig[k]), float(v_orig[k])))
-            arr = np.array(sorted(pairs))
-            cp, cv = arr[:, 0], arr[:, 1]
-        cands_p.append(cp)
-        cands_v.append(cv)
+    cp, cv, count = _candidates(want, v_plan, times, p_orig, v_orig, conv)
     jerk_cap = max(jlim * (1.0 + JERK_SLACK), own_jerk)
-    step_lim = jlim * 1.0  # the step over the 1 ms tick the jerk limit allows (counts/ms^2)
-    cost: FloatArray | None = None  # (C_{k-1}, C_k) best cost of the paths ending in that pair
-    back: list[IntArray] = []
-    prev_acc_end: FloatArray | None = None
-    for k in range(n):
-        t = int(times[k + 1] - times[k])
-        pos, vel, acc_s, acc_e, jerk = _segment(
-            cands_p[k], cands_v[k] * conv, cands_p[k + 1], cands_v[k + 1] * conv, t
-        )
-        ok = np.ones(acc_s.shape, dtype=bool)
-        if t > 1:
-            demand = hermite.round_counts_array(pos)
-            ok &= (np.abs(demand - want[times[k] + 1 : times[k + 1]][None, None, :]) <= tol).all(axis=2)
-            ok &= (np.abs(vel) <= vlim + 1e-12).all(axis=2)
-        peak = np.maximum(np.abs(acc_s), np.abs(acc_e))
-        ok &= peak <= drive_acc
-        ok &= peak - envelope[k] <= budget
-        # the in-segment jerk within the limit + JERK_SLACK, or the encoder's own largest on this axis
-        ok &= np.abs(jerk) <= jerk_cap
-        seg_cost = np.where(ok, OVER * np.maximum(np.abs(jerk) / jlim - 1.0, 0.0) ** 2, np.inf)
-        if cost is None or prev_acc_end is None:
-            cost = seg_cost  # (1, C_1)
-        else:
-            # transition (c_{k-1}, c_k) -> (c_k, c_{k+1}): the step at knot k
-            step = np.abs(acc_s[None, :, :] - prev_acc_end[:, :, None]) / step_lim
-            knot_cost = step * step + OVER * np.maximum(step - 1.0, 0.0) ** 2
-            total = cost[:, :, None] + knot_cost  # (C_{k-1}, C_k, C_{k+1})
-            arg = np.argmin(total, axis=0)  # (C_k, C_{k+1})
-            best = np.take_along_axis(total, arg[None, :, :], axis=0)[0]
-            back.append(arg)
-            cost = best + seg_cost
-        prev_acc_end = acc_e
-        if not np.isfinite(cost).any():
-            return None
-    assert cost is not None
-    # the end knot has one candidate: the best pair ending there, then back through the choices
-    ck, cn = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    if not np.isfinite(cost[ck, cn]):
+    chosen = _viterbi(cp, cv, count, np.ascontiguousarray(times, dtype=np.int64),
+                      np.ascontiguousarray(want, dtype=np.int64), np.ascontiguousarray(envelope, dtype=np.float64),
+                      conv, vlim, drive_acc, budget, jlim, jerk_cap, float(tol), OVER)
+    if chosen.size == 0:
         return None
-    chosen = [int(cn), int(ck)]
-    for arg in reversed(back):
-        chosen.append(int(arg[chosen[-1], chosen[-2]]))
-    chosen.reverse()
-    p = np.array([cands_p[k][c] for k, c in enumerate(chosen)]).astype(np.int64)
-    v = np.array([cands_v[k][c] for k, c in enumerate(chosen)]).astype(np.int64)
-    return p, v
+    knots = np.arange(times.size)
+    return cp[knots, chosen].astype(np.int64), cv[knots, chosen].astype(np.int64)
 
 
 def smooth_values(ref: Reference, knots: Knots, scales: AxisScales, tol: float, jerk_limit: FloatArray) -> Knots:

@@ -1,6 +1,6 @@
 """planner.plan.warm_up loads every compiled kernel a plan calls from Python (planner/jit.py), so that a
 service's first job is not the one that pays for it: in a fresh process, after warm_up, planning every
-example job and a random job of each kind compiles no kernel anew."""
+example job and a random job of each kind, and every path of them jerk-limited too, compiles no kernel anew."""
 
 from __future__ import annotations
 
@@ -38,6 +38,10 @@ cell = load_cell(Path("configs/demo.toml"))
 jobs = [load_job(p, cell) for p in sorted(Path("configs/jobs").iterdir())] + [benchmark_path(cell)]
 for k, kind in enumerate(KINDS):
     jobs.append(job_from_dict(random_job(kind, np.random.default_rng(k), cell), cell))
+import dataclasses
+from planner.job import PathData
+jobs += [dataclasses.replace(j, data=dataclasses.replace(j.data, jerk_limited=True))
+         for j in jobs if isinstance(j.data, PathData)]
 for job in jobs:
     plan_job(job, cell)
 print(json.dumps({"before": before, "after": signatures()}))
