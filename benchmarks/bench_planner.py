@@ -431,12 +431,13 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
     head = (f"{'corpus':12} {'jobs':>4} {'ref.':>4} {'dur/acc-opt med':>15} {'worst':>6} {'dur/stops med':>13} "
             f"{'worst':>6} {'pts/unif med':>12} {'worst':>6} {'pts/unif-jerk med':>17} {'worst':>6} {'none':>4} "
             f"{'plan/toppra med':>15} {'worst':>6} "
-            f"{'plan jerk':>9} {'drive jerk':>10} {'knot step':>9} {'(acc-only)':>10}")
+            f"{'plan jerk':>9} {'drive jerk':>10} {'knot step med':>13} {'worst':>6} {'(acc-only)':>10}")
     print("jerk-limited paths (jerk_limited = true) against, in the same run: the acceleration-only plan of the same "
           "job, jerk-limited moves stopping at every corner, the coarsest uniform grid meeting the tolerance on the "
           "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: no uniform grid of "
           "the 20 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
-          "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit)")
+          "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit, per job: the "
+          "median job's and the worst job's)")
     print(head)
     print("-" * len(head))
     out = []
@@ -451,7 +452,7 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
               f"{s['stop_ratio'][0]:13.3f} {s['stop_ratio'][1]:6.3f} {s['efficiency'][0]:12.3f} "
               f"{s['efficiency'][1]:6.3f} {s['jerk_efficiency'][0]:17.3f} {s['jerk_efficiency'][1]:6.3f} "
               f"{s['no_uniform']:4d} {s['time_ratio'][0]:15.2f} {s['time_ratio'][1]:6.2f} "
-              f"{s['plan_jerk'][1]:9.3f} {s['drive_jerk'][1]:10.3f} {s['knot_step'][1]:9.1f} "
+              f"{s['plan_jerk'][1]:9.3f} {s['drive_jerk'][1]:10.3f} {s['knot_step'][0]:13.2f} {s['knot_step'][1]:6.2f} "
               f"{s['acc_knot_step'][1]:10.1f}")
         for r in s["refusals"]:
             print(f"    refused: {r}")

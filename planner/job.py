@@ -27,7 +27,8 @@ Kinds (docs/formats.md has the full schema):
          position gets, user units), `timeout_s`: the drives reference themselves (homing mode 6); nothing is
          planned (streamer/runtime/homing.py runs it).
 
-Common optional fields: `job_id`, `description`, `tolerance_counts` (whole counts >= 1, default 1),
+Common optional fields: `job_id`, `description`, `tolerance_counts` (whole counts >= 1, default 1; 2 for a
+jerk-limited path, `JERK_TOLERANCE_COUNTS`),
 `velocity_scale` / `acceleration_scale` (a number or one per axis, in (0, 1]), and a `[limits]` table
 with per-axis `velocity`, `acceleration`, `jerk` overrides (user units; never above the drive's 0x607F
 and 0x60C5).
@@ -35,6 +36,7 @@ and 0x60C5).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import tomllib
@@ -99,6 +101,11 @@ GEOMETRIES: tuple[str, ...] = ("lines", "spline")
 # a path job without `jerk_limited` keeps the jerk limits when every axis of the job has one (every axis
 # of a cell states one: planner/config.py); False plans the acceleration-only optimum
 JERK_LIMITED_DEFAULT = False
+# the default `tolerance_counts` of a jerk-limited path: the drive's units need the room (docs/formats.md,
+# "jerk_limited"). A cruise between two whole rpm values keeps its acceleration continuous only by bowing
+# its position: step x bow >= q^2 / 4 (q counts/ms per rpm), 0.9-1.2 x the bound J x 1 ms on the demo
+# cell's 50:1 axes with a bow of one count; a second count halves it
+JERK_TOLERANCE_COUNTS = 2
 DEFAULT_PATH_TOLERANCE_SHARE = 1.0e-2  # of the axis' travel (position_max - position_min)
 
 _COMMON = {
@@ -433,13 +440,13 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             else:
                 tol = (read_number(value, "path_tolerance"),) * len(axes)
                 tol_scalar = True
-        jerk_limited = data.get("jerk_limited")
-        if jerk_limited is not None and not isinstance(jerk_limited, bool):
+        jerk_flag = data.get("jerk_limited")
+        if jerk_flag is not None and not isinstance(jerk_flag, bool):
             raise PlanningError(
-                TYPE, f"jerk_limited must be true or false, got {show(jerk_limited)}", path="jerk_limited"
+                TYPE, f"jerk_limited must be true or false, got {show(jerk_flag)}", path="jerk_limited"
             )
         job_data = PathData(
-            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar, jerk_limited
+            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar, jerk_flag
         )
     elif kind == "move":
         job_data = _move_data(data, axes, axis_cfg, limits, vscale, "acceleration_scale" in data)
@@ -485,6 +492,8 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
         description=description,
         _scalar_scales=(vs_scalar and "velocity_scale" in data, as_scalar and "acceleration_scale" in data),
     )
+    if "tolerance_counts" not in data and jerk_limited(job, cell):
+        job = dataclasses.replace(job, tolerance_counts=JERK_TOLERANCE_COUNTS)
     return job
 
 

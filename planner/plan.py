@@ -30,7 +30,7 @@ import numpy as np
 from planner.config import AxisConfig, CellConfig
 from planner.encoding.cyclic import with_cyclic_stats
 from planner.encoding.encoder import ACC_EXCESS_LIMIT, load_kernels, segment_bounds
-from planner.encoding.reconstruction import reconstruct
+from planner.encoding.reconstruction import AxisScales, Knots, Reconstruction, reconstruct
 from planner.errors import INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
 from planner.job import (
     MAX_DURATION_S,
@@ -311,14 +311,44 @@ def plan_job(
         info["line_deviation_counts"] = line_deviation_counts(rec.position, ref.positions[:, 0], ref.positions[:, -1])
     if info.get("jerk_limited", 0.0) == 1.0:
         # the knot values re-chosen so that the drive's acceleration stays continuous (planner/encoding/continuity.py)
-        from planner.encoding.continuity import smooth_values
-
-        smoothed = smooth_values(ref, knots, scales, float(tol), limits.jerk * cpu / 1.0e9)
-        if smoothed is not knots:
-            knots, rec = smoothed, reconstruct(smoothed, scales)
+        jerk_counts = limits.jerk * cpu / 1.0e9
+        knots, rec = _smoothest(ref, knots, rec, scales, float(tol), jerk_counts, info)
     traj = build_trajectory(job.kind, job.axes, cfg, ref, knots, rec, scales, tol, limits, info)
     # axes whose drives take one set point per SYNC: their own interpolation must follow within tolerance
     return with_cyclic_stats(traj, cfg, cell.sync_period_ms, cell.axes)
+
+
+def _smoothest(
+    ref: Reference, knots: Knots, rec: Reconstruction, scales: AxisScales, tol: float, jerk: FloatArray,
+    info: dict[str, float],
+) -> tuple[Knots, Reconstruction]:
+    """A jerk-limited plan's knots: of the encoder's placements (its default, conservative and long ones,
+    `encoder.encode` variants 0-2), each with its values re-chosen for a continuous acceleration
+    (continuity.smooth_values), the one whose drive keeps the jerk bound best (`worst_ratio`). Which
+    placement that is depends on where short segments fall beside long ones: a knot between 20 and 135 ms
+    moves its step by 6/T^2 per count of the short one's neighbour. `info["jerk_placement"]`: the variant."""
+    from planner.encoding.continuity import smooth_values, worst_ratio
+    from planner.encoding.encoder import EncodingFailed, EncodingNeedsTime, encode
+
+    best = smooth_values(ref, knots, scales, tol, jerk)
+    score = worst_ratio(best, scales, jerk)
+    info["jerk_placement"] = 0.0
+    for variant in (1, 2):
+        if score <= 1.0:
+            break
+        try:
+            other, _rec = encode(ref, scales, tolerance=tol, variant=variant, uniform_fallback=True,
+                                 start_positions=knots.positions[:, 0].copy(),
+                                 start_velocities_rpm=knots.velocities_rpm[:, 0].copy())
+        except (EncodingNeedsTime, EncodingFailed):
+            continue
+        other = smooth_values(ref, other, scales, tol, jerk)
+        other_score = worst_ratio(other, scales, jerk)
+        if other_score < score:
+            best, score, info["jerk_placement"] = other, other_score, float(variant)
+    if best is knots:
+        return knots, rec
+    return best, reconstruct(best, scales)
 
 
 def _start_vector(start: Sequence[float], axes: Sequence[str]) -> FloatArray:

@@ -146,10 +146,11 @@ def test_random_paths_keep_the_plans_bounds(cell8: CellConfig, data: st.DataObje
 
 
 def _check_drive_knots(traj: Any, job: Any, cell: CellConfig) -> None:
-    """The drive's reconstruction of what plan_job sends (planner/encoding/continuity.py): on the encoder's own knot
-    times, its in-segment jerk within the larger of 1.05 J and the encoder's own peak on each axis, and its
-    largest step at a knot or in-segment jerk over the limit (`worst_ratio`) no larger than the encoder's.
-    (The issue's bound, steps <= J x 1 ms, is not reachable on these knots: docs/formats.md.)"""
+    """The drive's reconstruction of what plan_job sends (planner/encoding/continuity.py): on the knot times of
+    the encoder's placement it chose (`info.jerk_placement`), its in-segment jerk within the larger of 1.05 J
+    and the encoder's own peak on each axis, and its largest step at a knot or in-segment jerk over the
+    limit (`worst_ratio`) no larger than the encoder's. (The issue's bound, steps <= J x 1 ms, is not
+    reachable everywhere on the drive's units: docs/formats.md.)"""
     from planner.encoding.continuity import JERK_SLACK, knot_steps, worst_ratio
     from planner.encoding.encoder import encode
     from planner.encoding.reconstruction import Knots
@@ -157,7 +158,8 @@ def _check_drive_knots(traj: Any, job: Any, cell: CellConfig) -> None:
     from planner.plan import axis_configs, axis_scales
 
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
-    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True,
+                      variant=int(traj.info["jerk_placement"]))
     sent = Knots(traj.knot_times_ms, traj.positions, traj.velocities)
     assert np.array_equal(raw.times_ms, sent.times_ms)
     jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
@@ -194,7 +196,8 @@ def test_continuity_lowers_the_knot_steps_and_keeps_the_encoding(cell: CellConfi
     job = job_from_dict(d, cell)
     traj = plan_job(job, cell)
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
-    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True,
+                      variant=int(traj.info["jerk_placement"]))
     jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
     smooth = smooth_values(traj.plan, raw, scales, float(job.tolerance_counts), jerk)
     assert smooth is not raw and np.array_equal(smooth.times_ms, raw.times_ms)
@@ -325,21 +328,21 @@ def test_continuity_bounds_the_jerk_per_axis_not_per_segment(cell: CellConfig) -
     """planner/encoding/continuity.py: a segment's jerk may go up to the larger of the limit (+5 %) and the
     encoder's own peak on that axis, never above it; on this path that takes j1's largest knot step from
     12 to 2.3 times the bound (J x 1 ms), where a bound per segment (the encoder's own jerk in each) left 12."""
-    from planner.encoding.continuity import JERK_SLACK, knot_steps
+    from planner.encoding.continuity import JERK_SLACK, knot_steps, smooth_values
     from planner.encoding.encoder import encode
-    from planner.encoding.reconstruction import Knots
     from planner.job import effective_limits
     from planner.plan import axis_configs, axis_scales
 
-    job = job_from_dict({**_ZIGZAG, "jerk_limited": True}, cell)
+    job = job_from_dict({**_ZIGZAG, "jerk_limited": True, "tolerance_counts": 1}, cell)
     traj = plan_job(job, cell)
     scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
-    raw, _rec = encode(traj.plan, scales, tolerance=float(job.tolerance_counts), uniform_fallback=True)
+    # the encoder's default placement (plan_job may take another: `_smoothest`), re-chosen values on it
+    raw, _rec = encode(traj.plan, scales, tolerance=1.0, uniform_fallback=True)
     jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
     own = np.abs(knot_steps(raw, scales)[0]).max(axis=1)
     j1 = job.axes.index("j1")
     assert own[j1] > jerk[j1] * (1.0 + JERK_SLACK)  # the case: the encoder's own values exceed the +5 %
-    got_jerk, got_steps = knot_steps(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales)
+    got_jerk, got_steps = knot_steps(smooth_values(traj.plan, raw, scales, 1.0, jerk), scales)
     assert np.all(np.abs(got_jerk).max(axis=1) <= np.maximum(jerk * (1.0 + JERK_SLACK), own) * (1.0 + 1e-9))
     assert np.abs(got_steps[j1]).max() / jerk[j1] < 4.0
 
@@ -412,3 +415,62 @@ def test_blends_are_shaped_for_their_constant_speed_crossing(cell: CellConfig) -
     fast = plan_corner_run(shaped[0], lim.velocity, lim.acceleration, lim.jerk)
     assert slow is not None and fast is not None
     assert fast.q.shape[1] < 0.95 * slow.q.shape[1]
+
+
+def test_a_jerk_limited_path_takes_two_counts_unless_the_job_says(cell: CellConfig) -> None:
+    """planner.job.JERK_TOLERANCE_COUNTS: a jerk-limited path without `tolerance_counts` is planned within 2
+    counts (the drive's units need the room: docs/formats.md); a job's own value is kept, an
+    acceleration-only path keeps 1, and the job written back says what it was planned with."""
+    from planner.job import JERK_TOLERANCE_COUNTS
+
+    assert JERK_TOLERANCE_COUNTS == 2
+    assert job_from_dict(_path(True), cell).tolerance_counts == 2
+    assert job_from_dict(_path(False), cell).tolerance_counts == 1
+    assert job_from_dict(_path(True, tolerance_counts=1), cell).tolerance_counts == 1
+    assert job_from_dict(_path(True, tolerance_counts=3), cell).tolerance_counts == 3
+    again = job_from_dict(job_to_dict(job_from_dict(_path(True), cell)), cell)
+    assert again.tolerance_counts == 2 and job_to_dict(again)["tolerance_counts"] == 2
+
+
+def test_the_placement_whose_drive_keeps_the_bound_best_is_sent(cell: CellConfig) -> None:
+    """plan._smoothest: of the encoder's placements (default, conservative, long), each with its values
+    re-chosen, the one with the smallest worst step or jerk over the bound. On the demo path that is the
+    long one, and the default's would leave a larger worst step."""
+    from planner.encoding.continuity import smooth_values, worst_ratio
+    from planner.encoding.encoder import encode
+    from planner.encoding.reconstruction import Knots
+    from planner.job import effective_limits
+    from planner.plan import axis_configs, axis_scales
+
+    d = job_to_dict(load_job(CONFIGS / "jobs" / "demo-path.toml", cell))
+    d["jerk_limited"] = True
+    job = job_from_dict(d, cell)
+    traj = plan_job(job, cell)
+    scales = axis_scales(axis_configs(job.axes, cell), effective_limits(job, cell))
+    jerk = np.array([s.jerk_limit for s in traj.stats]) * traj.counts_per_unit / 1.0e9
+    tol = float(job.tolerance_counts)
+    sent = worst_ratio(Knots(traj.knot_times_ms, traj.positions, traj.velocities), scales, jerk)
+    for variant in (0, 1, 2):
+        raw, _rec = encode(traj.plan, scales, tolerance=tol, uniform_fallback=True, variant=variant)
+        assert sent <= worst_ratio(smooth_values(traj.plan, raw, scales, tol, jerk), scales, jerk) * (1 + 1e-9)
+    default, _rec = encode(traj.plan, scales, tolerance=tol, uniform_fallback=True)
+    assert traj.info["jerk_placement"] != 0
+    assert sent < 0.9 * worst_ratio(smooth_values(traj.plan, default, scales, tol, jerk), scales, jerk)
+
+
+def test_knot_candidates_span_the_tolerance() -> None:
+    """continuity._candidates: positions within the tolerance of the planned demand (up to MAX_OFFSET counts
+    either side), the rpm nearest the plan and one either side, and the encoder's own pair; the end knots
+    keep the encoder's values."""
+    from planner.encoding.continuity import MAX_OFFSET, _candidates
+
+    want = np.arange(0, 201, dtype=np.int64)
+    v_plan = np.full(201, 1.0)
+    times = np.array([0, 100, 200])
+    p_orig, v_orig = np.array([0, 103, 200]), np.array([0, 5, 0])
+    for tol, offsets in ((1, 1), (2, 2), (5, MAX_OFFSET)):
+        cp, cv, count = _candidates(want, v_plan, times, p_orig, v_orig, 0.1, float(tol))
+        assert count[0] == count[2] == 1 and (cp[0, 0], cv[0, 0], cp[2, 0], cv[2, 0]) == (0, 0, 200, 0)
+        pairs = set(zip(cp[1, : count[1]].tolist(), cv[1, : count[1]].tolist(), strict=True))
+        assert pairs == {(100.0 + dp, 10.0 + dv) for dp in range(-offsets, offsets + 1) for dv in (-1, 0, 1)} | {
+            (103.0, 5.0)}
