@@ -1,18 +1,12 @@
 """The cycle engine: SYNC, each cycle's frames and the bus's receive side, in a process of its own.
 
-Theory of operation. A CPython thread cannot keep a real-time cycle (it waits for the GIL and the garbage
-collector), so the engine is a process (`python -m bus.engine`, started by `EngineBus`, two SOCK_SEQPACKET
-socket pairs to the master) that owns the bus and runs one loop: wait until SYNC n is due, read what the
-bus holds, send SYNC n at t0 + n * period (late, never skipped), then every frame queued for cycle n, and
-forward every frame heard and sent, with its time on the wire, to the master. It never waits for the
-master (a backlog holds what the master has not read).
-
-The master computes frames ahead and queues them for their cycle (`EngineBus.send_at`), so being late by
-less than its lead never makes a frame late; a batch after its cycle's end is reported `late`. `send`
-frames go out at once (SDO, NMT). At start: SCHED_FIFO at `EngineSpec.priority`, mlockall, the garbage
-collector frozen and disabled; `EngineBus.realtime` says whether real-time priority was granted. Time
-stamps are the bus's (kernel receive stamp, sender's stamp on bus/ipc.py, send return for own frames).
-`EngineBus` is a python-can `BusABC`, so canopen's `Network` and listeners work on it unchanged.
+A CPython thread cannot keep a real-time cycle (GIL, garbage collector), so the engine is a process
+(`python -m bus.engine`, started by `EngineBus`) that owns the bus and runs one loop: at SYNC n's time
+(t0 + n * period, late but never skipped) read the bus, send SYNC n and the frames queued for cycle n, and
+forward every frame with its time on the wire to the master, never waiting for it. The master queues
+frames ahead for their cycle (`send_at`); one arriving after its cycle is reported `late`. It runs at
+SCHED_FIFO with locked memory and no garbage collector where permitted (`EngineBus.realtime` says).
+`EngineBus` is a python-can `BusABC`, so canopen and listeners work on it unchanged.
 """
 
 from __future__ import annotations

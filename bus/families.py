@@ -1,15 +1,11 @@
 """The drive families the product streams to, as `DriveProfile`s (bus/profile.py), one per family.
 
-- `epos-ipm`: maxon EPOS interpolated position mode (seed 000 ch. 4, seed 001): PVT records 0x20C1 into a
-  64-entry FIFO, buffer status 0x20C4:01, cubic Hermite every 1 ms; bus/cob.py's PDO layout.
-- `xtrapuls-ip`: Infranor XtrapulsPac interpolated position (seed 003 3): one set point per SYNC in
-  0x60C1 (sub-modes 0x60C0), RPDO3 type 1, optionally 16-bit multiplexed; no FIFO; user units made counts
-  by 0x6093; no SYNC counter or time stamp.
-- `cia402-csp`: cyclic synchronous position (mode 8): 0x607A every SYNC, followed while operation is
-  enabled, so the master writes the drive's position there before enabling.
-
-Cyclic families send the statusword alone in TPDO1 and position feedback in TPDO2. Halt does not exist
-in the XtrapulsPac's IP mode, so a cyclic axis that cannot follow a stop trajectory quick-stops.
+`epos-ipm`: maxon EPOS interpolated position mode (seed 000 ch. 4, seed 001), PVT records into a 64-entry
+FIFO, bus/cob.py's layout. `xtrapuls-ip`: Infranor XtrapulsPac interpolated position (seed 003 3), one set
+point per SYNC in 0x60C1, optionally 16-bit multiplexed, no FIFO. `cia402-csp`: cyclic synchronous
+position, 0x607A every SYNC, followed while operation is enabled (so the master writes the drive's
+position there first). Halt does not exist in the XtrapulsPac's IP mode, so a cyclic axis that cannot
+follow a stop trajectory quick-stops.
 """
 
 from __future__ import annotations

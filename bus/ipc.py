@@ -1,17 +1,11 @@
 """`ipc`: a python-can interface that joins the processes of one user on one machine into one CAN bus.
 
-Why: real-time runs keep the simulated drives out of the master's process, as hardware is. python-can's
-`virtual` bus stays inside one process, SocketCAN (vcan0) needs a kernel module this machine may not
-have, `udp_multicast` may leave the host (forbidden), and unix datagram sockets queue only
-max_dgram_qlen (often 10) datagrams per receiver, less than one SYNC of a 32-drive cell. UDP on
-127.0.0.1 has none of these limits.
-
-How: each instance has its own UDP socket and registers in a per-channel directory; a send is one
-stamped datagram to every registered peer; the receiver's `msg.timestamp` is the sender's stamp (the
-frame's time on the wire). Per-sender order is kept, losses are counted, sends never block (`IpcBus`
-has the details). Like a CAN bus, a frame nobody listens to is gone; unlike one, there is no
-arbitration, no error frames, no bit timing (`bitrate` is kept for bus-load accounting). Importing this
-module registers the interface name "ipc" with python-can.
+Real-time runs keep the simulated drives out of the master's process. python-can's `virtual` bus stays in
+one process, vcan needs a kernel module, `udp_multicast` may leave the host, and unix datagram sockets
+queue too few datagrams per receiver for one SYNC of a big cell; UDP on 127.0.0.1 has none of these
+limits. Each instance registers in a per-channel directory and sends every frame as one datagram to every
+peer, stamped by the sender (the frame's time on the wire); `IpcBus` has the format and the guarantees.
+No arbitration, error frames or bit timing. Importing this module registers "ipc" with python-can.
 """
 
 from __future__ import annotations

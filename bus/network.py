@@ -1,22 +1,14 @@
 """The master-side bus adapter: python-can + canopen in, `bus.events` out, `Send` actions back out.
 
-Owns one python-can bus (`BusConfig`), a canopen `Network` with one `RemoteNode` per axis (SDO only), the
-SYNC producer (`send_periodic`), a receive listener and a monitor thread.
-
-- `configure_drives()`: survey every drive (absent optional objects, interpolation period 0x60C2 of
-  1 ms), write the profile's SDO configuration (`DriveProfile.configuration`), read it back, NMT start.
-  A missing essential object, no answer, an abort or a wrong read-back raises `BusError` (MISSING_OBJECT,
-  NO_RESPONSE, SDO_ABORT, VERIFY) naming the node, the object and why the product needs it.
-- Received frames become events in bus order: TPDO1 -> BufferStatus, TPDO2 -> PositionFeedback, EMCY,
-  boot-up, our own SYNC echo -> Sync (then BusLoad over the cycle). TPDO events carry `sync_count`, the
-  newest SYNC on the wire; the core works out which one they answer. With `cell.time_stamp` the 0x1013
-  time stamp follows each SYNC echo (seed 001).
-- The monitor thread: heartbeat consumer (HeartbeatLost once per loss) and SYNC echo check.
-- A malformed frame or an adapter exception becomes an `AdapterError` event; a subscriber's exception is
-  re-raised (`BusError(CALLBACK)`) by the next `send`, `check` or `close`: nothing is swallowed.
-
-Callbacks run one at a time on the adapter's threads and must not block on the bus (an SDO answer would
-arrive on the thread they hold). Timestamps are python-can's (`time.time()` base); `now()` is that clock.
+Owns one python-can bus, a canopen `Network` (SDO only), the SYNC producer, a receive listener and a
+monitor thread. `configure_drives()` surveys every drive, writes the profile's SDO configuration, reads
+it back and starts NMT; a missing essential object, no answer, an abort or a wrong read-back raises
+`BusError` naming the node, the object and why the product needs it. Received frames become events in bus
+order (TPDO1, TPDO2, EMCY, boot-up, our own SYNC echo -> Sync and BusLoad), TPDOs tagged with the newest
+SYNC on the wire; with `cell.time_stamp` 0x1013 follows each SYNC echo (seed 001). The monitor consumes
+heartbeats and checks SYNC echoes. A malformed frame or adapter exception becomes an `AdapterError` event;
+a subscriber's exception is re-raised (`BusError(CALLBACK)`) by the next `send`, `check` or `close`.
+Callbacks run one at a time and must not block on the bus (an SDO answer would arrive on their thread).
 """
 
 from __future__ import annotations

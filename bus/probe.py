@@ -1,15 +1,11 @@
 """The standstill probe: measure how a drive settles the points the manuals leave open, moving nothing.
 
-Used by `pvt probe` and by the runtimes at configuration for every reading `[axis.probed]` does not state.
-Pure: a `StandstillProbe` says when the next SYNC goes out and what to send, and is fed what came back;
-a driver does the I/O and the SDO work between experiments. The analysis is hypothesis testing: for each
-combination of readings `predict` says what the drive must report at each SYNC, and the readings whose
-prediction matches everything are kept; a drive no reading explains is reported, never guessed.
-
-Experiments, at the current demand with velocity 0: latency (SYNCs 4 periods apart: reading 8); timing
-(zero-motion records, two SYNC intervals stretched by 30 %: readings 1, 2, 3, 7); underflow (`pvt probe`
-only, faults and resets the drive: reading 6); rounding (a one-count move, 0.7-0.9 count past at a SYNC:
-reading 4). Objects present (reading 5) are surveyed over SDO (`survey_objects`).
+For `pvt probe` and for the runtimes, for every reading `[axis.probed]` does not state. Pure: a
+`StandstillProbe` says when to send SYNC and what, and is fed the answers; a driver does the I/O and SDO.
+Hypothesis testing: for each combination of readings `predict` says what the drive must report, and the
+ones matching everything are kept; a drive no reading explains is reported, never guessed. Experiments at
+standstill: latency, timing (SYNC intervals stretched 30 %), underflow (`pvt probe` only), rounding (a
+one-count move); objects present are surveyed over SDO.
 """
 
 from __future__ import annotations

@@ -1,16 +1,10 @@
 """Compiled kernels of the planner: numba's `njit` with the options every one of them uses.
 
-Why compiled: the planner's inner loops (TOPP-RA's passes, the greedy knot searches, the Viterbi passes)
-are sequential, each step depending on the last; in NumPy each step costs microseconds of interpreter.
-
-- `cache=True`: machine code is kept beside the module, so only a machine's first process compiles
-  (`make test` and a starting service compile first; a machine's first `make demo` plans interpreted,
-  `NUMBA_DISABLE_JIT=1`, and compiles after). The demo's child processes import no kernel.
-- `nogil=True`: planning on one thread does not stall the streaming thread's SYNC handling.
-- `error_model="numpy"`: division by zero gives inf or nan, with no check per division.
-
-`keep_heap` (called by planner.plan.warm_up) asks glibc to keep 64 MB of freed heap, so that a plan's
-arrays do not page-fault back in. `NUMBA_DISABLE_JIT=1` runs every kernel as plain Python.
+The planner's inner loops are sequential (each step depends on the last), where NumPy pays microseconds
+of interpreter per step. `cache=True`: only a machine's first process compiles (a first `make demo` plans
+interpreted and compiles after). `nogil=True`: planning does not stall the streaming thread.
+`error_model="numpy"`: no check per division. `keep_heap` keeps freed heap for the next plan's arrays.
+`NUMBA_DISABLE_JIT=1` runs everything as Python. docs/formats.md ("path") has the costs.
 """
 
 from __future__ import annotations

@@ -108,7 +108,7 @@ def _float(section: str, key: str, value: Any, low: float, high: float) -> float
 
 @dataclass(frozen=True)
 class SimDriveOptions:
-    """What a simulated drive does on each open point (defaults: the drive before these options)."""
+    """What a simulated drive does on each open point (defaults: the reference drive's readings)."""
 
     tpdo_sampling: str = "after_rpdo"
     fifo_count: str = "until_segment_end"

@@ -1,16 +1,10 @@
 """The simulated drive's own data recorder (seed 004; seed 000 chapter 8), as a pure state machine.
 
-Owns the recorder's state (stopped, waiting for a trigger, continuous, triggered), the configuration
-latched at start, its 512-word memory as one ring per variable, the trigger's place, and its clock (drive
-time in 0.1 ms units, `UNIT_S`). Fed by the EPOS drive (bus/sim/epos.py) and the shared drive's ticks
-(bus/sim/recorder_ticks.py): `start`/`stop`/`force_trigger` (0x2010), `trigger(kind)` (events 0x2011
-may select), `advance(units, read)` (called at each sample instant, `units_to_sample()`, with the drive's
-state then). Answers 0x2017 status, 0x2018 max samples, 0x2019 first-sample offset, 0x201B the memory
-laid out by seed 004's StartRingBuffer formulas (32-bit values two little-endian words, low first).
-
-Single trigger mode records until the rings hold `preceding` samples before the trigger and the rest
-after, then stops itself; continuous mode (0x2011 = 0) records until stopped. docs/drive-model.md
-("Data recorder") has the choices.
+Owns the recorder's state, the configuration latched at start, its 512-word memory as one ring per
+variable and its 0.1 ms clock (`UNIT_S`). Fed by the EPOS drive (0x2010 start/stop/force, `trigger(kind)`)
+and the tick loop (`advance`, called at each sample instant); answers 0x2017-0x2019 and 0x201B laid out by
+seed 004's StartRingBuffer formulas. Single trigger mode keeps `preceding` samples before the trigger and
+stops itself; continuous mode records until stopped. docs/drive-model.md ("Data recorder") has the choices.
 """
 
 from __future__ import annotations

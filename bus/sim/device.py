@@ -1,13 +1,10 @@
 """A simulated CiA 402 servo drive as a pure state machine: frames and time in, frames out.
 
-The part every drive family shares; a family (bus/sim/epos.py, xtrapuls.py, csp.py) adds its mode, its
-objects and its SYNC behaviour through hooks. No sleeps, wall clock, canopen or threads: every entry
-point takes the time `t` and returns the frames the drive sends. Layers, each a class on the one below:
-cia301.py `Cia301Node` (entry points, NMT, object dictionary, SDO, SYNC), pdo.py `PdoLayer`, plant.py
-`PlantLoop` (control ticks, motor, demand sources), recorder_ticks.py `RecordedTicks`, homing_mode.py
-`HomingMode`, cia402.py `Cia402Drive` (power state machine, faults, EMCY), and here `DriveDevice` (the
-family's settings, the state, object write handlers, reset node). A lower layer declares in its class
-body what it needs from a higher one; family hooks default to CiA behaviour.
+The part every family shares; a family (epos.py, xtrapuls.py, csp.py) adds its mode, objects and SYNC
+behaviour through hooks. No sleeps, wall clock, canopen or threads: every entry point takes `t` and
+returns the frames sent. Layers, each a class on the one below: cia301.py, pdo.py, plant.py,
+recorder_ticks.py, homing_mode.py, cia402.py, and here `DriveDevice` (the family's settings, the state,
+write handlers, reset node). A lower layer declares what it needs from a higher one in its class body.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
 """Homing mode (CiA 402 mode 6) of the simulated drives: the inputs, the methods, the search trajectories.
 
-Theory of operation. The drive references its position against a switch, generating its own trajectory
-per homing method (seed 003 "Homing Mode"). The pure part used by bus/sim/homing_mode.py:
-- `Inputs`: home and limit switches at machine positions (sim options `home_switch`, `limit_switches`);
-  `word(x)` is the functionality word (seed 000 table 3-11, CiA 402's 0x60FD bits).
-- `phases(method, inputs, x)`: the method as searches ("move this way at 0x6099:01 or :02 until this input
-  is in this state"), chosen from the inputs' state at the start as CiA 402's methods do; the last edge is
-  the home position; cam methods 23 and 27 reverse on a limit switch (`Phase.on_limit`).
-- `search(...)`: one search's demand per 1 ms tick, ramping at 0x609A, until the input changes, an
-  unexpected limit switch, or more than the machine's travel (homing error).
-- `move_to(...)`: back to the home position (0x309D = 1, seed 003's default), approaching at zero speed.
+The pure part of bus/sim/homing_mode.py (seed 003 "Homing Mode"). `Inputs`: home and limit switches at
+machine positions, `word(x)` the functionality word (CiA 402's 0x60FD bits). `phases(method, inputs, x)`:
+the method as searches ("move this way at this speed until this input is in this state"), chosen from the
+inputs at the start as CiA 402's methods do; cam methods 23 and 27 reverse on a limit switch. `search`:
+one search's demand per tick, ramping at 0x609A, failing beyond the machine's travel. `move_to`: back to
+the home position (0x309D = 1).
 """
 
 from __future__ import annotations

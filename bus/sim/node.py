@@ -1,15 +1,11 @@
 """Run simulated drives (bus/sim/device.py and a family model each) in real time on any python-can bus,
 through canopen `LocalNode`s.
 
-Owns the bus (unless given one), a canopen `Network`, one `LocalNode` per drive, a timer thread, and the
-lock serialising everything that touches the models. SDO reads and writes are redirected to the model
-(the only store of values; aborts keep their code; no answer in NMT stopped); block upload is served
-here (`SdoBlockUploadServer`, CiA 301 7.2.4.3.13-18) since canopen's server lacks it. RPDOs come through
-canopen's callbacks (maps re-read when the model's PDO configuration changes); NMT, SYNC, time stamp and
-heartbeats through a raw listener (canopen's `NmtSlave` detached). Whatever frames the model returns are
-sent as they are. The timer thread calls `model.advance` at each `next_deadline()`; a missing SYNC or
-heartbeat is noticed RECEIVE_SLACK_S late. Time is `time.time()`; callback exceptions are kept in
-`errors` and re-raised by `check()`/`stop()`.
+SDO is redirected to the model, the only store of values (block upload served here,
+`SdoBlockUploadServer`, as canopen's server lacks it); RPDOs come through canopen's callbacks, NMT, SYNC,
+time stamps and heartbeats through a raw listener (canopen's `NmtSlave` detached); the model's frames are
+sent as they are. A timer thread calls `model.advance` at each `next_deadline()`. One lock serialises all
+model access; time is `time.time()`; callback exceptions are kept and re-raised by `check()`/`stop()`.
 """
 
 from __future__ import annotations

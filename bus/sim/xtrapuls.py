@@ -1,21 +1,13 @@
 """The XtrapulsPac family: Infranor's interpolated position mode, one set point per SYNC (seed 003 3.2.3.5),
 on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part (bus/sim/cyclic_drive.py).
 
-Theory of operation, per SYNC k (`_after_sync_rpdos`):
-1. The PLL (0x2006) locks after 180 ms of SYNC whose mean period is within 0x2006:04 of 0x1006; a jitter
-   of half a period or more restarts it. While interpolating, that jitter, a period off by 0.4 % over a
-   180 ms window, or SYNC loss is error 49 (EMCY 0x8780). Both limits scale with `sync_gap_factor`
-   (in-process runtimes pass 3.0: their SYNC stamps carry Python's scheduling).
-2. While interpolating, the set point must have arrived since SYNC k-1 and 100 us before SYNC k, else
-   error 50 (EMCY 0x8782).
-3. The interpolator latches x_k = 0x60C1:01 (and v_k = 0x60C1:02).
-4. Interpolation starts at the first SYNC with controlword bit 4 in operation enabled, mode 7, PLL locked,
-   from the current demand; a bit 4 before the lock is refused until it is seen low again.
-5. The period's polynomial by sub-mode 0x60C0 (0 linear, -1 PV Hermite, -2 P3 parabola), so x_k is the
-   demand at SYNC k+1.
-
-Set points come in RPDO3 (type 1), 16-bit multiplexed with 0x3350 = 1 (upper word nearest the previous
-set point). docs/drive-model.md has every reading (faults, EMCY bytes, statusword) and its seed sentence.
+Per SYNC k (`_after_sync_rpdos`): the PLL (0x2006) locks after 180 ms of steady SYNC, and while
+interpolating a jitter of half a period, a period off by 0.4 % or SYNC loss is error 49 (limits scaled by
+`sync_gap_factor`: in-process runtimes pass 3.0, their SYNC stamps carry Python's scheduling); a set point
+missing since SYNC k-1 is error 50; the interpolator latches 0x60C1:01 (and :02); interpolation starts
+with controlword bit 4 once the PLL is locked (before that the request is refused until bit 4 is seen
+low), from the current demand; the period's polynomial follows sub-mode 0x60C0. Set points in RPDO3,
+optionally 16-bit multiplexed (0x3350 = 1). docs/drive-model.md has every reading and its seed sentence.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """Hermite chain: a time-optimal path profile turned into a motion the drive can follow exactly.
 
-Theory of operation. The encoder needs segments of at least `min_seg` ms to keep the knots' quantisation
-within its acceleration budget, but the time-optimal profile along a blended path has acceleration
-features of a few ms (a blend crossed in 40-60 ms). So for blended paths the *plan* is itself a chain of
-cubic Hermite segments on whole-ms knots, through the exact positions and velocities of the profile:
-the motion the drive produces, which the encoder then only has to quantise.
-
-`fit_chain` places knots greedily per section between the profile's bang-bang switches (knots of their
-own): the longest segment that keeps every ms within `budget` of the path (of its line on straight
-pieces, of the exact profile in blends; plan.lines_geometry leaves that share of the tolerance free) and
-its velocity and (linear, so end-point) acceleration within the joint limits. Limit checks come first,
-samples only where they pass (`_first_passing`). The loops are compiled (planner/jit.py): the search is
-sequential, in small steps. Where no segment of `min_seg` passes, the shortest is taken and its limit
-ratios reported (`ChainFit.acc_ratio`, `vel_ratio`) so that path.plan_run slows the profile there.
+The encoder needs segments of at least `min_seg` ms, but a blended path's time-optimal profile has
+acceleration features of a few ms. So for blended paths the plan itself is a chain of cubic Hermite
+segments on whole-ms knots through the profile's exact positions and velocities. `fit_chain` places knots
+greedily between the profile's switches: the longest segment within `budget` of the path and within the
+joint limits (limit checks first, samples only where they pass: `_first_passing`; compiled). Where no
+`min_seg` segment passes, its limit ratios (`ChainFit.acc_ratio`, `vel_ratio`) make path.plan_run slow
+the profile there.
 """
 
 from __future__ import annotations

@@ -1,17 +1,11 @@
 """One set point per SYNC: what a cyclic drive is sent, and how far its own interpolation strays from the plan.
 
-Theory of operation. A cyclic drive (bus/families.py: XtrapulsPac interpolated position, CiA 402 CSP)
-takes one set point per SYNC period P: x_j = the plan at jP rounded to counts and, in the XtrapulsPac's
-PV sub-mode, v_j = the plan's instantaneous velocity (seed 003). It latches at one SYNC and reaches it
-at the next, so the streamer sends one period early. Between SYNCs the drive interpolates by itself,
-per sub-mode: linear (0, and CSP) the chord; pv (-1) the cubic Hermite through (x, v) pairs; p3 (-2)
-the parabola through the last three set points (x_{-1} = x_0 before the first).
-
-The deviation per axis is measured as the EPOS encoder's (drive demand minus planned demand in whole
-counts at every ms, under both roundings the manuals permit); `assess` refuses a job whose deviation
-exceeds its tolerance, naming another sub-mode or the longest SYNC period that would meet it. Wire
-limits checked before anything moves: a multiplexed set point carries 16 bits of position (a step of at
-most 32767 counts), a multiplexed PV velocity |v| <= 32767 counts/s.
+A cyclic drive (bus/families.py) latches x_j, the plan at jP in counts (and in the XtrapulsPac's PV
+sub-mode v_j, the instantaneous velocity, seed 003), at one SYNC and reaches it at the next, interpolating
+by sub-mode: linear (0, CSP), the PV Hermite (-1), the P3 parabola through three set points (-2). The
+deviation is measured as the EPOS encoder's (whole counts at every ms, both permitted roundings); `assess`
+refuses a job beyond its tolerance, naming a sub-mode or SYNC period that would do. Wire limits: a
+multiplexed step of at most 32767 counts, a multiplexed PV velocity within 32767 counts/s.
 """
 
 from __future__ import annotations

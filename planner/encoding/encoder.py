@@ -1,28 +1,22 @@
 """PVT encoder: a `Reference` (the planned motion at every ms) -> knots on one shared integer-ms grid.
 
-Theory of operation. The drive rebuilds each axis from PVT knots with the cubic Hermite of seed 000
-4.2.3 (planner/encoding/hermite.py), evaluated every 1 ms and rounded to whole counts. The contract,
-checked at every ms of every axis on the quantised values: |drive demand - planned demand| <= tolerance,
-both in whole counts (planned demand = the plan rounded as the drive rounds; an integer tolerance
-because a float band of +-0.5 count is less than one rpm of quantisation costs: docs/formats.md, section 3).
+Theory of operation. The drive rebuilds each axis from PVT knots with seed 000 4.2.3's cubic
+(planner/encoding/hermite.py) every 1 ms, rounded to whole counts. Contract, checked at every ms of every
+axis on the quantised values: |drive demand - planned demand| <= tolerance, both in whole counts (the
+planned demand is the plan rounded as the drive rounds; docs/formats.md, section 3, says why integer).
 
-1. Knot times, shared by all axes (`place_knots`, compiled `_greedy_knots`): greedily the longest segment
-   whose Hermite through the exact plan stays within `PLACEMENT_SHARE` of the tolerance and
-   `ACC_PLACEMENT_SHARE` of the acceleration limit; sections end at the plan's acceleration steps (a
-   cubic cannot follow a step inside it), at its `hints` and every `SECTION_MS`. `min_segment` and
-   `max_segment` bound the lengths (one rpm or one count is acceleration noise on short segments and
-   position error on long ones). The coarsest valid uniform grid is tried too (`_uniform_alternative`),
-   so an encoding never needs more records than it (planner/encoding/uniform.py).
-2. Knot values, jointly (`_choose_values`): per axis a Viterbi pass over each knot's candidates (the
-   planned demand +-1 count, the two rpm around the plan) that keeps the tolerance at every tick and
-   minimises the acceleration excess over the plan; rounding each value alone is not enough.
-3. Verification of the drive's reconstruction at every ms; failing segments are refined locally, then
-   split. Velocity or acceleration over the limits, or an excess over `ACC_EXCESS_LIMIT`, raise
-   `EncodingNeedsTime`: the planner retries other placements (`variant`), then plays the motion slower.
+1. Knot times, shared by all axes (`place_knots`): greedily the longest segment whose exact-value Hermite
+   stays within `PLACEMENT_SHARE` of the tolerance and `ACC_PLACEMENT_SHARE` of the acceleration limit,
+   with sections ending at the plan's acceleration steps and `hints`; `min_segment` / `max_segment`
+   bound the lengths (quantisation is acceleration noise on short segments, position error on long ones).
+   The coarsest valid uniform grid competes (`_uniform_alternative`), so no encoding needs more records.
+2. Knot values (`_choose_values`): per axis a Viterbi pass over each knot's candidates (planned demand
+   +-1 count, the two rpm around the plan) keeping the tolerance and minimising the acceleration excess.
+3. Verification at every ms; failing segments are refined, then split. Limits or `ACC_EXCESS_LIMIT`
+   exceeded raise `EncodingNeedsTime`: other placements (`variant`), then a slower replay.
 
-Knot 0 is the start state exactly; the last knot is the plan's end in counts, at rest (or at the
-cruise velocity of an open-ended move). Steps 2 and 3 are compiled (planner/encoding/quantise.py);
-`Knots`, `AxisScales` and the reconstruction are planner/encoding/reconstruction.py.
+Knot 0 is the start state exactly, the last knot the end in counts at rest (or cruising, open-ended).
+Steps 2 and 3 are compiled (quantise.py); `Knots` and the reconstruction are reconstruction.py.
 """
 
 from __future__ import annotations

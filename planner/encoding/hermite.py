@@ -1,19 +1,16 @@
 """The drive's cubic interpolation between two PVT reference points (seed 000, section 4.2.3).
 
-The single definition of what a drive does with its PVT records: the encoder verifies against it, the
-simulated drive produces its position demand (0x6062) with it; they must agree to the count. In time
-tau = t - t0 from the segment END (tau in [-T, 0]):
+The single definition of what a drive does with its records: the encoder verifies with it, the simulated
+drive's demand (0x6062) comes from it. In tau = t - t0 from the segment END (tau in [-T, 0]):
 
     d = P[n]                c = V[n]
     b = T^-2 * (-3 * (P[n] - P[n-1]) + T * (2 * V[n] + V[n-1]))
     a = T^-3 * (-2 * (P[n] - P[n-1]) + T * (V[n] + V[n-1]))
     P(tau) = a tau^3 + b tau^2 + c tau + d,   V(tau) = 3a tau^2 + 2b tau + c,   A(tau) = 6a tau + 2b
 
-The seed's extracted text lost these minus signs (taken literally its cubic misses P[n-1]); its own
-definition, the unique cubic through both end positions and velocities, is the one above
-(tests/planner/test_hermite.py). Units: counts, ms, rpm (v = rpm * counts_per_rev / 60000 counts/ms);
-the demand is rounded half away from zero at every tick, exactly P[n] at the end. planner/encoding/
-quantise.py evaluates the same polynomial operation for operation (tested bit for bit).
+The seed's extracted text lost these minus signs; its own definition (the cubic through both end positions
+and velocities) wins (tests/planner/test_hermite.py). Units: counts, ms, rpm (counts_per_rev / 60000 counts
+per ms); the demand is rounded half away from zero each tick. quantise.py evaluates it bit for bit alike.
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
 """The PVT encoder's value search and verification, compiled (planner/encoding/encoder.py, steps 2 and 3).
 
-Theory of operation: encoder.py's; this module is its arithmetic, in numba loops (planner/jit.py), one
-axis at a time and without temporaries. Both searches (`choose_values`, `refine`) check every tick
-lazily: `sample_misses` and `sample_bounds` give each pair's cost at the sample ticks, a lower bound of
-its cost at every tick; `_exact_path` runs the Viterbi pass over the bounds, checks the pairs of the best
-path at every tick (`_exact_cost`) and runs again until the best path holds no bound. Its result is
-the full check's, ties included.
-
-Why the loops look as they do: inner loops run over a row of candidates or ticks so that they
-vectorise (padded to whole vectors); running maxima are integer bit patterns (a float maximum does not
-vectorise); offsets are unsigned (a wrapped index does not vectorise); a per-pair kernel takes one
-array (each array argument costs a reference count per call). Results are bit for bit the NumPy
-reference's (tests/planner/encoder_reference.py): float32 near the plan, nan propagates, ties to the
-first candidate.
+One axis at a time, without temporaries. Both searches (`choose_values`, `refine`) check every tick
+lazily: the costs at the sample ticks bound those at every tick from below; `_exact_path` checks the best
+path's pairs at every tick and runs again until no bound is left on it, which gives the full check's
+result, ties included. The loops are shaped to vectorise (rows of candidates or ticks, padded; maxima as
+integer bit patterns; unsigned offsets; one array per per-pair kernel). Results are bit for bit the NumPy
+reference's (tests/planner/encoder_reference.py).
 """
 from __future__ import annotations
 

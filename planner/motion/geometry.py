@@ -1,17 +1,12 @@
 """Geometric paths for path jobs: straight segments between the waypoints with blended corners.
 
-Theory of operation. A path job goes along the segments between its waypoints and rounds the corners
-within a per-axis tolerance (G64 in CNC, MoveIt's TOTG blends). Output: rest-to-rest runs
-(`PiecewisePath`, degree 5 per axis) for the time-optimal parametrisation (planner/motion/path.py).
-
-1. Coordinates z = q / v_max per axis; the path parameter s is arc length there, rescaled (`S_MIN`).
-2. A blend is a quintic Bezier whose control points lie on the two legs (A, A + d u1, A + 2d u1,
-   B - 2d u2, B - d u2, B): the path is C2 (joint accelerations step only where the path acceleration
-   switches) and stays inside the triangle (A, c, B), so inside the position limits when the waypoints are.
-3. Size: the deviation is homothetic in the leg length l, measured in y = q / tol (every axis within its
-   own tolerance), l at most half of each segment; of the shapes `RHOS` the fastest corner wins.
-4. Exact stops (runs are cut there): zero tolerance on a moving axis, a reversal, or a blend too fast
-   for the drive's segments (`blend_duration_ms`).
+A path job goes along the segments and rounds corners within a per-axis tolerance (G64 in CNC, MoveIt's
+TOTG blends). In z = q / v_max a blend is a quintic Bezier with its control points on the two legs: C2
+(joint accelerations step only where the path acceleration does) and inside the corner's triangle (so
+within the position limits when the waypoints are). Its size is homothetic in the leg length, measured in
+q / tol so every axis keeps its tolerance, at most half of each segment; of the shapes `RHOS` the fastest
+wins. Exact stops cut the path into rest-to-rest runs (`PiecewisePath`): zero tolerance on a moving axis, a
+reversal, or a blend too fast for the drive's segments.
 """
 
 from __future__ import annotations

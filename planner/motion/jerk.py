@@ -1,16 +1,11 @@
 """Jerk-limited motions with ruckig: point-to-point moves along the straight line, and stops.
 
-Theory of operation. ruckig's per-DoF profiles (up to 7 constant-jerk phases) are read from
-`Trajectory.profiles` and evaluated for all ms at once. A move is ONE degree of freedom, the position
-along the line from start to target, limited by the tightest of the axes' limits over their share of
-the line: all axes in phase and time-optimal on the line (ruckig's phase synchronisation falls back to
-time synchronisation, off the line, in most random multi-axis moves: docs/formats.md, "move"). The
-duration is rounded up to whole ms by playing slower; the phase boundaries are the reference's `hints`.
-If ruckig rejects the 1-DoF problem, all axes are time-synchronised (`straight_line` 0 in info).
-Stops are time-synchronised (from an arbitrary state there is no common line).
-
-Never intermediate waypoints (ruckig's community edition would call a remote API: DESIGN.md).
-Failures become PlanningError(INFEASIBLE) carrying ruckig's return code.
+ruckig's constant-jerk phases are read from `Trajectory.profiles` and evaluated for all ms at once. A move
+is ONE degree of freedom along the line, limited by the tightest axis: in phase and time-optimal on the line
+(ruckig's phase synchronisation leaves the line in most multi-axis moves: docs/formats.md, "move"); its
+duration is rounded up to whole ms, its phase boundaries are the `hints`; if ruckig rejects it, all axes
+are time-synchronised (`straight_line` 0). Stops are time-synchronised. Never intermediate waypoints
+(DESIGN.md); failures are PlanningError(INFEASIBLE) with ruckig's code.
 """
 
 from __future__ import annotations

@@ -1,21 +1,15 @@
 """Time-optimal traversal of a geometric path (TOPP-RA), re-timed onto whole milliseconds.
 
-Theory of operation, per rest-to-rest run:
-
-1. Geometry: planner/motion/geometry.py's blended segments, or a C2 spline (`SplineGeometry`), in
-   time-normalised arc length squeezed into [0.01, 2] (toppra's seidel solver, our reference, fails
-   spuriously on long parametrisations).
-2. Time-optimal parametrisation (planner/motion/topp.py), with the limits also imposed at interior points
-   of every grid interval (`topp.THETAS`): checked at gridpoints only, the profile overshoots between them.
-3. Re-timing (`Profile`): every breakpoint on a whole ms (a Hermite segment cannot follow an acceleration
-   step inside it), velocities interpolated linearly in time, the end exact.
-4. Blended paths become a Hermite chain (planner/encoding/chain.py); a single straight segment is the
-   closed-form trapezoid (`straight_run`).
-5. Verification at every ms of every joint; overshoots tighten the rows concerned and solve again
-   (`REPAIR_ROUNDS`), a residual is played slower (`RESCALE_SHARE`, `SLOWER_LADDER`: whether a refitted
-   chain passes is not monotone in the slow-down).
-
-The durations against toppra's are in docs/formats.md ("path").
+Per rest-to-rest run: the geometry (planner/motion/geometry.py's blends, or a C2 spline,
+`SplineGeometry`) in time-normalised arc length squeezed into [0.01, 2] (toppra's seidel solver, the
+reference, fails spuriously on long parametrisations); the time-optimal profile (planner/motion/topp.py)
+with the limits also at interior points of each interval (`topp.THETAS`: the profile overshoots between
+gridpoints otherwise); re-timing every breakpoint onto a whole ms (`Profile`: a Hermite segment cannot
+follow an acceleration step inside it); for blends, the Hermite chain (planner/encoding/chain.py), for a
+single straight segment the closed-form trapezoid (`straight_run`). Verification at every ms: overshoots
+tighten their rows and solve again (`REPAIR_ROUNDS`), a residual is played slower (`RESCALE_SHARE`,
+`SLOWER_LADDER`: a refitted chain's pass is not monotone in the slow-down). docs/formats.md ("path") has
+the measured durations.
 """
 
 from __future__ import annotations

@@ -1,19 +1,12 @@
 """plan_stop: a jerk-limited stop of all axes from any state, encoded like every other motion.
 
-Theory of operation. The streamer cancels a job by appending a stop from the state at the end of its
-queue (the last knot as sent and the drive's Hermite acceleration there: `PvtTrajectory.knot_state`).
-ruckig's velocity interface brings every axis to rest under the cell's limits, time-synchronised: the
-axes stop together, coordinated, at the slowest axis' stopping time. Knot 0 is exactly the given wire
-state, so the records continue the stream. A stop is never refused for the software limits (0x607D
-still applies on the drive); its stats say where it ends.
-
-`plan_change` (a move with buffer "aborting") plans from the same state to the new target at rest
-(ruckig's position interface); it can be refused (POSITION_LIMIT, INFEASIBLE) and reports axes that
-must overrun and come back (`ChangePlan.overrun_axes`, seed 002's TARGET_OVERRUN).
-
-`plan_emergency_stop` (seed 002's "Emergency stop") uses each axis' `emergency_deceleration` with a jerk
-reaching it within EMERGENCY_RISE_MS (a step would put acceleration steps between knots; the choice of
-20 ms is in docs/formats.md), doubled on axes too coarse to encode it (`info["emergency_rise_ms"]`).
+The streamer cancels by appending a stop from the state at the end of its queue (`PvtTrajectory.knot_state`);
+ruckig's velocity interface brings every axis to rest, time-synchronised (the axes stop together). Knot 0
+is exactly the given wire state. A stop is never refused for the software limits (0x607D still holds on the
+drive). `plan_change` goes from the same state to a new target at rest (POSITION_LIMIT, INFEASIBLE;
+`overrun_axes`: seed 002's TARGET_OVERRUN). `plan_emergency_stop` uses each axis' `emergency_deceleration`
+reached within EMERGENCY_RISE_MS, not a step (docs/formats.md says why 20 ms), doubled on axes too coarse
+to encode it (`info["emergency_rise_ms"]`).
 """
 
 from __future__ import annotations

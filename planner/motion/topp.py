@@ -1,17 +1,11 @@
 """Time-optimal path parametrisation by reachability analysis (TOPP-RA), compiled.
 
-Theory of operation. The algorithm is toppra's (Pham & Pham, "A New Approach to Time-Optimal Path
-Parameterization based on Reachability Analysis", 2018), its loops compiled (planner/jit.py); toppra
-stays the reference (tests/planner/test_planner_topp.py compares profiles). With x = s_dot^2 at gridpoint
-s_i and constant path acceleration u per interval, every joint constraint is linear:
-A_r u + B_r x <= G_r, 0 <= x <= xmax_i.
-
-1. Controllable sets, backward: K_N = {0}; K_i = [lo_i, hi_i], two 2-variable LPs (`_lp2d`).
-2. Forward: x_0 = 0, then the largest admissible u whose next state stays in K_i+1 (taken 0.01 % low,
-   as toppra does, with at most 10 retries from a slightly lower state).
-
-`_lp2d` is Seidel's incremental algorithm for two variables; the previous gridpoint's active rows go
-first, so the optimum rarely moves after them.
+toppra's algorithm (Pham & Pham, "A New Approach to Time-Optimal Path Parameterization based on
+Reachability Analysis", 2018), its loops compiled; toppra stays the reference in the tests. With
+x = s_dot^2 per gridpoint and constant path acceleration u per interval every joint constraint is linear,
+A_r u + B_r x <= G_r. Backward: the controllable sets K_i = [lo_i, hi_i], two 2-variable LPs each (`_lp2d`,
+Seidel's incremental algorithm, the previous gridpoint's active rows first). Forward: the largest
+admissible u whose next state stays in K_i+1 (0.01 % low and up to 10 retries, as toppra).
 """
 
 from __future__ import annotations

@@ -1,19 +1,13 @@
 """Travel commands (seed 002's positioning interface): what a move's target means, and endless travel.
 
-Theory of operation. Fed a `move` job, the cell and where the axes are. Point-to-point modes become an
-absolute target (`resolve_target`, planned by plan.py like any move): absolute; relative (from the
-actual position); additive (from the last commanded target, which the streaming side keeps per axis;
-None counts from the actual position); modulo_short/plus/minus/current on axes with a `modulo_period`
-and `modulo_tolerance` (seed 002: always from the actual position, a tolerance window around the
-target, extra periods are extra turns; `modulo_short` accepts only targets in the basic period).
-docs/formats.md ("move") has the rules; seed 002's tables are tests/planner/test_travel.py.
-
-Velocity mode (seed 002's ENDLESS_PLUS/MINUS): a signed velocity per axis snapped to whole rpm;
-`plan_velocity` ramps there (ruckig's velocity interface) and cruises `chunk_ms`, open-ended
-(`CruiseState`); `extend_velocity` gives the next chunk. Cruise knots are integers from one anchor, so
-any number of extensions land on the same count as one long cruise. A chunk stays open-ended only while
-the axes can still stop inside the software limits from its end; otherwise it stops at the last ms that
-fits (`info["position_limit_stop"]`). A ramp that cannot stop inside them is refused (POSITION_LIMIT).
+Point-to-point modes become an absolute target (`resolve_target`): absolute, relative (from the actual
+position), additive (from the last commanded target the streaming side keeps; None: from the actual
+position), and modulo_short/plus/minus/current on axes with a `modulo_period` (seed 002: from the actual
+position, a tolerance window, extra periods are turns). docs/formats.md ("move") has the rules; seed 002's
+tables are tests/planner/test_travel.py. Velocity mode: whole-rpm velocities, `plan_velocity` ramps and
+cruises open-ended (`CruiseState`), `extend_velocity` gives each next chunk, cruise knots integers from one
+anchor (no drift); a chunk that could no longer stop inside the software limits stops at the last ms that
+fits (`info["position_limit_stop"]`), and a ramp that cannot is refused (POSITION_LIMIT).
 """
 
 from __future__ import annotations
