@@ -1,18 +1,11 @@
-"""Bus-load accounting: worst-case bit length of standard CAN frames, the per-SYNC frame budget, and
-how often the drives send their position feedback so that a cell fits.
+"""Bus-load accounting: worst-case frame lengths, the per-SYNC frame budget, and the feedback rate that fits.
 
-The streamer keeps its own traffic plus the traffic it causes (SYNC, the time stamp, TPDO1 of every
-drive per SYNC, TPDO2 of every drive every n-th SYNC, heartbeats) under a fraction of the bitrate (70% by
-default). Lengths are worst case, so the budget holds whatever the payload bits are. TPDO2 (position
-feedback) every n-th SYNC is staggered with the CiA 301 SYNC counter (`bus.profile.FeedbackSchedule`):
-the busiest cycle carries ceil(nodes / n) of them, and that is what the budget counts.
-
-A classic CAN 2.0A data frame with n data bytes has 44 + 8n bits between SOF and EOF, plus 3 bits of
-intermission before the next frame may start: 47 + 8n. Bit stuffing applies from SOF to the end of the
-CRC sequence, 34 + 8n bits, and adds at most floor((34 + 8n - 1) / 4) bits (a stuff bit after every
-4 equal bits once the first 5 have been counted; Davis et al., "Controller Area Network (CAN)
-schedulability analysis: refuted, revisited and revised", 2007). So 8 data bytes cost 135 bits and
-an empty SYNC 55. The formula itself is `bus.codec.frame_bits` (one definition for the whole product).
+The streamer keeps its own traffic and the traffic it causes (SYNC, time stamp, TPDOs, heartbeats) under a
+share of the bitrate (70 % by default), with worst-case lengths. TPDO2 every n-th SYNC is staggered by the
+SYNC counter (`bus.profile.FeedbackSchedule`), so the busiest cycle carries ceil(nodes / n). A classic
+frame with n data bytes is 47 + 8n bits with intermission plus at most floor((34 + 8n - 1) / 4) stuff bits
+(Davis et al., "Controller Area Network (CAN) schedulability analysis: refuted, revisited and revised",
+2007): 135 bits for 8 bytes, 55 for an empty SYNC (`bus.codec.frame_bits`).
 """
 
 from __future__ import annotations

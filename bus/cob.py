@@ -1,32 +1,19 @@
 """COB-IDs and the PDO layout the product uses with EPOS-style drives (the wire contract).
 
-CiA 301 predefined connection set, per node id n (1..127):
-
     SYNC          0x080               DLC 0, or DLC 1 = the SYNC counter 1..0x1019 when TPDO2 is staggered
     TIME          0x100               DLC 4: high-resolution time stamp 0x1013 (us) of the last SYNC sent
     EMCY          0x080 + n           DLC 8: error code u16, error register u8, 5 manufacturer bytes
-    TPDO1         0x180 + n           statusword 0x6041 u16 | free buffer size 0x60C4:02 u32
-                                      (transmission type 1: every SYNC)
-    RPDO1         0x200 + n           controlword 0x6040 u16
-                                      (transmission type 1: applied at next SYNC)
+    TPDO1         0x180 + n           statusword 0x6041 u16 | free buffer size 0x60C4:02 u32   (type 1)
+    RPDO1         0x200 + n           controlword 0x6040 u16   (type 1: applied at next SYNC)
     TPDO2         0x280 + n           position actual 0x6064 i32 | position demand 0x6062 i32   (type 1)
-    RPDO2         0x300 + n           PVT record 0x20C1 (8 bytes)
-                                      (transmission type 255: on reception)
-    RPDO3         0x400 + n           cyclic families (bus/families.py): the set point of the next SYNC,
-                                      0x60C1:01 i32 [| 0x60C1:02 i32 in PV] or 0x607A i32 (type 1); a
-                                      multiplexed group shares the RPDO3 COB-ID of its lowest node:
-                                      16-bit positions [| 16-bit velocities] of up to 4 axes
+    RPDO2         0x300 + n           PVT record 0x20C1 (8 bytes)   (type 255: on reception)
+    RPDO3         0x400 + n           cyclic families: the next SYNC's set point (type 1; multiplexed
+                                      groups share their lowest node's COB-ID)
     SDO tx / rx   0x580 + n / 0x600 + n
-    Heartbeat     0x700 + n           DLC 1: NMT state
-                                      (0x00 boot-up, 0x04 stopped, 0x05 operational, 0x7F pre-op)
+    Heartbeat     0x700 + n           DLC 1: NMT state (0x00 boot-up, 0x04 stopped, 0x05 op, 0x7F pre-op)
 
-TPDO1 carries the true FIFO fill every cycle (DESIGN.md: map 0x60C4:02 so the streamer sees it), with
-the statusword (ip mode active bit 12, fault bit 3, target reached bit 10). It leaves out the buffer
-status 0x20C4:01: its warnings follow from the fill, its errors come by EMCY and the fault bit, ip mode
-active is the statusword's bit 12; six bytes instead of eight are what fit 24 drives on one 1 Mbit/s bus
-at 10 ms (bus/budget.py). TPDO2 goes every n-th SYNC when the cell needs it (a SYNC counter staggers it).
-Cyclic families send TPDO1 with the statusword alone (2 bytes: they have no FIFO). All values
-little-endian.
+TPDO1 carries the true FIFO fill every cycle (DESIGN.md) and not 0x20C4:01, whose news comes by the fill,
+EMCY and the statusword: six bytes fit 24 drives on 1 Mbit/s at 10 ms (bus/budget.py). Little-endian.
 """
 
 from __future__ import annotations

@@ -1,20 +1,10 @@
 """Pure CANopen codecs: what the bits on the wire mean, and nothing else (no I/O, no clock).
 
-Owns the meaning of the frames the product exchanges with CiA 402 drives in interpolated position
-mode (seed 000 chapter 4, seed 001):
-
-- the interpolation buffer status word 0x20C4:01 (`BufferStatusWord`, seed 000 table 4-35);
-- the CiA 402 power state machine: controlword commands (`Command`), the state encoded in the
-  statusword (`Cia402State`, `state_from_statusword`) and the transition table `TRANSITIONS`
-  (`next_state` raises `InvalidTransition` for a trigger that has no entry);
-- EMCY frames (`EmcyMessage`, `decode_emcy`/`encode_emcy`; the agreed manufacturer bytes carry the
-  buffer status), NMT commands, SYNC and heartbeat frames;
-- the TPDO payloads of the product's PDO layout (via `bus.cob`, one layout);
-- the bit length of a classic 11-bit CAN frame with worst-case bit stuffing (`frame_bits`) for
-  bus-load accounting.
-
-The PVT record 0x20C1 itself is `planner.encoding.record` (the one codec for it). Every decoder either returns
-a value or raises `ProtocolError`; nothing else escapes, nothing wraps silently.
+The buffer status word 0x20C4:01 (seed 000 table 4-35); the CiA 402 state machine (`Command`,
+`Cia402State`, `TRANSITIONS`: `next_state` raises `InvalidTransition` for a trigger without an entry);
+EMCY, NMT, SYNC and heartbeat frames; the TPDO payloads of bus.cob's layout; the worst-case bit length of
+a classic frame (`frame_bits`). The PVT record is `planner.encoding.record`. Every decoder returns a value
+or raises `ProtocolError`; nothing wraps silently.
 """
 
 from __future__ import annotations

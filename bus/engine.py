@@ -1,39 +1,12 @@
 """The cycle engine: SYNC, each cycle's frames and the bus's receive side, in a process of its own.
 
-Theory of operation. A real-time master needs one place that does nothing but the cycle: send SYNC at
-its time, put that cycle's frames on the bus right after it, and hear what the drives answer. In
-CPython a thread cannot be that place (it waits for whichever thread holds the GIL, up to the switch
-interval, and for the garbage collector), so the engine is a process of its own (`python -m bus.engine`,
-started by `EngineBus`; it talks to the master over two SOCK_SEQPACKET socket pairs: a message is one packet)
-that owns the CAN bus and runs one loop on one thread:
-
-    wait (select on the bus and the control pipe) until the next SYNC is due
-    -> read what the bus holds (the answers to the previous SYNC), send SYNC n from the absolute-time
-       schedule t0 + n * period (late, never skipped, when the loop was held up), then every frame
-       queued for cycle n, back to back
-    -> forward every frame heard and every frame sent, with its time on the wire, to the master.
-
-The engine never waits for the master: what the master has not read yet waits in a backlog (sent when the
-socket takes it), so a slow master delays its own view, never a SYNC.
-
-The master (bus/network.py `MasterAdapter`, streamer/runtime/realtime.py) computes each cycle's frames
-ahead of time and queues them for their cycle (`EngineBus.send_at`): the frames that must reach the drives
-between SYNC n and SYNC n+1 (a synchronous controlword, a cyclic drive's set point) wait in the engine's
-ring until SYNC n is out, so the master being late by less than its lead never means a late frame. A batch
-that reaches the engine after its SYNC went out is sent at once (it is still in its cycle); one that comes
-after the next SYNC went out too is late, and reported (`late`), so the master can tell a late synchronous
-frame from a good one. Frames sent with `send` go out at once (SDO, NMT, ...).
-
-At start the engine asks for SCHED_FIFO at `EngineSpec.priority`, locks its memory (mlockall), freezes
-and disables the garbage collector (the loop allocates little; nothing it keeps forms cycles), and says
-once (`EngineBus.realtime`) whether it got real-time priority or runs best-effort, and why.
-
-Time stamps: every frame forwarded carries its time on the wire: the bus's own stamp for what the engine
-received (the kernel's receive stamp on socketcan, the sender's stamp on bus/ipc.py), the time the send
-returned for what the engine sent. They never depend on when the master's threads got to run.
-
-`EngineBus` is the master's side: a python-can `BusABC`, so canopen's `Network` (SDO) and python-can
-listeners work on it unchanged; its frames come from the engine in the order the engine saw them.
+A CPython thread cannot keep a real-time cycle (GIL, garbage collector), so the engine is a process
+(`python -m bus.engine`, started by `EngineBus`) that owns the bus and runs one loop: at SYNC n's time
+(t0 + n * period, late but never skipped) read the bus, send SYNC n and the frames queued for cycle n, and
+forward every frame with its time on the wire to the master, never waiting for it. The master queues
+frames ahead for their cycle (`send_at`); one arriving after its cycle is reported `late`. It runs at
+SCHED_FIFO with locked memory and no garbage collector where permitted (`EngineBus.realtime` says).
+`EngineBus` is a python-can `BusABC`, so canopen and listeners work on it unchanged.
 """
 
 from __future__ import annotations

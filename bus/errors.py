@@ -1,14 +1,9 @@
 """Errors of the bus layer, each with a stable machine-readable code.
 
-`BusError` is what the master-side adapter raises when the wire does not do what the product needs: a
-drive that does not answer (`NO_RESPONSE`), refuses a write (`SDO_ABORT`), reads back a different
-value (`VERIFY`), lacks an object the product needs (`MISSING_OBJECT`), could not be probed (`PROBE`),
-a bus that cannot be opened (`BUS_OPEN`) or refuses a frame (`SEND_FAILED`).
-The message always names the node and the object ("node 3 did not answer reading 0x1000:00").
-
-`ProtocolError` is what the pure codecs raise for a frame that cannot be decoded (wrong length,
-unknown state byte, ...). It is also a `ValueError`, so code written against the plain `ValueError`
-of `bus.cob` keeps working.
+`BusError` (from the master-side adapter): NO_RESPONSE, SDO_ABORT, VERIFY, MISSING_OBJECT, PROBE,
+BUS_OPEN, SEND_FAILED; the message names the node and the object ("node 3 did not answer reading
+0x1000:00"). `ProtocolError` (from the pure codecs) for a frame that cannot be decoded; also a
+`ValueError`.
 """
 
 from __future__ import annotations

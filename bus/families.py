@@ -1,21 +1,11 @@
 """The drive families the product streams to, as `DriveProfile`s (bus/profile.py), one per family.
 
-- `epos-ipm` (EPOS_IPM): maxon EPOS interpolated position mode (seed 000 chapter 4, seed 001): PVT
-  records 0x20C1 into a 64-entry FIFO, buffer status 0x20C4:01, watermarks 0x20C4:02/03, free size
-  0x60C4:02, cubic Hermite interpolation every 1 ms. The PDO layout is bus/cob.py's (the wire contract).
-- `xtrapuls-ip` (XTRAPULS_IP): Infranor XtrapulsPac interpolated position mode (seed 003 3): one set
-  point per SYNC in 0x60C1:01 (+ the velocity 0x60C1:02 in sub-mode PV), RPDO3 type 1, interpolated by
-  the drive over the next period (0x60C0: 0 linear, -1 PV, -2 P3); 16-bit multiplexed set points with
-  0x3350 = 1; no FIFO, no buffer status; positions in user units which the position factor 0x6093 makes
-  the axis' counts; velocities and accelerations in user units/s and /s^2; the motor speed limit 0x6080
-  in rpm; no SYNC counter, no time stamp (its manual's DS-301 is v4.01).
-- `cia402-csp` (CIA402_CSP): cyclic synchronous position (mode 8): the target 0x607A every SYNC, RPDO3
-  type 1, no controlword bit to start it: the drive follows the target while operation is enabled, so
-  the master writes the drive's own position there before enabling it.
-
-The cyclic families send the statusword alone in TPDO1 and the position feedback (0x6064, 0x6062) in
-TPDO2, like EPOS; halt (bit 8) is not available in interpolated position on the XtrapulsPac ("only in PV,
-PT, AS, AT"), so a cyclic axis that cannot follow a stop trajectory quick-stops instead.
+`epos-ipm`: maxon EPOS interpolated position mode (seed 000 ch. 4, seed 001), PVT records into a 64-entry
+FIFO, bus/cob.py's layout. `xtrapuls-ip`: Infranor XtrapulsPac interpolated position (seed 003 3), one set
+point per SYNC in 0x60C1, optionally 16-bit multiplexed, no FIFO. `cia402-csp`: cyclic synchronous
+position, 0x607A every SYNC, followed while operation is enabled (so the master writes the drive's
+position there first). Halt does not exist in the XtrapulsPac's IP mode, so a cyclic axis that cannot
+follow a stop trajectory quick-stops.
 """
 
 from __future__ import annotations

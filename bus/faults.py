@@ -1,26 +1,12 @@
 """Fault injection on the wire: one seeded fault model, two transports (a python-can bus, a virtual link).
 
-Theory of operation. `FaultModel` is a pure, seeded decision maker: it is shown every frame that would
-cross the wire, with its direction and time, and says what arrives instead: nothing (drop), the frame
-twice (duplicate), the frame later (delay), the frame after the next one of the same COB-ID (reorder),
-a damaged frame (corrupt: wrong DLC or flipped bits). Rules select frames by COB-ID class
-(`bus.cob.classify`: "RPDO2", "HEARTBEAT", "SYNC", ...), node and direction, inside an optional time
-window, and fire with a probability per frame or as bursts (`burst` consecutive matching frames,
-started at random with `probability` or after `start_after` matching frames). It also holds the bus-off
-state: while the bus is off the master's `send` is refused and nothing reaches the master. Every
-injection is counted (`stats`) and recorded (`injections`) so a test can tell what the wire did, and
-the seed is in `repr()` and every failure message (`describe()`): a failing run is replayed by seed.
-
-Two transports use the same model:
-- `FaultyBus(inner, model)`: a python-can `BusABC` wrapping any bus (the `virtual` interface in tests).
-  Frames sent through it go "to the drives", frames received through it go "to the master" (swap with
-  `master_side=False` to wrap a drive-side bus). Delayed and held frames are released by a timer thread.
-  Bus-off raises `can.CanOperationError` from `send` (and from the periodic SYNC task, which calls it).
-- `FaultLink(model)`: the `streamer.runtime.virtual.Link` of the virtual-time runtime (`to_drives`, `to_master`,
-  `accept`, `release`), returning `streamer.runtime.virtual`-style late deliveries as `(frame, at)` pairs.
-
-A model decides one frame at a time, so the same seed and the same frame sequence give the same
-injections, whatever transport carries them.
+Theory of operation. `FaultModel` is a pure, seeded decision maker: shown every frame with its direction
+and time, it says what arrives instead (drop, duplicate, delay, reorder, corrupt). Rules select frames by
+COB-ID class (`bus.cob.classify`), node, direction and time window, firing per frame or in bursts; it
+also holds the bus-off state. Every injection is counted and recorded, and the seed is in every failure
+message: a failing run is replayed by seed. Transports: `FaultyBus` (a python-can `BusABC` wrapping any
+bus; a timer thread releases delayed frames; bus-off raises `can.CanOperationError`) and `FaultLink`
+(the virtual-time runtime's link). One frame at a time: same seed and frames, same injections.
 """
 
 from __future__ import annotations

@@ -1,59 +1,11 @@
 """`ipc`: a python-can interface that joins the processes of one user on one machine into one CAN bus.
 
-Why it exists: real-time runs keep the simulated drives out of the master's process (`pvt sim` next to
-`pvt serve`), as hardware is. python-can's `virtual` bus only joins buses inside one process; SocketCAN
-(vcan0) needs a kernel module this machine may not have; `udp_multicast` may leave the host and is
-forbidden; unix datagram sockets queue at most /proc/sys/net/unix/max_dgram_qlen (often 10) datagrams
-per receiver, which one SYNC of a 32-drive cell already exceeds. UDP on 127.0.0.1 has none of these
-limits: every Linux box has it, and a socket's receive buffer holds thousands of frames.
-
-How it works. A channel is a bus name ("pvt0"). Every `IpcBus` opened on it binds its own UDP socket
-to 127.0.0.1:0 and registers in the channel's directory (`$XDG_RUNTIME_DIR/pvt-ipc/<channel>/`, or
-`/dev/shm/pvt-ipc-<uid>/<channel>/` without XDG_RUNTIME_DIR) with an empty file named `<pid>-<port>`.
-`send` stamps the frame (`time.time()`, the frame's time on the wire) and sends one datagram to every
-other registered instance (and to itself with `receive_own_messages`). The sender knows its peers from
-the directory: it re-reads it when the directory's mtime changes (checked at most every
-`RESCAN_CHECK_S`; a listing taken within `RACY_S` of that mtime is re-taken later, as a change in the
-same clock tick leaves the mtime as it was), when a peer refuses a datagram (ECONNREFUSED: nothing is
-bound to its port any more; the socket has IP_RECVERR so the kernel says which port, and that peer's
-stale file is removed), and it removes the files of dead pids it finds there. `shutdown()` removes the
-instance's own file first (and the channel's directory when it was the last entry), then closes its
-socket.
-
-Datagram: a fixed 28-byte header (magic b"PVTC", version, flags extended/remote/error/fd/brs/esi, dlc,
-the sender's random instance id, its sequence number, arbitration id, sender stamp float64) followed by
-the data bytes. On receive `msg.timestamp` is the sender's stamp: a frame's time never depends on when
-the receiving thread got to run, so a starved receiver still sees when each frame was on the wire (SYNC
-intervals, TPDO latencies and bus load are measured from these stamps). `msg.channel` is the channel
-name; `msg.is_rx` is False only for own frames received back.
-
-Guarantees:
-- per-sender order is preserved: one socket per sender and loopback delivery keep a sender's datagrams
-  in order, and a send holds the instance's lock from numbering to the last peer, so the frames of
-  concurrent sending threads are numbered in wire order. A datagram that still arrives after a later one
-  of the same sender (never observed; the kernel would have to reorder loopback traffic) is dropped and
-  counted (`stats.rx_late`) rather than delivered out of order;
-- with `receive_own_messages` an own frame is queued back to this instance before any peer is sent it,
-  so a peer's answer to a frame never arrives before that frame's echo (as on a CAN bus: the master
-  attributes TPDOs to the newest SYNC echo seen, bus/network.py);
-- frames of different senders are ordered by their sender stamps (one machine, one clock): the stamp is
-  the frame's time on the wire, and what the master attributes feedback by. `recv` hands frames over in
-  arrival order, which differs from stamp order only for frames of different senders sent within the
-  time one sender takes from its stamp to its sendto (microseconds; longer if it is preempted there), as
-  on python-can's `virtual` bus, which stamps in `send` too;
-- loss happens only when a socket buffer is full (SO_RCVBUF and SO_SNDBUF are asked for 4 MiB; the
-  kernel caps them at net.core.rmem_max/wmem_max and doubles them: 8 MiB hold about 10,000 frames of
-  ~800 bytes of kernel memory each, the common 208 KiB cap about 500). On loopback the kernel drops a
-  datagram for a full receive buffer at the receiver (the sender's sendto succeeds): the receiver counts
-  the gaps in each sender's sequence (`stats.rx_lost`). A sender counts the datagrams the kernel would not
-  take from it (`stats.tx_dropped`: EAGAIN/ENOBUFS, its own send buffer full), for that peer only. Each
-  logs one warning the first time; `dropped` sums them. Sends never block: a real-time loop sends on
-  this bus.
-
-Like a real CAN bus and unlike `virtual`, a frame nobody listens to is simply gone; there is no
-arbitration, no error frames, no bit timing (`bitrate` is kept for callers' bus-load accounting).
-Importing this module registers the interface name "ipc" with python-can (the package's
-`can.interface` entry point does the same for installed copies).
+Real-time runs keep the simulated drives out of the master's process. python-can's `virtual` bus stays in
+one process, vcan needs a kernel module, `udp_multicast` may leave the host, and unix datagram sockets
+queue too few datagrams per receiver for one SYNC of a big cell; UDP on 127.0.0.1 has none of these
+limits. Each instance registers in a per-channel directory and sends every frame as one datagram to every
+peer, stamped by the sender (the frame's time on the wire); `IpcBus` has the format and the guarantees.
+No arbitration, error frames or bit timing. Importing this module registers "ipc" with python-can.
 """
 
 from __future__ import annotations
@@ -189,7 +141,35 @@ def _pid_alive(pid: int) -> bool:
 
 
 class IpcBus(can.BusABC):
-    """One node on an `ipc` channel. See the module docstring for the theory of operation."""
+    """One node on an `ipc` channel.
+
+    A channel is a bus name ("pvt0"). Every instance binds its own UDP socket to 127.0.0.1:0 and registers
+    in the channel's directory (`$XDG_RUNTIME_DIR/pvt-ipc/<channel>/`, or `/dev/shm/pvt-ipc-<uid>/<channel>/`)
+    as an empty file `<pid>-<port>`. `send` stamps the frame (`time.time()`, its time on the wire) and sends
+    one datagram to every other registered instance (and to itself with `receive_own_messages`). Peers are
+    re-read when the directory's mtime changes (checked at most every `RESCAN_CHECK_S`; a listing taken
+    within `RACY_S` of that mtime is re-taken, as a change in the same clock tick keeps the mtime), when a
+    peer refuses a datagram (ECONNREFUSED, the port named through IP_RECVERR: its stale file is removed),
+    and dead pids' files are removed. `shutdown()` removes its own file (and the empty channel directory)
+    before closing its socket.
+
+    Datagram: a 28-byte header (magic b"PVTC", version, flags, dlc, the sender's random instance id, its
+    sequence number, arbitration id, sender stamp float64) and the data. On receive `msg.timestamp` is the
+    sender's stamp, so a starved receiver still sees when each frame was on the wire; `msg.is_rx` is False
+    only for own frames received back.
+
+    Guarantees:
+    - per-sender order: one socket per sender, loopback delivery, and a send holds the lock from numbering to
+      the last peer; a datagram arriving after a later one of its sender is dropped and counted
+      (`stats.rx_late`) rather than delivered out of order;
+    - with `receive_own_messages` an own frame is queued back before any peer is sent it, so an answer never
+      precedes its frame's echo (the master attributes TPDOs to the newest SYNC echo, bus/network.py);
+    - frames of different senders are ordered by their stamps (one machine, one clock); `recv` order differs
+      from stamp order only within one sender's stamp-to-sendto time, as on python-can's `virtual`;
+    - loss only when a socket buffer is full (4 MiB asked for; the kernel caps at net.core.rmem_max/wmem_max):
+      receivers count sequence gaps (`stats.rx_lost`), senders what the kernel would not take
+      (`stats.tx_dropped`); one warning each, `dropped` sums them. Sends never block.
+    """
 
     def __init__(
         self,

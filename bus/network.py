@@ -1,40 +1,14 @@
 """The master-side bus adapter: python-can + canopen in, `bus.events` out, `Send` actions back out.
 
-What it owns: one python-can bus (opened from `BusConfig`, default the `virtual` interface, unless
-one is given), a canopen `Network` with one `RemoteNode` per axis (for SDO only), the SYNC producer
-(python-can `send_periodic`, which is the kernel's broadcast manager on socketcan), a receive
-listener and a monitor thread.
-
-What it does:
-- `configure_drives()`: first a survey of every drive (which optional objects it lacks, and that its
-  interpolation period 0x60C2 is the 1 ms the product interpolates at), then every drive over SDO from the
-  profile (`DriveProfile.configuration`: mode 7, sub-mode -1, watermarks, limits, PDO mappings and
-  transmission types, heartbeat producer; TPDO2 every n-th SYNC staggered by the SYNC counter when the
-  cell needs it and every drive has 0x1019; the time stamp consumer when the cell sends 0x1013), read back
-  and compared, then NMT start. What a drive lacks of the optional objects is skipped (`absent`); a
-  missing essential object, a drive that does not answer, refuses a write or reads back another value
-  raises `BusError` (MISSING_OBJECT / NO_RESPONSE / SDO_ABORT / VERIFY) naming the node, the object and
-  why the product needs it.
-- Received frames become events, in bus order, on the receive thread: TPDO1 -> BufferStatus,
-  TPDO2 -> PositionFeedback, EMCY -> Emcy (code 0x0000 is CiA 301 "error reset", sent after a fault
-  reset), boot-up -> Bootup, our own SYNC (received back: the bus is opened with
-  `receive_own_messages`) -> Sync(count, t, counter) with count 0, 1, 2, ... from `start_sync` (and the
-  SYNC's counter byte, if it carries one), followed by
-  BusLoad (worst-case frame bits of everything seen since the previous SYNC, all senders, over
-  max(measured interval, SYNC period)). TPDO events carry `sync_count`, the newest SYNC on the wire when
-  they arrived (the core works out which one they answer). With `cell.time_stamp` the adapter sends the
-  high-resolution time stamp (0x1013: the echo's time in us) right after each SYNC echo (seed 001).
-- The monitor thread: heartbeat consumer (HeartbeatLost once per loss, re-armed by the next
-  heartbeat, armed for a node when it is configured) and a check that SYNC echoes arrive.
-- A malformed frame or an exception anywhere in the adapter's callbacks becomes an `AdapterError`
-  event. An exception raised by a subscriber callback is kept and re-raised (`BusError(CALLBACK)`) by
-  the next `send`, `check` or `close`: nothing is swallowed.
-
-Callbacks run on the adapter's threads, one at a time (a lock serialises them); a runtime typically
-puts the events on a queue. A callback must not block on the bus (no `read`/`write`/`configure_*`
-from inside it: the SDO answer would arrive on the very thread the callback is holding). Timestamps
-are the python-can frame timestamps (`time.time()` base on the virtual and socketcan interfaces);
-`now()` gives the same clock.
+Owns one python-can bus, a canopen `Network` (SDO only), the SYNC producer, a receive listener and a
+monitor thread. `configure_drives()` surveys every drive, writes the profile's SDO configuration, reads
+it back and starts NMT; a missing essential object, no answer, an abort or a wrong read-back raises
+`BusError` naming the node, the object and why the product needs it. Received frames become events in bus
+order (TPDO1, TPDO2, EMCY, boot-up, our own SYNC echo -> Sync and BusLoad), TPDOs tagged with the newest
+SYNC on the wire; with `cell.time_stamp` 0x1013 follows each SYNC echo (seed 001). The monitor consumes
+heartbeats and checks SYNC echoes. A malformed frame or adapter exception becomes an `AdapterError` event;
+a subscriber's exception is re-raised (`BusError(CALLBACK)`) by the next `send`, `check` or `close`.
+Callbacks run one at a time and must not block on the bus (an SDO answer would arrive on their thread).
 """
 
 from __future__ import annotations

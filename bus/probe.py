@@ -1,30 +1,11 @@
 """The standstill probe: measure how a drive settles the points the manuals leave open, moving nothing.
 
-Used by `pvt probe` (the commissioning command) and by the runtimes at configuration, for every reading a
-cell does not state in `[axis.probed]`. Pure: a `StandstillProbe` says when the next SYNC goes out and
-which frames to send, and is fed the SYNCs, TPDOs and EMCYs that came back; a driver (the virtual-time
-runtime, or `bus.network.MasterAdapter` in real time) does the I/O and the SDO work between experiments
-(enable, buffer clear, fault reset). The analysis is hypothesis testing: for every combination of the
-readings in question, `predict` says what the drive must report at each SYNC; the readings are the ones
-whose prediction matches everything the drive did. A drive that no reading explains is reported as such,
-with what it did; the master then refuses to guess.
-
-Experiments (all at the drive's current position demand P0, velocity 0; nothing moves but the 1-count
-rounding test, which moves one count and back):
-- latency: SYNCs far apart (4 periods), so every TPDO answers the SYNC before it: the longest answer
-  time, per node (reading 8, TPDO latency).
-- timing: records D1, D2, D3 of zero motion and two end records, interpolation started by the synchronous
-  controlword; two SYNC intervals are stretched by 30 % (a drive locked to SYNC does not notice, a drive
-  with its own clock runs the extra time: reading 7). What the TPDO1 of the enabling SYNC shows (reading
-  1), how many records the FIFO counts while the first segment runs (reading 2) and when interpolation
-  ends (reading 3: T1 + T2 + T3 when the first record ends a segment, T2 + T3 when it is the point at
-  time zero) pin the rest.
-- underflow (pvt probe only; the drive reports an underflow EMCY and is fault-reset afterwards): two
-  records and no end record. A drive that checks at every tick faults when fewer than two records are left
-  while interpolating, one that checks at segment ends when the last segment ends (reading 6).
-- rounding: a one-count move whose demand at a SYNC is 0.7-0.9 of a count past P0:
-  nearest gives P0 + 1, toward zero P0 (reading 4); then back to P0.
-Objects present/absent (reading 5) are surveyed over SDO by the driver (`survey_objects`).
+For `pvt probe` and for the runtimes, for every reading `[axis.probed]` does not state. Pure: a
+`StandstillProbe` says when to send SYNC and what, and is fed the answers; a driver does the I/O and SDO.
+Hypothesis testing: for each combination of readings `predict` says what the drive must report, and the
+ones matching everything are kept; a drive no reading explains is reported, never guessed. Experiments at
+standstill: latency, timing (SYNC intervals stretched 30 %), underflow (`pvt probe` only), rounding (a
+one-count move); objects present are surveyed over SDO.
 """
 
 from __future__ import annotations

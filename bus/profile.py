@@ -1,23 +1,12 @@
 """Drive profiles: what one drive family needs from the master, as data (no I/O).
 
-A `DriveProfile` names a family's object indices, its PDO layout, its EMCY codes, how it takes motion
-(a FIFO of PVT records, or one set point per SYNC) and produces the ordered list of SDO writes that
-configures one axis (`configuration`). The master adapter (`bus.network`) writes that list over SDO and
-reads it back; the simulated drive (`bus.sim.device.DriveDevice.configure`) applies the same list
-directly in virtual time. The streamer asks the profile only for data (`kind`, the COB-IDs, the set
-point slots, `frame_to_event`), so a family is a profile plus, in the simulation, a drive model.
-
-The families themselves are in bus/families.py: `epos-ipm` (maxon's PVT FIFO), `xtrapuls-ip` (Infranor
-XtrapulsPac interpolated position, one set point per SYNC in 0x60C1) and `cia402-csp` (cyclic
-synchronous position, 0x607A every SYNC); each axis of a cell names its own (`AxisConfig.profile`).
-
-Set points of the cyclic families travel in RPDO3 (transmission type 1: applied at the next SYNC). An axis has
-an RPDO3 of its own (COB-ID 0x400 + node: position 32 bits, plus the velocity 32 bits in PV), or shares one
-frame with the other axes of its multiplexed group (XtrapulsPac 0x3350 = 1, seed 003 "Multiplexed data"):
-every member maps 16-bit entries at its own offset of one frame with the COB-ID of the group's lowest node
-(its own RPDO3 COB-ID, so no new identifier is taken), dummy objects 0x0006 / 0x0007 over the other members'
-bytes. `bus.families.setpoint_slots` lays the slots out (it needs the families); the master and the simulated
-drive both configure from it, the streamer packs the frames with it.
+A `DriveProfile` names a family's objects, PDO layout, EMCY codes and how it takes motion (a PVT FIFO,
+or one set point per SYNC), and produces the ordered SDO writes that configure an axis (`configuration`):
+the master writes and reads them back (bus.network), the simulated drive applies them directly. The
+streamer asks only for data (`kind`, COB-IDs, set point slots, `frame_to_event`). Families are
+bus/families.py. Cyclic set points travel in RPDO3 (type 1), own or shared by a multiplexed group
+(XtrapulsPac 0x3350 = 1: 16-bit entries at each member's offset under the lowest node's COB-ID, dummy
+objects over the others); `bus.families.setpoint_slots` lays the slots out for master, sim and streamer.
 """
 
 from __future__ import annotations

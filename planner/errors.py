@@ -1,14 +1,9 @@
 """Errors with a stable machine-readable code.
 
-Every rejection the product makes (a bad job, an infeasible plan, a value that does not fit its wire
-field) is a `PlanningError` carrying:
-
-- `code`: one of the stable strings below; clients switch on it, so it never changes meaning;
-- `path`: the offending field as a dotted/indexed path ("waypoints[7][2]", "axis[2].velocity"),
-  or "" when no single field is to blame;
-- a message that names the axis and the value.
-
-The planner never returns None for failure and never lets a raw ruckig/numpy/numba exception escape.
+Every rejection the product makes is a `PlanningError` with a `code` (stable: clients switch on it), a
+`path` naming the offending field ("waypoints[7][2]", "" when no single field is to blame) and a message
+naming the axis and the value. The planner never returns None for failure and never lets a raw
+ruckig, numpy or numba exception escape.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
-"""Job field readers: turn one field of a decoded job mapping into checked numbers, or say exactly what is wrong.
+"""Job field readers: one field of a decoded job mapping -> checked numbers, or exactly what is wrong.
 
-Theory of operation. A job body arrives as plain data (parsed TOML/JSON, decoded msgpack): lists, numbers,
-strings, with nothing checked. planner/job.py walks it field by field and hands each value here with its
-field path ("waypoints[7][2]"); a reader returns float64 numbers (a scalar, a vector of one number per
-axis, a matrix of rows, a series) or a checked string, and otherwise raises a `PlanningError` with a
-stable code (TYPE, NONFINITE, AXIS_COUNT, TOO_LARGE, LIMITS, SCHEMA) whose `path` names the field and
-whose message names the axis and the value. Booleans are not numbers, integers beyond 2**53 are refused
-(not exact as float64), NaN and infinity are refused. Which fields a kind has, and what their values
-must satisfy beyond their type, stays in planner/job.py.
+Theory of operation. planner/job.py hands each raw value here with its path ("waypoints[7][2]"); a reader
+returns float64 numbers (scalar, per-axis vector, rows, series) or a checked string, or raises a
+`PlanningError` (TYPE, NONFINITE, AXIS_COUNT, TOO_LARGE, LIMITS, SCHEMA) naming the field, the axis and
+the value. Booleans are not numbers; integers beyond 2**53, NaN and infinity are refused. Which fields a
+kind has stays in planner/job.py.
 """
 
 from __future__ import annotations

@@ -1,37 +1,12 @@
 """Motion jobs: the validated, immutable description of one motion (TOML, JSON, or the API's msgpack).
 
-Theory of operation. A job arrives as a mapping (a parsed TOML/JSON file or a decoded msgpack
-payload). `job_from_dict(data, cell)` checks *everything* that can be checked without planning, and
-rejects the first problem with a `PlanningError` whose `code` is stable and whose `path` names the
-field ("waypoints[7][2]"), with a message naming the axis and the value. What it returns is a frozen
-`Job` whose arrays are read-only float64: nothing downstream re-validates shapes or finiteness.
-`job_to_dict` is the inverse (the API stores job bodies and compares them), `load_job` reads a file. The readers
-of one field's value (a number, one per axis, rows, text) are planner/fields.py.
-
-Kinds (docs/formats.md has the full schema):
-
-- path:  `waypoints = [[...], ...]`, one row per waypoint (user units): time-optimal, rest to rest,
-         along the straight segments with corners blended within `path_tolerance` (a number or one
-         per axis, user units, >= 0; default `DEFAULT_PATH_TOLERANCE_SHARE` of each axis' travel), or
-         through a spline with `geometry = "spline"`;
-- move:  `target = [...]`, `mode` (absolute, relative, additive, modulo_short/plus/minus/current: how the
-         target is read, planner/motion/travel.py), optional `start = [...]` (where the axes are assumed to stand
-         when the caller gives no current position): jerk-limited point to point; or `mode = "velocity"`
-         with `velocity = [...]` (signed, user units/s): endless travel, planned open-ended; optional
-         `ramps = {accel_ms, decel_ms}` (seed 002's ramp times for 0 -> 100 % of the axis' velocity
-         limit) instead of `limits.acceleration` / `acceleration_scale`;
-- timed: `times = [...]` (s), `positions = [[...], ...]`: the user's timing, splined rest to rest;
-- pvt:   `times`, `positions`, `velocities` (user units/s): raw PVT rows, validated, passed through.
-- home:  `method` (0x6098, one per axis or one for all), optional `search_speed` / `zero_speed` (0x6099:01/02,
-         user units/s), `acceleration` (0x609A, user units/s^2), `offset` (0x607C: the position the home
-         position gets, user units), `timeout_s`: the drives reference themselves (homing mode 6); nothing is
-         planned (streamer/runtime/homing.py runs it).
-
-Common optional fields: `job_id`, `description`, `tolerance_counts` (whole counts >= 1, default 1; 2 for a
-jerk-limited path, `JERK_TOLERANCE_COUNTS`),
-`velocity_scale` / `acceleration_scale` (a number or one per axis, in (0, 1]), and a `[limits]` table
-with per-axis `velocity`, `acceleration`, `jerk` overrides (user units; never above the drive's 0x607F
-and 0x60C5).
+Theory of operation. `job_from_dict(data, cell)` checks everything that can be checked without planning
+and rejects the first problem with a `PlanningError` whose `code` is stable and whose `path` names the
+field ("waypoints[7][2]"). It returns a frozen `Job` of read-only float64 arrays: nothing downstream
+re-validates. `job_to_dict` is its inverse, `load_job` reads a file; one field's readers are
+planner/fields.py. Kinds: path (waypoints, blended or spline), move (a travel command's target, or
+endless velocity), timed (the user's timing), pvt (raw rows), home (the drives reference themselves).
+docs/formats.md, section 2, is the schema.
 """
 
 from __future__ import annotations

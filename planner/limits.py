@@ -1,13 +1,8 @@
-"""`AxisLimits`: the per-axis limits one motion is planned and checked with (user units, one entry per axis of
-the job, in the job's axis order).
+"""`AxisLimits`: the per-axis limits one motion is planned and checked with (user units, in job axis order).
 
-Who makes them: `planner.job.effective_limits` for a job (the cell's limits, the job's overrides and scales,
-a move's seed 002 ramps), the stop planners (planner/motion/stop.py: the cell's limits, 0x607F as the
-velocity bound a stop from full speed may briefly pass) and the cruise state of an endless move
-(`CruiseState.limits`). Who reads them: the reference builders (velocity, acceleration, jerk; a move's two
-ramps), `axis_scales` (the encoder's bounds, in counts per ms) and `build_trajectory` (what the measured
-trajectory is compared with). A parameter object rather than a dict of seven keys: a misspelt limit is an
-AttributeError at the line that misspells it, and mypy knows each field.
+Made by `planner.job.effective_limits` (cell limits, the job's overrides, scales and ramps), the stop
+planners and a cruise's `CruiseState.limits`; read by the reference builders, `axis_scales` and
+`build_trajectory`. A parameter object, not a dict: a misspelt limit fails where it is misspelt.
 """
 
 from __future__ import annotations

@@ -1,15 +1,9 @@
-"""The stages every planner shares after its reference is built: a job's axes and wire scales, the encoding
-(with its slower replays where quantisation needs them) and the `PvtTrajectory` measured on the drive's
-reconstruction.
+"""The stages every planner shares after its reference: axes and wire scales, encoding, measurement.
 
-Theory of operation. A planner (plan.py for the job kinds, travel.py for velocity moves, stop.py for stops)
-builds a `Reference` of every axis at every ms in counts; `encode_with_retries` turns it into knots the
-drive reproduces (encoder.py), trying the other placements and then slower replays of a planned motion;
+Theory of operation. A planner (plan.py, travel.py, stop.py) builds a `Reference` in counts;
+`encode_with_retries` turns it into knots (other placements, then slower replays of a planned motion);
 `build_trajectory` measures the reconstruction against the plan and the limits. This module imports no
-planner of a job kind, so each of them can import it (plan.py dispatches to travel.py; travel.py and
-stop.py build on these stages): no import cycle.
-
-Errors are PlanningError with stable codes.
+planner of a job kind, so each of them can import it without a cycle. Errors are PlanningError.
 """
 
 from __future__ import annotations

@@ -1,21 +1,13 @@
 """plan_job: a validated `Job` on a cell -> `PvtTrajectory` (plan, encode, verify, measure).
 
-Theory of operation. Each job kind has a reference builder (path.py: toppra along the job's geometry,
-geometry.py's blended segments by default; jerk.py: ruckig along the straight line for moves;
-timed.py: the user's timing) that yields the planned motion of every axis at every ms in counts. The
-encoder (encoder.py) turns it into knots and proves the drive's reconstruction; the statistics in the
-trajectory are measured on that reconstruction. Where the encoder finds the motion too fast for the
-wire's resolution (sub-count moves: one count of quantisation is then a large share of the motion),
-planned kinds (path, move, stop) are played slower and encoded again; user timings (timed, pvt) are
-rejected instead. Start and end positions are snapped to whole counts first: the drive stands on
-whole counts, and the plan must start exactly where the drive is.
-
-A path along straight segments uses its `path_tolerance` minus what the encoding may add
-(`lines_geometry`), so the drive's own motion stays within it; a spline path is checked against the
-software limits and refused at its peak excursion. `info` says how the motion follows its geometry
-(blended corners and exact stops; for moves, whether along the line and how far from it).
-
-Errors are PlanningError with stable codes; no toppra/ruckig/numpy exception escapes.
+Theory of operation. Each job kind has a reference builder (path.py along geometry.py's blended
+segments or a spline; jerk.py's ruckig line for moves; timed.py for the user's timing) giving every
+axis at every ms in counts; the encoder turns it into knots and proves the drive's reconstruction, on
+which the trajectory's statistics are measured. Where quantisation needs more time, planned kinds are
+played slower and encoded again; user timings are rejected instead. Start and end are snapped to whole
+counts first: the drive stands on whole counts. A blended path gets its `path_tolerance` minus what the
+encoding may add (`lines_geometry`). Errors are PlanningError with stable codes; no toppra, ruckig or
+numpy exception escapes.
 """
 
 from __future__ import annotations

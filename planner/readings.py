@@ -1,17 +1,11 @@
 """Readings: how one drive settles the points the maxon manuals leave open, as cell configuration.
 
-The EPOS manuals (seed 000 chapter 4, seed 001) leave room on several points a master depends on. Each
-point is named here with the readings the manuals permit (`OPEN_POINTS`); docs/drive-model.md cites the
-seed sentence each rests on. Two parameter objects use them:
-
-- `SimDriveOptions` (`[sim]` / `[axis.sim]` in the cell TOML): which reading a *simulated* drive
-  implements, plus its clock drift, TPDO latency and the optional objects it lacks. Every key defaults
-  to the reading the simulated drive had before the options existed.
-- `DriveReadings` (`[probed]` / `[axis.probed]`): what the *master* knows of a real drive, written by
-  `pvt probe --write`. A missing key means "unknown": the master measures it at configuration (the
-  standstill probe, bus/probe.py) or is built to work with every reading (docs/streamer.md says which).
-
-Pure data, validated on construction; errors name the key and the value.
+Each open point of seed 000 chapter 4 and seed 001 is named with the readings the manuals permit
+(`OPEN_POINTS`; docs/drive-model.md cites the sentences). `SimDriveOptions` (`[sim]`, `[axis.sim]`) says
+which reading a simulated drive implements, plus its clock drift, TPDO latency and missing objects.
+`DriveReadings` (`[probed]`, `[axis.probed]`, written by `pvt probe --write`) is what the master knows of
+a real drive; a missing key is unknown, measured at configuration (bus/probe.py) or tolerated
+(docs/streamer.md). Pure data, validated on construction; errors name the key and the value.
 """
 
 from __future__ import annotations
@@ -114,7 +108,7 @@ def _float(section: str, key: str, value: Any, low: float, high: float) -> float
 
 @dataclass(frozen=True)
 class SimDriveOptions:
-    """What a simulated drive does on each open point (defaults: the drive before these options)."""
+    """What a simulated drive does on each open point (defaults: the reference drive's readings)."""
 
     tpdo_sampling: str = "after_rpdo"
     fifo_count: str = "until_segment_end"

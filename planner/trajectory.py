@@ -1,20 +1,11 @@
 """`PvtTrajectory`: the encoded motion of all axes on one shared grid, plus what it was planned from.
 
-Theory of operation. This is the planner's product and the streamer's input. It holds the knots
-exactly as they go on the wire (positions int32 counts, velocities int24 rpm, one shared list of
-segment times 1..255 ms), the plan they were encoded from (the `Reference`, every ms, in counts) and
-per-axis statistics measured on the drive's own reconstruction (planner.encoding.hermite). Everything else
-is derived: records per axis (N records then the end record), the plan and the reconstruction at
-any time, the drive's position demand at every ms, and the state at any knot (for the stop planner).
-
-Deviation is measured in whole counts: drive demand (the Hermite rounded as the drive rounds) minus
-planned demand (the plan rounded the same way), at every ms of every axis; the encoder guarantees it
-is within `tolerance_counts`. Against the unrounded plan that is within tolerance + 0.5 counts.
-
-Open-ended trajectories (a velocity move, planner/motion/travel.py) end moving: `open_end` holds the cruise they end
-in (`CruiseState`, below: the trajectory carries it, so it lives here), their last knot has the cruise
-velocity, and `records()` leaves out the end record (time 0 would end the drive's interpolation): the streamer
-sends the records of `travel.extend_velocity(traj)` next, whose knot 0 is exactly this trajectory's last knot.
+Theory of operation. The planner's product and the streamer's input: the knots exactly as they go on
+the wire (int32 counts, int24 rpm, one list of 1..255 ms segment times), the `Reference` they encode,
+and per-axis statistics measured on the drive's reconstruction. Everything else is derived (records,
+the drive's demand at every ms, the state at a knot for the stop planner). Deviation is in whole counts,
+drive demand minus planned demand, within `tolerance_counts`. An open-ended trajectory (velocity move)
+holds its `CruiseState` in `open_end` and has no end record: `travel.extend_velocity` continues it.
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
 """The job report (report.json), the motion plot (motion.png) and the candump cross-check.
 
-Built from three sources that do not trust each other: the plan (`PvtTrajectory`), what the drives
-reported every SYNC (`JobTrace`: FIFO fill, position actual and demand) and the streamer core's own
-accounting (`Coordinator.report()`). The deviation of the drive's demand from the plan is measured
-two ways and the larger is reported:
-- at every ms, from the records that were streamed, through the drive's interpolation formula
-  (`PvtTrajectory.deviation()`; `decode_candump` proves the records on the wire are exactly these);
-- at every SYNC, from the position demand the drive itself reported in TPDO2 (0x6062), against the
-  plan rounded as the drive rounds. Each sample is taken at the SYNC the streamer core attributed it to
-  (`JobReport.feedback`, streamer/core/attribution.py: by what it contains), never by when it arrived: a
-  drive that answers late has its answers reach the master after the next SYNC.
-An axis whose drive takes one set point per SYNC (planner/encoding/cyclic.py) is measured the same two ways: at every
-ms from the set points the core sent (`setpoints`, which `decode_setpoints` reads back from the candump),
-through the drive's own interpolation, and at every SYNC from its reported demand.
+Built from three sources that do not trust each other: the plan, what the drives reported every SYNC
+(`JobTrace`) and the core's own accounting (`Coordinator.report()`). The drive's deviation from the plan
+is measured two ways and the larger reported: at every ms from the records streamed, through the drive's
+interpolation (`decode_candump` proves the wire carried exactly these), and at every SYNC from the demand
+the drive reported, at the SYNC the core attributed it to (streamer/core/attribution.py). A cyclic axis
+is measured the same two ways, from its set points (`decode_setpoints`).
 """
 
 from __future__ import annotations

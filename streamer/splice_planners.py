@@ -1,17 +1,10 @@
-"""The streamer core's stop and change planners, backed by the planner's jerk-limited motions (ruckig).
+"""The streamer core's stop, emergency stop and change planners, backed by the planner's ruckig motions.
 
-The core asks for a stop from the state at the end of what is queued, in drive units (counts, rpm,
-counts/ms^2, see `StopRequest`); `planner.motion.stop.plan_stop_from_wire` plans it from exactly those wire
-values, so knot 0 of the stop is the queued knot to the count and the rpm. Planning runs on whatever
-thread handles the cancel (a stop for 6 axes plans in a few ms; the core has a SYNC period of margin
-per queued record).
-
-The emergency stop (`make_emergency_planner`, fed as `streamer.core.EmergencyStop`) is the same stop at each
-axis' emergency deceleration (`planner.motion.stop.plan_emergency_stop_from_wire`).
-
-A change (a new target while the axes move, `streamer.core.Change`) is asked for the same state and
-planned by `planner.motion.stop.plan_change_from_wire` to the new target; `ChangePlanner` keeps what it planned
-(the trajectory, the axes that overrun their target, the planning time) for the job that asked.
+The core asks for a trajectory from the state at the end of what is queued, in wire units (`StopRequest`);
+`planner.motion.stop.plan_stop_from_wire`, `plan_emergency_stop_from_wire` (`make_emergency_planner`) and
+`plan_change_from_wire` (`ChangePlanner`, which keeps what it planned for the job that asked) plan from
+exactly those values, so knot 0 is the queued knot to the count and the rpm. Planning runs on the thread
+that handles the verb (a few ms for 6 axes, against a SYNC period of margin per queued record).
 """
 
 from __future__ import annotations

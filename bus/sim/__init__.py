@@ -1,15 +1,9 @@
 """Simulated CiA 402 servo drives, one model per drive family on a shared CiA 402 part.
 
-- `device.py`: `DriveDevice`, what every family shares (NMT, heartbeat, SDO, PDOs, EMCY, the CiA 402
-  power state machine, the position loop and motor, the drive's clock, the manuals' open points);
-- `epos.py`: maxon EPOS interpolated position mode, PVT records into a 64-entry FIFO;
-- `xtrapuls.py`: Infranor XtrapulsPac interpolated position mode, one set point per SYNC;
-- `csp.py`: CiA 402 cyclic synchronous position (0x607A every SYNC);
-- `cyclic_drive.py`: what the two families fed one set point per SYNC share (the period's polynomial played
-  over its 1 ms ticks, user units);
-- `od.py` / `eds.py`: each family's object dictionary and its EDS; `motor.py`, `clock.py`: the plant
-  and the drive's own clock; `virtual.py` / `node.py`: the drives of a cell in virtual time, or in real
-  time on a python-can bus through canopen `LocalNode`s.
+`device.py` (what every family shares, in layers), `epos.py` (maxon's PVT FIFO), `xtrapuls.py` (Infranor,
+one set point per SYNC), `csp.py` (CiA 402 cyclic synchronous position), `cyclic_drive.py` (what the
+cyclic two share), `od.py` / `eds.py` (object dictionaries and EDS files), `motor.py`, `clock.py`, and
+`virtual.py` / `node.py` (a cell's drives in virtual time, or in real time through canopen `LocalNode`s).
 """
 
 from __future__ import annotations

@@ -1,28 +1,13 @@
 """CiA 301 on the simulated drive: the entry points, NMT, the object dictionary, SDO and SYNC.
 
-The bottom layer of the simulated drive (bus/sim/device.py stacks the others on it: pdo.py, plant.py,
-recorder_ticks.py, homing_mode.py, cia402.py). It is a pure state machine: every entry point takes the
-time `t` (seconds, any monotonic origin) and returns the frames the drive sends in response; after
-`power_on` each first brings the drive up to `t` (`_start_entry`: held TPDOs, then the ticks).
-
-- `power_on(t)`: boot (boot-up message, NMT pre-operational; a family may stay silent).
-- `on_frame(cob_id, data, t)`: NMT, SYNC, RPDOs (checked against the current mapping), heartbeats of a
-  monitored producer (0x1016), the time stamp. SDO frames are not handled here: the canopen LocalNode
-  adapter (bus/sim/node.py) serves SDO through `sdo_read`/`sdo_write`, and a virtual-time runtime calls
-  those (or `configure`) directly.
-- `on_sync(t)`: the drive clock. A drive locked to SYNC on each SYNC (1) runs the control ticks of the
-  period that just ended (0x1006 / 1 ms ticks: `_run_ticks`, the plant's), (2) applies what synchronous
-  RPDOs delivered since the last SYNC, (3) lets the family act (`_after_sync_rpdos`), (4) sends its
-  synchronous TPDOs in PDO-number order, so they report the state after 1-3 (or before 2, reading
-  `tpdo_sampling`), at once or held for the TPDO latency option (the PDOs: bus/sim/pdo.py).
-- `advance(t)`: timers between frames: heartbeat production, SYNC loss while interpolating, heartbeat
-  consumer timeout (EMCY 0x8130), TPDOs held for their latency, event TPDO timers (inhibit time, event
-  timer), the own clock's ticks (bus/sim/clock.py). `next_deadline()` says when it next has something to do.
-
-An object write goes through `_write`: a handler for objects with an effect (store/restore 0x1010/0x1011,
-heartbeat, SYNC COB-ID; the upper layers add theirs: the PDO mapping in bus/sim/pdo.py), else the value is
-stored; `_refresh_caches` then keeps the values read per tick as attributes. What this layer
-asks of the layers above (`_fault`, `_run_ticks`, ...) is declared in the class body.
+The bottom layer of the simulated drive (bus/sim/device.py lists the others). A pure state machine:
+every entry point takes `t` (seconds) and returns the frames the drive sends, after first bringing the
+drive up to `t`. `power_on`, `on_frame` (NMT, SYNC, RPDOs, monitored heartbeats, time stamp; SDO is served
+through `sdo_read`/`sdo_write` by bus/sim/node.py or a virtual-time runtime), `on_sync` (a SYNC-locked
+drive runs the period's ticks, applies synchronous RPDOs, lets the family act, sends its TPDOs),
+`advance` (heartbeat production and consumption, SYNC loss, held and event TPDOs, the own clock) and
+`next_deadline`. Writes go through `_write`'s handlers, else are stored; `_refresh_caches` keeps the
+per-tick values as attributes.
 """
 
 from __future__ import annotations

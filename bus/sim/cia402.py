@@ -1,15 +1,11 @@
 """CiA 402 on the simulated drive: the power state machine, modes of operation, faults and EMCY.
 
-The top shared layer (bus/sim/device.py's DriveDevice is this plus the family's hooks). The controlword
-(0x6040) drives the state machine of bus.codec.TRANSITIONS (`_apply_controlword`); entering a state with
-the power stage on or off starts or stops the position loop (bus/sim/plant.py), and quick stop active /
-fault reaction active ramp down (`_quick_stop_deceleration`, option code 0x605A) before they move on.
-In operation enabled, the controlword's mode bits go to the homing mode or to the family's interpolation
-(`_mode_control`). An error (`_fault`) latches the family's status bit, records a `FaultRecord`, sets
-0x603F / 0x1001, sends an EMCY (CiA 301 7.2.7: code, error register, the family's 5 manufacturer bytes)
-and starts the fault reaction; fault reset (controlword bit 7 rising) clears it and sends EMCY 0x0000.
-The statusword (0x6041) is composed from the state, the power stage, ip active, target reached and the
-homing bits.
+The top shared layer (bus/sim/device.py). The controlword drives bus.codec.TRANSITIONS
+(`_apply_controlword`); power stage on or off starts or stops the position loop, and quick stop and fault
+reaction ramp down first (0x605A). In operation enabled the mode bits go to homing or the family's
+interpolation (`_mode_control`). `_fault` latches the status, records a `FaultRecord`, sets 0x603F /
+0x1001, sends an EMCY (CiA 301 7.2.7) and starts the fault reaction; fault reset (bit 7 rising) clears it
+and sends EMCY 0x0000. The statusword is composed from the state and the mode's bits.
 """
 
 from __future__ import annotations

@@ -1,21 +1,11 @@
 """A simulated drive's own motion clock: a 1 kHz tick grid with a drift, corrected by 0x1013 time stamps.
 
-The manuals leave open whose clock times the interpolation (docs/drive-model.md, "Variants"). A drive
-locked to SYNC needs nothing here (each SYNC is one period of ticks, `DriveDevice._sync`). A drive with
-its own clock ticks at 1 kHz of its own oscillator, which runs `drift_ppm` fast (or slow) against true
-time; the grid is re-anchored when interpolation starts, so the first tick comes 1 ms of drive time after
-the enabling SYNC ("the drive's own 1 kHz clock, started at the enabling SYNC").
-
-Seed 001 (3.6.1-3.6.2, "Synchronization"): the master latches the time it sent each SYNC and sends it
-afterwards as the high-resolution time stamp 0x1013 (us); the drive latches its own motion clock when
-the SYNC arrives; "after a write access to this object the EPOS2 calculates the difference between the
-received timestamp and the internal latched timestamp of the SYNC object. This time difference is used
-as correction for the IPM time calculations." The seed does not say how; the choice here: the drive
-estimates master time as a line through its (latched local time, master stamp) pairs, the slope from
-the oldest and newest of the last `PAIRS` pairs (about 1 s at 10 ms SYNC: 1 us stamps then give the
-rate to ~1 ppm), anchored at the newest pair, and times the interpolation by that estimate.
-
-Pure: times in, tick counts out. `t` is true time in seconds (the simulation's clock).
+Whose clock times the interpolation is an open point (docs/drive-model.md, "Variants"). A SYNC-locked drive
+needs nothing here. An own-clock drive ticks at 1 kHz of an oscillator `drift_ppm` off true time, the grid
+re-anchored at the enabling SYNC. Seed 001 (3.6.1-3.6.2) corrects it with the 0x1013 time stamp of each
+SYNC without saying how; here master time is estimated as a line through the (latched local time, master
+stamp) pairs, slope from the oldest and newest of the last `PAIRS` (about 1 s at 10 ms SYNC: ~1 ppm),
+anchored at the newest. Pure: true time `t` in, tick counts out.
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
-"""The cyclic synchronous position family (CiA 402 mode 8: the target 0x607A every SYNC; seed 000 2.6 and
-6.7 for EPOS3 over EtherCAT), on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part
-(bus/sim/cyclic_drive.py).
+"""The cyclic synchronous position family (CiA 402 mode 8, seed 000 2.6 and 6.7), on the shared drive
+(bus/sim/device.py) and the cyclic part (bus/sim/cyclic_drive.py).
 
-Theory of operation. In operation enabled with mode 8 the drive follows the command value (statusword
-bit 12; no controlword bit starts it). At each SYNC k (after the period's ticks and the synchronous
-RPDOs) it latches x_k = 0x607A, checks it against the actual position ("If the difference between
-actual and new position is greater than 'Max Following Error', an emergency procedure will be
-launched": |x_k - 0x6064| > 0x6065 -> EMCY 0x8611 and the fault reaction) and moves the demand from
-x_{k-1} to x_k along a straight line over the coming period's 1 ms ticks, so x_k is the demand at SYNC
-k+1. CiA 402 leaves the interpolation between set points to the manufacturer; seed 000 says only "the
-axis moves to the new absolute position": linear is the sim's reading. A SYNC without a new target
-holds the last one (no error: CiA 402 defines none). Following begins at the current demand, so
-enabling moves nothing when 0x607A holds the drive's position (the master writes it first). SYNC loss
-while following is EMCY 0x8780 (device.py's SYNC monitoring). Units: counts, counts/s, counts/s^2.
+In operation enabled with mode 8 the drive follows 0x607A: at each SYNC k it latches x_k, faults if it is
+beyond 0x6065 of the actual position (EMCY 0x8611), and moves the demand linearly from x_{k-1} to x_k over
+the coming period (CiA 402 leaves the interpolation open: linear is the sim's reading), so x_k is the
+demand at SYNC k+1. No new target holds the last; following starts at the current demand, so enabling
+with 0x607A at the drive's position moves nothing. SYNC loss while following is EMCY 0x8780.
 """
 
 from __future__ import annotations

@@ -1,25 +1,12 @@
-"""What the simulated drives fed one set point per SYNC share (bus/sim/xtrapuls.py: Infranor XtrapulsPac
-interpolated position; bus/sim/csp.py: CiA 402 cyclic synchronous position), on the shared CiA 402 drive
-(bus/sim/device.py).
+"""What the simulated drives fed one set point per SYNC share (bus/sim/xtrapuls.py, bus/sim/csp.py), on the
+shared CiA 402 drive (bus/sim/device.py).
 
-Theory of operation. Such a drive has no FIFO: at each SYNC k the family latches the set point x_k that
-the synchronous RPDO delivered since SYNC k-1 and builds the polynomial p(s), s in [0, 1], its
-interpolator runs over the coming period (from x_{k-1} at s = 0 to x_k at s = 1, in the family's user
-units). `_play` turns p into the demand of each 1 ms tick of that period: the drive clock is locked to
-SYNC, so the ticks of the period after SYNC k run at SYNC k+1 (device.py, "the drive clock"), and the
-tick j after SYNC k lies (1000 j - r) us after it, r being how long before SYNC k the last tick was (0
-when 0x1006 is a whole number of ms), so s_j = (1000 j - r) / 0x1006. For whole-ms periods the last
-tick is s = 1: x_k is the demand exactly at SYNC k+1, one period after the SYNC that latched it.
-
-Units: positions in user units, `scale` counts of the motor per user unit (1 unless a family's position
-factor says otherwise: the master makes user units the axis' counts); the demand the position loop
-follows is rounded to whole counts (the rounding reading, planner/readings.py). 0x6062 / 0x6064 /
-0x60F4 read in user units, 0x606C in user units/s, accelerations (0x6083-0x6085 and the family's stop
-ramps) are user units/s^2.
-
-What it owns: the current period's polynomial and tick positions (`interpolator_output`, the demand
-velocity at which a stop ramp starts), the unit scaling. What the family adds: when a set point is
-latched, which polynomial, when interpolation is active, its own checks and objects.
+Theory of operation. No FIFO: at each SYNC k the family latches the set point x_k and builds the
+polynomial p(s), s in [0, 1], from x_{k-1} to x_k; `_play` turns it into the demands of the coming
+period's 1 ms ticks (tick j at s_j = (1000 j - r) / 0x1006, r the offset of the last tick before SYNC
+k), so x_k is the demand at SYNC k+1. Positions in user units (`scale` counts per unit), the demand
+rounded to whole counts (planner/readings.py). The family adds when a set point is latched, which
+polynomial, when interpolation is active, and its own checks and objects.
 """
 
 from __future__ import annotations

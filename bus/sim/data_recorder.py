@@ -1,37 +1,10 @@
 """The simulated drive's own data recorder (seed 004; seed 000 chapter 8), as a pure state machine.
 
-What it owns: the recorder's state (stopped, waiting for a trigger, running continuously, triggered),
-the configuration latched when it starts, its 512-word memory split into one ring buffer per variable,
-the write position, the trigger's place in the rings, and the recorder's clock: drive time in units of
-the current regulator's cycle, 0.1 ms (`UNIT_S`), since it started.
-
-What it is fed, by the EPOS drive (bus/sim/epos.py: the recorder is maxon's), which owns the object
-dictionary, and by the shared drive's ticks (bus/sim/recorder_ticks.py):
-- `start(config)` / `stop()` / `force_trigger()`: writes of 0x2010 (control); the drive builds the
-  `RecorderConfig` from 0x2011-0x2016 and its object table's types (`RecorderConfig.build`);
-- `trigger(kind)`: something happened in the drive that a trigger bit of 0x2011 may select (movement
-  start, error, digital input edge, end of profile);
-- `advance(units, read)`: drive time passes; the caller never passes the next sample instant
-  (`units_to_sample()`) and calls at that instant with the drive's state as it is then, so `read(index,
-  sub)` returns the variable's value at the sample instant. The drive runs its plant at least as finely
-  as the sampling period (sub-steps of `substep_units()` when the period is not a whole number of 1 ms
-  ticks).
-
-What it answers: 0x2017 status (bit 0 running, bit 1 triggered), 0x2018 maximum samples per variable,
-0x2019 the offset of the recorded vector's first sample in the rings, 0x201B the memory (`buffer()`),
-laid out by seed 004's StartRingBuffer formulas: ring r starts at MaxNbOfSamples * (words of the
-variables before r), a sample of a 32-bit variable takes two words (low word first), an 8-bit or 16-bit
-one takes one (sign-extended when the type is signed), words are little-endian.
-
-Behaviour (seed 004 "Data Recorder Overview" and "Functionalities"; the choices are in
-docs/drive-model.md, "Data recorder"):
-- single trigger mode (any trigger bit set in 0x2011): samples go round the rings until a trigger;
-  the trigger's sample is the first sample taken at or after the trigger instant; recording goes on
-  until the rings hold `preceding` samples before it and the rest from it on, then the recorder stops
-  by itself, its status still saying "triggered";
-- continuous mode (0x2011 = 0): samples go round the rings until the recorder is stopped; 0x2019 is
-  then the oldest sample. A forced trigger (0x2010 bit 1) works in both modes.
-- the first sample is taken when the recorder starts, then one every sampling period of drive time.
+Owns the recorder's state, the configuration latched at start, its 512-word memory as one ring per
+variable and its 0.1 ms clock (`UNIT_S`). Fed by the EPOS drive (0x2010 start/stop/force, `trigger(kind)`)
+and the tick loop (`advance`, called at each sample instant); answers 0x2017-0x2019 and 0x201B laid out by
+seed 004's StartRingBuffer formulas. Single trigger mode keeps `preceding` samples before the trigger and
+stops itself; continuous mode records until stopped. docs/drive-model.md ("Data recorder") has the choices.
 """
 
 from __future__ import annotations

@@ -1,31 +1,10 @@
 """A simulated CiA 402 servo drive as a pure state machine: frames and time in, frames out.
 
-This is the part every drive family shares; a family (bus/sim/epos.py: maxon's IPM FIFO;
-bus/sim/xtrapuls.py: one set point per SYNC; bus/sim/csp.py: cyclic synchronous position) adds its
-mode, its objects and what it does at each SYNC through the hooks each layer declares. No sleeps, no
-wall clock, no canopen, no threads: every entry point takes the time `t` (seconds, any monotonic origin)
-and returns the frames the drive sends in response.
-
-The drive is built in layers, each a class on the one below, each in a module named for what it does:
-
-- bus/sim/cia301.py, `Cia301Node`: the entry points (`power_on`, `on_frame`, `on_sync`, `advance`,
-  `next_deadline`), NMT and heartbeats, the object dictionary and SDO (`sdo_read`, `sdo_write`,
-  `configure`, store/restore), SYNC, the own clock.
-- bus/sim/pdo.py, `PdoLayer`: PDO mapping and traffic, TPDO timing (inhibit, event timer) and latency.
-- bus/sim/plant.py, `PlantLoop`: the control ticks, position controller and motor (`_integrate`,
-  `_coast`), and the demand sources (interpolation segments, stop ramps).
-- bus/sim/recorder_ticks.py, `RecordedTicks`: the data recorder's side of the tick loop (where a chunk
-  ends, the sampling, the plant's sub-steps).
-- bus/sim/homing_mode.py, `HomingMode`: homing mode (6).
-- bus/sim/cia402.py, `Cia402Drive`: the power state machine, modes of operation, faults and EMCY.
-- bus/sim/device.py (here), `DriveDevice`: what a family sets, the drive's state (`__init__`), the object
-  write handlers, reset node.
-
-What a lower layer needs from a higher one (`_fault`, `_run_ticks`, ...) it declares in its class body;
-the family hooks (`_after_sync_rpdos`, `_mode_control`, `_segment_limit_events`, ...) are methods with
-the CiA defaults in the layer that calls them. What it owns besides: the object dictionary (`objects`:
-the family's table, bus/sim/od.py), the readings of the manuals' open points (planner/readings.py,
-`options`), the drive's clock (locked to SYNC, or its own: bus/sim/clock.py).
+The part every family shares; a family (epos.py, xtrapuls.py, csp.py) adds its mode, objects and SYNC
+behaviour through hooks. No sleeps, wall clock, canopen or threads: every entry point takes `t` and
+returns the frames sent. Layers, each a class on the one below: cia301.py, pdo.py, plant.py,
+recorder_ticks.py, homing_mode.py, cia402.py, and here `DriveDevice` (the family's settings, the state,
+write handlers, reset node). A lower layer declares what it needs from a higher one in its class body.
 """
 
 from __future__ import annotations

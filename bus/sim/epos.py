@@ -1,21 +1,13 @@
 """The EPOS family: maxon's interpolated position mode with its 64-entry PVT FIFO (seed 000 chapter 4,
 seed 001), on the shared CiA 402 drive (bus/sim/device.py).
 
-What this family adds: the FIFO of PVT records 0x20C1 (fed by an asynchronous RPDO or SDO), the buffer
-status 0x20C4:01 (warnings against the watermarks 0x20C4:02/03, latched errors, buffer enabled, ip mode
-active), 0x60C4 (free size, buffer position, buffer clear), activation by the controlword's bit 4 rising
-edge (>= 2 records, else the underflow error), one cubic Hermite segment per record (planner.encoding.hermite:
-the very formula the encoder verifies with), the end record (time 0), underflow and overflow errors,
-the ip velocity/acceleration warnings and errors against 0x6081/0x607F and 0x6083/0x60C5, and halt
-(bit 8) with the profile deceleration. The readings of the manuals' open points (`fifo_count`,
-`first_record`, `underflow_check`; planner/readings.py) change how records are counted and consumed.
-
-And maxon's data recorder (seed 004: 0x2010-0x2019, 0x201B; the state machine is bus/sim/data_recorder.py):
-its control 0x2010 (start builds the configuration from 0x2011-0x2016 and this table's types), status
-0x2017, max samples 0x2018, offset 0x2019, the memory 0x201B (`read_domain`), and the triggers this
-family raises (movement start at activation, end of profile at a time-0 record, a digital input edge:
-`set_digital_inputs`); the error and halt-end triggers and the sampling ticks are the shared drive's
-(cia402.py, plant.py, recorder_ticks.py). docs/drive-model.md has the behaviours with their seed references.
+Adds the FIFO of PVT records 0x20C1, the buffer status 0x20C4:01 (watermark warnings, latched errors),
+0x60C4, activation on controlword bit 4 (>= 2 records), one Hermite segment per record
+(planner.encoding.hermite, the encoder's formula), the end record, underflow and overflow, the ip
+velocity and acceleration limits, halt; the open-point readings (`fifo_count`, `first_record`,
+`underflow_check`) change how records are counted. And maxon's data recorder's objects (0x2010-0x201B;
+the state machine is bus/sim/data_recorder.py) with the triggers this family raises. docs/drive-model.md
+has the behaviours and their seed references.
 """
 
 from __future__ import annotations

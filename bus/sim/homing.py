@@ -1,30 +1,11 @@
 """Homing mode (CiA 402 mode 6) of the simulated drives: the inputs, the methods, the search trajectories.
 
-Theory of operation. The drive references its position counter against a switch (seed 003 "Homing Mode":
-"This position can be detected by using several signals such as positive or negative limit switch, home
-switch, index pulse or mechanical limit ... The drive generates the trajectory according to the homing
-method"). This module is the pure part the shared drive's homing mode (bus/sim/homing_mode.py) uses:
-
-- `Inputs`: the home switch and the limit switches as digital inputs at positions of the machine (counts of
-  the drive's position at power-on, which homing does not move): the home switch active on [low, high]
-  (a step switch when one end is infinite, a cam when both are finite), the negative limit switch at and
-  below its position, the positive one at and above (the sim options `home_switch`, `limit_switches`,
-  planner/readings.py). `word(x)` is the inputs' functionality word (seed 000 table 3-11: bit 0 negative
-  limit, 1 positive limit, 2 home switch; the same bits as CiA 402's 0x60FD).
-- `phases(method, inputs, x)`: the method as searches, each "move in this direction at the search (0x6099:01)
-  or zero (0x6099:02) speed until this input is in this state", chosen from the inputs' state where the drive
-  starts, as CiA 402's methods do ("the initial direction of the movement is positive, except if the home
-  switch is active at the motion start", seed 003 on method 8). The last search's edge is the home position.
-  The cam methods 23 and 27 reverse on the limit switch in their initial direction ("Reverse direction on
-  Positive Limit Switch"): `Phase.on_limit` is what follows then.
-- `search(...)`: one search's demand, tick by tick (1 ms), from the current demand and velocity, ramping to
-  the search velocity at 0x609A, until the input reaches its state (the switch is read at the position
-  demand: the following error at homing speed is a few counts), a limit switch not searched for is met (the
-  cam methods reverse there, the others fail), or the search travelled farther than the machine's travel
-  (homing error: "switch never found").
-- `move_to(...)`: the way back to the home position once found (0x309D "End on Home Position" = 1, seed
-  003's default: "it makes a move towards the home position when the homing is over"), decelerating from
-  the search at 0x609A and approaching at the zero speed.
+The pure part of bus/sim/homing_mode.py (seed 003 "Homing Mode"). `Inputs`: home and limit switches at
+machine positions, `word(x)` the functionality word (CiA 402's 0x60FD bits). `phases(method, inputs, x)`:
+the method as searches ("move this way at this speed until this input is in this state"), chosen from the
+inputs at the start as CiA 402's methods do; cam methods 23 and 27 reverse on a limit switch. `search`:
+one search's demand per tick, ramping at 0x609A, failing beyond the machine's travel. `move_to`: back to
+the home position (0x309D = 1).
 """
 
 from __future__ import annotations

@@ -1,14 +1,10 @@
 """Homing mode (6) on the simulated drive: searches as demand sources, then the home position.
 
-The layer on the recorder ticks (bus/sim/recorder_ticks.py); bus/sim/homing.py has the pure part (the
-switch inputs, each method's phases, the search and stop profiles). Controlword bit 4 rising in
-operation enabled starts the family's method 0x6098 (`homing_methods`; another one is homing error,
-bit 13) with 0x6099 / 0x609A in the family's units; each search is a demand source (`Source.HOMING`)
-that ends at the tick its input changes; at the end the drive returns to the edge and its position
-becomes 0x607C (`_home_shift`: the counts between the machine's frame, in which the switches stand,
-and the position it reports). Statusword bits 12 (attained, while bit 4 is set) / 13 (error) / 10 per
-seed 003's table (bus/sim/cia402.py). `referenced` is true from a successful homing until a reset or
-power-on. A falling bit 4 or halt interrupts (ramp down at 0x609A); so does leaving operation enabled.
+The layer on bus/sim/recorder_ticks.py; bus/sim/homing.py is the pure part. Controlword bit 4 rising in
+operation enabled starts method 0x6098 (unknown: homing error, bit 13) with 0x6099 / 0x609A; each search
+is a demand source ending at the tick its input changes; at the end the drive returns to the edge, which
+becomes 0x607C (`_home_shift`). Statusword bits 12 / 13 / 10 per seed 003. `referenced` holds until a
+reset or power-on. Bit 4 falling, halt or leaving operation enabled interrupt.
 """
 
 from __future__ import annotations

@@ -1,20 +1,11 @@
 """Motor, load and position-controller parameters of the simulated drive (seed 000 chapter 7).
 
-The drive's regulation (seed 000 7.2/7.3): a PID position controller sampled at Ts = 1 ms whose
-output is the current reference of a PI current loop sampled at 100 us. The current loop is an order
-of magnitude faster than the position loop (Ex. 1: 1.70 Ohm / 0.319 mH gives a ~1 kHz bandwidth), so
-the model takes the current as equal to its reference, limited to the output current limit. The
-mechanics are an inertia J with viscous friction r*w and Coulomb friction r0*sign(w), driven by the
-torque k_M * i. Feedforward is not applied: seed 000 7.3.4 says it has no effect in IPM.
-
-Position controller (seed 000 7.3.3): C(s) = Kp + Ki/s + Kd*s / (1 + Kd/(16*Kp) * s), gains in SI
-units (A/rad, A/(s*rad), A*s/rad) converted from the EPOS values with the seed's factors
-(10 mA/rad, 78 mA/(s*rad), 80 uA*s/rad).
-
-`LoopConstants` turns the parameters into the per-tick arithmetic the model runs, in the drive's own
-units (position in counts, velocity in counts/ms, current in A): the plant over one 1 ms tick with the
-current held constant (exact zero-order-hold discretisation of J*dw/dt = k_M*i - r*w), the PI(D)
-with a backward-Euler derivative filter. Pure arithmetic, no I/O.
+Regulation (seed 000 7.2/7.3): a PID position controller at 1 ms feeding a PI current loop an order of
+magnitude faster, so the current is taken equal to its reference, limited. Mechanics: inertia J, viscous
+r*w and Coulomb r0*sign(w) friction, torque k_M * i; no feedforward (7.3.4: none in IPM). Controller
+(7.3.3): C(s) = Kp + Ki/s + Kd*s / (1 + Kd/(16*Kp) * s), EPOS gains converted with the seed's factors.
+`LoopConstants` is the per-tick arithmetic in counts, counts/ms and A: exact zero-order-hold plant
+over a tick, backward-Euler derivative filter.
 """
 
 from __future__ import annotations

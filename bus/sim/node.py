@@ -1,30 +1,11 @@
 """Run simulated drives (bus/sim/device.py and a family model each) in real time on any python-can bus,
 through canopen `LocalNode`s.
 
-What it owns: one python-can bus (unless given one), one canopen `Network`, one `LocalNode` per
-simulated drive (object dictionary from configs/drives/epos-ipm.eds), a timer thread, and the lock
-that serialises everything that touches the models. What it does:
-
-- SDO server: canopen's `SdoServer` of each LocalNode, whose reads and writes are redirected to the
-  model (`add_read_callback`/`add_write_callback`), so the model is the only store of values; a
-  model `SdoAbort` becomes canopen's `SdoAbortedError` with the same code. In NMT stopped the SDO
-  server does not answer (CiA 301). Domains (0x201B, the data recorder's memory) are read from the
-  model as bytes. canopen's server has no block upload (it answers a block request as a normal upload,
-  which a block client refuses), so block upload requests go to `SdoBlockUploadServer` here (CiA 301
-  7.2.4.3.13-18, with CRC); `block_upload=False` leaves them to canopen, as a drive without it.
-- RPDOs: through `rpdo[n].add_callback` (canopen delivers received RPDOs only there). canopen only
-  applies a PDO mapping after `rpdo.read()`/`tpdo.read()`, so the adapter re-reads the maps whenever
-  the model's PDO configuration changed (master remapping over SDO, NMT resets).
-- NMT, SYNC, the time stamp and heartbeats: a raw python-can listener hands them to the models; canopen's own
-  `NmtSlave` is detached (it would run its own heartbeat with its own idea of the state).
-- TPDOs, EMCYs, heartbeats, boot-up: whatever frames the model returns are sent as they are (a
-  LocalNode sends no TPDO by itself).
-- Timers: a thread calls `model.advance(now)` at each model's `next_deadline()` (heartbeat producer,
-  SYNC loss, heartbeat consumer); a SYNC or heartbeat that does not come at all is noticed RECEIVE_SLACK_S
-  late (this process' own receive delay is no loss), one that comes late by its bus time stamp at once.
-
-Time is `time.time()` (the clock python-can stamps virtual-bus frames with). An exception in any
-callback is recorded in `errors` (and re-raised by `check()`/`stop()`), never swallowed.
+SDO is redirected to the model, the only store of values (block upload served here,
+`SdoBlockUploadServer`, as canopen's server lacks it); RPDOs come through canopen's callbacks, NMT, SYNC,
+time stamps and heartbeats through a raw listener (canopen's `NmtSlave` detached); the model's frames are
+sent as they are. A timer thread calls `model.advance` at each `next_deadline()`. One lock serialises all
+model access; time is `time.time()`; callback exceptions are kept and re-raised by `check()`/`stop()`.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """The object dictionaries of the simulated drive families: one table per family, three uses.
 
-Each table (`EPOS_TABLE`: maxon IPM, seed 000 4.3.6; `XTRAPULS_TABLE`: Infranor XtrapulsPac IP, seed
-003; `CSP_TABLE`: CiA 402 cyclic synchronous position) is the single definition of every object that
-family's simulated drive has: its type, access, default and range (the CiA 301 communication profile and
-the CiA 402 objects are shared; values the manuals leave open are chosen and listed in
-docs/drive-model.md). It is used
-
-- by `bus.sim.eds` to render configs/drives/<family>.eds (a test checks the committed files match),
-  which canopen loads as a `LocalNode` (the simulated drive) or a `RemoteNode` (the master);
-- by the pure drive (its CiA 301 layer, bus/sim/cia301.py) as its object store, through which every SDO read/write and
-  every PDO-mapped write goes, with the same access and range checks a drive makes;
-- by the PDO mapping validation (size, mappability, direction).
-
-No I/O; `SdoAbort` carries the CiA 301 abort code the SDO server answers with.
+`EPOS_TABLE` (seed 000 4.3.6), `XTRAPULS_TABLE` (seed 003), `CSP_TABLE`: every object's type, access,
+default and range (open values chosen in docs/drive-model.md). Used by `bus.sim.eds` to render
+configs/drives/<family>.eds (tested equal to the committed files), by the drive's CiA 301 layer as its
+object store with the drive's access and range checks, and by PDO mapping validation. No I/O; `SdoAbort`
+carries the CiA 301 abort code.
 """
 
 from __future__ import annotations

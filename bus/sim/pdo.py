@@ -1,20 +1,11 @@
 """PDOs on the simulated drive (CiA 301 7.5.2.35-38): mapping, reception, transmission and its timing.
 
-The layer on the CiA 301 node (bus/sim/cia301.py), which calls it for the PDO traffic of each frame,
-SYNC and timer. Mapping: a write of 0x14xx/0x16xx (RPDO) or 0x18xx/0x1Axx (TPDO) goes through the
-writers below, with the drive's rules (the COB-ID of a valid PDO fixed, a mapping edited only while its
-PDO is invalid and its count is 0, mappable objects of the right direction, at most 64 bits, entries
-shorter than their object where the family allows: `_may_map_short`); `_rebuild_pdos` turns the mapping
-into packers and getters once, so that the per-SYNC path only packs.
-
-- RPDO: checked against its mapped length (EMCY 0x8210 / 0x8220, or its first bytes when the family
-  `accepts_longer_rpdo`); a synchronous one (type <= 240) waits for the next SYNC, applied in PDO order;
-  a record RPDO (`_is_record_pdo`) goes to the family's FIFO as it is (`_on_record`).
-- Synchronous TPDO (type n: every n-th SYNC; 0: when changed; with a SYNC counter, from its start
-  value): sampled at the SYNC, sent at once or held for the latency option (`tpdo_latency_ms` plus
-  `tpdo_jitter_ms`: one draw per SYNC, never overtaking the previous SYNC's answers).
-- Event TPDO (254/255): sent when its payload changed, no sooner than the inhibit time after the
-  previous one (0x18xx:03), and at least every event timer period (0x18xx:05).
+The layer on bus/sim/cia301.py. Mapping writes follow the drive's rules (COB-ID fixed while valid, edits
+only while invalid with count 0, mappable objects, at most 64 bits, short entries where the family
+allows); `_rebuild_pdos` compiles the mapping once so the per-SYNC path only packs. RPDOs are
+length-checked (EMCY 0x8210/0x8220); synchronous ones wait for the SYNC, record RPDOs go to the FIFO.
+Synchronous TPDOs are sampled at the SYNC and sent at once or after the latency option (never overtaking);
+event TPDOs (254/255) respect the inhibit time and the event timer.
 """
 
 from __future__ import annotations

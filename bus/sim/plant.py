@@ -1,24 +1,12 @@
 """The plant of the simulated drive: the position loop and motor, tick by tick, and the demand it follows.
 
-The layer on the PDOs (bus/sim/pdo.py). `_run_ticks(n, t)` runs n control ticks of 1 ms (drive time):
-per tick the position controller (PID with the drive's filtered derivative, current limited) drives the
-motor model (bus/sim/motor.py: friction, inertia; the discretised constants `LoopConstants`). With the
-power stage off the motor coasts down on friction and the demand follows the actual position.
-
-The demand comes from a source: a list of per-tick demands being played (`Source`): an interpolation
-segment (a cubic over n ticks, planner.encoding.hermite, rounded as the drive rounds), a stop ramp (halt, quick
-stop, fault reaction: from the current demand velocity at a deceleration), or a homing search
-(bus/sim/homing_mode.py). Without a source the demand holds. Work that need not be per tick is done per
-source: the demand list is computed once, the family's limit crossings are found once per segment and
-scheduled as events (`_segment_limit_events`), and the loop runs from event to event.
-
-`_integrate` is the one integration step and the hot spot (it runs on locals): a step of the plant per
-item, the position controller on the items that are demands. Every item is a tick of 1 ms, except while
-the data recorder samples finer than that: a tick is then its demand and a None per further sub-step
-(`SubSteps`: the plant's constants over the sub-step, the sampling after each). `_coast` is the same step
-with the power stage off. A following error beyond 0x6065 stops `_integrate` after the tick
-(`_fe_tripped`) and faults (EMCY 0x8611). While the data recorder runs, the loop stops at its sample
-instants (the hooks of bus/sim/recorder_ticks.py).
+The layer on bus/sim/pdo.py. `_run_ticks(n, t)` runs n 1 ms control ticks: the PID position controller
+drives the motor model (bus/sim/motor.py); with the power stage off the motor coasts and the demand
+follows. The demand comes from a `Source` (an interpolation segment through planner.encoding.hermite, a
+stop ramp, a homing search), else holds; per-source work (the demand list, the family's limit crossings:
+`_segment_limit_events`) is done once, and the loop runs from event to event. `_integrate` is the hot
+spot (on locals); sub-steps finer than 1 ms only while the data recorder samples finer (`SubSteps`). A
+following error beyond 0x6065 faults (EMCY 0x8611).
 """
 
 from __future__ import annotations

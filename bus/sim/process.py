@@ -1,16 +1,11 @@
 """Simulated drives in a process of their own, as hardware is: `drives_process(cell)`.
 
-Theory of operation. A real-time run must not share an interpreter with the drives it commands: in one
-process the drives wait for the master's GIL and the master for theirs, and a test then proves only that our
-simulation, our clock and our master agree. `drives_process` starts `python -m bus.sim.process`, hands it the
-cell (pickled on standard input: the `CellConfig` as the caller has it, options applied), and waits for its
-first line ("drives on BUS") once the drives are on the bus. The child runs `SimulatedCell` (bus/sim/node.py)
-at real-time priority where the system permits (the drives answer on time, as hardware does) until its
-standard input closes: when the parent stops it, or dies however it dies (SIGKILL too), the pipe closes and
-the drives leave the bus instead of answering the next master on it.
-
-The bus must join processes: the `ipc` interface (bus/ipc.py) or socketcan; python-can's `virtual` bus does
-not leave its process, so drives there would hear nobody.
+A real-time run must not share an interpreter with its drives (each would wait for the other's GIL, and a
+test would prove only that our simulation and our master agree). `drives_process` starts
+`python -m bus.sim.process`, pickles the cell to its standard input, and waits for "drives on BUS". The
+child runs `SimulatedCell` (bus/sim/node.py) at real-time priority where permitted until its standard
+input closes, so the drives leave the bus when the parent dies, however it dies. The bus must join
+processes: `ipc` (bus/ipc.py) or socketcan.
 """
 
 from __future__ import annotations

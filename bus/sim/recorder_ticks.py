@@ -1,13 +1,9 @@
 """The control ticks while the data recorder samples (seed 004): every sample instant is hit.
 
-The layer on the plant (bus/sim/plant.py). A family with a data recorder (EPOS: bus/sim/data_recorder.py, its
-objects in bus/sim/epos.py) sets `recorder`. While it runs, the plant's tick loop (`PlantLoop._run_ticks`)
-asks this layer how far to run (`_recorder_chunk`: to the next sample instant) and samples after each
-chunk (`_recorder_advance`), or, standing without power, over the idle ticks (`_recorder_idle`). A
-sampling period that is not whole ticks sub-steps the plant at that period, the position controller
-staying at 1 ms: `_prepare_recording` sets `_fine`, the `SubSteps` with which the plant's integration step
-samples inside each tick. Without an active recorder the loop pays one test per chunk for this
-(benchmarks/bench_sim.py). The error and halt-end triggers fire in cia402.py and plant.py.
+The layer on bus/sim/plant.py. While a family's `recorder` runs, the tick loop runs to the next sample
+instant (`_recorder_chunk`) and samples after each chunk (`_recorder_advance`, or `_recorder_idle` without
+power). A period that is not whole ticks sub-steps the plant (`SubSteps`), the position controller staying
+at 1 ms. Without an active recorder this costs one test per chunk (benchmarks/bench_sim.py).
 """
 
 from __future__ import annotations

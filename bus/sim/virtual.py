@@ -1,12 +1,9 @@
 """The simulated drives of one cell in virtual time: frames in, frames out, no bus, no threads.
 
-A `VirtualCell` holds one simulated drive per axis of a `CellConfig` (of the axis' family), boots them,
-and (by default) configures them exactly as the master would over SDO (`DriveDevice.configure`, i.e. the
-profile's configuration list) and starts them (NMT operational). A virtual-time runtime then plays
-the bus: `deliver(cob_id, data, t)` hands a frame the master sent to the drives that consume that
-COB-ID and returns what they answer; `sync(t)` is a SYNC; `advance(t)` runs the drives' timers.
-Frames a drive sends are not seen by the other drives (they consume none of them in this product:
-no drive monitors another drive's heartbeat by default), which keeps routing O(1) per frame.
+A `VirtualCell` holds one drive per axis, boots them, configures them as the master would
+(`DriveDevice.configure`) and starts them. The runtime plays the bus: `deliver(cob_id, data, t)` hands a
+master frame to the drives that consume it, `sync(t)` is a SYNC, `advance(t)` runs their timers. Drives do
+not hear each other (none monitors another here), so routing is O(1) per frame.
 """
 
 from __future__ import annotations

@@ -1,39 +1,13 @@
 """The XtrapulsPac family: Infranor's interpolated position mode, one set point per SYNC (seed 003 3.2.3.5),
 on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part (bus/sim/cyclic_drive.py).
 
-Theory of operation, per SYNC k (after the ticks of the period that just ended and the synchronous
-RPDOs, `_after_sync_rpdos`):
-
-1. The PLL (0x2006) measures the SYNC: an interval off 0x1006 by half a period or more (the jitter limit,
-   `sync_gap_factor` - 1 periods) restarts it; it is locked once it has seen SYNC for 180 ms ("At least
-   180 ms are necessary for the servo-drive to start the synchronisation") with the mean period of that
-   window within 0x2006:04 of 0x1006 ("|SyncPeriod - [0x1006-0]| < SyncErrorLimit"). While interpolation
-   is active, that jitter, or a median period off by 0.4 % or more over a full 180 ms window, is error 49
-   (EMCY 0x8780), as is SYNC loss (device.py's SYNC monitoring). Both limits scale together with
-   `sync_gap_factor`: at the default 1.5 they are the manual's (half a period, 0.4 %); the in-process
-   runtimes pass 3.0 (two periods, 1.6 %), since their SYNC time stamps carry the Python scheduling of
-   the sending thread, which a drive's hardware time stamp does not.
-2. While interpolation was active before this SYNC, the set point RPDO (one mapping 0x60C1:01) must have
-   arrived since SYNC k-1 and at least 100 us before SYNC k, else error 50 (EMCY 0x8782).
-3. The interpolator (it "is running in any mode") latches x_k = 0x60C1:01 (and v_k = 0x60C1:02).
-4. Interpolation starts at the first SYNC at which controlword bit 4 is set in operation enabled, mode
-   7, with the PLL locked: from the current demand (x_{k-1} := the demand), so enabling moves nothing.
-   Bit 4 that finds the PLL not locked (less than 180 ms of SYNC) is refused: statusword bit 12 stays
-   low, nothing moves, and the request stays refused until bit 4 is seen low at a SYNC and set again
-   (the manual gives the 180 ms and no synchronisation state to wait on; a drive that "needs" the SYNC
-   first does not start on a request it could not serve).
-5. The period's polynomial by sub-mode 0x60C0: 0 linear x_{k-1} -> x_k; -1 PV the cubic Hermite from
-   (x_{k-1}, v_{k-1}) to (x_k, v_k); -2 P3 the parabola through x_{k-2}, x_{k-1}, x_k; played over the
-   ticks of the coming period (cyclic_drive.py), so x_k is the demand at SYNC k+1.
-
-Set points arrive in RPDO3 (type 1: applied at the next SYNC); with 0x3350 = 1 mapped 16 bits, the
-upper word rebuilt as the value nearest the previous set point; a multiplexed frame (one COB-ID, dummy
-entries 0x0002-0x0007 over the other axes' words) may be longer than this drive's mapping (its first
-bytes are used). Controlword bit 4 low ends interpolation (the demand holds); halt does nothing in IP.
-Faults: Stop 0 (power off at once, seed 003's default); EMCY bytes 0-1 the DS-402 code, byte 2 0x1001,
-byte 3 the Infranor code. Boot-up message only with 0x2010 = 1; EMCY per 0x205F. Statusword as the
-manual's table (0x0240 / 0x0221 / 0x0223 / 0x0227, bit 12 IP active; no voltage-enabled or
-target-reached bit). docs/drive-model.md has every reading and the seed sentence it rests on.
+Per SYNC k (`_after_sync_rpdos`): the PLL (0x2006) locks after 180 ms of steady SYNC, and while
+interpolating a jitter of half a period, a period off by 0.4 % or SYNC loss is error 49 (limits scaled by
+`sync_gap_factor`: in-process runtimes pass 3.0, their SYNC stamps carry Python's scheduling); a set point
+missing since SYNC k-1 is error 50; the interpolator latches 0x60C1:01 (and :02); interpolation starts
+with controlword bit 4 once the PLL is locked (before that the request is refused until bit 4 is seen
+low), from the current demand; the period's polynomial follows sub-mode 0x60C0. Set points in RPDO3,
+optionally 16-bit multiplexed (0x3350 = 1). docs/drive-model.md has every reading and its seed sentence.
 """
 
 from __future__ import annotations

@@ -1,42 +1,12 @@
 """Hermite chain: a time-optimal path profile turned into a motion the drive can follow exactly.
 
-Theory of operation. A drive interpolates PVT knots with cubic Hermite segments, and the encoder can
-only make segments of at least `min_seg` ms without the one-count and one-rpm quantisation of the knots
-shaking the drive's acceleration by more than its 5 % budget (encoder.segment_bounds). The
-time-optimal profile along a blended path has acceleration features much shorter than that: a blend
-traversed in 40-60 ms swings the non-limiting joints' accelerations through most of their range within
-10 ms, and a short line between two blends accelerates and decelerates in a few tens of ms. To follow
-such a plan within one count the encoder would need segments of a few ms, and fails its budget.
-
-So for blended paths the *plan* is a chain of cubic Hermite segments (whole-ms knots, at least
-`min_seg` apart wherever the profile allows), through the exact positions and velocities of the time-optimal
-profile at its knots: the motion the drive itself produces, which the encoder then only has to
-quantise. `fit_chain` places the knots greedily (the longest segment that passes, per section between
-the profile's bang-bang switches, which are knots of their own since a cubic cannot follow a step):
-
-- geometry: every ms of the segment within `budget` (per axis, user units) of the path: on a straight
-  piece, of its line; in a blend, of where the exact profile is at that same ms (a conservative bound
-  of the distance from the blend). The blends leave that share of the path tolerance free
-  (plan.lines_geometry), so the chain stays within the path tolerance of the polyline;
-- limits: the segment's velocity at every ms and its acceleration (linear, so its peak is at an end)
-  within the joint limits (`ACC_SLACK`, `VEL_SLACK`: numerical noise).
-
-The search is cheap where it can be: the candidate segments are tried in their order of preference,
-each with the per-segment limit checks first (end accelerations, the vertex of the velocity parabola),
-and sampled only where it passes them (`_first_passing`; the geometry rarely fails); the final every-ms
-check and the chain share their samples.
-
-The loops are compiled (planner/jit.py). The search is sequential, each segment starting where the one
-before ended (and `_lengthen` moves one knot at a time), in small steps: a dozen candidates, 7 samples
-of n axes. In NumPy the interpreter's few microseconds per array operation were most of its cost, even
-with the sections searched in lockstep to batch them (30 ms per plan of the 20-waypoint benchmark path,
-4 fits); as kernels, each section is a plain loop (2.3 ms). The kernels evaluate the NumPy
-implementation's expressions term by term; the knots of 208 corpus jobs stayed the same
-(tools/plan_corpus.py).
-
-Where no segment of at least `min_seg` ms passes, the shortest one is taken and its limit ratios are
-reported at every ms (`ChainFit.acc_ratio`, `vel_ratio`): path.plan_run then slows the profile down
-there (tightening the time-optimal solve's constraints) and fits again.
+The encoder needs segments of at least `min_seg` ms, but a blended path's time-optimal profile has
+acceleration features of a few ms. So for blended paths the plan itself is a chain of cubic Hermite
+segments on whole-ms knots through the profile's exact positions and velocities. `fit_chain` places knots
+greedily between the profile's switches: the longest segment within `budget` of the path and within the
+joint limits (limit checks first, samples only where they pass: `_first_passing`; compiled). Where no
+`min_seg` segment passes, its limit ratios (`ChainFit.acc_ratio`, `vel_ratio`) make path.plan_run slow
+the profile there.
 """
 
 from __future__ import annotations

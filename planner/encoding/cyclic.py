@@ -1,32 +1,11 @@
 """One set point per SYNC: what a cyclic drive is sent, and how far its own interpolation strays from the plan.
 
-Theory of operation. A drive of a cyclic family (bus/families.py: Infranor XtrapulsPac interpolated
-position, CiA 402 cyclic synchronous position) takes one set point per SYNC period P and interpolates
-between set points by itself. Set point j is the plan at time jP: x_j = the planned position rounded to
-whole counts, and in the XtrapulsPac's PV sub-mode v_j = the plan's instantaneous velocity in counts/s
-("the velocity reference for each set-point must be the instantaneous velocity at this point", seed 003).
-The streamer sends x_j so that the drive reaches it at SYNC start + j (it latches a set point at one SYNC
-and reaches it at the next: one period of latency, which the streamer absorbs by sending one period
-early), so the drive's demand at every SYNC is the plan there, exactly, and between SYNCs it is the
-drive's interpolation, at its internal cycle (1 ms here, the plan's resolution; a drive that interpolates
-faster samples the same curve more finely):
-
-- linear (XtrapulsPac sub-mode 0, and the CSP model): the chord x_k + (x_{k+1} - x_k) s, s in [0, 1];
-- pv (sub-mode -1): the cubic Hermite through (x_k, v_k) and (x_{k+1}, v_{k+1}) over the period;
-- p3 (sub-mode -2, "cubic using the three last position set points"): the parabola through x_{k-1}, x_k,
-  x_{k+1}, evaluated on [k, k+1]: x_k + s (x_{k+1} - x_{k-1}) / 2 + s^2 (x_{k+1} - 2 x_k + x_{k-1}) / 2
-  (exact for a constant acceleration; the manual: "interpolation error is inherent when the acceleration
-  is changing"); before the first set point the drive stood still, so x_{-1} = x_0.
-
-The deviation reported per axis is measured like the EPOS encoder's (planner/trajectory.py): the drive's
-demand rounded to whole counts minus the plan rounded the same way, at every ms, the worse of the two
-roundings the manuals permit (to nearest, toward zero), so it holds whichever the drive uses. A job whose
-deviation on some axis exceeds its tolerance is refused (`assess`), naming the axis, the deviation, and
-what would meet it: another sub-mode at the same SYNC period, or the longest SYNC period that does.
-
-The wire limits are checked here too, before anything moves: a multiplexed set point carries the low 16
-bits of the position (the drive rebuilds the upper word from the previous set point), so no step from one
-set point to the next may exceed 32767 counts; a multiplexed PV velocity is 16 bits, |v| <= 32767 counts/s.
+A cyclic drive (bus/families.py) latches x_j, the plan at jP in counts (and in the XtrapulsPac's PV
+sub-mode v_j, the instantaneous velocity, seed 003), at one SYNC and reaches it at the next, interpolating
+by sub-mode: linear (0, CSP), the PV Hermite (-1), the P3 parabola through three set points (-2). The
+deviation is measured as the EPOS encoder's (whole counts at every ms, both permitted roundings); `assess`
+refuses a job beyond its tolerance, naming a sub-mode or SYNC period that would do. Wire limits: a
+multiplexed step of at most 32767 counts, a multiplexed PV velocity within 32767 counts/s.
 """
 
 from __future__ import annotations

@@ -1,68 +1,22 @@
 """PVT encoder: a `Reference` (the planned motion at every ms) -> knots on one shared integer-ms grid.
 
-Theory of operation. The drive rebuilds each axis' motion from PVT knots with the cubic Hermite
-polynomial of seed 000 4.2.3 (planner/encoding/hermite.py), evaluated every 1 ms and rounded to whole counts.
-The encoder's contract, checked at every ms of every axis on the quantised values:
+Theory of operation. The drive rebuilds each axis from PVT knots with seed 000 4.2.3's cubic
+(planner/encoding/hermite.py) every 1 ms, rounded to whole counts. Contract, checked at every ms of every
+axis on the quantised values: |drive demand - planned demand| <= tolerance, both in whole counts (the
+planned demand is the plan rounded as the drive rounds; docs/formats.md, section 3, says why integer).
 
-    |drive demand - planned demand| <= tolerance        (both in whole counts; planned demand =
-                                                          the plan rounded as the drive rounds)
+1. Knot times, shared by all axes (`place_knots`): greedily the longest segment whose exact-value Hermite
+   stays within `PLACEMENT_SHARE` of the tolerance and `ACC_PLACEMENT_SHARE` of the acceleration limit,
+   with sections ending at the plan's acceleration steps and `hints`; `min_segment` / `max_segment`
+   bound the lengths (quantisation is acceleration noise on short segments, position error on long ones).
+   The coarsest valid uniform grid competes (`_uniform_alternative`), so no encoding needs more records.
+2. Knot values (`_choose_values`): per axis a Viterbi pass over each knot's candidates (planned demand
+   +-1 count, the two rpm around the plan) keeping the tolerance and minimising the acceleration excess.
+3. Verification at every ms; failing segments are refined, then split. Limits or `ACC_EXCESS_LIMIT`
+   exceeded raise `EncodingNeedsTime`: other placements (`variant`), then a slower replay.
 
-(Against the unrounded plan that is within tolerance + 0.5. A float tolerance of 1 count would leave
-a band of +-0.5 count after the drive's rounding, less than what one rpm of velocity quantisation,
-0.137 counts/ms at 8192 counts/rev, costs over a 25 ms segment; measured here, no placement then meets
-both the tolerance and the acceleration budget below.)
-
-1. Knot times, shared by all axes (`place_knots`): greedy, the longest segment (from a ladder of
-   lengths around the previous one) whose Hermite through the *exact* planned (position, velocity)
-   stays within `PLACEMENT_SHARE` of the tolerance at sample ticks and whose end accelerations miss
-   the plan's by less than `ACC_PLACEMENT_SHARE` of the axis limit, section after section (compiled:
-   `_greedy_knots`).
-   Sections end at the plan's acceleration steps above `STEP_SHARE` (the planners put those on whole
-   ms; a Hermite segment, whose acceleration is linear, cannot follow a step inside it), at the plan's
-   own structure where it has one (`Reference.hints`: a move's phase boundaries, a user's rows, a
-   path chain's knots; one cubic lies between two of them: `_structure`) and at least every
-   `SECTION_MS`; knots one segment makes unnecessary are dropped again (`_coarsen`). A placement
-   allowed up to 255 ms, and the coarsest uniform grid's number of knots spread evenly, are tried too
-   (`_uniform_alternative`): the fewest knots that pass every check win, so an encoding never needs
-   more records than the coarsest uniform grid that is itself a valid encoding (planner/encoding/uniform.py).
-   Two lengths bound the choice: `max_segment` (one rpm of velocity quantisation
-   moves a T ms segment's middle by ~T * rpm_in_counts_per_ms * 4/27 counts) and `min_segment` (one
-   rpm or one count moves a segment's end accelerations by 4 * dv / T and 6 * dp / T^2: short
-   segments make acceleration noise); sections are balanced and short segments rebalanced.
-2. Knot values, jointly (`_choose_values`): each knot's position is the planned demand or one count
-   either side (int32 counts), its velocity one of the two rpm values around the plan (int24). A
-   Viterbi pass over the knots (per axis) picks the combination that keeps the drive's rounded demand
-   within the tolerance at every tick and minimises the acceleration excess over the plan (the costs at
-   a few sample ticks bound those at every tick from below: only the pairs the best path passes are
-   checked at every tick). Rounding each value on its own is not enough (docs/formats.md, section 3).
-3. Verification of the drive's reconstruction (planner.encoding.hermite, rounded as the drive rounds) at every
-   ms. Segments that fail are refined locally, on the axes that fail there (7 velocity candidates,
-   every tick checked), then split: those that miss the tolerance in two; where only the acceleration
-   budget fails, the failing segments and their neighbours where both halves stay at least
-   `min_segment` long (a short segment between long ones has its end values pinned by them).
-   Velocity above the axis limit (+0.5 % or one rpm) or 0x607F, acceleration above 0x60C5, or an
-   excess over the planned acceleration above `ACC_EXCESS_LIMIT` of the axis limit raise
-   `EncodingNeedsTime`: the planner retries with a conservative placement (`variant=1`: shorter
-   segments) and a long one (`variant=2`: fewer short segments; on the same plan first, then on a path
-   profile with its switch pieces merged more widely and a chain without short segments), then plays
-   planned motions slower (sub-count moves need it).
-
-What the encoder emits (`Knots`, for axes described by `AxisScales`) and what the drive makes of it
-(`reconstruct`, `planned_demand`, the acceleration budget's `segment_envelope`) are planner/encoding/reconstruction.py.
-
-Knot 0 is the start (fixed: the drive stands there with velocity 0, or the given state for a stop);
-the last knot is the plan's end rounded to counts with velocity 0 (or the given end velocity of an
-open-ended velocity move), exactly.
-
-Compiled: steps 2 and 3 run in planner/encoding/quantise.py (numba, planner/jit.py). The Viterbi pass scores
-every pair of candidates of every segment and the refinement checks every tick of them; in NumPy that
-took (n, N, C, C) temporaries and tens of array operations per window (15-90 ms a plan, most of the
-encoder's time). Compiled, the costs need no temporaries, and the passes check at every tick only the
-pairs their best path passes: 1-6 ms a plan. The choices are those of the NumPy formulation with the
-costs at every tick, which tests/planner/encoder_reference.py keeps as the reference (float32 near the
-plan, ties to the first candidate). Before the lazy check the joint choice scored the sample ticks only
-(its float error there as a tie-breaker): on 12 random paths, 15-54 % of the segments then failed at some
-other tick; with every tick checked, 10-44 % (those need the refinement's wider candidates or a split).
+Knot 0 is the start state exactly, the last knot the end in counts at rest (or cruising, open-ended).
+Steps 2 and 3 are compiled (quantise.py); `Knots` and the reconstruction are reconstruction.py.
 """
 
 from __future__ import annotations

@@ -1,32 +1,16 @@
 """The drive's cubic interpolation between two PVT reference points (seed 000, section 4.2.3).
 
-This module is the single definition of what a drive does with the PVT records it is sent. The
-encoder uses it to verify its output against the plan at every millisecond; the simulated drive uses
-it to produce its position demand (0x6062). Both must agree to the count, so there is one formula.
-
-The seed writes the segment polynomial in the time `tau = t - t0` measured from the segment END
-(t0 is the end time, so tau runs from -T to 0), anchored at the end point:
+The single definition of what a drive does with its records: the encoder verifies with it, the simulated
+drive's demand (0x6062) comes from it. In tau = t - t0 from the segment END (tau in [-T, 0]):
 
     d = P[n]                c = V[n]
     b = T^-2 * (-3 * (P[n] - P[n-1]) + T * (2 * V[n] + V[n-1]))
     a = T^-3 * (-2 * (P[n] - P[n-1]) + T * (V[n] + V[n-1]))
     P(tau) = a tau^3 + b tau^2 + c tau + d,   V(tau) = 3a tau^2 + 2b tau + c,   A(tau) = 6a tau + 2b
 
-The signs above differ from the seed's extracted text, which prints `b = T^-2 (3 dP + T (V[n] + 2 V[n-1]))`
-and `a = T^-3 (2 dP + T (V[n] + V[n-1]))`. Taken literally those do not pass through P[n-1] (the
-minus signs were lost when the PDF was turned into text). The seed's own definition wins: "two
-triplicates deliver two abscissas and four corresponding ordinates, permitting an interpolation
-polynomial of third order unambiguously computed" -- the unique cubic with P(-T) = P[n-1],
-V(-T) = V[n-1], P(0) = P[n], V(0) = V[n] is the one above (tests/planner/test_hermite.py checks both
-the coefficients of a hand-computed example and the four interpolation conditions).
-
-Units on the drive: position in counts, time in ms, velocity in rpm of the motor shaft, so the
-polynomial works in counts/ms with v = rpm * counts_per_rev / 60000. The position demand is the
-polynomial rounded half away from zero to whole counts at every 1 ms tick tau = k - T, k = 1..T; at
-k = T it is exactly P[n].
-
-The encoder evaluates the same polynomial, operation for operation, in compiled loops
-(planner/encoding/quantise.py); tests/planner/test_planner_value_search.py holds the two equal bit for bit.
+The seed's extracted text lost these minus signs; its own definition (the cubic through both end positions
+and velocities) wins (tests/planner/test_hermite.py). Units: counts, ms, rpm (counts_per_rev / 60000 counts
+per ms); the demand is rounded half away from zero each tick. quantise.py evaluates it bit for bit alike.
 """
 
 from __future__ import annotations

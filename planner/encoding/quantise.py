@@ -1,34 +1,11 @@
 """The PVT encoder's value search and verification, compiled (planner/encoding/encoder.py, steps 2 and 3).
 
-Theory of operation: encoder.py's module docstring; this module is its arithmetic, in loops compiled with
-numba (planner/jit.py). The value search scores every (start candidate, end candidate) pair of every
-segment, and the refinement checks every tick of every pair: as NumPy that took (n, N, C, C, ticks)
-temporaries and tens of array operations per window (15-90 ms per plan, most of the encoder's time).
-Here the costs are computed without temporaries, one axis at a time, and the verification checks the
-drive's demand as it computes it.
-
-Both searches (`choose_values`, `refine`) check every tick lazily, per axis:
-1. `sample_misses`: each pair's largest miss at the sample ticks; for the refinement also which pairs
-   pass there (what it prunes its candidates by: `alive_candidates`).
-2. `sample_bounds`: the costs with those misses, which bound the costs at every tick from below (the
-   sample ticks are some of the ticks); for the candidates the search keeps only.
-3. `_exact_path`: the Viterbi pass over the bounds; the pairs on the best path are checked at every tick
-   (`_exact_cost`), and the pass runs again from the first pair whose cost is not its bound, until the
-   best path has no bound left; that path is the one the full check gives, ties included. Most pairs
-   (85 % miss the tolerance) are never checked at every tick.
-
-What makes the loops fast (measured, see the git log): the inner loop runs over a row of end candidates
-(or over the ticks), so that it vectorises, padded to whole vectors where a row is short; running maxima
-are kept as integer bit patterns (a float maximum is a masked store the next load stalls on, and a
-nan-aware one does not vectorise); offsets into arrays are unsigned where numba would otherwise wrap a
-negative index (a wrapped index does not vectorise); a kernel called per pair takes one array (each
-array argument costs an atomic reference count per call).
-
-The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/
-encoder_reference.py keeps it as the reference): the drive's interpolation and rounding as
-planner/encoding/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
-counts subtracted first, so the numbers are small), cast where NumPy cast; maxima as np.maximum
-(nan propagates); ties to the first candidate, as numpy's argmin.
+One axis at a time, without temporaries. Both searches (`choose_values`, `refine`) check every tick
+lazily: the costs at the sample ticks bound those at every tick from below; `_exact_path` checks the best
+path's pairs at every tick and runs again until no bound is left on it, which gives the full check's
+result, ties included. The loops are shaped to vectorise (rows of candidates or ticks, padded; maxima as
+integer bit patterns; unsigned offsets; one array per per-pair kernel). Results are bit for bit the NumPy
+reference's (tests/planner/encoder_reference.py).
 """
 from __future__ import annotations
 

@@ -1,13 +1,10 @@
 """The drive's reconstruction of PVT knots: what the encoder hands the drive, and what the drive makes of it.
 
-Theory of operation. The encoder (planner/encoding/encoder.py) produces `Knots`: shared integer-ms knot times and,
-per axis, whole-count positions and whole-rpm velocities, for axes described by `AxisScales` (unit
-conversions and the job's and the drive's limits, in counts and ms). The drive interpolates each segment
-with the cubic Hermite of seed 000 4.2.3 every 1 ms and rounds the result to whole counts, to nearest or,
-on drives known to truncate, toward zero (`drive_round`). `reconstruct` recomputes exactly that (compiled:
-planner/encoding/quantise.py) as a `Reconstruction`: the demand at every ms and each segment's end accelerations;
-`planned_demand` is the plan rounded the same way, the demand a perfect encoding would command. The
-encoder's contract and its acceleration budget (`segment_envelope`, `acceleration_excess`) are stated
+Theory of operation. `Knots` are shared ms times and per-axis whole-count positions and whole-rpm
+velocities, for axes described by `AxisScales` (conversions and limits in counts and ms). The drive
+interpolates each segment with seed 000 4.2.3's cubic every ms and rounds (to nearest, or toward zero:
+`drive_round`); `reconstruct` recomputes that (compiled), `planned_demand` is the plan rounded the same
+way. The contract and the acceleration budget (`segment_envelope`, `acceleration_excess`) are stated
 against these; the encoder, the uniform baseline and the tests all judge an encoding through them.
 """
 

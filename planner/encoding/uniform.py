@@ -1,19 +1,12 @@
 """The baseline an encoding is measured against: the coarsest uniform grid that meets the same tolerance.
 
-Theory of operation. A plain encoder samples the plan every `dt` ms (the last segment shorter), takes
-each knot's position as the planned demand (the plan rounded as the drive rounds) and its velocity as
-the nearest rpm, and keeps the first knot exactly as the trajectory starts (the drive's state) and the
-last one at rest on the end. Such a grid "meets the tolerance" when the drive's reconstruction stays
-within `tolerance_counts` of the planned demand at every ms (encoder.py's contract, without its
-acceleration budget: the baseline gets the easier test). Whether a `dt` passes is not monotone in
-`dt`, so the coarsest one is found by trying every `dt` from the longest segment (255 ms, or the
-whole motion) down, and the first that passes wins. The adaptive encoder must not use more points
-than that grid (tests/planner, benchmarks/bench_planner.py).
-
-With `margins`, a grid must also keep the encoder's other promises (velocity and acceleration limits,
-the 5 % acceleration-excess budget): a uniform grid whose last segment is a few ms long can meet the
-tolerance by luck of rounding while shaking the drive's acceleration far beyond the budget, and no
-encoding that keeps the planner's margins may use it. The benchmark reports both.
+Theory of operation. Sample the plan every `dt` ms (knots at the planned demand and the nearest rpm, the
+first at the start state, the last at rest on the end); the grid meets the tolerance when the drive's
+reconstruction stays within `tolerance_counts` at every ms (the encoder's contract without its
+acceleration budget). Passing is not monotone in `dt`, so every `dt` is tried from the longest down.
+The adaptive encoder must not use more points (tests/planner, benchmarks/bench_planner.py). With
+`margins` a grid must also keep the encoder's velocity, acceleration and excess-budget promises: a short
+last segment can meet the tolerance by luck while shaking the acceleration far beyond the budget.
 """
 
 from __future__ import annotations

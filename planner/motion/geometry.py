@@ -1,37 +1,12 @@
 """Geometric paths for path jobs: straight segments between the waypoints with blended corners.
 
-Theory of operation. A machine builder expects a path job to go along the segments between its
-waypoints and to round the corners within a tolerance (G64 in CNC, the blends of MoveIt's TOTG), not
-to swing through them on a spline. This module turns waypoints and a per-axis tolerance into that
-geometry, as rest-to-rest *runs* that the time-optimal parametrisation traverses (planner/motion/path.py):
-
-1. Parametrisation. Everything is built in time-normalised coordinates z = q / v_max (per axis), where
-   the arc length of a segment is the time it takes at full speed; the path parameter s is that
-   arc length (rescaled into [0.01, 2], see `S_MIN`). On a straight piece q'(s) is constant, q''(s) = 0.
-2. Blends. At a corner c between the unit directions u1 (in) and u2 (out), a quintic Bezier curve joins
-   A = c - l u1 to B = c + l u2 through the control points A, A + d u1, A + 2d u1, B - 2d u2, B - d u2, B
-   (d = rho l, 0 < rho <= 1/2). Equally spaced first (and last) three control points make q''(s) = 0 at
-   both ends, and a parameter length of 5 d makes q'(s) there equal the line's: the path is C2, so its
-   curvature is bounded and continuous and the joint accelerations only step where the path
-   acceleration switches (a circular blend would add a step at each of its ends). Every control point
-   lies on one of the two legs, so the blend stays inside the triangle (A, c, B): inside the box of the
-   position limits whenever the waypoints are (a spline can swing out, a blend cannot).
-3. Size. For a fixed rho the blend is homothetic in l about c, so its deviation is l times a constant
-   of the corner. It is measured in tolerance-scaled coordinates y = q / tol: the largest distance from
-   the two legs and the closest approach to c must be <= 1 in the Euclidean norm of y, so every axis
-   stays within its own tolerance (with one value for all axes, the distance itself does). l is also at
-   most half of each adjacent segment, so neighbouring blends never overlap. Of the candidate shapes
-   `RHOS`, the one whose smallest radius of curvature (in z) is largest wins: that corner is the
-   fastest. The sampled quantities reduce to three scalars per corner (|Y1|^2, Y1.Y2, |Y2|^2 of the
-   scaled leg directions), so all corners are evaluated together.
-4. Exact stops. A corner is an exact stop when its tolerance is 0 on an axis that moves on either of
-   its segments, when it is a reversal (the path turns back on itself: the axes stop there anyway),
-   or when the blend that fits would be traversed too fast for the drive's segments to follow it
-   (`blend_duration_ms`, planner.plan.MIN_BLEND_SEGMENTS): the path is cut there into runs, each
-   traversed from rest to rest, so that waypoint is reached exactly, at velocity 0.
-
-`blended_runs` returns the runs as `PiecewisePath` objects (a piecewise polynomial of degree 5 per axis) with
-`__call__(s, order)`, `length`, `dof` and `gridpoints()`: what the solver (planner/motion/topp.py) and path.py evaluate.
+A path job goes along the segments and rounds corners within a per-axis tolerance (G64 in CNC, MoveIt's
+TOTG blends). In z = q / v_max a blend is a quintic Bezier with its control points on the two legs: C2
+(joint accelerations step only where the path acceleration does) and inside the corner's triangle (so
+within the position limits when the waypoints are). Its size is homothetic in the leg length, measured in
+q / tol so every axis keeps its tolerance, at most half of each segment; of the shapes `RHOS` the fastest
+wins. Exact stops cut the path into rest-to-rest runs (`PiecewisePath`): zero tolerance on a moving axis, a
+reversal, or a blend too fast for the drive's segments.
 """
 
 from __future__ import annotations

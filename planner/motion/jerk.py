@@ -1,29 +1,11 @@
 """Jerk-limited motions with ruckig: point-to-point moves along the straight line, and stops.
 
-Theory of operation. ruckig computes, per degree of freedom, a profile of up to 7 constant-jerk phases
-(plus a brake pre-profile when the start state is outside the limits). We read those phases straight
-from `Trajectory.profiles` and evaluate them for all ms at once (vectorised), instead of calling
-`at_time` per sample.
-
-Moves follow the straight line from start to target (`line_move`): all axes in phase, as ruckig's
-phase synchronisation would give, computed as ONE degree of freedom, the position s along the line,
-whose velocity, acceleration and jerk limits are the tightest of the axes' limits divided by each
-axis' share of the line. (ruckig's own `Synchronization.Phase` falls back to time synchronisation,
-which leaves the line, whenever different axes limit the velocity and the acceleration: in about 60 %
-of random rest-to-rest 6-axis moves, measured here. On the line the 1-DoF profile is the time-optimal
-one, so nothing is lost.) Its duration is then rounded up to whole ms by playing it slower by less than
-1 ms in all (every limit still holds), and its phase boundaries become the reference's `hints`: the
-encoder puts knots there, since the profile is one cubic between them. Only if ruckig rejects the
-1-DoF problem does the move fall back to time synchronisation of all axes (reported as
-`straight_line` 0 in the trajectory's info).
-
-Stops are time-synchronised (`Synchronization.Time`, durations discretised to whole ms): from an
-arbitrary state there is no common line. A jerk-limited profile has continuous acceleration, so the
-reference has no acceleration steps.
-
-Never intermediate waypoints: ruckig's community edition would call a remote API for them
-(DESIGN.md, network rules). Failures (ruckig's Result codes or exceptions) become
-PlanningError(INFEASIBLE) carrying the return code.
+ruckig's constant-jerk phases are read from `Trajectory.profiles` and evaluated for all ms at once. A move
+is ONE degree of freedom along the line, limited by the tightest axis: in phase and time-optimal on the line
+(ruckig's phase synchronisation leaves the line in most multi-axis moves: docs/formats.md, "move"); its
+duration is rounded up to whole ms, its phase boundaries are the `hints`; if ruckig rejects it, all axes
+are time-synchronised (`straight_line` 0). Stops are time-synchronised. Never intermediate waypoints
+(DESIGN.md); failures are PlanningError(INFEASIBLE) with ruckig's code.
 """
 
 from __future__ import annotations

@@ -1,45 +1,15 @@
 """Time-optimal traversal of a geometric path (TOPP-RA), re-timed onto whole milliseconds.
 
-Theory of operation.
-
-1. Geometry (planner/motion/geometry.py, or `SplineGeometry` here): by default the straight segments between
-   the waypoints with C2 blends at the corners, cut into rest-to-rest runs at exact stops; on request
-   (`geometry = "spline"`) a C2 cubic spline through the waypoints (scipy, not-a-knot). Both are
-   parametrised by the time-normalised arc length (delta q / v_max per axis), squeezed into [0.01, 2]
-   (toppra's seidel solver, the reference our solver is compared with, reports spurious infeasibility
-   on long parametrisations). Consecutive waypoints closer than half a count are merged and the end
-   points snapped to whole counts before (plan.py). Every run is planned on its own and the runs are
-   played one after the other.
-2. Time-optimal parametrisation: toppra's reachability algorithm, compiled (planner/motion/topp.py). Checking
-   the constraints only at the gridpoints, as toppra does, lets the constant-acceleration profile
-   overshoot between them (by 5-25 % on wiggly 20-waypoint paths with 100-400 gridpoints, measured
-   with toppra). So the acceleration and velocity limits are also imposed at interior points of every
-   grid interval (`topp.THETAS`: inside an interval s-dot^2 is linear in s, so the joint acceleration
-   there is still linear in the (u, x) variables of the algorithm). The gridpoints come from the
-   geometry (`gridpoints()`): blends need more of them than straight pieces; the path is sampled once
-   per run (`topp.sample_path`), and each repair only tightens rows.
-3. Re-timing onto the drive's clock (`Profile`): a Hermite segment cannot follow an acceleration
-   step inside it, so every breakpoint of the profile is put on a whole millisecond: total time
-   rounded up, path velocity taken at the rounded gridpoint times and interpolated linearly in time
-   (each piece's acceleration is an average of the solver's, so it never exceeds them), short transitions
-   between two switches merged where the path is straight, path position rescaled to end exactly at
-   the end of the path.
-4. Blended paths: the plan is the Hermite chain through the re-timed profile (planner/encoding/chain.py), the
-   motion the drive itself reproduces with segments long enough for its quantisation; a run that is
-   one straight segment is the closed-form trapezoid instead (`straight_run`: no solve, no chain).
-5. Verification at every ms of every joint (of the chain, for blended paths): velocity and
-   acceleration against the limits. Overshoots tighten the constraint rows of the intervals concerned
-   (for a chain, of the whole segment that overshoots) and solve again (at most `REPAIR_ROUNDS` times;
-   a chain's first solve already keeps `BLEND_MARGIN` in the blends, where most overshoots were);
-   a small residual is removed by playing the motion that much slower (`RESCALE_SHARE`), from the best
-   profile seen. A chain is fitted anew on every slower profile, and whether it passes is not monotone
-   in the slow-down (its knots move): a few slightly different slow-downs are tried (`SLOWER_LADDER`).
-   A chain without short segments (the smooth retry) also has a knot on every big acceleration step
-   of a straight piece (`_switch_mask`), so that none of its long segments straddles one.
-
-Measured (benchmarks/bench_planner.py): spline paths within 0.4-0.9 % of raw toppra's own duration
-(which itself exceeds the acceleration limits between gridpoints by 2-3 %); blended paths about 0.2 %
-(median) and under 1 % over raw toppra on the same blended path with a fine grid.
+Per rest-to-rest run: the geometry (planner/motion/geometry.py's blends, or a C2 spline,
+`SplineGeometry`) in time-normalised arc length squeezed into [0.01, 2] (toppra's seidel solver, the
+reference, fails spuriously on long parametrisations); the time-optimal profile (planner/motion/topp.py)
+with the limits also at interior points of each interval (`topp.THETAS`: the profile overshoots between
+gridpoints otherwise); re-timing every breakpoint onto a whole ms (`Profile`: a Hermite segment cannot
+follow an acceleration step inside it); for blends, the Hermite chain (planner/encoding/chain.py), for a
+single straight segment the closed-form trapezoid (`straight_run`). Verification at every ms: overshoots
+tighten their rows and solve again (`REPAIR_ROUNDS`), a residual is played slower (`RESCALE_SHARE`,
+`SLOWER_LADDER`: a refitted chain's pass is not monotone in the slow-down). docs/formats.md ("path") has
+the measured durations.
 """
 
 from __future__ import annotations

@@ -1,21 +1,11 @@
 """The planned motion of every axis, sampled at every millisecond in drive units (the encoder's input).
 
-Theory of operation. Every planner (toppra paths, ruckig moves and stops, timed splines, raw PVT rows)
-ends in a `Reference`: positions in counts (float, unrounded), velocities in counts/ms and
-accelerations in counts/ms^2, for all axes, at every integer millisecond 0..M of the motion. The drive
-interpolates at 1 ms ticks and the encoder verifies the drive's reconstruction at exactly those ticks,
-so the 1 kHz samples are all the encoder needs, and they make every check a vectorised array
-operation.
-
-Accelerations are kept on both sides of every tick (`acc_left` on (m-1, m), `acc_right` on (m, m+1)):
-the time-optimal profiles switch acceleration abruptly, and the planners arrange those switches to fall
-on whole milliseconds (listed in `breaks`), because a Hermite segment can only follow an acceleration
-step that sits on one of its knots.
-
-`hints` are the plan's own structure, where one polynomial piece of it ends and the next begins: the
-phase boundaries of a ruckig profile (rounded to whole ms), the rows of a timed or pvt job. Between two
-hints the plan is one cubic (or close to one), which a single Hermite segment reproduces: the encoder
-starts its knot placement from them.
+Theory of operation. Every planner ends in a `Reference`: positions in counts (unrounded), velocities in
+counts/ms, accelerations in counts/ms^2, at every integer ms 0..M. The drive interpolates at 1 ms ticks
+and the encoder checks exactly those ticks, so 1 kHz samples are all it needs. Accelerations are kept on
+both sides of every tick (`acc_left`, `acc_right`): planners put acceleration steps on whole ms (`breaks`)
+since a Hermite segment can only follow a step at a knot. `hints` are the plan's own structure (ruckig
+phase boundaries, a job's rows), where the encoder starts placing knots.
 """
 
 from __future__ import annotations

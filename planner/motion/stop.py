@@ -1,41 +1,12 @@
 """plan_stop: a jerk-limited stop of all axes from any state, encoded like every other motion.
 
-Theory of operation. The streamer cancels a job by appending a stop to what it has already queued:
-it asks for a stop from the state at the end of the queue (the last queued knot: its position and
-velocity exactly as sent, and the drive's Hermite acceleration at the end of that segment, see
-`PvtTrajectory.knot_state`). ruckig's velocity interface brings every axis to velocity 0 and
-acceleration 0 under the axis' velocity, acceleration and jerk limits from the cell config.
-
-All axes are time-synchronised (`Synchronization.Time`): they come to rest at the same instant,
-the slowest axis' minimum stopping time. A cancel is a controlled stop (faults use the drive's quick
-stop), and stopping together keeps the axes coordinated as the motion winds down; the fast axes brake
-more gently than they could, which costs stopping distance only on axes that are not limiting.
-
-Knot 0 of the stop is exactly the given state (position rounded to counts, velocity to rpm: the wire
-values the streamer passed in), so the stop's records continue the queued stream seamlessly. A stop
-is never refused for leaving the software limits (the drive's own 0x607D still applies): it is the
-shortest coordinated stop there is; `PvtTrajectory.stats` reports where it ends.
-
-A change (`plan_change`, a new target while the axes move: a move submitted with buffer "aborting")
-is planned the same way from the same kind of state, but with ruckig's position interface to the new
-target at rest, time-synchronised so that every axis arrives at the same instant. Unlike a stop it can
-be refused: a target outside the software limits, or a motion that swings out of them on the way (a
-late change at speed brakes past the target and comes back), raises POSITION_LIMIT; ruckig's own
-refusal raises INFEASIBLE. When an axis is past its new target in its direction of travel (it must brake
-beyond it and reverse), or the change's motion crosses the target before it settles, the change reports
-it (`ChangePlan.overrun_axes`, seed 002's TARGET_OVERRUN warning), but still plans it.
-
-The emergency stop (`plan_emergency_stop[_from_wire]`, seed 002's "Emergency stop", for the streaming
-side's emergency verb) is the same stop with each axis' emergency deceleration (cell config
-`emergency_deceleration`, default a multiple of the acceleration limit capped at 0x60C5) and a jerk
-that reaches it within EMERGENCY_RISE_MS (20 ms; a pure step, infinite jerk, would put acceleration
-steps between knots that a Hermite segment cannot follow. Measured on 25 random 6-axis states of the
-demo cell: 10 ms stops in 158 ms on average but the encoder must play 16 of them slower, planning in
-36 ms (median); 20 ms stops in 159 ms, 9 slowed, 14 ms; 40 ms in 182 ms. Trying gentler jerks first
-instead of playing a steep stop slower was slower to plan and no shorter). On axes too coarse for it
-(few counts per unit: one rpm is then a large velocity step) the rise time doubles until the encoding
-passes, never below the axis' own jerk; `info["emergency_rise_ms"]` says which was used. Its
-trajectory's kind is "emergency_stop".
+The streamer cancels by appending a stop from the state at the end of its queue (`PvtTrajectory.knot_state`);
+ruckig's velocity interface brings every axis to rest, time-synchronised (the axes stop together). Knot 0
+is exactly the given wire state. A stop is never refused for the software limits (0x607D still holds on the
+drive). `plan_change` goes from the same state to a new target at rest (POSITION_LIMIT, INFEASIBLE;
+`overrun_axes`: seed 002's TARGET_OVERRUN). `plan_emergency_stop` uses each axis' `emergency_deceleration`
+reached within EMERGENCY_RISE_MS, not a step (docs/formats.md says why 20 ms), doubled on axes too coarse
+to encode it (`info["emergency_rise_ms"]`).
 """
 
 from __future__ import annotations

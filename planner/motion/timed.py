@@ -1,15 +1,10 @@
 """The user's own timing: `timed` jobs (splined) and `pvt` jobs (raw rows), as references.
 
-Theory of operation. A `timed` job gives positions at times; the motion is the C2 cubic spline
-through them with zero velocity at both ends (rest to rest, scipy `CubicSpline(bc_type="clamped")`),
-played on the drive's clock: every row's time is rounded to the nearest ms (the last one up), so each
-piece of the spline is one cubic between two whole ms, which one Hermite segment reproduces exactly;
-the rows are the reference's `hints`, where the encoder starts placing knots. (Rows less than 1 ms
-apart cannot all keep a ms of their own: then the whole timing is stretched by less than one ms
-instead, as before.) A `pvt` job gives PVT rows in user units on whole-ms times; the reference is the
-drive's own Hermite through the *unquantised* rows, its rows the hints. Neither is re-timed to
-respect the limits: a user timing that exceeds a velocity or acceleration limit is rejected
-(INFEASIBLE) with the axis, the time and the value.
+Theory of operation. `timed`: the clamped C2 cubic spline through the positions (rest to rest), each
+row's time rounded to a whole ms so that every piece is one cubic a Hermite segment reproduces; rows
+closer than 1 ms stretch the timing by under one ms. `pvt`: the drive's own Hermite through the
+unquantised rows. The rows are the reference's `hints`. Neither is re-timed: a timing that exceeds a
+limit is rejected (INFEASIBLE) with the axis, the time and the value.
 """
 
 from __future__ import annotations

@@ -1,30 +1,11 @@
 """Time-optimal path parametrisation by reachability analysis (TOPP-RA), compiled.
 
-Theory of operation. The problem is toppra's (Pham & Pham, "A New Approach to Time-Optimal Path
-Parameterization based on Reachability Analysis", 2018) and so is the algorithm; only the loops are
-ours, compiled (planner/jit.py). toppra runs the same two passes in Python, a few tens of microseconds
-per gridpoint: 6-7 ms for a 20-waypoint path, more than the whole rest of the plan once that is compiled
-too. Here the passes cost about 0.2 ms for 400 gridpoints and 90 constraint rows. toppra stays the
-reference: tests/planner/test_planner_topp.py solves random paths with both and compares the profiles.
-
-Along a geometric path q(s), with x = s_dot^2 at gridpoint s_i and a constant path acceleration u over
-the interval [s_i, s_i+1] (so x_i+1 = x_i + 2 delta_i u_i), every joint velocity and acceleration
-constraint is linear in (u, x) at any point of the interval (path.py explains the interior points):
-
-    A_r u + B_r x <= G_r   for the rows r of gridpoint i,   0 <= x <= xmax_i (joint velocities).
-
-1. Controllable sets, backward: K_N = {0} (the path ends at rest); K_i = [lo_i, hi_i], the x from which
-   some admissible u reaches K_i+1. hi_i and lo_i are two linear programs in (u, x) (`_lp2d`).
-2. Forward pass: x_0 = 0; at each gridpoint the largest admissible u whose next state stays in K_i+1, a
-   one-dimensional problem. As toppra does, each next state is taken 0.01 % low (numerical errors must
-   not leave the controllable set) and a state from which no u is admissible is lowered slightly and
-   tried again (at most 10 times).
-
-`_lp2d` is Seidel's incremental algorithm for two variables: start from the best corner of the box,
-add the rows one by one, and when a row cuts off the current optimum, the new one lies on that row's
-line: a one-dimensional problem over the rows before it. The rows active at the previous gridpoint are
-added first (neighbouring gridpoints have nearly the same active rows), so the optimum rarely moves
-after them and each program costs about one pass over its rows.
+toppra's algorithm (Pham & Pham, "A New Approach to Time-Optimal Path Parameterization based on
+Reachability Analysis", 2018), its loops compiled; toppra stays the reference in the tests. With
+x = s_dot^2 per gridpoint and constant path acceleration u per interval every joint constraint is linear,
+A_r u + B_r x <= G_r. Backward: the controllable sets K_i = [lo_i, hi_i], two 2-variable LPs each (`_lp2d`,
+Seidel's incremental algorithm, the previous gridpoint's active rows first). Forward: the largest
+admissible u whose next state stays in K_i+1 (0.01 % low and up to 10 retries, as toppra).
 """
 
 from __future__ import annotations

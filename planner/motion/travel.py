@@ -1,59 +1,13 @@
 """Travel commands (seed 002's positioning interface): what a move's target means, and endless travel.
 
-Theory of operation. A `move` job names a travel command in its `mode`. This module turns it into
-motion; it is fed the job, the cell and where the axes are, and it returns an absolute target (point to
-point modes: `resolve_target`, planned by plan.py as any move) or an open-ended trajectory (velocity
-mode: `plan_velocity`, then `extend_velocity` chunk after chunk).
-
-Position modes, per axis (user units):
-
-- `absolute`: the target itself.
-- `relative`: the offset added to the *actual* position (seed 002: "a specified position difference is
-  added to the current position").
-- `additive`: the offset added to the *last commanded target* (seed 002: "the position delta S specified
-  by the user is added to the target position E used for the last travel command"). It exists for the
-  case seed 002 names: after a stall or an emergency stop "the current position is arbitrary and not
-  foreseeable", but the last target is still a sound base. Contract with the streaming side, which owns
-  that state: it keeps `last_target` per axis, sets it to the resolved target of every move it accepts
-  (what `resolve_target` returns, also when the move is later stopped, aborted or emergency-stopped),
-  to a path/timed/pvt job's last row, and to None after a velocity move (endless travel has no target).
-  None ("no target yet") makes `additive` count from the actual position, like `relative`.
-- `modulo_short`, `modulo_plus`, `modulo_minus`, `modulo_current` on axes with a `modulo_period` P and a
-  `modulo_tolerance` W (cell config): the target is a modulo position m (0 <= m < P) plus whole periods,
-  each an extra turn ("Target positions of more than 360° lead to one or more full turns before the axis
-  travels to the required target position"); the result is the absolute (unwrapped) position to move to.
-  Seed 002: "The positioning of an axis is always referenced to its current actual position", so these
-  modes use the actual position, never the last target. The tolerance window: "a window of 1° ... the axis
-  will behave identically, as long the actual position is between 359° and 1°": an actual position within
-  W of a position equivalent to m counts as standing there, so the target's turns are counted from that
-  position (this may move the axis a little against the mode's direction, as the seed says), and outside
-  the window the axis goes in the mode's direction to the next equivalent of m, then adds the turns. No
-  motion occurs when target and start coincide. `modulo_short` takes the shorter way to the nearest
-  equivalent of m (exactly half a period: the positive way) and accepts only targets in the basic period
-  ("only modulo target positions within the basic period ... are permitted, otherwise an error is
-  returned": `MODULO_RANGE`, naming the axis and the value). `modulo_current` goes in the last direction
-  of rotation: the streaming side passes it (`last_direction`, the sign of the axis' last commanded
-  motion); none known counts as positive. Seed 002's tables are tests/planner/test_travel.py.
-
-Velocity mode (seed 002's ENDLESS_PLUS / ENDLESS_MINUS, PLCopen's MC_MoveVelocity): per axis a signed
-velocity, snapped toward zero to whole rpm (the wire's resolution, so the cruise is exactly what the
-drive is sent). `plan_velocity` ramps from the start state (jerk-limited, ruckig's velocity interface,
-all axes reaching their velocities together) and then cruises for `chunk_ms` (DEFAULT_CHUNK_MS, at
-least MIN_CHUNK_MS: shorter cruise segments would turn the knots' rounding into acceleration noise); the
-trajectory is open-ended (`PvtTrajectory.open_end` holds its `CruiseState`; its last knot moves at the
-cruise velocity and it has no end record). `extend_velocity` gives the next chunk from exactly where the
-previous one ended. Cruise knots are computed in integers from one anchor: position(e) = anchor +
-round(v_rpm * counts_per_rev * e / 60000) for e ms of cruise since the anchor, so a thousand extensions
-land on the same count as one long cruise (no drift from summing rounded chunks).
-
-Position limits: a chunk is open-ended only if the axes can still stop inside the software limits
-from its end (braking at the job's deceleration and jerk, all axes together, a count of margin). Where
-the next chunk would pass that point, it cruises up to the last ms from which the stop fits and then
-stops there: that chunk ends at rest (closed, `info["position_limit_stop"]` 1, `info["limit_axis"]` the
-job axis index). A velocity job whose ramp alone cannot stop inside the limits is refused
-(`POSITION_LIMIT`). A velocity of 0 on every axis is a ramp to rest (a closed plan).
-
-Errors are PlanningError with stable codes.
+Point-to-point modes become an absolute target (`resolve_target`): absolute, relative (from the actual
+position), additive (from the last commanded target the streaming side keeps; None: from the actual
+position), and modulo_short/plus/minus/current on axes with a `modulo_period` (seed 002: from the actual
+position, a tolerance window, extra periods are turns). docs/formats.md ("move") has the rules; seed 002's
+tables are tests/planner/test_travel.py. Velocity mode: whole-rpm velocities, `plan_velocity` ramps and
+cruises open-ended (`CruiseState`), `extend_velocity` gives each next chunk, cruise knots integers from one
+anchor (no drift); a chunk that could no longer stop inside the software limits stops at the last ms that
+fits (`info["position_limit_stop"]`), and a ramp that cannot is refused (POSITION_LIMIT).
 """
 
 from __future__ import annotations

@@ -1,26 +1,11 @@
 """The cell's queue and hold policy: the executor thread, the start check, the travel memory.
 
-Theory of operation. Intake appends admitted jobs to `_pending` (under `_cv`); the executor thread takes
-them one at a time, unless the queue is held, emits `priming`, calls `backend.execute` (blocking) with
-a progress emitter (progress.py) and the job's `CancelToken`, has the job's recording written (below),
-then journals the result (`done`/`failed`/`cancelled`, from the backend's report).
-
-Hold: a cancel of the running job, and every stop, holds the queue: the executor starts no further job
-until `resume` (a `hold` request holds it without stopping anything). Before a queued job starts, the
-executor checks that it still starts where the axes stand (`current_positions()` of the backend): the
-job before it may have been cancelled or stopped elsewhere. A move is re-planned from there; a path,
-timed or pvt job fails INFEASIBLE naming the axis, where it stands and where the job starts, unless the
-job said `start = "current"` (a path is then planned from where the axes stand through its waypoints).
-
-Travel memory (planner/motion/travel.py's `last_target` contract): per axis the last commanded target and the
-sign of the last commanded motion, from every job accepted (`_remember`), passed to `backend.plan` and
-`backend.change` (`_travel`); a queued job re-planned at its start keeps those it was accepted with.
-
-Recordings: a backend whose `take_recording()` returns one hands over each job's recording after
-`execute`; it is written to `<recordings dir>/<job_id>.mcap` by a low-priority worker process
-(streamer/recording/writer.py) after the motion ended and before the final event, so a `done` job's
-recording is on disk and the next job starts after the write. The report gets `recording: {file,
-bytes, messages}` (or `{error}`: a recording that cannot be written does not fail a job that moved).
+The executor takes admitted jobs one at a time unless held, emits `priming`, runs `backend.execute` with a
+progress emitter and the job's `CancelToken`, has the recording written, and journals the result. A cancel
+of the running job and every stop hold the queue until `resume`. A queued job must still start where the
+axes stand (`current_positions()`): a move is re-planned, others fail INFEASIBLE unless `start =
+"current"`. The travel memory (per axis last target and direction, travel.py's contract) goes to
+`backend.plan` and `backend.change`. A recording is written by a worker before the final event.
 """
 
 from __future__ import annotations

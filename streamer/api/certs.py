@@ -1,19 +1,12 @@
 """A small certificate authority for a cell: one CA, and certificates for a service and its clients.
 
-Theory of operation. `pvt certs init DIR` (and the tests) call `init_certs`, which makes an EC P-256
-CA and, signed by it, one certificate per identity: the service, an operator and an observer by
-default. Zenoh's TLS links (rustls) verify a peer's chain against the CA file they are given and, with
-mutual TLS, the service reads the client certificate's common name (CN): that name is the subject the
-access control rules grant a role to (streamer/api/security.py). So the CN is the identity, and the
-file names follow it.
-
-Every certificate carries the subject alternative names the service will be dialled by: 127.0.0.1,
-::1 and `localhost` always (tests and first setups stay on loopback), plus any `hosts` given (a LAN
-address or DNS name when the service is reached from other machines). Both extended key usages
-(server and client) are set, because a service listens to clients and may itself dial a router.
-
-Private keys are written PKCS#8 PEM, unencrypted (Zenoh reads them without a passphrase), with mode
-0600. This is a tool for tests and first setups; docs/security.md says how to use your own CA.
+`init_certs` (`pvt certs init DIR`) makes an EC P-256 CA and one certificate per identity (service,
+operator, observer by default). With mutual TLS the service reads the client certificate's CN, the
+subject the access rules grant a role to (streamer/api/security.py), so the CN is the identity and names
+the files. Every certificate carries 127.0.0.1, ::1, `localhost` and any `hosts` as alternative names,
+and both server and client key usage (a service may dial a router). Keys are unencrypted PKCS#8 PEM,
+mode 0600 (Zenoh reads them without a passphrase). For tests and first setups; docs/security.md says how
+to use your own CA.
 """
 
 from __future__ import annotations

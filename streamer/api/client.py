@@ -1,27 +1,12 @@
 """`MotionClient`: submit motion jobs to a cell's job service over Zenoh, watch them, cancel them.
 
-    from streamer.api.client import MotionClient
-
     with MotionClient(connect="tcp/127.0.0.1:7447", cell="demo") as client:
-        client.wait_for_service(timeout=10)
         job = client.submit({"kind": "move", "axes": ["j1"], "target": [0.5], "mode": "absolute"})
-        for event in job.events():
-            print(event.seq, event.type, event.progress)
         status = job.wait(timeout=60)        # JobFailedError if the job failed
 
-Every error is a `MotionError` with the service's stable `code` (BUSY, CONFLICT, INFEASIBLE, ...);
-`JobFailedError` for a job that ended FAILED; code TIMEOUT when no answer came in time,
-NO_SERVICE when no service answered for the cell at all, and SERVICE_GONE when the service's
-liveliness token vanished while a job handle was waiting for events (the process died or left).
-
-Job ids: a job's own `job_id` (in a job file or dict) is a *name*: every `submit` runs the job again as
-`<name>-<8 hex digits>`, like `pvt submit`. `submit(job, job_id="exact")` gives the exact id instead:
-resubmitting that id is idempotent (the way to learn whether a timed-out submission was accepted).
-
-How events are never missed: `submit` picks the job id (a uuid unless given) and subscribes to the
-job's events key *before* sending the job, and events carry a per-job sequence number. `events()`
-yields them in sequence order; on a gap, or when nothing arrives for a while, it reads the journalled
-history from the service (`pvt/<cell>/jobs/<id>/events`) and fills in what the subscription missed.
+Errors are `MotionError` with the service's code (plus TIMEOUT, NO_SERVICE, SERVICE_GONE). Each `submit`
+runs a job as `<job_id>-<8 hex digits>`; `job_id="exact"` is idempotent. `submit` subscribes to the job's
+events before sending it, and `events()` fills gaps from the journalled history.
 """
 
 from __future__ import annotations

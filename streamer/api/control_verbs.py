@@ -1,20 +1,12 @@
 """The control verbs of the job service: cancel, stop, emergency stop, halt, hold, resume, reset.
 
 Theory of operation. Each verb is a query on its own key (keys.py), answered on the control thread
-(handlers.py) so a long planning job at intake does not stall it. They act on the cell's queue
-(cell_queue.py) under its lock and answer with what they did:
-
-- cancel: a queued job ends `cancelled` at once; the running job is journalled `cancelling` at once and
-  stops on its jerk-limited stop trajectory, and the queue is held. A second cancel answers
-  `cancel_requested: false`.
-- stop: holds the queue and stops the running job like a cancel. With `emergency=true` it calls the
-  backend's `emergency_stop()` when it has one (`can_emergency_stop`: the running job's planned
-  emergency stop, or the quick stop on every drive; the reply's `method` says which); `resume` then
-  re-enables the drives.
-- halt: the running job stops like a cancel, but the queue is not held: the next job starts from where
-  the axes came to rest. hold: holds the queue and stops nothing.
-- resume: lifts the hold (with `reset=true`, or after an emergency stop, the backend is reset first);
-  reset: the backend's fault reset, refused while a job runs.
+(handlers.py) so planning at intake does not stall it, acting on the cell's queue under its lock. cancel:
+a queued job ends at once; the running one is `cancelling` at once, stops on its jerk-limited stop, and
+the queue is held. stop: holds and stops like a cancel; with `emergency=true` the backend's
+`emergency_stop()` when it has one. halt: stops like a cancel without holding. hold: holds, stops nothing.
+resume: lifts the hold (resetting the backend first with `reset=true` or after an emergency stop).
+reset: the backend's fault reset, refused while a job runs.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
 """Intake of the job service: a submission decoded, validated, planned and admitted, or refused.
 
-Theory of operation. The Zenoh callbacks (handlers.py) only queue a submission; the intake thread
-(`_intake_loop`) decodes it (payload.py), answers an idempotent resubmit (same job_id, same body) with
-the journalled job and a different body with CONFLICT, splits off the service's own sections (`buffer`,
-`lead_ms`, `record`), validates and plans through the backend (so INFEASIBLE/ENCODING_RANGE are known
-before the answer), applies NOT_READY and BUSY (bounded queue), has the job journalled (`accepted` +
-`planned`, one transaction) and only then replies (query) or publishes (put), and appends it to the
-cell's queue (cell_queue.py) with where the queue will end. Planning happens here, never on the motion
-runtime's SYNC thread. A refusal goes back as the query's error reply, or on `pvt/<cell>/rejected` (and
-the job's events key) for a put.
-
-`buffer = "aborting"` while a job moves is a change (`_admit_change`): the backend splices the new job
-in (or refuses, COMMAND_REJECTED, and nothing changes); the running job ends `aborted` naming the new
-one, which is journalled running at once and owns the motion and its cancel token from there on.
+Theory of operation. Zenoh callbacks only queue a submission; the intake thread decodes it (payload.py),
+answers an idempotent resubmit from the journal (a different body: CONFLICT), splits off the service's
+sections (`buffer`, `lead_ms`, `record`), validates and plans through the backend (never on the SYNC
+thread), applies NOT_READY and BUSY, journals `accepted` + `planned` in one transaction and only then
+replies or publishes, and queues the job. `buffer = "aborting"` while a job moves is a change
+(`_admit_change`): the backend splices it in or refuses (COMMAND_REJECTED); the running job ends
+`aborted` and the new one owns the motion from there on.
 """
 
 from __future__ import annotations

@@ -1,14 +1,10 @@
 """The journal calls of the job service: the events thread, the only writer of the job journal.
 
-Theory of operation. Every part of the service that has something to say about a job (intake's
-`accepted` + `planned`, the executor's `priming` and final event, a progress update, a cancel) builds a
-`Post` (a batch of events for one job, with the row updates and, for a new job, the row to insert) and
-hands it to `Journal.submit`; it never writes the store itself. The events thread (`Journal.run`) takes
-the posts in order: each event gets the job's next sequence number, passes the transition table
-(model.py), the batch is committed in one transaction, and the events are then logged and published on
-the job's events key, in that order. A caller that must not answer before the journal has the events
-waits on the post (`Post.wait`). `recover()` fails the jobs a previous process left unfinished
-(SERVICE_RESTART) before the service answers anything.
+Every part with something to say about a job builds a `Post` (a batch of one job's events and row updates)
+and hands it to `Journal.submit`. The events thread (`Journal.run`) takes posts in order: each event gets
+the job's next sequence number and passes the transition table (model.py), the batch is committed in one
+transaction, then logged and published. A caller that must not answer first waits (`Post.wait`).
+`recover()` fails the jobs a previous process left unfinished (SERVICE_RESTART).
 """
 
 from __future__ import annotations

@@ -1,7 +1,6 @@
 """The Zenoh key space of one cell; every key the service and the client use is built here.
 
-    pvt/<cell>/submit                  get (payload: msgpack job) -> accepted reply | error reply
-                                       put (payload: msgpack job with job_id) -> outcome on the events key
+    pvt/<cell>/submit                  get (msgpack job) -> reply | error; put (job with job_id) -> events key
     pvt/<cell>/rejected                publications: every rejected put
     pvt/<cell>/jobs                    get -> list of job statuses (parameters: state, limit)
     pvt/<cell>/jobs/<job_id>           get -> status of one job
@@ -9,10 +8,9 @@
     pvt/<cell>/jobs/<job_id>/cancel    get -> cancel the job
     pvt/<cell>/service                 get -> service status (ready, held, queue, running job, drives)
     pvt/<cell>/reset                   get -> reset a faulted cell
-    pvt/<cell>/stop                    get -> stop all (cancel the running job, hold the queue);
-                                       parameter emergency=true: quick stop to every drive
+    pvt/<cell>/stop                    get -> stop all and hold; emergency=true: the emergency stop
     pvt/<cell>/hold                    get -> hold the queue (the running job finishes, no next one starts)
-    pvt/<cell>/resume                  get -> release the hold (parameter reset=true: clear a fault first)
+    pvt/<cell>/resume                  get -> release the hold (reset=true: clear a fault first)
     pvt/<cell>/telemetry               publications: per-axis telemetry at telemetry_hz
     pvt/<cell>/alive                   liveliness token of the service
 

@@ -1,11 +1,8 @@
 """Job states, event types and the transition table of the job service.
 
-A job is QUEUED when it is accepted (validated, planned and journalled), RUNNING from the moment the
-service hands it to the motion backend, CANCELLING from the moment a cancel (or a stop) of the running
-job is accepted until its stop has ended, and ends DONE, FAILED or CANCELLED. Every state change is an
-event; some events (`planned`, `running` and `cancelling` progress updates) keep the state.
-`transition()` is the only way a state changes: an event that has no entry for the current state
-raises, so a late or duplicated event can never resurrect a finished job.
+`transition()` is the only way a state changes; an event without an entry for the current state raises,
+so a late or duplicated event never resurrects a finished job. Some events keep the state (`planned`,
+progress updates).
 
     (new)      --accepted-->   QUEUED     --planned-->    QUEUED
     QUEUED     --priming-->    RUNNING    --running-->    RUNNING

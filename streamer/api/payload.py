@@ -1,30 +1,11 @@
 """Strict, bounded decoding of job submissions (and the msgpack helpers of the wire format).
 
-Theory of operation: a submission arrives as untrusted bytes from the network. `decode_submission`
-turns it into a `Submission` (the optional `job_id` and the job body, a plain dict with the same
-field names as the TOML/JSON job files) or raises `MotionError` with a stable code. It never raises
-anything else, whatever the bytes (a Hypothesis test feeds it arbitrary bytes).
-
-The checks run cheapest first and bound every cost before paying it:
-
-1. size: `len(data) > max_bytes` -> TOO_LARGE, before msgpack sees a byte;
-2. msgpack: one object, nothing after it; invalid, truncated, trailing bytes, or deeper than the
-   unpacker's own stack -> MALFORMED_PAYLOAD. Maps are built by a pairs hook so duplicate and
-   non-string keys are seen (msgpack would silently keep the last duplicate) instead of crashing;
-3. one iterative walk over the tree (no recursion, so no RecursionError) that checks: nesting depth
-   (MALFORMED_PAYLOAD), array length > max_array_len, i.e. more waypoints than the limit, and
-   string length (TOO_LARGE), non-string or duplicate keys (SCHEMA), binary/ext values, bools and
-   integers beyond +-2**53 where numbers live (TYPE), NaN and infinities (NONFINITE). Paths are the
-   job file's paths ("waypoints[7][2]") and messages name the axis when the path has one;
-4. envelope: a map whose only API field is `job_id` (the rule of names, planner.config.NAME_RULE: one
-   Zenoh key chunk); everything else is the job body, where `start = "current"` (path, move) is taken
-   out and flagged (`Submission.start_current`): the service, not the planner, knows where the axes
-   stand. Unknown job fields are rejected by the job validator
-   (`planner.job.job_from_dict`, via the backend) with SCHEMA: it owns the job schema.
-
-No job field is a boolean, so a bool anywhere in the body is a TYPE error ("bool as number"). The body
-hash used for idempotency is computed over a canonical form (sorted keys, ints as floats), so the same
-job re-encoded by another client still matches.
+Untrusted bytes -> a `Submission` (optional `job_id`, the job body as a plain dict) or `MotionError` with a
+stable code, never anything else (Hypothesis feeds it arbitrary bytes). Cheapest checks first, each cost
+bounded before it is paid: size, one msgpack object (pairs hook: duplicate and non-string keys seen), one
+iterative walk (depth, lengths, keys, bools, huge integers, NaN) with the job file's paths, the envelope
+(`job_id`, `start = "current"`). Unknown job fields are the validator's. The idempotency hash is over a
+canonical form, so another client's encoding of the same job matches.
 """
 
 from __future__ import annotations

@@ -1,33 +1,11 @@
 """Who may do what on the job API: TLS links, logins, and Zenoh access rules built from roles.
 
-Theory of operation. Zenoh does the enforcing; this module only builds its configuration:
-
-- **Links.** With `[security] enabled`, every endpoint of the service is `tls/...`: rustls verifies
-  each side's certificate chain against the cell's CA, and with mutual TLS (the default) a client
-  without a certificate from that CA cannot open a link at all. Optionally every client must also
-  log in (Zenoh's user/password authentication, a `users_file` of `user:password` lines).
-- **Identity.** The access rules see each remote session as a *subject*: the common name (CN) of its
-  certificate, and its login name. `[security]` maps subjects to three roles: `observer` (reads),
-  `operator` (reads and every write), `service` (a service or router of the same deployment: all).
-- **Rules.** `KEY_ACCESS` is the one table of the key space with the least role each key needs.
-  `access_control()` turns it into Zenoh's `access_control` section: default deny, one policy per
-  role, over `pvt/*/...` (every cell of the deployment). A key's operation decides which Zenoh
-  messages a rule allows, on both sides of the service's link to the client (a query must come in
-  and its reply go out; a publication needs the subscriber's declaration in and the sample out):
-
-      query       client -> service: query;            service -> client: reply, declare_queryable
-      put         client -> service: put;              service -> client: declare_subscriber
-      subscribe   client -> service: declare_subscriber;  service -> client: put
-      liveliness  client -> service: liveliness_query, declare_liveliness_subscriber;
-                  service -> client: liveliness_token
-
-  A new write key (change, record, ...) is operator-only without any edit: the last row grants
-  operators every query under `pvt/<cell>/`, and observers only get the rows that name them. Nothing
-  else grants access: a subject in no role, or a link without an identity, is denied everything.
-
-The service's own session applies the rules to the links of the clients that connect to it (a
-router-mode service, or a router in front of services, enforces them for everyone behind it). The
-Python client (`ClientSecurity`) only needs the CA, its certificate and key, and its login.
+Zenoh enforces; this module builds its configuration. With `[security] enabled` every endpoint is TLS,
+mutual by default (no certificate from the cell's CA, no link), with optional logins. A session's subjects
+(certificate CN, login name) map to roles observer (reads), operator (reads and writes), service (all).
+`KEY_ACCESS` is the one table of the least role per key; `access_control()` turns it into Zenoh's
+default-deny rules for the messages each operation needs both ways (docs/security.md). A new write key is
+operator-only without an edit. The client (`ClientSecurity`) needs its CA, certificate, key and login.
 """
 
 from __future__ import annotations

@@ -1,31 +1,11 @@
 """The job service of one cell: Zenoh in, motion backend out, everything journalled.
 
-Theory of operation. Five threads, each owning one concern; Zenoh callbacks only copy the request
-into a queue (they run on Zenoh's threads and must return at once). Each concern is a module of its
-own, and `JobService` is put together from them:
-
-- intake (intake.py): decodes a submission, answers idempotent resubmits and CONFLICT from the
-  journal, validates and plans through the backend, applies NOT_READY and BUSY, has the job journalled
-  and only then answers; `buffer = "aborting"` while a job moves is a change of the running motion.
-- executor (cell_queue.py): the cell's queue and hold policy: takes queued jobs one at a time unless
-  the queue is held, checks each still starts where the axes stand, calls `backend.execute` (blocking)
-  with a progress emitter (progress.py) and a `CancelToken`, writes the job's recording, journals the
-  result; the travel memory (last target and direction per axis) for the backend's plans.
-- control (handlers.py, control_verbs.py): status, list, event history and service status queries, and
-  the verbs cancel, stop (emergency too), halt, hold, resume and reset, separate from intake so a long
-  planning job does not stall them.
-- events (journal.py): the only writer of the journal: every event gets the job's next sequence number,
-  passes the transition table (model.py), is committed, and is then published on the job's events key,
-  in order. Backends may emit from any thread; emitting never blocks (progress is throttled).
-- telemetry (telemetry.py): publishes the backend's per-axis snapshot at `telemetry_hz`.
-
-service_state.py holds what the parts share (the queue under one lock, the hold, the options) and the
-Zenoh output. This module starts and stops the threads.
-
-On start, jobs the journal shows queued, running or cancelling (the previous process died) are failed
-with SERVICE_RESTART and those events published before the service answers anything. A liveliness
-token on `pvt/<cell>/alive` tells clients the service is up. Every job's acceptance, start and end is
-logged (logger `streamer.api.service`, INFO, for every part).
+Five threads, each a concern of its own module; Zenoh callbacks only queue the request. Intake
+(intake.py: decode, validate, plan, journal, answer), executor (cell_queue.py: queue, hold, execute),
+control (handlers.py, control_verbs.py: queries and verbs, apart so planning never stalls them), events
+(journal.py: the journal's only writer, in order) and telemetry (telemetry.py). service_state.py holds
+what they share; this module starts and stops them. On start, jobs left unfinished fail SERVICE_RESTART
+before anything is answered; `pvt/<cell>/alive` says the service is up.
 """
 
 from __future__ import annotations

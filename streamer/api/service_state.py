@@ -1,16 +1,10 @@
 """The state the job service's parts share, and how the service speaks on its Zenoh session.
 
-Theory of operation. `JobService` (service.py) is put together from parts, each in a module of its own
-and each a class over this one: intake.py (decode, validate, plan, admit), cell_queue.py (the queue, the
-hold and the executor), control_verbs.py (cancel, stop, emergency stop, halt, hold, resume, reset),
-telemetry.py (status and the telemetry publisher), handlers.py (the Zenoh callbacks and read-only
-queries); the journal (journal.py) and the progress emitter (progress.py) are objects they use. This
-class owns what they share: the options, the backend and store, one condition variable (`_cv`) that
-guards the queue (`_pending`, `_current`, `_queue_end`), the travel memory and the hold, and the
-counters. Nothing here starts a thread; service.py's `start()` does.
-
-Answers go out through `_put` (publish), `_reply` and `_reply_err` (a query's one answer): msgpack, and
-a failure to send is logged, never raised (the peer may have gone).
+`JobService` (service.py) is a class over this one per part (intake, cell_queue, control_verbs,
+telemetry, handlers). This class owns what they share: options, backend and store, one condition
+variable `_cv` guarding the queue (`_pending`, `_current`, `_queue_end`), the travel memory, the hold and
+the counters; it starts no thread. Answers go out through `_put`, `_reply`, `_reply_err` (msgpack); a
+failure to send is logged, never raised (the peer may have gone).
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
 """The job journal: every accepted job, every event and every result, in SQLite (stdlib sqlite3, WAL).
 
-Theory of operation: the service writes a job's row and its first events (`accepted`, `planned`) in
-one transaction *before* it answers the submitter, then appends each later event (state change,
-progress, result) in its own transaction. So a job that a client was told about is on disk, and after
-a crash (even SIGKILL) `unfinished()` finds every job that was queued or running; the service marks
-them FAILED with SERVICE_RESTART on its next start. `synchronous=FULL` (the default) also survives
-power loss at ~0.2 ms per commit measured here; NORMAL is available for tests.
-
-One writer: the service's event thread is the only thread that writes (the service hands every write
-to it), readers (status queries, `pvt jobs`) use their own connections; WAL lets them read while it
-writes. Each thread gets its own connection. `ServiceLock` (an flock on `<db>-lock`) keeps a second
-service from journalling into the same file; the kernel drops the lock when the process dies.
-
-Tables: `jobs` (one row per job, current state and result), `events` (job_id, seq) -> event, `meta`.
+Theory of operation: a job's row and its first events are written in one transaction before the
+submitter is answered, each later event in its own, so a job a client was told about is on disk and
+after a crash (even SIGKILL) `unfinished()` finds it; the next start fails it SERVICE_RESTART.
+`synchronous=FULL` survives power loss (NORMAL for tests). One writer (the service's event thread);
+readers use their own connections, WAL lets them read while it writes. `ServiceLock` (an flock on
+`<db>-lock`) keeps a second service out. Tables: `jobs`, `events` (job_id, seq), `meta`.
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """Build `zenoh.Config` objects that never leave the endpoints they are given.
 
-A default Zenoh peer listens on every interface and scouts by UDP multicast. This product never wants
-that: every config built here has multicast scouting off and explicit endpoints only. Services listen
-on `tcp/127.0.0.1:7447` unless the cell config says otherwise; clients are connecting peers (or
-clients) with no listen endpoint at all.
-
-Security (TLS, logins, access rules) comes from streamer/api/security.py: `service_config` adds the
-cell's `[security]` settings and logs a warning when a service is reachable beyond loopback without
-TLS and access control; `client_config` adds a `ClientSecurity`.
+A default Zenoh peer listens everywhere and scouts by multicast; every config here has multicast scouting
+off and explicit endpoints only (services on tcp/127.0.0.1:7447 unless configured; clients listen on
+nothing). `service_config` adds the cell's `[security]` (streamer/api/security.py) and warns when a
+service is reachable beyond loopback without TLS and access control; `client_config` adds `ClientSecurity`.
 """
 
 from __future__ import annotations

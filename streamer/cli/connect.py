@@ -1,10 +1,5 @@
-"""What the client-side subcommands share (not a subcommand): the connection options, finding the cell's
-service (and naming the cells that are up when `--cell` is wrong), and the exit codes.
-
-    pvt status --connect tcp/127.0.0.1:7447 --cell demo
-    pvt stop --connect tls/10.0.0.5:7447 --cell line1 --ca ca.pem --cert operator.pem --key operator.key
-
-Exit codes of `pvt submit`, `status`, `watch`, `cancel`, `stop`, `hold`, `resume` (docs/api.md section 13):
+"""What the client-side subcommands share (not a subcommand): connection options, finding the cell's service
+(naming the cells that are up when `--cell` is wrong), and the exit codes (docs/api.md section 13):
 
     0  done (or: accepted, answered)        3  the job was cancelled
     1  the job failed                       4  --timeout: still queued or running (not cancelled)

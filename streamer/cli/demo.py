@@ -1,17 +1,10 @@
 """`pvt demo`: plan the default 6-axis path and stream it to simulated drives, in one process.
 
-With no arguments: python-can `virtual` bus, the cell's simulated EPOS-style drives, the streamer, in
-real time at the cell's SYNC period (10 ms). A live progress bar shows every axis' FIFO fill. Writes
-report.json, motion.png, bus.log (candump -L) and job.mcap (the job's recording) to --out (default
-demo-out/). Exit status 0 when the job is done with every guarantee met, 1 when the job failed or a
-guarantee was missed, 2 when the job or config was rejected. A job for some of the cell's axes moves those
-(the others stand); --axes N runs the job on N axes, axis i like the job's axis (i mod its axes).
-
-A velocity job (mode "velocity", endless) runs until the chunk that brakes by itself before the software
-position limits ends it, at rest (as `pvt serve` would without a change or a stop): its ramp, its cruise
-extended chunk after chunk, its braking. The report, motion.png and job.mcap cover that whole stream, and its
-final position is where that braking chunk stops. A home job (kind "home") is refused
-(status 2): it plans no motion to stream; `pvt serve --sim` and `pvt submit` run it.
+Real time at the cell's SYNC period on python-can's `virtual` bus with the cell's simulated drives, a live
+progress bar of every FIFO; writes report.json, motion.png, bus.log (candump -L) and job.mcap to --out
+(default demo-out/). Exit 0 done with every guarantee met, 1 failed or a guarantee missed, 2 rejected.
+--axes N runs the job on N axes. A velocity job runs until its chunk that brakes before the position
+limits; a home job is refused (`pvt serve --sim` runs it).
 """
 
 from __future__ import annotations

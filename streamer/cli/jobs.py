@@ -1,20 +1,12 @@
-"""`pvt jobs`: list the jobs journalled by a cell's job service (read from its SQLite journal), and
-show or export one job's recording.
+"""`pvt jobs`: list the jobs journalled by a cell's job service, and show or export one job's recording.
 
-    pvt jobs --config configs/demo.toml            # the journal of the config's cell, in the state dir
-    pvt jobs --store /var/lib/pvt --state failed --json   # the data directory `pvt serve --store` used
-    pvt jobs --config configs/demo.toml --events JOB_ID
+    pvt jobs --config configs/demo.toml [--state failed] [--json] [--events JOB_ID]
     pvt jobs show JOB_ID [--config CELL | --store PATH] [--json]
     pvt jobs export JOB_ID [--csv PATH] [--html PATH] [--mcap PATH]
-    pvt jobs --connect tls/127.0.0.1:7447 --cell demo --ca ca.pem --cert observer.pem --key observer.key
 
-Reads the journal directly (no Zenoh, works while the service is down, and while it runs: WAL), or,
-with --connect, asks a running service over the job API (an observer's read; docs/security.md). The
-journal is `<data dir>/<cell>.jobs.sqlite`, the data dir being `--store DIR` or the user's state
-directory ($XDG_STATE_HOME/pvt, else ~/.local/state/pvt); `--store FILE.sqlite` names the file itself.
-`show` and `export` read the job's MCAP recording beside the journal (`<journal stem>.recordings/`,
-or `--recordings DIR`); JOB_ID may also be the path of an .mcap file (e.g. `demo-out/job.mcap`).
-Tables fit the terminal: columns that do not fit are left out (the caption names them; --json has all).
+Reads the SQLite journal directly (works while the service is down or running: WAL), or with --connect
+asks a running service (an observer's read). The journal is `<data dir>/<cell>.jobs.sqlite` (`--store`,
+else $XDG_STATE_HOME/pvt); recordings are beside it, or an .mcap path. Tables fit the terminal (cli/tables.py).
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
 """`pvt jog AXIS +|-`: move one axis at a constant velocity while the command runs, then stop it.
 
-A velocity move (`mode = "velocity"`, streamed open-ended, extended as it runs) on one axis of an idle
-cell, until Ctrl-C or `--for` seconds; then a halt (the axis stops on its jerk-limited stop trajectory and,
-unlike `pvt stop`, the queue is not held: a jog is not an abort). The axis brakes by itself before its
-software position limit. `--speed` in the axis' unit per second (default: 10 % of its velocity limit).
-
     pvt jog j1 + --connect tcp/127.0.0.1:7447 --cell demo        # until Ctrl-C
     pvt jog j2 - --speed 0.05 --for 2 --cell demo
 
-Exit status: 0 jogged and stopped (also when the position limit stopped it), 1 the jog failed, 2 refused
-(unknown axis, the cell is busy or not ready, bad options), 5 no service.
+An endless velocity move on one axis of an idle cell, then a halt (the queue is not held: a jog is not an
+abort); it brakes by itself before the position limit. Exit 0 jogged and stopped, 1 failed, 2 refused or
+bad options, 5 no service.
 """
 
 from __future__ import annotations

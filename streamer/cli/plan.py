@@ -1,17 +1,9 @@
 """`pvt plan JOB --config CELL [--out pvt.csv] [--plot pvt.png] [--json]`: plan and encode one job.
 
-Prints a summary (duration, points, points per second, max deviation per axis in counts, peak
-velocity and acceleration against the limits) and how the motion follows its geometry: a path along
-straight segments (corners blended within path_tolerance, exact stops) or a spline, a move along the
-straight line from start to target or not. `--out` writes the PVT points as CSV (columns
-axis,node_id,index,time_s,dt_ms,position_counts,velocity_rpm; each axis' first row is its start point
-with dt_ms 0), `--plot` draws position, velocity, acceleration and deviation per axis, `--json` prints
-the summary as JSON instead of the table. A rejected job prints its error code, path and message and
-exits with status 2.
-
-A home job (kind "home") plans nothing: `pvt plan` prints what the drives will do instead (per axis the
-homing method and what it searches, the search and zero speeds, the acceleration and the home position);
-`--out` and `--plot` are refused for it (status 2).
+Prints the summary (duration, points, deviation per axis in counts, peaks against the limits) and how the
+motion follows its geometry (blends and exact stops, spline, along the line or not); `--out` writes the
+PVT points as CSV (docs/formats.md, section 4), `--plot` the per-axis curves, `--json` the summary. A
+rejected job prints its code, path and message (status 2). A home job prints what the drives will do.
 """
 
 from __future__ import annotations

@@ -3,15 +3,10 @@
     pvt probe --config CELL [--bus IF:CH] [--node N ...] [--write]      # the cell's real drives
     pvt probe --config CELL --sim | --fast                               # its simulated drives
 
-For each node: its identity (0x1018), every object the product uses (present, value read back), and
-how the drive settles each point the maxon manuals leave open, measured at standstill (bus/probe.py:
-SYNC latency, the TPDO of the enabling SYNC, what the FIFO count includes, the first record, the drive's
-clock, queue underflow, demand rounding). Nothing moves but a one-count step and back (the rounding
-test); the underflow test makes the drive report an underflow EMCY at standstill and is fault-reset
-afterwards. Prints a table and the TOML lines for the cell; `--write` puts them into the cell file as
-`[axis.probed]` tables (comments and layout kept), so the master need not measure them again at every
-start. Exit 0 when every node was measured, 1 when a drive did something no reading explains (or lacks
-an object the product needs), 2 for a bad config or bus.
+Per node: identity (0x1018), every object the product uses, and the readings of the manuals' open points
+measured at standstill (bus/probe.py; only a one-count step moves, and the underflow test faults and
+resets the drive). `--write` puts them into the cell file as `[axis.probed]` (layout kept). Exit 0 all
+measured, 1 a drive no reading explains or lacking an object, 2 bad config or bus.
 """
 
 from __future__ import annotations

@@ -1,27 +1,11 @@
 """`pvt record`: read the drives' own data recorders (seed 004), optionally around a job.
 
-    pvt record --config CELL --node N [--node N ...] --var NAME|0xIIII:SS [--var ...]
-               (--period-ms T | --total-ms T) --trigger movement|error|input|end|continuous|force
-               [--preceding-ms T] [--job JOB] [--fast] [--bus IF:CH] [--out DIR]
+    pvt record --config CELL --node N --var NAME|0xIIII:SS (--period-ms T | --total-ms T)
+               --trigger movement|error|input|end|continuous|force [--job JOB] [--fast] [--out DIR]
 
-Configures the recorder of each node over SDO (0x2011-0x2016), arms it (0x2010), waits the preceding
-time so the samples before the trigger exist, optionally runs JOB (with the movement trigger every node
-triggers at the job's start SYNC: the synchronous start), waits until every recorder stopped by itself
-(continuous: until the buffer spans its time once, then stops it), uploads 0x201B (SDO block upload,
-segmented where the drive has no block upload) and decodes each node's buffer into one series per
-variable with the trigger at t = 0. Writes to DIR (default record-out/): recording.csv (`time_s`, then
-`<node>.<variable>` in drive units), recording.png and recording.html (the interactive report).
-
-Without --fast it runs in real time on the cell's bus (--bus overrides it): on python-can's `virtual`
-interface the cell's simulated drives run in this process; on any other the drives are real (or
-`pvt sim`). With --fast the same drive models and runtime run in virtual time, where the buffer is read
-straight from the simulated drive (there is no SDO on the virtual-time bus).
-
-Variables: position_demand (0x6062), position_actual (0x6064), velocity_actual (0x606C), current_actual
-(0x6078), statusword (0x6041), ip_buffer_status (0x20C4:01), following_error (0x60F4), fifo_free
-(0x60C4:02), or any 8/16/32-bit readable object as 0xIIII:SS. Exit status 0 when every node triggered
-and its recording was read (and the job, if any, is done), 1 when a node did not trigger in time or the
-job failed (what was recorded is still written), 2 for bad input.
+Configures and arms each recorder over SDO, optionally runs JOB, uploads and decodes, and writes
+recording.csv, .png and .html (trigger at t = 0) to DIR. --fast runs in virtual time. Exit 0 all read,
+1 a node did not trigger or the job failed, 2 bad input.
 """
 
 from __future__ import annotations

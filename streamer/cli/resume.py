@@ -1,13 +1,9 @@
-"""`pvt resume`: release a held queue (after `pvt stop`, a cancel of the running job, or `pvt hold`): the
-next queued job starts. After `pvt stop --emergency` it re-enables the drives first. `--reset` also
-clears a drive fault (a cell that is not ready for another reason refuses a plain resume).
+"""`pvt resume`: release a held queue; the next queued job starts.
 
     pvt resume --connect tcp/127.0.0.1:7447 --cell demo [--reset]
 
-Before a queued job starts, the service checks it still starts where the axes stand: a move is
-re-planned from there, a path/timed/pvt job fails INFEASIBLE naming the axis and both positions (unless
-it has `start = "current"`). Exit status: 0 resumed, 2 refused (NOT_READY, BUSY) or bad options, 5 no
-service.
+After `pvt stop --emergency` it re-enables the drives first; `--reset` also clears a drive fault. A queued
+job must still start where the axes stand (a move is re-planned). Exit 0 resumed, 2 refused, 5 no service.
 """
 
 from __future__ import annotations

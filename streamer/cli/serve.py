@@ -3,15 +3,10 @@
     pvt serve --config configs/demo.toml --sim
     pvt serve --config cell.toml --bus socketcan:can0 --bitrate 500000 --listen tcp/127.0.0.1:7447
 
-The Zenoh session defaults to the cell config's `[zenoh]` section (peer mode, listening on
-tcp/127.0.0.1:7447, multicast scouting always off); `--mode/--listen/--connect` override it. The
-config's `[security]` section turns on TLS, logins and the role-based access rules (docs/security.md);
-without it the service warns when it listens beyond loopback. The service's state (the job journal
-`<cell>.jobs.sqlite`, its lock, and the recordings `<cell>.jobs.recordings/`) goes into a data directory:
-`--store DIR`, default the user's state directory ($XDG_STATE_HOME/pvt, else ~/.local/state/pvt), never
-beside the cell config. It logs every job's acceptance, start and end. Stops cleanly on SIGINT/SIGTERM
-(queued jobs fail SERVICE_STOPPED, the running job is cancelled with its jerk-limited stop); after a crash
-the next start reports the interrupted jobs as SERVICE_RESTART.
+Zenoh from the cell's `[zenoh]` (peer, tcp/127.0.0.1:7447, multicast scouting always off) unless
+overridden; `[security]` turns on TLS, logins and roles (docs/security.md). State (journal, lock,
+recordings) goes into `--store DIR`, default $XDG_STATE_HOME/pvt, never beside the config. SIGINT/SIGTERM
+stop cleanly (queued jobs fail SERVICE_STOPPED, the running one is cancelled).
 """
 
 from __future__ import annotations

@@ -1,18 +1,11 @@
-"""`pvt sim`: run a cell's simulated EPOS IPM drives on a CAN bus in real time.
+"""`pvt sim`: run a cell's simulated drives on a CAN bus in real time.
 
-    pvt sim --config configs/demo.toml                       # the cell's [bus] (default: virtual)
-    pvt sim --config CELL --bus socketcan:vcan0 --bitrate 1000000
-    pvt sim --config CELL --stop-on-stdin-eof < pipe          # leave the bus with the process feeding the pipe
+    pvt sim --config configs/demo.toml [--bus socketcan:vcan0] [--stop-on-stdin-eof] [--duration S]
 
-The drives (bus/sim: one canopen LocalNode + pure drive model per axis) boot (boot-up message), answer
-SDO, follow NMT, SYNC and RPDOs, and send TPDOs, EMCYs and heartbeats, until SIGINT or SIGTERM (or
-`--duration` seconds, or with `--stop-on-stdin-eof` until standard input closes); then they leave the bus
-cleanly. A parent that starts the drives (`pvt demo`) gives them a pipe for standard input: when the parent
-ends, however it ends (SIGKILL too), the pipe closes and the drives leave the bus with it, instead of
-answering the next master on it. A second process (`pvt serve`, any CANopen
-master) talks to them over the same bus. On the `virtual` interface only masters in this process can
-reach them; across processes use the `ipc` bus (bus/ipc.py, any Linux) or socketcan (vcan0). The drives'
-threads run at real-time priority where the system permits (`--rt-priority`), as hardware answers on time.
+The drives (bus/sim, one canopen LocalNode and drive model per axis) boot, answer SDO, NMT, SYNC and
+RPDOs, and send TPDOs, EMCYs and heartbeats until a signal, `--duration`, or standard input closing (a
+parent's pipe: the drives leave the bus when it dies, however it dies). Across processes use the `ipc`
+bus or socketcan; `virtual` reaches only this process. Threads at real-time priority where permitted.
 """
 
 from __future__ import annotations

@@ -1,14 +1,10 @@
-"""`pvt stop`: stop all. The running job stops on its jerk-limited stop trajectory and ends `cancelled`;
-the queue holds (queued jobs stay queued) until `pvt resume`. `--emergency`: the running job stops on a
-trajectory planned at each axis' emergency deceleration (`emergency_deceleration` in the cell), from the
-end of what is queued; where no such plan is possible in time, or nothing runs, quick stop (controlword
-0x000B) on every drive, each ramping down on its quick stop deceleration 0x6085. The running job ends
-`failed` EMERGENCY_STOP (`detail.method` says which) and `pvt resume` re-enables the drives.
+"""`pvt stop`: stop all; the running job stops on its jerk-limited stop and the queue holds until `pvt resume`.
 
     pvt stop --connect tcp/127.0.0.1:7447 --cell demo             # waits until the axes stand still
     pvt stop --emergency --cell demo
 
-Exit status: 0 stopped (and held), 2 refused or bad options, 5 no service.
+`--emergency`: a stop at each axis' emergency deceleration, or the quick stop on every drive when none is
+possible in time; the job fails EMERGENCY_STOP. Exit 0 stopped and held, 2 refused, 5 no service.
 """
 
 from __future__ import annotations

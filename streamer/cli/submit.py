@@ -1,25 +1,12 @@
 """`pvt submit`: send a job file to a cell's job service; with --wait, follow it with a progress bar.
 
     pvt submit configs/jobs/pick.toml --connect tcp/127.0.0.1:7447 --cell demo --wait
-    pvt submit JOB --wait --timeout 60          # stop *waiting* after 60 s (the job goes on)
-    pvt submit JOB --connect tls/127.0.0.1:7447 --ca ca.pem --cert operator.pem --key operator.key
     pvt submit MOVE --buffer aborting           # a new target for the running move, without stopping
 
-`--buffer aborting` (a move): replaces the running job's remainder without stopping (it ends aborted);
-COMMAND_REJECTED (exit 2) when the change cannot be made, and the running job goes on. `--lead-ms MS`:
-this job's lead time (a change or a stop acts after it; shorter reacts faster, with less margin).
-
-Each run is a new job: the file's `job_id` is a name, the run's id is `<job_id>-<8 hex digits>` (as
-`MotionClient.submit`); `--job-id` gives the exact id, and resubmitting an exact id is idempotent: that
-is how to find out whether a submission whose answer never came was accepted.
-
-Exit status (streamer/cli/connect.py): 0 accepted (with --wait: done); 1 the job failed; 2 rejected
-(never accepted: fix it and submit again) or bad usage; 3 the job was cancelled (or aborted: replaced by a
-change); 4 --timeout ran out
-while the job was still queued or running (it was not cancelled); 5 no service, or the service went
-away while waiting (the job's fate is unknown: look with `pvt jobs` or `pvt status`). --wait waits as
-long as the job is queued or running, however long the queue. Ctrl-C while waiting cancels the job
-(its jerk-limited stop; the queue then holds until `pvt resume`) and waits for it.
+Each run is a new job `<job_id>-<8 hex digits>`; `--job-id` gives the exact id (resubmitting it is
+idempotent). `--lead-ms` sets the job's lead. Exit status (streamer/cli/connect.py): 0 accepted (with
+--wait: done), 1 failed, 2 rejected or bad usage, 3 cancelled or aborted, 4 --timeout ran out while the
+job was queued or running (it goes on), 5 no service or it went away. Ctrl-C while waiting cancels the job.
 """
 
 from __future__ import annotations

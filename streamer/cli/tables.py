@@ -1,19 +1,10 @@
 """Tables and numbers for the terminal (not a subcommand): fit the width, never cut a value.
 
-Rich shortens a cell that does not fit with an ellipsis ("unde…", "demo-pat…") and cuts headers. A
-value cut in half is worse than no value, so `fit_table` decides the layout itself: value columns (ids,
-numbers, states) get the width of their longest value and never break; text columns (messages) take the
-rest and wrap at spaces; headers are wrapped to their column's width (units go in the headers:
-"deviation [counts]"). Optional columns are shown while they fit (the lowest `drop` first), and a
-caption names the ones left out and where to see them. When even the required columns cannot fit, the
-table turns into records (one "field value" block per row), values folded but whole.
-
-The one exception is a `cut` column (a listing's error: one line per row matters more there than the whole
-text, which has a place of its own): it takes the width the others leave, on one line, and a value longer
-than that ends in "…"; the caption says where the whole text is (`Col.whole`). It never turns the table
-into records: it shrinks down to its header's width first.
-
-`number` prints a number without an exponent (1000, not 1e+03) with about `digits` significant digits.
+A value cut in half is worse than no value, so `fit_table` lays tables out itself instead of Rich's
+ellipsis: value columns get their longest value and never break, text columns wrap at spaces, headers
+wrap (units go in them), optional columns show while they fit (a caption names the rest), and a table
+that cannot fit becomes records. A `cut` column (a listing's error) is the exception: one line, ending
+in "…", its caption saying where the whole text is. `number` prints without an exponent.
 """
 
 from __future__ import annotations

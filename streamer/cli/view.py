@@ -2,13 +2,9 @@
 
     pvt view --cell demo [--port 8080] [--role observer] [--config configs/demo.toml]
 
-It connects to the cell's service like `pvt watch` (the same --connect and security options: the page
-reads and acts with this identity) and serves one self-contained page (no CDN: its scripts ship with pvt):
-each axis' position against its demand and the following error over the last seconds, the FIFO fill
-against the watermarks, the drives' states, the running job's progress, the queue, the last events; for
-the operator role the buttons stop, emergency stop, hold and resume (through the job API: the service
-decides whether the identity may). `--role observer` serves a page without them. The URL it prints
-carries a random token (as Jupyter's): without it the server answers 401. Runs until Ctrl-C.
+Connects like `pvt watch` (the page reads and acts with this identity) and serves one self-contained page:
+positions, following errors, FIFO fills, states, progress, queue and events; for an operator the stop,
+emergency stop, hold and resume buttons. The printed URL carries a random token. Runs until Ctrl-C.
 """
 
 from __future__ import annotations

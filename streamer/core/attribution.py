@@ -1,37 +1,11 @@
 """Feedback attribution: which SYNC a drive's synchronous TPDO answers, decided by what it contains.
 
-Owns the one rule every consumer of feedback uses (the coordinator's start, fill and demand checks, and
-through the coordinator's `FeedbackLog` the job report's deviation): it is given the bounds the protocol
-sets and a `fits(sync)` test of the TPDO's content, and returns the SYNC. No I/O, no clock.
-
-Why content, not arrival. A drive answers every SYNC once, in order (CiA 301), but how soon is open: an
-EPOS may answer up to 0.9 period late, and a loaded bus or host adds to that, so the answer to SYNC k can
-reach the master after SYNC k + 1 (reordered with it). When it arrived (its bus stamp `t`) is then no key:
-a late stamp made the master take the answer to k for the answer to k + 1 (a false PROTOCOL one SYNC of
-travel off, or a false "record arrived twice"). What the answer says is a key: a running axis' position
-demand is known in advance for every SYNC (the coordinator predicts it from the queued records with
-planner.encoding.hermite), and so are the fill the FIFO can show and whether ip mode can be active.
-
-The candidates for one TPDO of one node are the SYNCs it can answer:
-- not after `upper`, the newest SYNC on the wire when it arrived (the runtime's tag: an answer never comes
-  before its SYNC);
-- after `after`, the last SYNC this PDO of the node answered (once, in order), and for TPDO1 also after the
-  last SYNC its TPDO2 answered (a drive sends a SYNC's TPDOs in PDO order, TPDO1 first);
-- not before `upper - reach`: the SYNCs whose answers may still be on their way. The caller measures it on
-  the wire (streamer/core/feedback.py `_reach`): at least REACH, and every SYNC sent within the TPDO timeout
-  before the newest, so a sender that stalled and then put the SYNCs it owed on the wire back to back (or a
-  host that held the drives' answers up as long as the timeout allows) leaves the answers in reach. A reach
-  counted in SYNCs alone would take the answer to SYNC k, arriving after a burst up to k + 4, for k + 1's:
-  content that fits both (a FIFO's fill) would be one SYNC off, content that does not a false PROTOCOL;
-- TPDO2 every n-th SYNC: only SYNCs whose counter carries the node (the feedback schedule, 0x1019).
-The order's choice is the earliest of them: with no answer lost it is the one (the drive answers every
-SYNC, in order). If the content fits it (or content has no say: the axis at rest, a state with nothing to
-check), it is taken; else the earliest candidate the content fits (an answer was lost: this one answers a
-later SYNC); if none fits, the order's choice, and the check that follows reports the fault (a lost,
-duplicated or swapped record fits no SYNC, so it is caught at once, as before). Taking the earliest never
-attributes an answer to a SYNC after the one it answers while the drive is right, so the bounds the next
-TPDO gets stay true; after a lost answer with nothing to tell the SYNCs apart (at rest) the attribution may
-lag by a SYNC until the content differs, which no check minds (they all fit).
+A drive answers every SYNC once, in order, but may answer after the next SYNC, so arrival is no key;
+content is (a running axis' demand, the possible fill and ip state are predictable per SYNC). Candidates:
+after the last SYNC this PDO (and for TPDO1 its TPDO2) answered, not after the newest SYNC on the wire at
+arrival, not before the measured reach, and for a staggered TPDO2 only SYNCs that carry the node. The
+earliest candidate is taken if the content fits it, else the earliest that fits, else the earliest (and
+the check reports the fault); this never attributes an answer too late while the drive is right. Pure.
 """
 
 from __future__ import annotations

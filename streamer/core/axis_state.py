@@ -1,25 +1,14 @@
 """Axis state machine: the states, inputs and transition tables of the two axis kinds, and the moves on them.
 
-Both kinds of axis (a FIFO drive fed PVT records, fifo_feeder.py; a cyclic drive fed one set point per SYNC,
-cyclic_feeder.py) go through the same states on the same inputs, so the coordinator drives them alike:
-
     WAITING --READY--> PRIMING --PRIMED--> PRIMED --START--> STARTING --ACTIVE--> STREAMING
     STREAMING --END_QUEUED--> DRAINING --STOPPED--> FINISHED
     STARTING/STREAMING --HALT--> HALTING --STOPPED--> FINISHED
     WAITING/PRIMING/PRIMED --ABANDON--> FINISHED          (cancel before the start)
     any state but FAULTED --FAULT--> FAULTED             (poisoned: never sends again)
 
-Each kind has its own table (`FIFO_TRANSITIONS`, `CYCLIC_TRANSITIONS`). A cyclic axis drains as soon as
-its last set point is sent, so two inputs also reach it there: DRAINING --EXTENDED--> STREAMING when a
-splice gives it set points after that one, and DRAINING --HALT--> HALTING (a FIFO axis leaves DRAINING
-only stopped or faulted). A missing entry raises `InvalidTransition` (a bug in the caller).
-
-`AxisStateMachine` is the part both feeders share: the state, `fire`, and the named moves the coordinator
-makes on an axis (`activated`, `stopped`; attribution: `answers_from`, `answered`; telemetry:
-`controlword_sent`, `demand_checked`, `failed`), so that no coordinator part writes a feeder's state, its
-attribution marks or its telemetry itself (a cyclic axis adds its own moves: `ready`, `ip_requested`,
-`seen_active`, `ip_released`, in cyclic_feeder.py). The readings recorded for the configuration check
-(`first_status`, `first_demand`) and a cyclic axis' `last_statusword` are still written by feedback.py.
+FIFO and cyclic axes share the states, each with its table (a cyclic axis drains once its last set point
+is sent, so DRAINING also takes EXTENDED and HALT); a missing entry raises `InvalidTransition`.
+`AxisStateMachine` holds the state and the named moves the coordinator makes on an axis.
 """
 
 from __future__ import annotations

@@ -1,72 +1,17 @@
 """Coordinator: the multi-axis job state machine of the PVT streamer (one object per job, no I/O).
 
-Owns one job: the shared timing of the record streams, one `FifoFeeder` per axis, the lockstep
-prefix (how many records every axis should have been sent), the per-SYNC frame budget, the
-synchronous start, finish, cancel and fault handling, and the job outcome. It is fed
-`bus.events` (Sync, BufferStatus, PositionFeedback, Emcy, HeartbeatLost, Bootup, Cancel, SendFailed,
-AdapterError, BusLoad) through `handle(event)`, which returns a `Reaction`: the `Send` frames to put
-on the bus now, in order, and the job state changes (the terminal one carries the `JobOutcome`).
-Dispatch is a table keyed by (job state, event type); a pair without an entry raises
-`UnexpectedEvent`.
+Owns one job: one feeder per axis (fifo_feeder.py, cyclic_feeder.py), the shared timing and lockstep, the
+per-SYNC frame budget, the synchronous start, finish, cancel and fault handling, and the outcome.
+`handle(event)` takes `bus.events` and returns a `Reaction` (frames to send now, in order, and state
+changes), dispatched by a table of (job state, event type); a missing pair raises `UnexpectedEvent`.
 
-Contract with the runtime (the adapter that calls it):
-- feed `Sync(n)` after SYNC n is on the wire (or queued ahead of anything the core returns), and before
-  any TPDO answering it; counts increase by exactly 1 (a jump is a lost SYNC: SYNC_LOST); `Sync.since`,
-  when the runtime knows it, is when the SYNC's unbroken run began (else the core counts from its first
-  Sync): an XtrapulsPac gets controlword bit 4 only once SYNC has run its `sync_lock_ms` (180 ms);
-- feed TPDOs with `sync_count` set to the newest SYNC on the wire when they arrived (None = the last Sync
-  fed): the core decides which SYNC each answers (feedback.py); their time stamps are not
-  used for that;
-- send the returned frames at once, in order; they must reach the drives before the next SYNC;
-- the drives are operation enabled in mode 7 with the buffer cleared and enabled before the job
-  (the core verifies it on the first TPDOs and fails DRIVE_NOT_READY otherwise; the adapter does the
-  SDO setup). Optionally feed `BusLoad` (measured load, any sender) about once per SYNC.
-
-Job life cycle (JobState):
-  CONFIGURING  wait for the first TPDO1 + TPDO2 of every axis; check operation enabled, buffer enabled,
-               ip mode inactive, FIFO empty, position demand == the plan's knot 0 (START_MISMATCH).
-               Then controlword 0x000F (bit 4 low, so the start is a rising edge) to every axis;
-               priming begins with the next SYNC.
-  PRIMING      fill every FIFO to the priming level P = min(O, max(2, what the first cycle needs for
-               the lead time and the repair margin)), `prime_records_per_sync` records per axis per
-               cycle, each batch confirmed before the next (fifo_feeder.py).
-  STARTING     on the first SYNC at which every FIFO is confirmed primed, controlword 0x001F to every
-               axis in that one cycle; RPDO1 is synchronous, so all drives apply it, and enter ip mode
-               active, at the next SYNC s = the recorded start SYNC. Each drive must report ip mode
-               active at s (START_FAILED otherwise).
-  RUNNING      every SYNC the lockstep prefix K is raised by the top-up rule (schedule.py) within the
-               frame budget; every axis gets the records up to K when its TPDO1 confirms its previous
-               batch, never more than its free space nor above O. All axes share one grid, so the
-               records of one grid index go out in the same cycle (except an axis repairing a loss or
-               missing a TPDO: it catches up one record per cycle beyond the lockstep step, from the
-               budget's spare part, or faster when its fill needs it).
-  FINISHING    every end record (time 0) is confirmed queued; DONE when every drive reports ip mode
-               inactive and target reached (statusword bit 10) after the plan's end.
-  CANCELLING / HALTING  see splices.py; then CANCELLED.
-  DONE, CANCELLED, FAILED  terminal: every event is accepted and ignored, nothing is ever sent again;
-               a new job needs a new Coordinator.
-
-The parts, each a class the next one builds on (the job's state lives in `JobCore`; the layers add
-behaviour, not state; each module opens with its own theory):
-  job_state.py   JobState, its transition table, the event-triggered table (job state, event type) ->
-                 handler and the state-triggered one (all axes active -> RUNNING, ...), the control words
-                 and status bits, `Reaction`, `JobReport`.
-  job_core.py    JobCore: the job's state, the SYNC clocks (`_elapsed`, `_elapsed_bounds`), state changes,
-                 `_fail`, control words, the state-triggered transitions to a fixed point and their moves.
-  sending.py     Sending: what goes on the wire each cycle: FIFO records within the budget, set point frames.
-  splices.py     Splices: one place for cancel, change, emergency stop (and the extension's append): the
-                 state at the queue's end, the checks, the splice; halt.
-  open_stream.py OpenStream: extending an open-ended stream chunk by chunk, retiring its past.
-  feedback.py    Feedback: TPDO attribution and every check of what a drive reports (start, fill, demand).
-  scheduling.py  Scheduler: the per-SYNC cycle: feasibility dry run, lockstep and top-up, priming, the
-                 synchronous start, TPDO and finish timeouts.
-  coordinator.py Coordinator: `handle(event)`, the public surface, the faults the bus reports.
-
-Fault: any EMCY from a job node (except code 0x0000, "no error"), a lost heartbeat, a boot-up, a buffer
-error bit or the statusword fault bit in a TPDO, TPDO1/TPDO2 missing for `tpdo_timeout_syncs` SYNCs,
-SendFailed or AdapterError, and every accounting failure of a feeder -> controlword 0x000B (quick stop)
-to every axis in that same reaction (unless nothing had been sent to the drives yet) and FAILED with
-the code, the node and a message. Then the core is poisoned (rule 4 of STYLE.md).
+Contract with the runtime: feed `Sync(n)` once SYNC n is on the wire, before TPDOs answering it, counts
+rising by 1; tag TPDOs with the newest SYNC on the wire (the core attributes them: attribution.py); send
+the returned frames at once; hand over drives enabled with the buffer cleared (else DRIVE_NOT_READY).
+States (job_state.JobState): CONFIGURING -> PRIMING -> STARTING (0x001F to every axis in one cycle) ->
+RUNNING -> FINISHING -> DONE; CANCELLING / HALTING (splices.py); CANCELLED, FAILED. Any fault sends quick
+stop 0x000B to every axis in that reaction, fails the job, and nothing is sent again (STYLE.md rule 4).
+The parts each build on the one before; docs/streamer.md ("One job") walks through them.
 """
 
 from __future__ import annotations

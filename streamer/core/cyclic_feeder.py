@@ -1,36 +1,11 @@
 """Cyclic feeder: the per-axis state machine that sends a drive of a cyclic family one set point per SYNC.
 
-A drive of a cyclic family (bus/families.py: XtrapulsPac interpolated position, CiA 402 cyclic
-synchronous position) has no FIFO: it latches the set point that arrived since the last SYNC at each
-SYNC and interpolates towards it over the next period (planner/encoding/cyclic.py has the model and the deviation
-bound). So this feeder holds no stream position to account for; it owns, for one axis, which set point
-goes out after each SYNC, the start and end of its interpolation, and its telemetry. The coordinator
-(coordinator.py) drives it next to the FIFO feeders, through the same states and inputs
-(`axis_state.FeederState`, with its own table `axis_state.CYCLIC_TRANSITIONS`), and packs its set point
-into the axis' frame (its own RPDO3, or the frame of its multiplexed group).
-
-Timing (S = the job's start SYNC, the same for every axis of the job; P = the SYNC period):
-- from the moment the axis is READY the drive gets its start position x_0 after every SYNC (a "hold"
-  set point), so that enabling interpolation moves nothing and no SYNC ever finds it without a set point;
-  an XtrapulsPac gets controlword bit 4 (enable ip mode) with the first hold, in PRIMING; a CSP drive
-  follows its target as soon as it is operation enabled;
-- it is PRIMED once its statusword shows bit 12 (ip mode active / following the set point) at some SYNC
-  a and two more holds have been sent after a (the P3 sub-mode interpolates through the last three set
-  points: they are then all x_0, whatever the drive kept from before);
-- the set point sent after SYNC m is x_j, j = m + 2 - S: the drive latches it at SYNC m + 1 and reaches it
-  at SYNC m + 2 = S + j, so its demand at SYNC S + j is the plan at j*P, in step with the EPOS drives'
-  (which start interpolating at S). The start decision is taken at SYNC S - 1, so x_1 is the first set
-  point that moves;
-- after the last set point x_N (the plan's end, at rest) the hold goes on; once the drive has reached it
-  (SYNC S + N) an XtrapulsPac gets bit 4 cleared (ip mode off; it holds its position) and the axis is
-  FINISHED when the statusword shows bit 12 clear; a CSP drive is FINISHED when its position demand at a
-  SYNC >= S + N is x_N;
-- a stop (cancel) replaces the set points from time t0 on with those of a stop trajectory starting at the
-  plan's state at t0: t0 is the end of what the EPOS FIFOs hold in a mixed cell, else the time of the
-  last set point sent, so the stop starts with the next set point (within one period).
-
-The position demand at SYNC S + j is checked against x_j (the drive reaches each set point at its SYNC),
-allowing for a drive that samples its demand one internal cycle (1 ms) off the SYNC.
+A cyclic drive latches the set point that arrived since the last SYNC and interpolates towards it over
+the next period (planner/encoding/cyclic.py). With S the start SYNC: from READY it gets holds of x_0 (so
+enabling moves nothing); it is PRIMED once bit 12 shows and two more holds went out (P3 uses three); after
+SYNC m it gets x_j, j = m + 2 - S, reached at SYNC S + j in step with the EPOS drives; after x_N holds again
+until finished (XtrapulsPac: bit 4 cleared, bit 12 seen clear; CSP: demand at x_N). A stop replaces the set
+points from the end of what the EPOS FIFOs hold, else the next one. The demand is checked against x_j.
 """
 
 from __future__ import annotations

@@ -1,19 +1,12 @@
 """Drive time: how far each drive has interpolated at a SYNC, as the master can know it.
 
-A drive locked to SYNC (reading `clock = "sync"`) runs exactly one period of 1 ms ticks per SYNC, so by
-SYNC s + j (s = the start SYNC) it has interpolated j * period ms: the master knows it to the tick, and
-every check stays exact. A drive with its own clock (`clock = "own"`) started its 1 kHz grid at the
-enabling SYNC and runs it at 1 + e of true time, |e| <= the stated bound (`clock_ppm_max`); with the
-0x1013 time stamp it follows the master's clock instead, to within a small residual. The master then
-knows the drive's interpolation time tau (ms) only as an interval, which it propagates from SYNC to
-SYNC with the SYNC's own time stamps (tau grows by dt * (1 -+ e)) and narrows with every position
-demand the drive reports (TPDO2): the ticks k whose predicted demand matches the reported one bound
-tau to [min k, max k + 1). In motion that pins tau to about a tick; at standstill the interval only
-grows by the drift (0.2 ms per second at 200 ppm) until motion resumes.
-
-Everything downstream (which records are consumed, the expected fill, the expected demand, when a
-record is due) is computed from [lo, hi] instead of one number; for a SYNC-locked drive lo == hi and
-the core behaves exactly as with a single clock. Pure: SYNC counts and times in, intervals out.
+A SYNC-locked drive has interpolated exactly j * period ms by SYNC s + j. A drive with its own clock runs
+its 1 kHz grid at 1 + e of true time (|e| <= `clock_ppm_max`; with 0x1013 time stamps it follows the
+master's clock to a small residual), so the master knows its interpolation time tau only as an interval:
+propagated with the SYNCs' own stamps and narrowed by every reported position demand (the ticks whose
+predicted demand matches bound tau to [min k, max k + 1)). In motion that pins tau to about a tick; at
+standstill it grows by the drift. Everything downstream is computed from [lo, hi]; for a SYNC-locked
+drive lo == hi. Pure: SYNC counts and times in, intervals out.
 """
 
 from __future__ import annotations

@@ -1,25 +1,14 @@
-"""Feedback attribution (streamer/core/attribution.py): a drive answers every SYNC once, in order, but may
-answer up to 0.9 period late (an EPOS; a busy bus or host adds to it), so its answer can reach the master
-after the next SYNC. Each TPDO is attributed to the SYNC it answers by what it contains: among the SYNCs it
-can answer (after the last one its node answered, TPDO1 also after its TPDO2's, up to the newest on the wire
-and at most 3 before it; TPDO2 every n-th SYNC only on SYNCs whose counter carries it) the earliest whose
-predicted content it fits: TPDO2 the position demand below (`_demand_fits`; a cyclic axis: the set points
-it can have reached), TPDO1 ip mode active only from the start SYNC and a fill the records sent and consumed
-explain (`_status_fits`); the earliest candidate when it fits none (the check then fails). Arrival time
-plays no part. The start check, the fill accounting, the demand check and the report (`JobReport.feedback`:
-per node, every TPDO2 and the last ip-active SYNC as attributed) all use this one decision.
+"""Feedback: the TPDO handlers, every check of what a drive reports, and attribution's inputs.
 
-Position demand check: every TPDO2 is compared with the demand the drive must have after the ms it
-interpolated, predicted from the queued records with planner.encoding.hermite (exact with counts_per_rev, at
-knots only without). A difference over demand_tolerance_counts is PROTOCOL (records executed out of
-order, twice or not at all: this is what catches two records of one batch swapped, which the fill
-cannot see), or START_MISMATCH before the start. Off while halting (no plan to compare with).
-
-
-Here also: the TPDO handlers (TPDO1: statusword and buffer status / fill, one per axis kind; TPDO2: position
-demand and actual, one path for both kinds with the per-kind steps in the `_demand_*` methods), the
-configuration check on the first TPDOs of every axis (`_try_configure`), and the due-time slack a missing
-record still has (`_slack_ms`, for the feeder's repair decision).
+Each TPDO is attributed by attribution.py to the SYNC it answers, by content: TPDO2 by the position
+demand it can have (`_demand_fits`; a cyclic axis: the set points it can have reached), TPDO1 by ip mode
+and a fill the records sent and consumed explain (`_status_fits`); `_reach` measures how far back answers
+can still be on their way. The start check, the fill accounting, the demand check and the report
+(`JobReport.feedback`) all use that one decision. Demand check: every TPDO2 against the demand predicted
+from the queued records with planner.encoding.hermite; beyond demand_tolerance_counts it is PROTOCOL
+(records executed out of order, twice or not at all: what catches two swapped records) or START_MISMATCH
+before the start; off while halting. Also here: the configuration check on the first TPDOs
+(`_try_configure`) and the slack a missing record still has (`_slack_ms`).
 """
 
 from __future__ import annotations

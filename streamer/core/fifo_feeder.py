@@ -1,68 +1,17 @@
 """FIFO feeder: the per-axis state machine that keeps one drive's 64-entry PVT FIFO fed and verified.
 
-Owns, for one axis: where its record stream stands on the wire (`confirmed` records known to be in the
-FIFO or consumed, `sent_end` records sent), the loss/duplicate accounting against the drive's reported
-free size, and the axis' telemetry. It is fed by the coordinator, which attributes every TPDO to the
-SYNC it answers and knows the shared timing; it emits nothing itself: the coordinator asks it which
-frames to send (`take`). No I/O, no clock.
+Owns one axis' stream position on the wire (`confirmed`, `sent_end`), its loss and duplicate accounting
+and telemetry; the coordinator attributes TPDOs and asks what to send (`take`). No I/O, no clock.
 
-States: `axis_state.FeederState`, the same for both axis kinds; this kind's transitions are
-`axis_state.FIFO_TRANSITIONS` (a missing entry raises `InvalidTransition`).
-
-Loss, duplicate and reorder accounting (the "one unconfirmed batch" design)
----------------------------------------------------------------------------
-The drive tells us only how many records it holds, never which. With E = records sent before SYNC m
-minus records the plan says it consumed by SYNC m, the fill F it reports at m says:
-  F == E  everything sent arrived;
-  F >  E  a record arrived twice (duplicate, or a late original after a resend): PROTOCOL;
-  F <  E  E - F records are missing.
-A record can be resent without changing the drive's execution order only if no later record of the
-axis is in the FIFO. So a feeder keeps at most ONE unconfirmed batch: it sends the next batch only
-after the TPDO answering the SYNC after the previous batch confirmed it (batches go out on TPDO1
-arrival, so the batch sent in cycle m is confirmed by the TPDO of SYNC m + 1: one batch per cycle).
-Then a deficit D is always inside the last batch of b records, and
-  D == b  the whole batch is missing: resend it (nothing later was sent) -> repaired;
-  D <  b  some of the batch arrived: CAN keeps per-id order, but which records are missing is unknown
-          (r1 lost or r2 lost give the same fill), and r2 may already sit where r1 belongs: POINT_LOST.
-A deficit is first held for `loss_confirm_syncs` SYNC(s) without sending anything new: a record that
-is only late arrives meanwhile (no resend, so no duplicate); a record still missing then is lost. The
-wait is skipped when the missing record would be due too soon, and a resend is refused (predicted
-BUFFER_UNDERFLOW) when the record becomes the interpolation target less than `repair_margin_ms` from
-now. The top-up rule (schedule.py) keeps `repair_syncs` periods of records queued, so with the
-defaults a loss is detected at the next SYNC, declared at the one after and resent before it is due.
-
-Share repaired: batches are as small as the plan allows (one cycle's consumption: the top-up sends
-what the last period consumed, and an axis that fell behind catches up one extra record per cycle,
-not in one batch), so with segments of at least one SYNC period every batch has <= 1 record and
-every isolated loss is repaired (measured: 100% of 1% random drops, benchmarks/bench_streamer_core.py;
-the exception is the same record lost twice, after which the catch-up may need 2 per cycle); with k
-records per period an isolated loss is repaired only when it takes the whole batch, else POINT_LOST
-(the protocol cannot tell which record of the batch is missing). Priming goes at
-`prime_records_per_sync` (default 1) per cycle so priming losses are always repairable.
-
-Records and frames are held in `Window`s (streamer/core/window.py) indexed from the stream's start: an
-endless job's coordinator retires (`retire`) the prefix that is confirmed, consumed and behind every SYNC
-still to be attributed, and every index (`confirmed`, `sent_end`, record k) keeps its meaning.
-
-When a batch counts. In virtual time the frames are on the wire when the core returns them, so a batch sent in
-cycle m counts from SYNC m + 1 (its tag). In real time the machine may hold them up past a SYNC, or (fed ahead)
-let them out before the SYNC planned: with `echoed` the runtime feeds each record frame back as the bus carried
-it (`on_wire`, streamer/core/settings.py `records_echoed`), and the batch counts from the SYNC after its last
-frame was on the wire, and not in any answer fed before that (sampled before it was there).
-
-Reordering inside a batch (two records of one axis swapped) leaves the fill right; it is caught when
-executed, by the position-demand check against the plan (coordinator, PositionFeedback).
-
-The drive's readings (planner/readings.py) shape the stream and the accounting, per axis:
-- the stream is `lead` + the plan's records + `tail`: a drive that takes the first record as the
-  path's point at time zero gets an origin record first (the start position at rest, consumed the
-  moment interpolation starts), so its motion is timed like every other drive's; a drive that counts
-  the record being interpolated towards out of the FIFO gets a second end record, so that it never
-  holds fewer than two while interpolating (the every-tick underflow reading) and ends with one left;
-- the fill it reports is lower by one while it interpolates (`hidden`) when it counts that way;
-- with a drive clock known only as an interval (streamer/core/drive_time.py) the records consumed are
-  an interval too: a fill inside the expected interval is no loss, one below it is, and one that could be
-  either (a record boundary inside the interval) is held like a late batch until time tells.
+Accounting. The drive reports how many records it holds, never which: with E = sent minus consumed by the
+plan, a fill F > E is a duplicate (PROTOCOL), F < E a loss. A record can be resent without reordering only
+if nothing later was sent, so a feeder keeps at most one unconfirmed batch: a whole missing batch is
+resent, a partial one is POINT_LOST. A deficit waits `loss_confirm_syncs` (a late record arrives); a resend
+too near its due time is a predicted BUFFER_UNDERFLOW. Batches are one period's consumption, so with
+segments of a period or more every isolated loss is repairable (docs/reliability.md); swapped records are
+caught by the demand check. The drive's readings (planner/readings.py) add an origin or a second end
+record, a hidden record in the fill, or consumption as an interval (drive_time.py). Records and frames
+are `Window`s, so a retired prefix keeps every index.
 """
 
 from __future__ import annotations

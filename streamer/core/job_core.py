@@ -1,13 +1,9 @@
-"""The job's state and the moves every part of the coordinator makes (streamer/core/coordinator.py names them).
+"""The job's state and the moves every part of the coordinator makes (streamer/core/coordinator.py).
 
-`JobCore` holds one job: its plan, the feeders (one per axis: FIFO or cyclic), the clocks, the lockstep, the
-budget's accounting, the pieces and the outcome; all of it is set up in `__init__`, and the parts built on it
-(sending, splices, open_stream, feedback, scheduling) add behaviour, not state. Here: the SYNC time of the
-job (`_elapsed`: nominal ms since the start SYNC; `_elapsed_bounds`: the least and most any drive's clock may
-have interpolated), job state changes by the transition table, `_fail` (quick stop to every axis once
-anything was sent, then FAILED: rule 4 of STYLE.md), control words, the positioning tracker's inputs, and
-`_progress_job`, the state-triggered transitions (job_state.STATE_TRIGGERED: all axes active -> RUNNING, all
-queued -> FINISHING, all finished -> DONE or CANCELLED) applied to a fixed point, and their moves.
+`JobCore` holds one job's plan, feeders, clocks, lockstep, budget, pieces and outcome, all set up in
+`__init__`; the parts built on it add behaviour, not state. Here: the job's SYNC time (`_elapsed`,
+`_elapsed_bounds`), state changes by the table, `_fail` (quick stop once anything was sent, then FAILED:
+STYLE.md rule 4), control words, and `_progress_job`, the state-triggered transitions applied to a fixed point.
 """
 
 from __future__ import annotations

@@ -1,29 +1,11 @@
-"""Open-ended streams (a velocity move, planner/motion/travel.py): the plan's last knot moves and it has no end
-record; the stream goes on in chunks. Every SYNC (from PRIMING on, while the job streams), when the stream
-ends less than `extend_ahead_ms` after the fastest drive's interpolation time, the core asks the `extender`
-(a callable given to the constructor) for the next chunk, given the chunk before it; the chunk must start
-exactly at that chunk's last knot (to the count and the rpm, as a splice) and is appended after it on every
-axis (FIFO records, cyclic set points sampled from it across the boundary) without an end record in
-between. The margin: `extend_need_ms` = one period + max(repair_syncs periods, lead_ms) + (U + 2) records
-of the longest segment (255 ms): while the stream reaches that far ahead, the top-up rule is never capped by
-the stream's end, so every FIFO stays >= U as in a closed plan; the core asks from `extend_need_ms` +
-EXTEND_EARLY_MS on, so an extender that plans on another thread (it answers None while it is not ready)
-has that long. No chunk by `extend_need_ms` (the extender failed, returned a chunk that does not start at the
-last knot, or none at all): the motion is stopped from the end of the queue (the stop planner, as cancel
-does; halt without one) and the job ends FAILED EXTENSION_FAILED once at rest. An open stream never
-finishes by itself: it ends by a change (a `Change`, "aborting" only: it has no end to buffer after), a
-cancel, a fault, or a closed chunk (the planner's chunk brakes by itself before the position limits; the
-job is then DONE at rest there). A chunk whose successor follows keeps only its records: the plan at every
-ms (`StreamPlan.reference`) of chunks wholly in the past is dropped. And every SYNC of an open stream the core
-retires its past (`_retire`): the segment ends, the FIFO axes' records and frames and the pieces from before
-`_retain_ms` (>= 1 s, more than every SYNC a TPDO can still be attributed to: the demand prediction reads the
-records around the drive's time then) behind the slowest drive's interpolation time, and never a frame not
-yet confirmed in its FIFO (a resend) nor anything a stop, change or chunk is spliced after (the queue's end,
-later still). Records, frames and ends are `Window`s (streamer/core/window.py): indices still count from
-the stream's start, so every index keeps its meaning; reading a retired one raises instead of misreading.
-The per-SYNC feedback log of an open stream keeps its old samples in the `store` the runtime gives
-(streamer/core/spool.py). So an endless job's memory stays flat however long it runs (`held` counts what it
-holds; benchmarks/bench_endless.py); a closed plan retires nothing and keeps its log in memory, as before.
+"""Open-ended streams (a velocity move, planner/motion/travel.py): no end record; the stream goes on in chunks.
+
+When the stream ends less than `extend_ahead_ms` ahead of the fastest drive, the core asks its `extender`
+for the next chunk (None: not ready yet), which must start exactly at the last knot and is appended on
+every axis. `extend_need_ms` keeps the top-up rule from meeting the stream's end (every FIFO stays >= U);
+no chunk by then stops the motion and fails EXTENSION_FAILED. It ends by a change, a cancel, a fault or a
+closed chunk. Every SYNC `_retire` drops what is behind `_retain_ms` of the slowest drive and confirmed
+(never what a splice follows), and the feedback log spills to the runtime's store, so memory stays flat.
 """
 
 from __future__ import annotations

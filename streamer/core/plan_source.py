@@ -1,24 +1,12 @@
-"""What the streamer core needs from a trajectory and from the stop planner (Protocols), and the
-validated per-job copy of the records it streams (`StreamPlan`).
+"""What the streamer core needs from a trajectory and from the stop planner (Protocols), and the validated
+per-job copy of the records it streams (`StreamPlan`).
 
-The core does not import the planner's `PvtTrajectory`: it takes anything with
-
-    n_axes: int
-    node_ids: sequence of int (one per axis, CAN node ids)
-    dt_ms: the shared grid, one int per segment (N segments; list, tuple or numpy array)
-    positions: positions[axis][k] = knot k of that axis in counts (only knot 0 is used: the start)
-    records(axis) -> sequence of PvtRecord: (p_k, v_k, dt_k) for k = 1..N, optionally followed by the
-        end record (p_N, 0, 0), which is appended when missing
-
-and turns it into a `StreamPlan` once, at job construction: every record checked against the shared
-grid and packed to its 8 wire bytes (so nothing can fail to encode on the SYNC thread). A stop planner
-is any callable `StopRequest -> trajectory-like` (planner.motion.stop.plan_stop behind a small adapter): it is
-asked, on cancel, for a trajectory from the state at the end of what is already queued to standstill,
-on one shared grid, whose knot 0 is exactly that state.
-
-An open-ended trajectory (a velocity move's chunk: `open_ended` true, no end record, its last knot moving)
-becomes an open `StreamPlan` (`open_end`): the core keeps the stream going by asking an `Extender` for the
-next chunk, whose knot 0 must be exactly the last knot (open_stream.py).
+The core does not import the planner's `PvtTrajectory`: it takes anything with `n_axes`, `node_ids`,
+`dt_ms` (the shared grid), `positions` (knot 0 is the start) and `records(axis)` (the end record appended
+when missing), and turns it into a `StreamPlan` once, at job construction: every record checked against
+the grid and packed to its wire bytes, so nothing fails to encode on the SYNC thread. A stop planner is
+any callable `StopRequest -> trajectory-like` whose knot 0 is exactly the requested state. An open-ended
+trajectory becomes an open `StreamPlan` extended chunk by chunk (open_stream.py).
 """
 
 from __future__ import annotations

@@ -1,29 +1,14 @@
 """Positioning state per axis (seed 002's state machine, EP7047 object 9020:03), as the coordinator sees it.
 
-Theory of operation. The tracker owns, per axis, the positioning state a PLC would read: IDLE (no
-command), START (the command is being prepared: configuring and priming, until the start SYNC), ACCEL,
-CONST, DECEL (the plan's phases), PRE_TARGET (the plan has ended; the position controller pulls the motor
-into its target window, the in-target timeout runs), TARGET (|actual - target| <= the window), EMCY (an
-emergency stop runs), STOP (the motor has stopped after a stop or an emergency stop: seed 002's STOP,
-"the motor has stopped"; a normal stop's own deceleration shows as DECEL, from its plan's phases, as
-every other plan) and ERROR (the job failed).
-
-It is fed by the coordinator, never does I/O and never reads a clock: `start()` when priming begins,
-`splice(t0, plan, kind)` for every trajectory put into the stream after the job's own plan (a change, a
-stop, an emergency stop), `on_time(elapsed_ms)` once per SYNC with the interpolation time since the start
-SYNC, `on_actual(node, counts, elapsed_ms)` for every position actual (TPDO2), and `halted()`,
-`stopped()`, `failed()`, `emergency()` for the paths that have no plan. `states()` and `changes` say
-what it decided; `settled()` whether every axis is in its target (or its in-target timeout ran out, which
-is then a `NotInTarget` warning in `warnings`, naming the node and the remaining error).
-
-The phases are precomputed per plan (construction and splice), so the SYNC thread only bisects one
-array per axis: segment k is ACCEL when |v| at its end exceeds |v| at its start by more than the dead
-band, DECEL when it falls by more, CONST otherwise (the dead band: 1 % of the plan's peak speed on that
-axis, at least 1 rpm, so that the rpm rounding of a cruise does not flicker). A segment that crosses zero
-velocity (a reversal) is DECEL: the axis brakes before it accelerates the other way, and the next
-segment shows that.
-
-States are an enum with a transition table (STYLE.md rule 3): a transition that has no entry raises.
+Theory of operation. Per axis the state a PLC would read: IDLE, START (configuring, priming), ACCEL /
+CONST / DECEL (the plan's phases), PRE_TARGET (plan ended, in-target timeout running), TARGET (within the
+window), EMCY (an emergency stop runs), STOP (stopped after a stop), ERROR. Fed by the coordinator
+without I/O or clock: `start()`, `splice(t0, plan, kind)`, `on_time(elapsed_ms)` per SYNC,
+`on_actual(node, counts, elapsed_ms)` per TPDO2, and `halted()`, `stopped()`, `failed()`, `emergency()`.
+`settled()` says whether every axis is in its target or timed out (a `NotInTarget` warning).
+Phases are precomputed per plan so a SYNC bisects one array per axis: a segment is ACCEL or DECEL when
+|v| changes by more than the dead band (1 % of the peak speed, at least 1 rpm, so a cruise's rpm
+rounding does not flicker), a reversal DECEL. States are an enum with a transition table.
 """
 
 from __future__ import annotations

@@ -1,19 +1,13 @@
 """The fill model: which records a drive has consumed at a given time, and how far to keep ahead.
 
-Pure functions over the shared timing of a record stream. `ends[i]` is the time (ms after the start
-SYNC) at which record i's segment completes and the drive pops it; the end record (time 0) ends at the
-same time as the last segment (the drive pops it at once and leaves ip mode). The drive runs its 1 ms
-ticks on SYNC, so by SYNC s + j (s = start SYNC) it has interpolated j * period ms and consumed
-`consumed_at(ends, j * period)` records: the core knows every drive's fill without asking, and uses
-the reported free size only to verify it (loss, duplicate and timing detection).
-
-`target_prefix` is the top-up rule. On each cycle the lockstep prefix K (records sent, the same for
-every axis, all axes sharing one grid) is raised to
+Pure functions over the shared timing of a record stream: `ends[i]` is when record i's segment completes
+(the end record with the last segment). A SYNC-locked drive has interpolated j * period ms by SYNC s + j,
+so the core knows every fill without asking and uses the reported free size only to verify it.
+`target_prefix` is the top-up rule: the lockstep prefix K rises to
     max( consumed at next SYNC + R periods + U,     fill stays >= U for R more SYNCs with no arrivals
          consumed at next SYNC + lead_ms + 1 )      the lead time, in motion
-capped by consumed-now + O (the fill never exceeds the overflow watermark, even before any pop) and
-by the stream length. In steady state this sends exactly what the last period consumed: the smallest
-possible batch per cycle, which is what makes losses repairable (see fifo_feeder.py).
+capped by consumed-now + O and the stream length. In steady state that sends what the last period
+consumed: the smallest batch, which is what makes losses repairable (fifo_feeder.py).
 """
 
 from __future__ import annotations

@@ -1,23 +1,14 @@
-"""The per-SYNC cycle. Every `Sync`: close the last cycle's bus load, check the SYNC count and gap (SYNC_LOST)
-and the TPDO timeouts (`_tpdo_overdue`; fed ahead of the wire, at `SyncOnWire` instead), extend and retire an
-open stream, then by job state: PRIMING primes (cyclic axes: ip mode active, then PRIMED) and starts every
-axis in one cycle once all are primed (`_start`); while sending, the lockstep prefix K grows by the top-up
-rule (schedule.py) within the budget (`_advance_lockstep`, `_update_safe_prefix`); then the set points, the
-positioning clock and the finish / halt timeouts (FINISH_TIMEOUT).
+"""The per-SYNC cycle: SYNC and TPDO checks, extension, priming and the synchronous start, the lockstep top-up.
 
-Frame budget: per SYNC cycle, bus_load_limit (70%) x bitrate x period minus the traffic the job
-causes anyway (SYNC, TPDO1 + TPDO2 per drive, heartbeats), in worst-case frame bits (bus/budget.py).
-The lockstep grows at most as many records per axis per cycle as that allows; resends and catch-up
-use what this cycle's lockstep step leaves. The whole nominal schedule is dry-run at construction: if
-it cannot keep every FIFO >= min(U, records left), the job is FAILED at once with BUS_OVERLOAD (the
-budget is to blame) or BUFFER_UNDERFLOW (the plan is denser than the FIFO can buffer per SYNC), before
-anything is sent. At run time, a FIFO reported below min(U, records left) with no record of that axis
-missing, or on a bus whose measured load (BusLoad) is over the limit, fails BUS_OVERLOAD before the
-drive can underflow (records could not be sent in time). While records are missing (lost, being
-resent), the feeder's due-time check decides instead: resend while it can still arrive before the
-record is due, else predicted BUFFER_UNDERFLOW; a resend that is lost again at the last chance lets
-the drive underflow (its EMCY: BUFFER_UNDERFLOW), which is the price of repairing every loss the
-timing allows rather than giving up on the first one.
+Every `Sync`: close the last cycle's bus load, check the SYNC count and gap (SYNC_LOST) and the TPDO
+timeouts, extend and retire an open stream, then by job state: prime and start every axis in one cycle
+(`_start`), or grow the lockstep prefix by the top-up rule (schedule.py) within the frame budget
+(`_advance_lockstep`), then set points, positioning and the finish timeouts. Frame budget: bus_load_limit
+x bitrate x period minus the traffic the job causes anyway, in worst-case bits (bus/budget.py). The
+nominal schedule is dry-run at construction: a plan that cannot keep every FIFO >= min(U, records left)
+fails at once, BUS_OVERLOAD or BUFFER_UNDERFLOW, before anything is sent. At run time a low FIFO with
+nothing missing, or a measured load over the limit, fails BUS_OVERLOAD before the drive underflows;
+while records are missing the feeder's due-time check decides.
 """
 
 from __future__ import annotations

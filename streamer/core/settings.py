@@ -1,35 +1,10 @@
-"""Streamer core settings: one frozen, validated parameter object per job.
+"""Streamer core settings: one frozen, validated parameter object per job (`StreamerSettings.from_cell`).
 
-Everything the feeders and the coordinator need to know about the cell, the drives and the policy,
-in the drive's units (records, ms, counts). `StreamerSettings.from_cell` builds it from a
-`planner.config.CellConfig`; tests build it directly.
-
-Policy knobs and why they exist:
-- `lead_ms`: how much motion (in time) to keep queued ahead of the drive. More lead survives longer
-  bus trouble; less lead makes cancel react sooner (the stop starts after what is queued).
-- `repair_syncs`: extra SYNC periods of records kept queued so a lost batch can be detected,
-  confirmed lost and resent before the FIFO drops below the underflow watermark (see fifo_feeder.py).
-- `loss_confirm_syncs`: SYNCs to wait after a fill deficit before declaring records lost (1 tells a
-  record delayed past one SYNC from a lost one, and avoids resending a record that then arrives twice).
-- `repair_margin_ms`: a resend must arrive this long before its record becomes the interpolation
-  target; default one SYNC period (a real drive interpolates in real time, not at the SYNC).
-- `prime_records_per_sync`: priming pace per axis; 1 keeps every priming loss repairable.
-
-What the core knows of each drive's readings of the points the manuals leave open (`readings`, per node
-id; planner/readings.py): a node missing from the mapping is taken to read them as the product's
-reference drive does. `tpdo_sampling` and `rounding` may be unknown (None): the core accepts either
-reading. `fifo_count`, `first_record` and `clock` change what the drive does with the stream and must be
-known: the runtime measures them at configuration (bus/probe.py) when the cell does not say.
-`feedback`: TPDO2 every n-th SYNC (bus.profile.FeedbackSchedule; None = every SYNC). `time_stamp`: the
-runtime sends 0x1013 after every SYNC, so drives with their own clock follow the master's.
-
-`target_window_counts` / `in_target_timeout_ms`: seed 002's target window and in-target timeout per node
-(planner.config's `target_window`, `in_target_timeout_ms`): a job ends DONE only once every axis is in its
-window after the plan's end, or its timeout ran out (a `not_in_target` warning; positioning.py).
-
-`cyclic`: the nodes whose drives take one set point per SYNC (streamer/core/cyclic_feeder.py; bus/families.py),
-with their set point slot and interpolation; every other node is an EPOS FIFO. The FIFO settings
-(watermarks, lead, repair) apply to the FIFO nodes only.
+Drive units. Policy: `lead_ms` (queued motion: survives bus trouble, delays a cancel), `repair_syncs`,
+`loss_confirm_syncs`, `repair_margin_ms`, `prime_records_per_sync` (what makes losses repairable:
+fifo_feeder.py). Per node: the drives' `readings` (planner/readings.py; `tpdo_sampling` and `rounding`
+may be unknown, the others must be known), `feedback` (TPDO2 every n-th SYNC), `time_stamp`, seed 002's
+target window and in-target timeout, and `cyclic` (nodes fed one set point per SYNC).
 """
 
 from __future__ import annotations

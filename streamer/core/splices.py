@@ -1,32 +1,14 @@
-"""Splices: one place for cancel, change and emergency stop (and, through `_splice`, an open stream's
-next chunk). One sequence serves the three verbs (`_plan_splice`): take the state at the end of what is
-queued (`_queue_end`, `_state_request`), ask the verb's planner for a trajectory from there, check it starts
-there and can be streamed in time (`_splice_problem`), and splice it after knot K of every axis (`_splice`);
-nothing sent is taken back. Where it stops short (the plan's end already queued, no planner, the planner
-failed, a trajectory that does not fit) it says so in a `SpliceAttempt`, and each verb reacts in its own
-way: a cancel halts, a change is refused, an emergency stop quick-stops. An open stream's next chunk is the
-one splice with another request (the stream's last chunk, not a state) and another check (it must go on
-exactly from the last knot): open_stream.py, through `_splice`.
+"""Splices: one place for cancel, change and emergency stop (and, through `_splice`, an open stream's next chunk).
 
-Cancel: the stop follows a trajectory from the state at the end of what is already queued, K = the
-most records sent to any axis: the stop planner (a callable given to the constructor) is asked for a
-trajectory from knot K (positions, rpm velocities, Hermite accelerations of all axes); it is spliced
-in after record K of every axis (lagging axes first catch up to K), so all axes follow one jerk-limited
-stop on one grid, and nothing already in a FIFO has to be taken back (it cannot be: the FIFO has no
-delete). The stop begins after what is queued: at most about lead_ms + repair_syncs periods later.
-Halt (controlword 0x011F, bit 8) is the fallback, used only when no stop planner was given, the
-planner raised or returned a trajectory that does not start at knot K of every axis, or the stop
-cannot be streamed in time. It is not path-synchronous (each drive decelerates on its own profile
-deceleration 0x6084) and not jerk-limited, but acts at the next SYNC; after every drive reports
-standstill (bit 10) the core sends 0x000F (ip mode off, halt released) and the job is CANCELLED. A
-cancel before the start (CONFIGURING, PRIMING) cancels at once: nothing moved, nothing is sent (the
-runtime clears the buffers before the next job). A cancel when the plan's end is already queued lets
-the plan finish (it ends at rest) and reports CANCELLED.
-
-Change: "aborting" splices after what is queued, "buffered" after the plan's end; refused (the caller
-learns why from `change_results`) when it cannot be planned, does not start where the axes will be, or
-cannot be streamed in time. Emergency stop: the emergency deceleration spliced after what is queued, as the
-cancel's stop; the drives' quick stop (and FAILED EMERGENCY_STOP) only when no plan is possible in time.
+One sequence serves the three verbs (`_plan_splice`): take the state at the end of what is queued
+(`_queue_end`, `_state_request`: knot K = the most records sent to any axis), ask the verb's planner for a
+trajectory from there, check it starts there and can be streamed in time (`_splice_problem`), and splice
+it after knot K of every axis (`_splice`); nothing sent is taken back (a FIFO has no delete), so the
+verb acts after what is queued. Where it falls short it says so in a `SpliceAttempt`, and each verb
+reacts its own way: a cancel halts (controlword bit 8, each drive on its own 0x6084, at the next SYNC;
+then 0x000F and CANCELLED), a change is refused (`change_results`), an emergency stop quick-stops
+(FAILED EMERGENCY_STOP). A cancel before the start ends at once; one after the plan's end is queued lets
+it finish. A change is "aborting" (after what is queued) or "buffered" (after the plan's end).
 """
 
 from __future__ import annotations

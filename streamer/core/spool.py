@@ -1,14 +1,8 @@
 """Column: an append-only column of per-SYNC numbers that an endless job keeps whole without holding it.
 
-The per-SYNC logs (the core's `FeedbackLog`, the runtime's `JobTrace`) get one sample per SYNC for as long
-as a job runs; the report and the recording read them whole when the job is over. A `Column` holds its
-newest samples in memory and, when it was given a `BlockStore`, hands every full block of `block` samples
-to the store and forgets it: memory stays at one block per column however long the job runs, and reading
-(`len`, `c[i]`, `c[-1]`, `c[i:j]` as a list, iteration, `array()`) sees every sample ever appended, the
-stored ones read back from the store. Without a store (every finite job) it is a plain in-memory array: nothing changes.
-
-The core does no I/O: the store is given to it (streamer/runtime/trace.py `TempFileStore`: an anonymous
-temporary file, removed when closed or collected). Samples are int64 (typecode "q") or float64 ("d").
+A `Column` keeps its newest block in memory and hands every full block to its `BlockStore` (given by the
+runtime: streamer/runtime/trace.py `TempFileStore`), so memory stays flat however long the job runs while
+reads see every sample. Without a store (every finite job) it is a plain in-memory array. int64 or float64.
 """
 
 from __future__ import annotations

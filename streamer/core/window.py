@@ -1,14 +1,9 @@
 """Window: a list indexed from the start of a stream that holds only its newer part.
 
-An endless (open-ended) job streams chunk after chunk for as long as it runs; its records, frames and
-segment end times are addressed by their index from the stream's start (record i of an axis, `ends[i]`),
-and those indices mean the same thing for the whole job. A `Window` keeps that addressing while letting
-the owner drop a prefix that can never be read again: `base` items are gone, `len()` is still the whole
-stream's length, `w[i]` and `w[i:j]` take stream indices (i >= base), `w[-1]` the last item. Reading a
-dropped index is a bug in the caller and raises `IndexError` naming the index and the base, never a wrong
-item. `bisect_right` searches only the held part and refuses a value that falls into the dropped one.
-Appending, truncating (a splice replaces everything after index k) and dropping are O(new items).
-No I/O, no clock.
+An endless job's records, frames and segment ends are addressed by their index from the stream's start
+for the whole job. A `Window` keeps that addressing while its owner drops a prefix never read again:
+`len()` is the whole length, `w[i]` and slices take stream indices (i >= `base`); reading a dropped index
+raises `IndexError` naming index and base, never a wrong item. Append, truncate and drop are O(new items).
 """
 
 from __future__ import annotations

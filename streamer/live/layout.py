@@ -1,12 +1,8 @@
 """The Foxglove layout of a cell's channels (configs/foxglove-layout.json is the demo cell's).
 
-Theory of operation. One layout serves a job's recording (job.mcap) and a live cell (`--live`), because both
-have the same channels and schemas (`/axis/<name>` pvt.AxisSample, `/job/events` pvt.JobEvent). It is built
-with foxglove-sdk's layout types (`foxglove.layouts`), so its JSON follows the app's own format, and per axis
-it has: position against the plan (actual, demand, planned), the following error, the FIFO fill with both
-watermarks. Plots cannot draw a constant line, so a user script in the layout (`/studio_script/...`) emits
-the cell's watermarks with every sample of the first axis, and the FIFO plots show them as two series. The
-events: their state and kind over time (State Transitions) and the last one in full (Raw Messages).
+One layout serves a recording and a live cell (same channels and schemas), built with foxglove-sdk's
+layout types: per axis position against the plan, following error, FIFO fill with the watermarks (emitted
+by a user script, as plots draw no constant line), and the job's events.
 
     python -m streamer.live.layout configs/demo.toml > configs/foxglove-layout.json
 """

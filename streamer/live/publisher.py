@@ -1,26 +1,11 @@
 """Live channels: the job recording's channels, published while the job runs, over foxglove-sdk's WebSocket
-server (protocol `foxglove.sdk.v1`, what the Foxglove app and recent Lichtblick open).
+server (protocol `foxglove.sdk.v1`).
 
-Theory of operation. The streaming thread already appends every TPDO's values, every job state change and
-every noted event to the job's `JobTrace` (streamer/runtime/trace.py); those lists only grow. The live view
-adds nothing to that thread: a publishing thread of its own (`LivePublisher`) wakes every `period_s`
-(20 ms), asks its `source` for the running job (`LiveJob`: plan, core, trace; the real-time runtime's `live`
-attribute, or what `pvt demo --fast` hands over) and a `TraceFollower` turns what was appended since the last
-wake-up into messages of the recording's schemas (`pvt.AxisSample` per axis and SYNC, `pvt.JobEvent`;
-streamer/recording/mcap_io.py builds both, so one layout serves a recording and a live cell). So every
-SYNC's sample arrives, in batches of a wake-up's worth. Between jobs it publishes the cell's telemetry
-(`pvt.Telemetry`, `/cell/telemetry`) when it has a `telemetry` source (the job service's backend).
-
-Cost and dropping. The streaming thread never waits for the live view: it neither queues nor locks
-anything for it. The publishing thread is the only one that reads the trace for it; when it fell behind (a
-starved thread), it publishes at most `max_batch` samples per axis and wake-up and skips the older ones
-(counted in `dropped`). foxglove-sdk's server keeps a bounded backlog per client (`backlog`, oldest dropped
-first), so a slow client loses samples, never delays us. Everything binds to 127.0.0.1 unless told.
-
-A sample's `t` is seconds since the job's first SYNC and its position values are counts, as in the
-recording; `planned` is the plan's demand at that SYNC (streamer/recording/model.plan_index) once the
-core knows the start SYNC. Samples carry the SYNC the runtime tagged them with on arrival (the recording
-uses the core's attribution, which can differ by one SYNC for a drive that answers late).
+The streaming thread already appends everything to the job's `JobTrace`; `LivePublisher` wakes every
+`period_s` on its own thread and a `TraceFollower` turns what was appended into messages of the recording's
+schemas (one layout for recordings and live cells); between jobs, the cell's telemetry. The streaming
+thread never waits for it: a publisher that fell behind skips to `max_batch` samples (`dropped`), and a
+slow client loses its oldest. Binds to 127.0.0.1 unless told.
 """
 
 from __future__ import annotations

@@ -1,25 +1,12 @@
 """The drive's own data recorder, host side: what to record, and the decoding of what was recorded.
 
-Theory of operation. An EPOS drive records up to four of its own objects at a period of n x 0.1 ms
-into 512 words of ring buffers (seed 004; the simulated one is bus/sim/data_recorder.py). This module is
-pure: no bus, no clock.
-
-- `RecordRequest` is what `pvt record`, the Python `Recorder` (streamer/recording/recorder_client.py) and a
-  job's `record` section ask for: the variables (`VARIABLES` by name, or any 8/16/32-bit readable
-  object as "0xIIII:SS"), the sampling period or the total time the buffer must span, the trigger
-  (movement, error, input, end, continuous, force) and the time to keep before the trigger. It is
-  validated on construction and turned into the registers 0x2011-0x2016 (`registers()`); bad input
-  raises `DriveRecordingError` naming the field and the value.
-- `decode_buffer` turns the uploaded 0x201B with 0x2018 (samples per variable), 0x2019 (the ring row
-  of the vector's first sample) and the status 0x2017 into one series per variable, the trigger's
-  sample at t = 0: ring r starts at MaxNbOfSamples * (words of the variables before r), a 32-bit
-  sample takes two words (low word first), an 8 or 16-bit one one word (seed 004, "Data Buffer
-  Segmentation").
-- `DriveRecording` is the result for several nodes (same variables, same times); `write_csv`,
-  `write_png` and `write_html` (the report page of streamer/recording/html.py) write it.
-
-Values stay in drive units: counts (positions), rpm (velocity), mA (current), raw words (statusword,
-buffer status).
+Theory of operation. An EPOS records up to four of its objects every n x 0.1 ms into 512 words of ring
+buffers (seed 004; simulated: bus/sim/data_recorder.py). Pure. `RecordRequest` (for `pvt record`, the
+`Recorder` and a job's `record` section) names the variables, the period or total time, the trigger and
+the time kept before it, is validated on construction (`DriveRecordingError` naming the field and value)
+and becomes the registers 0x2011-0x2016. `decode_buffer` turns 0x201B, 0x2018, 0x2019 and 0x2017 into
+one series per variable, trigger at t = 0, by seed 004's "Data Buffer Segmentation". `DriveRecording`
+holds several nodes and writes CSV, PNG and HTML. Values stay in drive units.
 """
 
 from __future__ import annotations

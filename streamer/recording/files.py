@@ -1,13 +1,8 @@
 """The job service's recordings on disk: one MCAP file per job beside the journal, with retention.
 
-Layout: `<journal dir>/<journal stem>.recordings/<job_id>.mcap` (for `configs/demo.jobs.sqlite`:
-`configs/demo.jobs.recordings/`). Job ids are 1-64 characters of [A-Za-z0-9_.-] and never "." or
-"..", so they are safe file names; anything else is refused.
-
-Retention (`RecordingRetention`, defaults stated there): after each new recording, the oldest ones
-(by modification time, then name) are deleted until at most `max_count` files remain and they take
-at most `max_bytes` together. The newest recording is always kept, even when it alone is larger
-than `max_bytes` (deleting what was just recorded would make the limit lose the one file asked for).
+Layout: `<journal dir>/<journal stem>.recordings/<job_id>.mcap`; job ids (1-64 of [A-Za-z0-9_.-], never
+"." or "..") are safe file names. Retention (`RecordingRetention`): after each recording the oldest are
+deleted down to `max_count` files and `max_bytes`, but the newest is always kept.
 """
 
 from __future__ import annotations

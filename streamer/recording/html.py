@@ -1,23 +1,11 @@
 """The interactive report: one self-contained HTML file of time series per panel, with event markers.
 
-Theory of operation. `render_report(title, series, events, options)` is generic: it takes named time
-series (each on a panel, on that panel's left or right y-scale), horizontal levels (watermarks) and
-event markers, and returns one HTML document with plotly.js inlined (no network at view time). The
-job report (`job_report_html`) and `pvt record`'s recording.html are two callers of it.
-
-What the page offers, after EPOS Studio's data recorder (seed 004, "Data Recorder Overview"):
-- zoom: drag a rectangle (or scroll) on any panel; all panels share the time axis; double-click
-  zooms out;
-- a cursor read-out: hovering shows the values of every curve of the panel at the cursor's time
-  ("Cursor: all curves", EPOS's free cursor) or of the nearest curve only ("nearest curve", EPOS's
-  attached cursor), or none ("Cursor: off");
-- two y-scales per panel: each series is drawn against its panel's left or right scale;
-- the display mode: "Linear" draws straight lines between samples, "Sample & hold" holds each
-  sample until the next (no interpolation); series marked `hold=True` (counters such as a FIFO fill)
-  are always drawn held;
-- the legend lists every curve; a click hides or shows it (EPOS's "available curves").
-
-Series values may be None (no sample at that time): the line shows a gap there.
+Theory of operation. `render_report(title, series, events, options)` takes named time series (each on a
+panel's left or right y-scale), levels and event markers and returns one HTML document with plotly.js
+inlined (no network at view time); the job report (`job_report_html`) and `pvt record` call it. After
+EPOS Studio's data recorder (seed 004): shared-time zoom, cursor read-out of all curves or the nearest,
+two y-scales per panel, linear or sample-and-hold display (`hold=True` series always held), a legend that
+hides and shows curves. A None value leaves a gap.
 """
 
 from __future__ import annotations

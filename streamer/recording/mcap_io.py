@@ -1,30 +1,13 @@
 """A job's recording as an MCAP file: JSON messages with JSON Schema channels.
 
-Theory of operation. MCAP (the `mcap` library) is a chunked, indexed, zstd-compressed container of
-timestamped messages on channels; Foxglove and PlotJuggler both open it, and both decode channels
-whose message encoding is `json` (the schema encoding `jsonschema` tells Foxglove the fields).
-Channels (docs/recording.md has the schemas and an example of each message):
-
-- `/axis/<name>` (schema `pvt.AxisSample`): one message per SYNC the axis answered: t, sync, node,
-  planned, actual, demand, following_error, and the optional fifo_fill, setpoint, statusword,
-  buffer_status (a field without a value is left out, never null);
-- `/job/events` (schema `pvt.JobEvent`): state changes, the start SYNC, faults, cancel, EMCY,
-  heartbeat lost, boot-up, refused frames, adapter errors;
-- `/can/frames` (schema `pvt.CanFrame`): every frame on the bus during the job: t, id, dlc, data (hex);
-- `/recorder/<node>` (schema `pvt.RecorderSample`, only for a job with a `record` section): one message
-  per sample of that drive's own data recorder: t (since the trigger), k, node, t_job (since the job's
-  first SYNC, when the trigger's time is known) and each recorded variable by name, in drive units; the
-  metadata record `pvt.recorder` says what was recorded and how (variables, trigger, period, per node
-  the samples, the offset read, the upload).
-
-A metadata record `pvt.job` holds the job's identity and settings (job id, cell, result, SYNC period,
-first and start SYNC, epoch, watermarks, tolerance, axes as JSON) and the attachment `report.json` the
-job's report, so one file is the whole job: `read_mcap` rebuilds the `JobRecording` from it alone.
-Log and publish times are nanoseconds since the Unix epoch (`epoch_s + t`), so Foxglove shows the
-wall-clock time of the job; `t` in each message is seconds since the job's first SYNC.
-
-Written after the job (never on the streaming thread), to a temporary name and renamed, so a reader
-never sees half a file.
+Theory of operation. MCAP is a chunked, indexed, zstd-compressed container of timestamped messages that
+Foxglove and PlotJuggler open; channels use the `json` encoding with `jsonschema` schemas. Channels
+(docs/recording.md has the schemas): `/axis/<name>` (pvt.AxisSample per SYNC the axis answered; a field
+without a value is left out), `/job/events` (pvt.JobEvent), `/can/frames` (pvt.CanFrame), and for a job
+with a `record` section `/recorder/<node>` (pvt.RecorderSample) with the `pvt.recorder` metadata. The
+`pvt.job` metadata and the `report.json` attachment make one file the whole job: `read_mcap` rebuilds the
+`JobRecording` from it alone. Log times are ns since the epoch (`epoch_s + t`), `t` seconds since the
+job's first SYNC. Written after the job, to a temporary name then renamed: no reader sees half a file.
 """
 
 from __future__ import annotations

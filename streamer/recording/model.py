@@ -1,27 +1,13 @@
 """A job's recording in memory: per SYNC and axis samples, the job's events, the CAN frames.
 
-Theory of operation. `build_recording` turns what a runtime kept during a job (`JobTrace` with
-record=True: the drives' TPDO values per SYNC, the frames with their data, the core's state changes
-and the other events) plus the plan and the report into one `JobRecording`, after the job: nothing
-here runs on the streaming thread. The MCAP writer (mcap_io.py), the CSV and HTML exports and
-`pvt jobs show` all read this one shape, and `mcap_io.read_mcap` gives it back from a file, so an
-export from a file is the export of the job.
-
-Times: every `t` is seconds since the job's first SYNC (on the runtime's clock); `epoch_s` is the
-wall-clock time of that SYNC (MCAP log times are `epoch_s + t`). Positions are drive counts.
-
-Per axis and SYNC (`AxisSamples`, columnar, one entry per SYNC any TPDO or set point answered):
-- planned: the plan's position demand at that SYNC, rounded as the drive rounds (the plan runs from
-  the start SYNC; before it the start position, after its end the end position; after a cancel it is
-  still the original plan, the stop that replaced it shows in `demand`);
-- actual (0x6064) and demand (0x6062) as the drive reported them, following_error = actual - demand;
-- fifo_fill (EPOS FIFO fill, 64 - 0x60C4:02) or setpoint (a cyclic family's set point): either may be
-  absent, so a drive family without a FIFO records the same schema;
-- statusword (0x6041) and buffer_status (0x20C4:01) of TPDO1.
-
-A job with a `record` section also carries what the drives' own data recorders sampled (`drive`, a
-`streamer.recording.drive.DriveRecording`: per node one series per variable, t = 0 at the trigger, and
-the trigger's time on the job's clock where it is known).
+Theory of operation. `build_recording` turns a runtime's `JobTrace` (record=True), the plan and the report
+into one `JobRecording`, after the job, off the streaming thread. The MCAP writer, the CSV and HTML
+exports and `pvt jobs show` read this one shape, and `mcap_io.read_mcap` gives it back from a file.
+Times: `t` in seconds since the job's first SYNC, `epoch_s` the wall-clock time of that SYNC; positions
+in counts. Per axis and SYNC (`AxisSamples`, columnar): planned (the plan's demand rounded as the drive
+rounds; the original plan after a cancel), actual, demand, following_error, fifo_fill or setpoint
+(either may be absent), statusword and buffer_status. A job with a `record` section also carries its
+drives' own recordings (`drive`, a `DriveRecording`).
 """
 
 from __future__ import annotations

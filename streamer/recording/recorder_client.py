@@ -1,27 +1,12 @@
 """`Recorder`: one drive's data recorder (seed 004) over SDO: configure, arm, wait, upload, decode.
 
-    from streamer.recording.recorder_client import Recorder
-    from streamer.recording.drive import RecordRequest, parse_variable
-
-    request = RecordRequest((parse_variable("position_demand"), parse_variable("velocity_actual")),
-                            trigger="movement", period_ms=1.0)
-    rec = Recorder.over(network, 2)        # a canopen Network; the node is added with the drive's EDS
-    rec.configure(request)                 # 0x2011-0x2016, checked against 0x2018
-    rec.arm()                              # 0x2010 = 1
+    rec = Recorder.over(network, 2); rec.configure(request); rec.arm()
     ...                                    # move the axis
-    rec.wait(timeout_s=5.0)                # poll 0x2017 until the recorder stopped by itself
-    node_recording = rec.read()            # 0x2018, 0x2019, 0x2017, then 0x201B: one series per variable
+    rec.wait(timeout_s=5.0); node_recording = rec.read()
 
-Theory of operation. The recorder is a handful of SDO objects; `Recorder` writes and reads them through
-an `SdoAccess`: `CanopenSdo` (a canopen `RemoteNode`'s SDO client: real drives, `pvt sim`, the
-in-process simulated cell) or `ModelSdo` (straight into a simulated `EposDrive`, for virtual time,
-where there is no SDO on the bus). The buffer 0x201B is a domain of up to 1024 bytes: it is uploaded
-with SDO block upload where the drive supports it (CiA 301: 7 data bytes per frame, one acknowledge
-per block of up to 127 frames) and with segmented upload otherwise (7 bytes per request/response pair);
-`block=None` tries block first and keeps to segmented for this node once the drive refused it. The
-decoding is `streamer.recording.drive.decode_buffer`.
-
-Every SDO failure raises `DriveRecordingError(RECORDER)` naming the node, the object and the abort code.
+Objects go through an `SdoAccess`: `CanopenSdo` (a `RemoteNode`) or `ModelSdo` (a simulated drive, in
+virtual time). 0x201B is uploaded by SDO block upload where the drive has it, else segmented. Every SDO
+failure raises `DriveRecordingError(RECORDER)` naming the node, object and abort code.
 """
 
 from __future__ import annotations

@@ -1,20 +1,12 @@
 """Building and writing recordings in a separate, low-priority process (for the job service).
 
-Theory of operation. Between two jobs the service's process still runs real-time work: SYNC (a
-Python thread on python-can's virtual bus), the adapter's receive thread, and with `--sim` the
-simulated drives, which fault with EMCY 0x8780 when a SYNC comes more than 3 periods late. Building
-a recording and encoding tens of thousands of JSON messages is a few hundred ms of pure Python: done
-in that process it holds the GIL in long stretches, and here it raised the SYNC interval's p99 from
-14 ms to 39 ms with gaps past 30 ms (measured on the loaded 2-core development machine; a child
-process: p99 17 ms). So the service hands the job's raw material (`RecordingInputs`: the trace's
-compact arrays and lists, the plan's demand per ms as one numpy array, the report) to one worker
-process started with `spawn` (no fork of a threaded process) at a lower CPU priority (nice 10); the
-worker builds the `JobRecording` and writes the MCAP file; the service's executor thread waits for it
-without holding the GIL. Pickling the inputs takes about 2 ms for the demo's 3.7 s job.
-
-The worker is started with the service (`start()`: its imports, about a second of CPU, then do not
-compete with a job) and kept; a worker that died is replaced on the next recording. `in_process=True`
-does the same work on the calling thread (for tools that have no SYNC to protect).
+Theory of operation. Between jobs the service's process still runs SYNC (and with `--sim` the simulated
+drives); building a recording is a few hundred ms of pure Python that would hold the GIL and delay SYNC
+(docs/recording.md measures it). So the service hands the job's raw material (`RecordingInputs`: compact
+arrays, the plan's demand, the report) to one worker process, spawned (no fork of a threaded process) at
+nice 10, which builds the `JobRecording` and writes the MCAP file while the executor waits without the
+GIL. The worker starts with the service and is replaced if it died; `in_process=True` does the work on
+the calling thread (for tools with no SYNC to protect).
 """
 
 from __future__ import annotations

@@ -1,45 +1,11 @@
 """The real motion backend of `pvt serve`: the planner plus the real-time runtime on one CAN bus.
 
-Implements `streamer.api.backend.MotionBackend`. It opens the bus once (the cell's [bus], or
-`interface`/`channel`/`bitrate` given on the command line), starts the cell's simulated drives in
-this process when `sim` is true, configures every drive over SDO, and keeps SYNC running between
-jobs so heartbeats and TPDOs keep the telemetry live. Each `execute` streams one planned job with
-`RealtimeRuntime` on the service's executor thread (the SYNC-driven loop; planning happened on the
-intake thread) and returns the demo's report shape.
-
-Every job that streamed is recorded: after the job `execute` keeps its raw material (the trace, the
-plan's demand per ms, the report: `RecordingInputs`, no Python loop over the samples here) until the
-service takes it with `take_recording()` and has it built and written beside its journal, in a worker
-process (streamer/recording/writer.py). The SYNC loop pays only the trace's appends.
-
-A job with a `record` section (`planned.record`, a `RecordRequest`) also gets what the drives' own data
-recorders sampled (seed 004): before the motion `execute` configures and arms the recorder of every
-recorded axis over SDO (a drive that refuses fails the job before anything moves, code RECORDER), after
-it waits for them to stop, uploads and decodes their buffers (streamer/recording/recorder_client.py), puts the
-result into the job's recording (its MCAP: `/recorder/<node>` channels) and a summary into the report
-(`drive_recording`); a recorder that cannot be read after the motion leaves the job's result as it is.
-
-A failed job leaves the cell NOT ready until `reset()` (fault reset + re-enable over SDO): after a
-fault nothing moves again without a deliberate act (STYLE.md rule 4).
-
-After a cancel the progress reported is the share of the job's own plan that was executed (up to the
-knot where the stop trajectory begins), not of the stop-spliced stream, which would run on to 1.0.
-
-`emergency_stop()` stops a running job on its planned emergency stop: `streamer.core.EmergencyStop` with
-`make_emergency_planner` (each axis' `emergency_deceleration`), spliced after what is already queued like
-the cancel's stop; the job ends failed EMERGENCY_STOP (detail `method` "emergency_trajectory") with the
-drives still enabled. Only when no plan is possible in time (the core says why: the plan's end already
-queued, halting, the planner failed, it cannot be streamed in time) or nothing runs, it is the quick stop:
-the running core fails at once (controlword 0x000B to every axis in that reaction and nothing after), the
-backend also sends 0x000B to every drive of the cell itself (idle ones included), and each drive ramps down
-on its quick stop deceleration 0x6085 (synchronous RPDO1: at the next SYNC). Either way the cell stays not
-ready until `reset()` (the service's resume does it).
-
-Home jobs (kind "home") are not planned: `execute` runs them with streamer/runtime/homing.py over SDO while
-the periodic SYNC runs, and `referencing` (a `Referencing`) keeps which axes are referenced: with the cell's
-`require_homing`, `validate` refuses NOT_HOMED a job on axes that are not (nor homed by a home job accepted
-before it), and `execute` fails it NOT_HOMED if they still are not when it comes up. A drive's boot-up
-(power cycle, reset node) and a failed job's faulting drive un-reference its axes.
+Opens the bus once (with `sim`, the cell's simulated drives in this process), configures every drive, and
+keeps SYNC running between jobs. `execute` streams a job with `RealtimeRuntime` and keeps its raw material
+for `take_recording()`; a `record` section arms the drives' own recorders around it. A failed job leaves
+the cell not ready until `reset()` (STYLE.md rule 4). `emergency_stop()` splices the planned emergency stop,
+or quick-stops every drive when none is possible or nothing runs. Home jobs run streamer/runtime/homing.py;
+with `require_homing`, jobs on unreferenced axes are refused NOT_HOMED.
 """
 
 from __future__ import annotations

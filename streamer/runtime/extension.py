@@ -1,26 +1,14 @@
 """Open-ended (velocity) motion on a runtime: the next chunk planned off the SYNC thread, and a change into
 velocity mode.
 
-Theory of operation. The streamer core asks its `Extender` for the next chunk of an open-ended stream on
-the thread that feeds it events (streamer/core/open_stream.py); on the real-time runtime that is
-the SYNC loop, which must answer every SYNC within a period (10 ms on the demo cell). Planning a chunk
-(`planner.motion.travel.extend_velocity`) takes about 1 ms for 3 axes and 2 ms for 6 on an idle machine, and
-several times that for the chunk that brakes before a position limit or on a loaded machine: too large a
-share of a period to take on that thread. `PrefetchExtender` therefore plans each chunk on a worker thread
-as soon as the chunk before it is known (the job's plan at the start, then every chunk it hands out), so
-when the core asks (from `extend_ahead_ms`, about 1.9 s, before the stream's end) the answer is normally
-ready and the SYNC thread only takes it; while it is not, it answers None and the core asks again at the
-next SYNC, until `extend_need_ms` (then the core stops the motion: EXTENSION_FAILED). The worker still
-shares the GIL: it can hold the SYNC thread up to the interpreter's switch interval (5 ms), once per chunk,
-never at a moment that matters more than any other Python work in the process.
-
-A chunk is extended from the `CruiseState` it carries, so a chunk planned ahead stays valid as long as the
-stream still ends with that chunk; after a change the core asks about another trajectory, which the
-extender has not seen: it starts planning it then (the core's 500 ms of early asking cover that).
-
-`VelocityChangePlanner` is the `Change` planner of a velocity move replacing a running motion (buffer
-"aborting"): `planner.motion.travel.plan_velocity` from the exact state at the end of the queue, open-ended, so
-the core goes on extending it.
+Theory of operation. The core asks its `Extender` for the next chunk on the thread that feeds it, the SYNC
+loop in real time, which must answer every SYNC within a period; planning a chunk takes too large a share
+of one (docs/streamer.md, velocity jobs). `PrefetchExtender` plans each chunk on a worker thread as soon
+as the chunk before it is known, so the SYNC thread normally only takes it; until it is ready it answers
+None and the core asks again (until `extend_need_ms`: EXTENSION_FAILED). A chunk extends the
+`CruiseState` it carries; after a change the extender starts on the new trajectory when first asked (the
+core asks early enough to cover that). `VelocityChangePlanner` is the `Change` planner of a velocity move
+replacing a running motion: `plan_velocity` from the queue's end state, open-ended.
 """
 
 from __future__ import annotations

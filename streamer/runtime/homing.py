@@ -1,27 +1,13 @@
 """Home jobs on the master side: homing mode on the drives, and which axes are referenced.
 
-Theory of operation. A home job (planner/job.py, kind "home") is not planned: `run_homing` has the drives
-reference themselves, all axes of the job at once, through a `HomingPort` (the virtual-time runtime plays
-SYNC cycles while it waits, the real-time one sleeps while its periodic SYNC runs):
-
-1. the drives are enabled as for a job (operation enabled, controlword bit 4 low);
-2. per axis the family's homing writes (bus/profile.py `homing_writes`: 0x6098, 0x6099:01/02, 0x609A,
-   0x607C in the drive's units, then 0x6060 = 6) and controlword 0x001F (bit 4 rising starts homing);
-3. every period it reads each statusword until bit 13 (homing error) or bits 12 and 10 ("Homing procedure
-   successfully completed", seed 003's table), or the job's `timeout_s` passes;
-4. always, for every axis it touched: controlword 0x000F (bit 4 low interrupts a homing still running),
-   the set point objects = the position (cyclic families), the family's mode writes again
-   (`mode_writes`, so the streaming mode is what `configuration` set), and the enable sequence.
-
-The job is done when every axis attained; else failed HOMING_ERROR (an axis reported bit 13) or
-HOMING_TIMEOUT, naming the axes. A cancel interrupts every axis (bit 4 low) and ends "cancelled".
-
-`Referencing` is what the backends keep of it: the axes homed since their drive last faulted or booted.
-With `cell.require_homing`, a job that moves an axis that is neither referenced nor homed by a home job
-accepted before it is refused NOT_HOMED (at admission, and again when it comes up: the home job may have
-failed). A home job's success references its axes; a homing error, a drive fault in any job (its axes), a
-failed home job and a drive's boot-up (a power cycle or reset node: the drive forgot its reference, seed
-003 0x3218 "cleared when drive is switched on") un-reference them.
+Theory of operation. A home job is not planned: `run_homing` has all its axes reference themselves through
+a `HomingPort`: enable as for a job; write the family's homing objects (`homing_writes`: 0x6098, 0x6099,
+0x609A, 0x607C, then 0x6060 = 6) and controlword 0x001F; read each statusword every period until bit 13
+(error) or bits 12 and 10 (seed 003), or `timeout_s`; always restore (bit 4 low, set points, `mode_writes`,
+the enable sequence). Done when every axis attained, else HOMING_ERROR or HOMING_TIMEOUT naming the axes;
+a cancel interrupts. `Referencing` keeps the axes homed since their drive last faulted or booted (a
+boot-up forgets the reference, seed 003 0x3218); with `cell.require_homing` a job on an unreferenced axis
+is refused NOT_HOMED, at admission and again when it comes up.
 """
 
 from __future__ import annotations

@@ -1,27 +1,14 @@
 """The real-time runtime: the streamer core on a python-can bus, driven by the SYNCs on the wire.
 
-Theory of operation. `MasterAdapter` (bus/network.py) owns the bus: it produces SYNC with python-can's
-periodic send (the kernel's broadcast manager on socketcan), hears its own SYNC back and every TPDO,
-EMCY, heartbeat and boot-up, and turns them into `bus.events` on its receive thread. This runtime
-puts those events on a queue and runs the `Coordinator` on ONE dedicated streaming thread (the one
-that calls `run`): pop an event, feed the trace and the core, send the frames the core returns at
-once. Nothing heavy happens on that thread: planning is done before `run`, plotting after, the
-progress display only reads counters. A frame the bus refuses becomes a `SendFailed` event; a
-cancel request (a `threading.Event`) becomes a `Cancel` event; both go through the same core.
-
-The same core, the same decoding and the same trace as the virtual-time runtime (`streamer.runtime.virtual`),
-so what the tests prove in virtual time is what runs here.
-
-The garbage collector: a full collection of a service's heap (a few hundred thousand objects) stops every
-thread of the process for 40-80 ms (measured here), several SYNC periods: the drives simulated in the
-process miss their SYNC (SYNC_LOST), the master sees no TPDO for 3 SYNCs (TPDO_TIMEOUT), a cyclic drive
-misses its set points. While a job streams, the objects that existed before it are frozen (`gc.freeze`:
-the collector no longer scans them), so a collection only walks what the job itself made; they are
-thawed when the job ends (`quiet_gc`).
-
-Before the first job it completes what the cell does not state of each drive's readings ([axis.probed])
-with the standstill probe (bus/probe.py): the periodic SYNC stops, this thread paces the probe's SYNCs
-and sends its frames, the adapter does the SDO work, and the periodic SYNC starts again.
+Theory of operation. `MasterAdapter` (bus/network.py) owns the bus and turns what it hears into
+`bus.events` on its receive thread; this runtime queues them and runs the `Coordinator` on ONE streaming
+thread (the caller of `run`): pop an event, feed the trace and the core, send the returned frames at
+once. Nothing heavy runs there (planning before, plotting after). Refused frames and cancel requests
+become events through the same core. The same core, decoding and trace as the virtual-time runtime, so
+what the tests prove there is what runs here. While a job streams, the objects that existed before it
+are frozen out of the garbage collector (`quiet_gc`): a full collection of a service's heap stops every
+thread for several SYNC periods (docs/streamer.md, "Real time"). Before the first job the standstill
+probe (bus/probe.py) completes the drives' readings the cell does not state.
 """
 
 from __future__ import annotations

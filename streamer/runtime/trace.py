@@ -1,27 +1,13 @@
 """What happened on the bus during a job, seen from the master: per-SYNC traces and a frame tally.
 
-`JobTrace` is fed the same events the streamer core is fed (plus every frame, for the tally and the
-bus-load measurement) and keeps, per axis, one sample per TPDO: FIFO fill, position actual and
-position demand, each with the runtime's tag (the newest SYNC on the wire when it arrived). The tag is
-the SYNC answered only for a drive that answers before the next SYNC: the SYNC each answers is decided by
-the streamer core from what it contains (streamer/core/attribution.py), and the report's deviation and end
-SYNC are taken from the core's attribution (`JobReport.feedback`), not from these tags. It is shared by
-the virtual-time and the real-time runtimes, so the report and the plot are built the same way whatever
-bus ran the job. No I/O, no clock: timestamps come with the events.
-
-An endless (open-ended) job's trace is given a `store` (streamer/runtime/spill.py): its per-SYNC series, SYNC
-times and frame log are then `Column`s (streamer/core/spool.py) that hold their newest block in memory and
-the rest in the store, and read whole (in order: `FrameLog.frames`, iteration), so an hour of motion costs
-no more memory than a minute and the report and recording still see every sample.
-
-With `record=True` (the default) it also keeps what the job's recording needs (streamer/recording):
-every frame with its data and time (in compact arrays, up to `max_frames`, then counted in
-`frames_dropped`), the statusword and buffer status of every TPDO1, the events that are not
-per-SYNC samples (EMCY, heartbeat lost, boot-up, cancel, send failed, adapter errors), the core's
-job state changes (`on_changes`, fed the `Reaction.changes` the core returns) and the set point a
-cyclic drive family sends per SYNC (`on_setpoint`). Each is an append, so the streaming thread pays
-a few hundred nanoseconds per event for it (benchmarks/bench_recording.py); the MCAP file is written
-from this trace after the job, never during it. `record=False` keeps only what the report needs.
+`JobTrace` is fed the events the core is fed (plus every frame, for the tally and the bus load) and keeps
+per axis one sample per TPDO (fill, position actual and demand) with the runtime's tag, the newest SYNC on
+the wire when it arrived; the report uses the core's attribution (`JobReport.feedback`), not these tags.
+Shared by both runtimes, so report and plot are built alike. No I/O, no clock. An endless job's trace
+spills to a `store` (streamer/runtime/spill.py, `Column`s of streamer/core/spool.py), so an hour costs no
+more memory than a minute. With `record=True` it also keeps what the recording needs (frames with data,
+TPDO1 words, events, state changes, set points), each an append costing the streaming thread a few
+hundred nanoseconds (benchmarks/bench_recording.py); the MCAP file is written after the job.
 """
 
 from __future__ import annotations

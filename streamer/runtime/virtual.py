@@ -1,37 +1,12 @@
 """The virtual-time runtime: the streamer core and the simulated drives, frame by frame, no threads.
 
-Theory of operation. There is no python-can bus here: the runtime plays it, as a small discrete-event
-simulation of one CAN bus. Every frame anybody sends (the master's SYNC and records, the drives' TPDOs,
-EMCYs and heartbeats, other devices' traffic) is queued with its release time; the bus transmits one
-frame at a time, and when it goes idle the lowest COB-ID among the frames released by then wins
-arbitration (CAN priority), each frame lasting its worst-case bit length at the configured bitrate.
-A frame takes effect when its transmission ends: the drives process what the master sent (a SYNC runs
-their clock and makes them answer TPDO1 + TPDO2), the master's side decodes what the drives sent and
-feeds the core (`Sync(n)` on the echo of its own SYNC n, TPDOs tagged with the last SYNC echoed before
-they arrived, exactly as `bus.network.MasterAdapter` tags them, then `BusLoad` over the last cycle as
-the adapter measures it), and the frames the core returns are queued at once. Every SYNC cycle the
-runtime
-1. runs the drives' timers (heartbeats, SYNC loss) up to the SYNC time, at their own deadlines;
-2. queues SYNC n at `sync_time(n)` (jitter and gaps come from that hook);
-3. runs the bus until the next SYNC's release time (what is still queued competes with that SYNC),
-   firing the master's heartbeat consumer timer (HeartbeatLost) at the moment a node's timeout runs out.
-The same `Coordinator`, simulated drives and decoding code run here as on a real bus (`streamer.runtime.realtime`),
-only the transport differs, so a minute of motion runs in well under a second, every timing branch is
-reachable from a test, and a candump log of the same run is byte-identical.
-
-Fault injection hooks (the reliability tests, `bus.faults.FaultLink`):
-- `link` sees every frame between master and drives as it arrives and says what arrives instead:
-  nothing, several frames, or `(frame, arrival_time)` for a late one; optionally `accept(frame, t)`
-  refuses a frame the master sends (bus-off: the core is fed `SendFailed`, a refused SYNC is never
-  echoed) and `release(t)` hands back frames it held (reordering) once their time is up;
-- `sync_time(n)` jitters or skips SYNCs;
-- `foreign` is traffic of other devices (`ForeignTraffic`, e.g. `periodic_load(...)` for a 80% load of
-  higher-priority frames, or malformed frames at given times): it arbitrates like every other frame
-  and both the master and the drives receive it;
-- `drive_frames(frames, t)` puts frames a drive sends on its own on the bus (a drive that rebooted).
-`counters` tallies frames ("frames", "foreign"), what the master received that meant nothing to it
-("unknown_cob_id", "other_node") or did not decode ("malformed", also fed to the core as AdapterError,
-as `MasterAdapter` does), and frames refused at bus-off ("send_refused", "sync_refused").
+A discrete-event simulation of one CAN bus: frames are queued with their release time and transmitted one
+at a time, lowest COB-ID first, each lasting its worst-case bit length; a frame takes effect when its
+transmission ends, and the master's side tags and decodes exactly as `bus.network.MasterAdapter`. The
+same core, drives and decoding as on a real bus, so a minute of motion runs in under a second, every
+timing branch is reachable from a test, and a candump of a run is byte-identical. Fault hooks (the
+reliability tests): `link` (what arrives instead of each frame; `accept`, `release`), `sync_time(n)`,
+`foreign` traffic, `drive_frames`; `counters` tallies what happened.
 """
 
 from __future__ import annotations

@@ -1,30 +1,12 @@
-"""`pvt view`'s loopback HTTP server: one self-contained page that shows a cell live and, for an operator,
-stops, holds and resumes it through the job API.
+"""`pvt view`'s loopback HTTP server: one page that shows a cell live and, for an operator, stops, holds and
+resumes it through the job API.
 
-Theory of operation. The page reads the cell through the Zenoh job API, not through the Foxglove live
-channels (streamer/live): the verbs must go through the API anyway, with the user's identity (its TLS
-certificate and login decide the role, docs/security.md), and so does reading: what the page shows is what
-that identity may read, from any running service, with or without `--live`. `ViewServer` is a
-`MotionClient` (the user's) and a `ThreadingHTTPServer` bound to 127.0.0.1:
-
-- a Zenoh subscriber keeps the last `keep_s` seconds of the cell's telemetry (20 Hz: per drive the position,
-  the position demand, the FIFO fill, the state; the running job, its progress, the hold) in a ring, and
-  the last `keep_events` job events (every job's events key);
-- a thread asks for the service status (the queue) twice a second;
-- `GET /` is the page (streamer/view/static/index.html), `GET /static/...` its script and uPlot (vendored
-  from npm, MIT; nothing is loaded from elsewhere), `GET /api/state?after=SEQ` the telemetry samples after
-  SEQ, the events, the status, the role and the watermarks, as JSON; the page polls it every 100 ms;
-- `POST /api/stop`, `/api/estop`, `/api/hold`, `/api/resume` call the client's stop (emergency), hold and
-  resume. With role observer the page shows no buttons and these answer 403 without asking the service
-  (which refuses an observer's writes anyway: the rules are the service's, this is only the page);
-- with a `token` (what `pvt view` does: a random one, in the URL it prints, as Jupyter does), every request
-  needs it: the printed URL's `?token=` sets it as a cookie (HttpOnly, SameSite=Strict) and the page goes on
-  with that; without it the answer is 401. So another local user, or a page of another site in the user's
-  browser, neither reads the cell through this page nor presses its buttons.
-
-On the page the position against the plan is the drive's position (0x6064) against its position demand
-(0x6062, the plan as the drive interpolates it), and the following error their difference, in the
-axis' unit: what the telemetry carries. Nothing here touches the bus or the real-time path.
+The page reads and acts through the Zenoh job API with the user's identity (docs/security.md), so it
+shows what that identity may read. `ViewServer` is the user's `MotionClient` plus a `ThreadingHTTPServer`
+on 127.0.0.1: rings of recent telemetry and events, `GET /` the page with vendored scripts, `GET
+/api/state?after=SEQ` what is new, `POST /api/stop|estop|hold|resume` (403 for an observer). With a
+`token` (random, in the printed URL) every request needs it, kept in an HttpOnly SameSite=Strict cookie,
+so another user or site can neither read nor act. Nothing here touches the bus.
 """
 
 from __future__ import annotations
