@@ -316,10 +316,11 @@ def _smoothest(
 ) -> tuple[Knots, Reconstruction]:
     """A jerk-limited plan's knots: of the encoder's placements (its default, conservative and long ones,
     `encoder.encode` variants 0-2), each with its values re-chosen for a continuous acceleration
-    (continuity.smooth_values), the one whose drive keeps the jerk bound best (`worst_ratio`). Which
-    placement that is depends on where short segments fall beside long ones: a knot between 20 and 135 ms
-    moves its step by 6/T^2 per count of the short one's neighbour. `info["jerk_placement"]`: the variant."""
-    from planner.encoding.continuity import smooth_values, worst_ratio
+    (continuity.smooth_values), the one whose drive keeps the jerk bound best (`worst_ratio`), its knot
+    times then moved where that lowers the worst knot further (continuity.refine_times). Which placement
+    wins depends on where short segments fall beside long ones: a knot between 20 and 135 ms moves its
+    step by 6/T^2 per count of the short one's neighbour. `info["jerk_placement"]`: the variant."""
+    from planner.encoding.continuity import refine_times, smooth_values, worst_ratio
     from planner.encoding.encoder import EncodingFailed, EncodingNeedsTime, encode
 
     best = smooth_values(ref, knots, scales, tol, jerk)
@@ -338,6 +339,7 @@ def _smoothest(
         other_score = worst_ratio(other, scales, jerk)
         if other_score < score:
             best, score, info["jerk_placement"] = other, other_score, float(variant)
+    best = refine_times(ref, best, scales, tol, jerk)
     if best is knots:
         return knots, rec
     return best, reconstruct(best, scales)

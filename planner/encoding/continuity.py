@@ -22,8 +22,14 @@ times the bound on one random path); its
 cost penalises an in-segment jerk above the limit; a knot's cost is its acceleration step over the
 tick against the jerk limit (squared, and heavily beyond the limit). The result is checked with the
 encoder's own verification (`encoder.within_contract`); an encoding that does not pass is not used.
-The pass is a compiled kernel (`_viterbi`, planner/jit.py): up to 10 candidates per knot make 1,000
+The pass is a compiled kernel (`_viterbi`, planner/jit.py): up to 16 candidates per knot make 4,000
 transitions per knot, which in NumPy cost most of a jerk-limited plan's time.
+
+The knot times are shared by every axis (every drive gets the same record times), so values alone cannot
+always meet the bound: a knot between a short and a long segment moves its step by 6/T^2 per count of the
+short one's neighbour. `refine_times` then moves such knots a few ms, one at a time, worst first, and
+re-chooses every axis' values in a window around each by the same pass, keeping a move that lowers the
+window's worst step or jerk over all axes.
 """
 
 from __future__ import annotations
@@ -259,3 +265,114 @@ def knot_step_units(scales: AxisScales, jerk_limit: FloatArray, t_ms: IntArray) 
     per_count = 6.0 / (t * t) / bound
     per_rpm = 8.0 * scales.counts_per_ms_per_rpm[:, None] / t / bound
     return per_count, per_rpm
+
+
+# ----------------------------------------------------------------------------------------------------
+# the shared knot times moved, a knot at a time, with every axis' values re-chosen around it
+
+
+REFINE_SHIFTS = (-6, -4, -3, -2, -1, 1, 2, 3, 4, 6)  # ms a knot is tried earlier or later
+REFINE_WINDOW = 3  # knots either side of the moved one whose values are re-chosen
+REFINE_ROUNDS = 2
+
+
+def _limits(scales: AxisScales) -> tuple[FloatArray, FloatArray]:
+    """Per axis the velocity the drive's values may reach (counts/ms) and the acceleration-excess budget."""
+    quantum = scales.counts_per_ms_per_rpm
+    vlim = np.minimum(
+        scales.drive_velocity,
+        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
+    )
+    return vlim, ACC_EXCESS_LIMIT * scales.acceleration_axis * 0.999
+
+
+def _window_ratio(times: IntArray, pos: IntArray, vel: IntArray, scales: AxisScales, jerk: FloatArray) -> float:
+    """The largest in-segment jerk or step at an interior knot of these knots (every axis), over the bound."""
+    j, steps = knot_steps(Knots(times, pos, vel), scales)
+    return float(max((np.abs(j) / jerk[:, None]).max(initial=0.0), (np.abs(steps) / jerk[:, None]).max(initial=0.0)))
+
+
+def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, jerk_limit: FloatArray) -> Knots:
+    """`knots` (smoothed values, `smooth_values`) with their shared times moved where that lowers the worst
+    step or jerk: each knot whose step exceeds the bound on some axis, worst first, is tried up to 6 ms
+    earlier or later (`REFINE_SHIFTS`), every axis' values re-chosen on the `REFINE_WINDOW` knots either
+    side by the same Viterbi pass (the window's two outer knots on each side held, so the steps at its
+    edges are costed too); a shift is kept when the window's worst ratio over every axis drops. One
+    knot time serves every axis (the drives get the same record times), and the values that suit one
+    axis at a time suit another only by chance: this searches the times for all axes at once. The
+    result is checked as `smooth_values`' is, and `knots` returned where it does not keep every promise
+    or is not better."""
+    n = knots.times_ms.size - 1
+    if n < 4:
+        return knots
+    times = knots.times_ms.astype(np.int64).copy()
+    pos = knots.positions.copy()
+    vel = knots.velocities_rpm.copy()
+    want = planned_demand(ref, scales.toward_zero)
+    vlim, budget = _limits(scales)
+    quantum = scales.counts_per_ms_per_rpm
+    caps = np.maximum(jerk_limit * (1.0 + JERK_SLACK), np.abs(knot_steps(knots, scales)[0]).max(axis=1))
+    width = 2 * MAX_OFFSET + 1
+    offsets = np.arange(-min(int(tol), MAX_OFFSET), min(int(tol), MAX_OFFSET) + 1, dtype=np.float64)
+    for _round in range(REFINE_ROUNDS):
+        steps = np.abs(knot_steps(Knots(times, pos, vel), scales)[1]) / jerk_limit[:, None]
+        worst = steps.max(axis=0)  # per interior knot 1..n-1
+        order = [int(k) + 1 for k in np.argsort(-worst, kind="stable") if worst[k] > 1.0]
+        moved = False
+        for k in order:
+            lo, hi = max(0, k - REFINE_WINDOW - 1), min(n, k + REFINE_WINDOW + 1)
+            if not (lo + 1 < k < hi - 1):
+                continue
+            sl = slice(lo, hi + 1)
+            best = _window_ratio(times[sl], pos[:, sl], vel[:, sl], scales, jerk_limit)
+            choice: tuple[IntArray, IntArray, IntArray] | None = None
+            for shift in REFINE_SHIFTS:
+                t_new = int(times[k]) + shift
+                if not times[k - 1] < t_new < times[k + 1] or max(t_new - times[k - 1], times[k + 1] - t_new) > 255:
+                    continue
+                wt = times[sl].copy()
+                wt[k - lo] = t_new
+                env = segment_envelope(ref, wt)
+                wp, wv = pos[:, sl].copy(), vel[:, sl].copy()
+                ok = True
+                for i in range(ref.n_axes):
+                    m = wt.size
+                    cp = np.zeros((m, width * len(_VELOCITIES) + 1))
+                    cv = np.zeros_like(cp)
+                    count = np.ones(m, dtype=np.int64)
+                    for w in range(m):
+                        if w < 2 or w > m - 3:  # held: the window's two outer knots on each side
+                            cp[w, 0], cv[w, 0] = float(pos[i, lo + w]), float(vel[i, lo + w])
+                            continue
+                        r = float(np.round(ref.velocities[i, wt[w]] / quantum[i]))
+                        pairs = {(float(want[i, wt[w]]) + float(dp), r + dv) for dp in offsets for dv in _VELOCITIES}
+                        if w != k - lo:
+                            pairs.add((float(pos[i, lo + w]), float(vel[i, lo + w])))
+                        arr = np.array(sorted(pairs))
+                        count[w] = arr.shape[0]
+                        cp[w, : count[w]], cv[w, : count[w]] = arr[:, 0], arr[:, 1]
+                    chosen = _viterbi(cp, cv, count, wt, np.ascontiguousarray(want[i], dtype=np.int64),
+                                      np.ascontiguousarray(env[i], dtype=np.float64), float(quantum[i]),
+                                      float(vlim[i]), float(scales.drive_acceleration[i]), float(budget[i]),
+                                      float(jerk_limit[i]), float(caps[i]), float(tol), OVER)
+                    if chosen.size == 0:
+                        ok = False
+                        break
+                    rows = np.arange(m)
+                    wp[i], wv[i] = cp[rows, chosen].astype(np.int64), cv[rows, chosen].astype(np.int64)
+                if not ok:
+                    continue
+                ratio = _window_ratio(wt, wp, wv, scales, jerk_limit)
+                if ratio < best * (1.0 - 1e-9):
+                    best, choice = ratio, (wt, wp, wv)
+            if choice is not None:
+                times[sl], pos[:, sl], vel[:, sl] = choice
+                moved = True
+        if not moved:
+            break
+    out = Knots(times, pos, vel)
+    if not within_contract(ref, out, scales, tol):
+        return knots
+    if worst_ratio(out, scales, jerk_limit) >= worst_ratio(knots, scales, jerk_limit):
+        return knots
+    return out
