@@ -34,6 +34,8 @@ window's worst step or jerk over all axes.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
@@ -126,17 +128,18 @@ def _viterbi(
                 jerk = 6.0 * a
                 acc_s[i, j] = s0
                 acc_e[i, j] = e0
-                ok = True
-                for m in range(1, t):
-                    tau = float(m) - tf
-                    pos = ((a * tau + b) * tau + v1) * tau + p1
-                    vel = (3.0 * a * tau + 2.0 * b) * tau + v1
-                    demand = np.trunc(pos + np.copysign(0.5, pos))
-                    if abs(demand - float(want[times[k] + m])) > tol or abs(vel) > vlim + 1e-12:
-                        ok = False
-                        break
+                # the end accelerations and the jerk first: a pair that fails them skips the ticks
                 peak = max(abs(s0), abs(e0))
-                ok = ok and peak <= drive_acc and peak - envelope[k] <= budget and abs(jerk) <= jerk_cap
+                ok = peak <= drive_acc and peak - envelope[k] <= budget and abs(jerk) <= jerk_cap
+                if ok:
+                    for m in range(1, t):
+                        tau = float(m) - tf
+                        pos = ((a * tau + b) * tau + v1) * tau + p1
+                        vel = (3.0 * a * tau + 2.0 * b) * tau + v1
+                        demand = np.trunc(pos + np.copysign(0.5, pos))
+                        if abs(demand - float(want[times[k] + m])) > tol or abs(vel) > vlim + 1e-12:
+                            ok = False
+                            break
                 if ok:
                     excess = max(abs(jerk) / jlim - 1.0, 0.0)
                     seg_cost[i, j] = over * (excess * excess)
@@ -274,6 +277,12 @@ def knot_step_units(scales: AxisScales, jerk_limit: FloatArray, t_ms: IntArray) 
 REFINE_SHIFTS = (-6, -4, -3, -2, -1, 1, 2, 3, 4, 6)  # ms a knot is tried earlier or later
 REFINE_WINDOW = 3  # knots either side of the moved one whose values are re-chosen
 REFINE_ROUNDS = 2
+REFINE_KNOTS = 32  # the worst knots tried per round (bounds the planning time of long paths)
+
+
+def _one(scales: AxisScales, i: int) -> AxisScales:
+    """`scales` of axis `i` alone (what `knot_steps` reads)."""
+    return dataclasses.replace(scales, counts_per_ms_per_rpm=scales.counts_per_ms_per_rpm[i : i + 1])
 
 
 def _limits(scales: AxisScales) -> tuple[FloatArray, FloatArray]:
@@ -317,7 +326,7 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
     for _round in range(REFINE_ROUNDS):
         steps = np.abs(knot_steps(Knots(times, pos, vel), scales)[1]) / jerk_limit[:, None]
         worst = steps.max(axis=0)  # per interior knot 1..n-1
-        order = [int(k) + 1 for k in np.argsort(-worst, kind="stable") if worst[k] > 1.0]
+        order = [int(k) + 1 for k in np.argsort(-worst, kind="stable")[:REFINE_KNOTS] if worst[k] > 1.0]
         moved = False
         for k in order:
             lo, hi = max(0, k - REFINE_WINDOW - 1), min(n, k + REFINE_WINDOW + 1)
@@ -325,6 +334,7 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
                 continue
             sl = slice(lo, hi + 1)
             best = _window_ratio(times[sl], pos[:, sl], vel[:, sl], scales, jerk_limit)
+            axis_order = np.argsort(-steps[:, k - 1], kind="stable")
             choice: tuple[IntArray, IntArray, IntArray] | None = None
             for shift in REFINE_SHIFTS:
                 t_new = int(times[k]) + shift
@@ -335,7 +345,7 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
                 env = segment_envelope(ref, wt)
                 wp, wv = pos[:, sl].copy(), vel[:, sl].copy()
                 ok = True
-                for i in range(ref.n_axes):
+                for i in axis_order:  # the worst axis first: a shift that does not help it is dropped at once
                     m = wt.size
                     cp = np.zeros((m, width * len(_VELOCITIES) + 1))
                     cv = np.zeros_like(cp)
@@ -360,6 +370,9 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
                         break
                     rows = np.arange(m)
                     wp[i], wv[i] = cp[rows, chosen].astype(np.int64), cv[rows, chosen].astype(np.int64)
+                    if _window_ratio(wt, wp[i : i + 1], wv[i : i + 1], _one(scales, i), jerk_limit[i : i + 1]) >= best:
+                        ok = False
+                        break
                 if not ok:
                     continue
                 ratio = _window_ratio(wt, wp, wv, scales, jerk_limit)
