@@ -77,3 +77,21 @@ def test_realtime_demo_runs_the_jobs_it_refused(name: str, tmp_path: Path) -> No
     job = CONFIGS / "jobs" / name
     assert pvt(["demo", "--quiet", "--config", str(DEMO), "--job", str(job), "--out", str(tmp_path)]) == 0
     _check(tmp_path, job)
+
+
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
+@pytest.mark.parametrize("cell", CELLS, ids=lambda p: p.name)
+def test_a_jerk_limited_path_streams_on_every_cell(cell: Path, tmp_path: Path) -> None:
+    """The demo path with `jerk_limited = true` (planned within its default 2 counts, its knot times moved
+    for the jerk bound: planner/encoding/continuity.py) runs on EPOS, cyclic and mixed cells with every
+    guarantee kept at that tolerance."""
+    text = (CONFIGS / "jobs" / "demo-path.toml").read_text()
+    job = tmp_path / "demo-path-jerk.toml"
+    job.write_text(text.replace('kind = "path"\n', 'kind = "path"\njerk_limited = true\n', 1))
+    loaded = load_job(job, load_cell(cell))
+    assert loaded.tolerance_counts == 2
+    out = tmp_path / "out"
+    assert pvt(["demo", "--fast", "--quiet", "--config", str(cell), "--job", str(job), "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["result"] == "done", report
+    assert guarantees(report, loaded.tolerance_counts) == []
