@@ -16,9 +16,8 @@ encoder's own choice (so the encoder's encoding is always one of the paths). A p
 its segment keeps the encoder's promises at every ms (the drive's rounded demand within the tolerance of
 the planned demand, velocity within the limits, acceleration within 0x60C5 and the excess budget) and
 its in-segment jerk within JERK_SLACK of the limit or, on an axis where the encoder's own values already
-exceed that, within the encoder's largest there (a bound per axis, not per segment, so never worse than
-the encoder's peak: a segment a little above the limit can buy a much smaller step at a knot, 12 -> 2.3
-times the bound on one random path); its
+exceed that, within the encoder's largest there (a bound per axis, not per segment: a segment a little
+above the limit can buy a much smaller step at a knot); its
 cost penalises an in-segment jerk above the limit; a knot's cost is its acceleration step over the
 tick against the jerk limit (squared, and heavily beyond the limit). The result is checked with the
 encoder's own verification (`encoder.within_contract`); an encoding that does not pass is not used.

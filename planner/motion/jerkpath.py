@@ -7,7 +7,8 @@ continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per ru
 
 1. Along straight pieces and blends (`plan_corner_run`, planner/motion/geometry.py's runs): every blend crossed
    at one constant path speed, the largest at which every joint's velocity q' s', acceleration q'' s'^2
-   and jerk q''' s'^3 stay within their limits (the jerk within `PLAN_JERK_SHARE`); every straight piece
+   and jerk q''' s'^3 stay within their limits (the jerk within `PLAN_JERK_SHARE`; geometry.py shapes
+   each blend for that crossing: `corner_blends` with `jerk`); every straight piece
    a time-optimal jerk-limited 1-DoF motion (ruckig, along the line) between the speeds at its two
    ends at zero path acceleration: where a piece meets a blend, q'' is 0, so the acceleration is
    continuous. A forward and a backward pass lower the speeds no straight piece can connect (a
@@ -30,13 +31,7 @@ continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per ru
    limit (the rest is left to the drive's quantisation: planner/encoding/continuity.py), and slowed down where
    it is not.
 
-Why (measured on benchmarks/bench_planner.py's path corpora, docs/formats.md "jerk_limited"): the filter
-after TOPP-RA alone was 1.2-1.6x slower than stopping at every corner in median on random paths (2.5x on
-the demo path): the time-optimal profile in a blend is a chatter of switches and narrow dips, the window that
-bounds its path jerk is long (150-460 ms), and a blend of a few mrad has a q''' that only a crawl keeps
-within the jerk limit. Constant-speed blends with ruckig between them are exact and never slower than
-stopping; a third-order time-optimal parametrisation (jerk as the control) is non-convex and was not
-attempted.
+Why this method and what it costs, measured: docs/formats.md, "jerk_limited".
 """
 
 from __future__ import annotations
