@@ -59,7 +59,7 @@ every pair of candidates of every segment and the refinement checks every tick o
 took (n, N, C, C) temporaries and tens of array operations per window (15-90 ms a plan, most of the
 encoder's time). Compiled, the costs need no temporaries, and the passes check at every tick only the
 pairs their best path passes: 1-6 ms a plan. The choices are those of the NumPy formulation with the
-costs at every tick, which tests/planner/encoder_reference.py keeps as the reference (float32 near the
+costs at every tick, which tests/planner/encoding/encoder_reference.py keeps as the reference (float32 near the
 plan, ties to the first candidate). Before the lazy check the joint choice scored the sample ticks only
 (its float error there as a tie-breaker): on 12 random paths, 15-54 % of the segments then failed at some
 other tick; with every tick checked, 10-44 % (those need the refinement's wider candidates or a split).
@@ -83,7 +83,7 @@ from planner.encoding.reconstruction import (  # the callers' and tests' `encode
     reconstruct,
     segment_envelope,
 )
-from planner.encoding.reconstruction import drive_round as drive_round  # tests/planner/placement_reference.py
+from planner.encoding.reconstruction import drive_round as drive_round  # tests/planner/encoding/placement_reference.py
 from planner.encoding.reconstruction import toward_zero_flags as _toward_zero
 from planner.encoding.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
 from planner.jit import kernel

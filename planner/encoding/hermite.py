@@ -17,7 +17,7 @@ and `a = T^-3 (2 dP + T (V[n] + V[n-1]))`. Taken literally those do not pass thr
 minus signs were lost when the PDF was turned into text). The seed's own definition wins: "two
 triplicates deliver two abscissas and four corresponding ordinates, permitting an interpolation
 polynomial of third order unambiguously computed" -- the unique cubic with P(-T) = P[n-1],
-V(-T) = V[n-1], P(0) = P[n], V(0) = V[n] is the one above (tests/planner/test_hermite.py checks both
+V(-T) = V[n-1], P(0) = P[n], V(0) = V[n] is the one above (tests/planner/encoding/test_hermite.py checks both
 the coefficients of a hand-computed example and the four interpolation conditions).
 
 Units on the drive: position in counts, time in ms, velocity in rpm of the motor shaft, so the
@@ -26,7 +26,7 @@ polynomial rounded half away from zero to whole counts at every 1 ms tick tau = 
 k = T it is exactly P[n].
 
 The encoder evaluates the same polynomial, operation for operation, in compiled loops
-(planner/encoding/quantise.py); tests/planner/test_planner_value_search.py holds the two equal bit for bit.
+(planner/encoding/quantise.py); tests/planner/encoding/test_value_search.py holds the two equal bit for bit.
 """
 
 from __future__ import annotations

@@ -24,7 +24,7 @@ nan-aware one does not vectorise); offsets into arrays are unsigned where numba 
 negative index (a wrapped index does not vectorise); a kernel called per pair takes one array (each
 array argument costs an atomic reference count per call).
 
-The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/
+The results are bit for bit those of the NumPy formulation the encoder had (tests/planner/encoding/
 encoder_reference.py keeps it as the reference): the drive's interpolation and rounding as
 planner/encoding/hermite.py writes them, operation for operation; the deviation near the plan in float32 (whole
 counts subtracted first, so the numbers are small), cast where NumPy cast; maxima as np.maximum

@@ -5,7 +5,7 @@ Parameterization based on Reachability Analysis", 2018) and so is the algorithm;
 ours, compiled (planner/jit.py). toppra runs the same two passes in Python, a few tens of microseconds
 per gridpoint: 6-7 ms for a 20-waypoint path, more than the whole rest of the plan once that is compiled
 too. Here the passes cost about 0.2 ms for 400 gridpoints and 90 constraint rows. toppra stays the
-reference: tests/planner/test_planner_topp.py solves random paths with both and compares the profiles.
+reference: tests/planner/motion/test_topp.py solves random paths with both and compares the profiles.
 
 Along a geometric path q(s), with x = s_dot^2 at gridpoint s_i and a constant path acceleration u over
 the interval [s_i, s_i+1] (so x_i+1 = x_i + 2 delta_i u_i), every joint velocity and acceleration

@@ -33,7 +33,7 @@ Position modes, per axis (user units):
   ("only modulo target positions within the basic period ... are permitted, otherwise an error is
   returned": `MODULO_RANGE`, naming the axis and the value). `modulo_current` goes in the last direction
   of rotation: the streaming side passes it (`last_direction`, the sign of the axis' last commanded
-  motion); none known counts as positive. Seed 002's tables are tests/planner/test_travel.py.
+  motion); none known counts as positive. Seed 002's tables are tests/planner/motion/test_travel.py.
 
 Velocity mode (seed 002's ENDLESS_PLUS / ENDLESS_MINUS, PLCopen's MC_MoveVelocity): per axis a signed
 velocity, snapped toward zero to whole rpm (the wire's resolution, so the cruise is exactly what the
