@@ -4,7 +4,7 @@
     python -m bus.sim.eds --check    # exit 1 when a committed file differs
 
 The EDS is what canopen loads for both sides: `LocalNode` in the simulated drive and `RemoteNode` in
-the master (and any other CANopen tool). tests/bus/test_eds.py checks the committed file equals the
+the master (and any other CANopen tool). tests/bus/test_bus_eds_profile.py checks the committed file equals the
 rendering, so the table and the file cannot drift apart.
 """
 

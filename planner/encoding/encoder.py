@@ -37,7 +37,7 @@ from planner.encoding.reconstruction import (  # the callers' and tests' `encode
     reconstruct,
     segment_envelope,
 )
-from planner.encoding.reconstruction import drive_round as drive_round  # tests/planner/placement_reference.py
+from planner.encoding.reconstruction import drive_round as drive_round  # tests/planner/encoding/placement_reference.py
 from planner.encoding.reconstruction import toward_zero_flags as _toward_zero
 from planner.encoding.record import POSITION_MAX, POSITION_MIN, SEGMENT_TIME_MAX_MS
 from planner.jit import kernel

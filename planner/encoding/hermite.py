@@ -9,7 +9,7 @@ drive's demand (0x6062) comes from it. In tau = t - t0 from the segment END (tau
     P(tau) = a tau^3 + b tau^2 + c tau + d,   V(tau) = 3a tau^2 + 2b tau + c,   A(tau) = 6a tau + 2b
 
 The seed's extracted text lost these minus signs; its own definition (the cubic through both end positions
-and velocities) wins (tests/planner/test_hermite.py). Units: counts, ms, rpm (counts_per_rev / 60000 counts
+and velocities) wins (tests/planner/encoding/test_hermite.py). Units: counts, ms, rpm (counts_per_rev / 60000 counts
 per ms); the demand is rounded half away from zero each tick. quantise.py evaluates it bit for bit alike.
 """
 

@@ -5,7 +5,7 @@ lazily: the costs at the sample ticks bound those at every tick from below; `_ex
 path's pairs at every tick and runs again until no bound is left on it, which gives the full check's
 result, ties included. The loops are shaped to vectorise (rows of candidates or ticks, padded; maxima as
 integer bit patterns; unsigned offsets; one array per per-pair kernel). Results are bit for bit the NumPy
-reference's (tests/planner/encoder_reference.py).
+reference's (tests/planner/encoding/encoder_reference.py).
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ Point-to-point modes become an absolute target (`resolve_target`): absolute, rel
 position), additive (from the last commanded target the streaming side keeps; None: from the actual
 position), and modulo_short/plus/minus/current on axes with a `modulo_period` (seed 002: from the actual
 position, a tolerance window, extra periods are turns). docs/formats.md ("move") has the rules; seed 002's
-tables are tests/planner/test_travel.py. Velocity mode: whole-rpm velocities, `plan_velocity` ramps and
+tables are tests/planner/motion/test_travel.py. Velocity mode: whole-rpm velocities, `plan_velocity` ramps and
 cruises open-ended (`CruiseState`), `extend_velocity` gives each next chunk, cruise knots integers from one
 anchor (no drift); a chunk that could no longer stop inside the software limits stops at the last ms that
 fits (`info["position_limit_stop"]`), and a ramp that cannot is refused (POSITION_LIMIT).

@@ -31,7 +31,7 @@ HOME = {"kind": "move", "axes": ["j1", "j2", "j3", "j4", "j5", "j6"], "target": 
 def _runtime(cell: CellConfig) -> Any:
     # the drives are simulated in this process and share its CPU with the master: a loaded machine stalls
     # them longer than the three SYNCs a real drive gets before TPDO_TIMEOUT (what this file tests is the
-    # service's behaviour, not that timeout: tests/streamer/test_streamer_core_faults.py has it)
+    # service's behaviour, not that timeout: tests/streamer/core/test_fault_paths.py has it)
     cell = dataclasses.replace(cell, drive=dataclasses.replace(cell.drive, tpdo_timeout_syncs=10))
     try:
         return load_backend("streamer.runtime.bus_backend:open_backend", cell, sim=True)

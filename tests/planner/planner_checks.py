@@ -1,4 +1,6 @@
-"""Shared checks for the planner tests (imported by name: tests/planner is a rootless test directory)."""
+"""Shared checks for the planner tests, imported by name (`from planner_checks import ...`) from tests/planner and
+its motion/ and encoding/ folders: these are rootless test directories (no __init__.py; pytest's default
+`prepend` import mode), and loading tests/planner/conftest.py puts tests/planner on sys.path for all of them."""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ Already elsewhere (not duplicated here):
   decoder tests);
 - the stateful test over the streamer core (rules sync, drop, duplicate, emcy, heartbeat loss, submit,
   cancel; invariants: nothing sent after a fault, modelled FIFO fill in [0, 64], frames only to the
-  job's axes): tests/streamer/test_streamer_core_stateful.py.
+  job's axes): tests/streamer/core/test_stateful.py.
 Added here: job-shaped maps (not just bytes) through the whole decoder, planner validation included;
 any frame into a running simulated drive; any frame into the master side of the virtual runtime
 mid-job.

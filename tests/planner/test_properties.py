@@ -1,6 +1,6 @@
 """Hypothesis property tests: random feasible jobs of every kind on 1..8 axes, and stops from random states.
 
-Every trajectory must satisfy `assert_invariants` (conftest.py): deviation within tolerance at every ms,
+Every trajectory must satisfy `assert_invariants` (planner_checks.py): deviation within tolerance at every ms,
 segment times whole ms in 1..255 on one shared grid, C1 at the knots, limits respected, exact end at
 rest, no NaN.
 """

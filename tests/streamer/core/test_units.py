@@ -196,7 +196,7 @@ def test_the_cells_tpdo_timeout_reaches_the_settings() -> None:
     from planner.config import cell_from_dict
     from planner.errors import PlanningError
 
-    data = tomllib.loads((Path(__file__).resolve().parents[2] / "configs" / "demo.toml").read_text(encoding="utf-8"))
+    data = tomllib.loads((Path(__file__).resolve().parents[3] / "configs" / "demo.toml").read_text(encoding="utf-8"))
     data["drive"]["tpdo_timeout_syncs"] = 8
     assert StreamerSettings.from_cell(cell_from_dict(data)).tpdo_timeout_syncs == 8
     for bad in (0, 101, 2.5, True):

@@ -164,7 +164,7 @@ def test_tpdos_missing_for_three_syncs() -> None:
 
 
 def test_a_wider_tpdo_timeout_waits_that_many_syncs() -> None:
-    # [drive] tpdo_timeout_syncs in the cell TOML (tests/streamer/test_streamer_core_units.py: it reaches
+    # [drive] tpdo_timeout_syncs in the cell TOML (tests/streamer/core/test_units.py: it reaches
     # StreamerSettings.from_cell); a host that stalls longer than three SYNCs needs it
     plan = make_plan(3, 2000, seed=11)
     rig = running_rig(plan, settings=StreamerSettings(counts_per_rev=dict.fromkeys(plan.node_ids, CPR),

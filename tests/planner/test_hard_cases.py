@@ -55,7 +55,7 @@ def test_hard_case(cell: CellConfig, case: dict[str, Any]) -> None:
     if "max_segment_ms" in case:
         assert int(traj.dt_ms.max()) <= case["max_segment_ms"]
     if "max_over_optimum" in case:
-        # as test_planner_properties.test_path_jobs: toppra's optimum on the planner's grid, played
+        # as test_properties.test_path_jobs: toppra's optimum on the planner's grid, played
         # `time_scale` slower where the quantisation needed it, plus 1 ms per run of whole-ms re-timing
         bound = case["max_over_optimum"] * traj.info["time_scale"] * traj.info["optimal_s"]
         assert traj.duration_s <= bound + 0.001 * traj.info.get("runs", 1.0), (traj.duration_s, traj.info)

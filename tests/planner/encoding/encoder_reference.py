@@ -1,6 +1,6 @@
 """The PVT encoder's value search and verification as NumPy had them (planner/encoding/encoder.py at 60b5382, before
 they were compiled into planner/encoding/quantise.py): the reference the compiled kernels must reproduce bit for
-bit (tests/planner/test_planner_value_search.py). Vectorised over axes, segments, candidate pairs and
+bit (tests/planner/encoding/test_value_search.py). Vectorised over axes, segments, candidate pairs and
 ticks with (n, N, C, C) temporaries; kept only as that reference, the encoder never calls it."""
 
 from __future__ import annotations

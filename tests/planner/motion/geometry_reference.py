@@ -1,5 +1,5 @@
 """The blended geometry's NumPy formulation (planner/motion/geometry.py at 60b5382, before its loops were compiled): the
-reference the kernels are compared with (tests/planner/test_planner_geometry.py). Kept only as that reference."""
+reference the kernels are compared with (tests/planner/motion/test_geometry.py). Kept only as that reference."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ from planner.errors import AXIS_ID, CONFIG, ENCODING_RANGE, INFEASIBLE, Planning
 from planner.job import load_job
 from planner.plan import plan_job
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 DEMO_JOB = ROOT / "configs" / "jobs" / "demo-path.toml"
 
 

@@ -1,5 +1,5 @@
 """The PVT encoder's knot placement as NumPy had it (planner/encoding/encoder.py at 60b5382, before it was compiled):
-the reference the compiled placement must reproduce (tests/planner/test_planner_placement.py). Kept only as
+the reference the compiled placement must reproduce (tests/planner/encoding/test_placement.py). Kept only as
 that reference; the encoder never calls it."""
 
 from __future__ import annotations
