@@ -65,25 +65,29 @@ def knot_steps(knots: Knots, scales: AxisScales) -> tuple[FloatArray, FloatArray
 
 def _candidates(
     want: IntArray, v_plan: FloatArray, times: IntArray, p_orig: IntArray, v_orig: IntArray, conv: float,
-    tol: float,
+    tol: float, held: int = 1, moved: int = -1,
 ) -> tuple[FloatArray, FloatArray, IntArray]:
     """Every knot's candidate values (positions, rpm), sorted, padded to one width: (n+1, C) each, and the
-    count per knot. The end knots keep the encoder's values (the start is where the drive stands).
-    Positions within the tolerance of the planned demand (at most `MAX_OFFSET` counts either side: at a
-    tolerance of 2 counts, +-2 left the demo path's worst step at 2.1 x the bound where +-1 left 2.7)."""
+    count per knot. The `held` knots at each end keep their values (the start is where the drive stands;
+    `refine_times` holds two to cost the steps at its window's edges). Positions within the tolerance of
+    the planned demand (at most `MAX_OFFSET` counts either side: at a tolerance of 2 counts, +-2 left the
+    demo path's worst step at 2.1 x the bound where +-1 left 2.7), and the knot's own values but at the
+    knot `moved` (whose time changed)."""
     n = times.size - 1
     offsets = range(-min(int(tol), MAX_OFFSET), min(int(tol), MAX_OFFSET) + 1)
     width = len(offsets) * len(_VELOCITIES) + 1
     cp = np.zeros((n + 1, width))
     cv = np.zeros((n + 1, width))
     count = np.ones(n + 1, dtype=np.int64)
-    cp[0, 0], cv[0, 0] = float(p_orig[0]), float(v_orig[0])
-    cp[n, 0], cv[n, 0] = float(p_orig[n]), float(v_orig[n])
-    for k in range(1, n):
+    for k in range(n + 1):
+        if k < held or k > n - held:
+            cp[k, 0], cv[k, 0] = float(p_orig[k]), float(v_orig[k])
+            continue
         w = float(want[times[k]])
         r = float(np.round(v_plan[times[k]] / conv))
         pairs = {(w + dp, r + dv) for dp in offsets for dv in _VELOCITIES}
-        pairs.add((float(p_orig[k]), float(v_orig[k])))
+        if k != moved:
+            pairs.add((float(p_orig[k]), float(v_orig[k])))
         arr = np.array(sorted(pairs))
         count[k] = arr.shape[0]
         cp[k, : count[k]], cv[k, : count[k]] = arr[:, 0], arr[:, 1]
@@ -217,6 +221,16 @@ def _axis(
     return cp[knots, chosen].astype(np.int64), cv[knots, chosen].astype(np.int64)
 
 
+def _limits(scales: AxisScales) -> tuple[FloatArray, FloatArray]:
+    """Per axis the velocity the drive's values may reach (counts/ms) and the acceleration-excess budget."""
+    quantum = scales.counts_per_ms_per_rpm
+    vlim = np.minimum(
+        scales.drive_velocity,
+        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
+    )
+    return vlim, ACC_EXCESS_LIMIT * scales.acceleration_axis * 0.999
+
+
 def smooth_values(ref: Reference, knots: Knots, scales: AxisScales, tol: float, jerk_limit: FloatArray) -> Knots:
     """`knots` with every axis' values re-chosen for a continuous acceleration (module docstring);
     `jerk_limit` (n,) in counts/ms^3. The encoder's knots are returned where the result would not keep
@@ -226,19 +240,15 @@ def smooth_values(ref: Reference, knots: Knots, scales: AxisScales, tol: float, 
     want = planned_demand(ref, scales.toward_zero)
     env = segment_envelope(ref, knots.times_ms)
     quantum = scales.counts_per_ms_per_rpm
-    vlim = np.minimum(
-        scales.drive_velocity,
-        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
-    )
+    vlim, budget = _limits(scales)
     pos = knots.positions.copy()
     vel = knots.velocities_rpm.copy()
     own = np.abs(knot_steps(knots, scales)[0]).max(axis=1)
     for i in range(ref.n_axes):
         got = _axis(
             want[i], ref.velocities[i], knots.times_ms, knots.positions[i], knots.velocities_rpm[i], env[i],
-            float(quantum[i]), float(vlim[i]), float(scales.drive_acceleration[i]),
-            ACC_EXCESS_LIMIT * float(scales.acceleration_axis[i]) * 0.999, float(jerk_limit[i]), tol,
-            float(own[i]),
+            float(quantum[i]), float(vlim[i]), float(scales.drive_acceleration[i]), float(budget[i]),
+            float(jerk_limit[i]), tol, float(own[i]),
         )
         if got is not None:
             pos[i], vel[i] = got
@@ -284,22 +294,6 @@ def _one(scales: AxisScales, i: int) -> AxisScales:
     return dataclasses.replace(scales, counts_per_ms_per_rpm=scales.counts_per_ms_per_rpm[i : i + 1])
 
 
-def _limits(scales: AxisScales) -> tuple[FloatArray, FloatArray]:
-    """Per axis the velocity the drive's values may reach (counts/ms) and the acceleration-excess budget."""
-    quantum = scales.counts_per_ms_per_rpm
-    vlim = np.minimum(
-        scales.drive_velocity,
-        np.maximum(scales.velocity_limit * (1.0 + VELOCITY_SLACK), scales.velocity_limit + quantum),
-    )
-    return vlim, ACC_EXCESS_LIMIT * scales.acceleration_axis * 0.999
-
-
-def _window_ratio(times: IntArray, pos: IntArray, vel: IntArray, scales: AxisScales, jerk: FloatArray) -> float:
-    """The largest in-segment jerk or step at an interior knot of these knots (every axis), over the bound."""
-    j, steps = knot_steps(Knots(times, pos, vel), scales)
-    return float(max((np.abs(j) / jerk[:, None]).max(initial=0.0), (np.abs(steps) / jerk[:, None]).max(initial=0.0)))
-
-
 def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, jerk_limit: FloatArray) -> Knots:
     """`knots` (smoothed values, `smooth_values`) with their shared times moved where that lowers the worst
     step or jerk: each knot whose step exceeds the bound on some axis, worst first, is tried up to 6 ms
@@ -320,8 +314,6 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
     vlim, budget = _limits(scales)
     quantum = scales.counts_per_ms_per_rpm
     caps = np.maximum(jerk_limit * (1.0 + JERK_SLACK), np.abs(knot_steps(knots, scales)[0]).max(axis=1))
-    width = 2 * MAX_OFFSET + 1
-    offsets = np.arange(-min(int(tol), MAX_OFFSET), min(int(tol), MAX_OFFSET) + 1, dtype=np.float64)
     for _round in range(REFINE_ROUNDS):
         steps = np.abs(knot_steps(Knots(times, pos, vel), scales)[1]) / jerk_limit[:, None]
         worst = steps.max(axis=0)  # per interior knot 1..n-1
@@ -332,7 +324,7 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
             if not (lo + 1 < k < hi - 1):
                 continue
             sl = slice(lo, hi + 1)
-            best = _window_ratio(times[sl], pos[:, sl], vel[:, sl], scales, jerk_limit)
+            best = worst_ratio(Knots(times[sl], pos[:, sl], vel[:, sl]), scales, jerk_limit)
             axis_order = np.argsort(-steps[:, k - 1], kind="stable")
             choice: tuple[IntArray, IntArray, IntArray] | None = None
             for shift in REFINE_SHIFTS:
@@ -345,21 +337,8 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
                 wp, wv = pos[:, sl].copy(), vel[:, sl].copy()
                 ok = True
                 for i in axis_order:  # the worst axis first: a shift that does not help it is dropped at once
-                    m = wt.size
-                    cp = np.zeros((m, width * len(_VELOCITIES) + 1))
-                    cv = np.zeros_like(cp)
-                    count = np.ones(m, dtype=np.int64)
-                    for w in range(m):
-                        if w < 2 or w > m - 3:  # held: the window's two outer knots on each side
-                            cp[w, 0], cv[w, 0] = float(pos[i, lo + w]), float(vel[i, lo + w])
-                            continue
-                        r = float(np.round(ref.velocities[i, wt[w]] / quantum[i]))
-                        pairs = {(float(want[i, wt[w]]) + float(dp), r + dv) for dp in offsets for dv in _VELOCITIES}
-                        if w != k - lo:
-                            pairs.add((float(pos[i, lo + w]), float(vel[i, lo + w])))
-                        arr = np.array(sorted(pairs))
-                        count[w] = arr.shape[0]
-                        cp[w, : count[w]], cv[w, : count[w]] = arr[:, 0], arr[:, 1]
+                    cp, cv, count = _candidates(want[i], ref.velocities[i], wt, pos[i, sl], vel[i, sl],
+                                                float(quantum[i]), tol, held=2, moved=k - lo)
                     chosen = _viterbi(cp, cv, count, wt, np.ascontiguousarray(want[i], dtype=np.int64),
                                       np.ascontiguousarray(env[i], dtype=np.float64), float(quantum[i]),
                                       float(vlim[i]), float(scales.drive_acceleration[i]), float(budget[i]),
@@ -367,14 +346,15 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
                     if chosen.size == 0:
                         ok = False
                         break
-                    rows = np.arange(m)
+                    rows = np.arange(wt.size)
                     wp[i], wv[i] = cp[rows, chosen].astype(np.int64), cv[rows, chosen].astype(np.int64)
-                    if _window_ratio(wt, wp[i : i + 1], wv[i : i + 1], _one(scales, i), jerk_limit[i : i + 1]) >= best:
+                    alone = Knots(wt, wp[i : i + 1], wv[i : i + 1])
+                    if worst_ratio(alone, _one(scales, i), jerk_limit[i : i + 1]) >= best:
                         ok = False
                         break
                 if not ok:
                     continue
-                ratio = _window_ratio(wt, wp, wv, scales, jerk_limit)
+                ratio = worst_ratio(Knots(wt, wp, wv), scales, jerk_limit)
                 if ratio < best * (1.0 - 1e-9):
                     best, choice = ratio, (wt, wp, wv)
             if choice is not None:

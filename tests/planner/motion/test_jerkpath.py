@@ -235,22 +235,29 @@ def test_speed_changes_match_ruckig() -> None:
         assert _change(dv, a, j) == pytest.approx(out.duration, rel=1e-9)
 
 
-def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
-    """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
-    every ms."""
+def _runs_of(job_dict: dict[str, Any], cell: CellConfig) -> tuple[Any, Any]:
+    """The blended runs of a 2-axis path job (the largest-radius blends at 1 count, in a +-3 box) and its limits."""
     from planner.encoding.encoder import segment_bounds
     from planner.job import effective_limits, path_tolerance
-    from planner.motion.jerkpath import PLAN_JERK_SHARE, plan_corner_run
     from planner.plan import axis_configs, axis_scales, lines_geometry
 
-    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
-                         "path_tolerance": 0.05, "jerk_limited": True}, cell)
+    job = job_from_dict(job_dict, cell)
     cfg = axis_configs(job.axes, cell)
     lim = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in cfg])
     runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim.velocity, lim.acceleration,  # type: ignore[union-attr]
                                   path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
                                   (np.full(2, -3.0), np.full(2, 3.0)), {})
+    return runs, lim
+
+
+def test_blended_corners_at_constant_speed(cell: CellConfig) -> None:
+    """plan_corner_run on an L-shaped path with one blend: rest to rest, every bound within its share at
+    every ms."""
+    from planner.motion.jerkpath import PLAN_JERK_SHARE, plan_corner_run
+
+    runs, lim = _runs_of({"kind": "path", "axes": ["j1", "j2"], "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.0, 0.8]],
+                          "path_tolerance": 0.05, "jerk_limited": True}, cell)
     assert len(runs) == 1 and runs[0].blends.tolist() == [0, 1, 0]
     run = plan_corner_run(runs[0], lim.velocity, lim.acceleration, lim.jerk)
     assert run is not None
@@ -267,20 +274,11 @@ def test_a_corner_is_a_stop_where_that_is_faster(cell: CellConfig) -> None:
     """_choose_stops: a blend of a tight tolerance at a sharp corner is crossed so slowly (its third
     derivative is large) that stopping on the waypoint is faster: the plan stops there, and is faster than the plan
     that blends every corner."""
-    from planner.encoding.encoder import segment_bounds
-    from planner.job import effective_limits, path_tolerance
     from planner.motion.jerkpath import PLAN_JERK_SHARE, _choose_stops, _corner_motion, _geometry_pieces, _with_stops
-    from planner.plan import axis_configs, axis_scales, lines_geometry
 
-    job = job_from_dict({"kind": "path", "axes": ["j1", "j2"],
-                         "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.2, 0.5], [2.0, 0.6]],
-                         "path_tolerance": 0.004, "jerk_limited": True}, cell)
-    cfg = axis_configs(job.axes, cell)
-    lim = effective_limits(job, cell)
-    cpu = np.array([c.counts_per_unit for c in cfg])
-    runs, _chain = lines_geometry(np.array(job.data.waypoints), cpu, lim.velocity, lim.acceleration,  # type: ignore[union-attr]
-                                  path_tolerance(job, cell), 1, segment_bounds(axis_scales(cfg, lim), 1.0),
-                                  (np.full(2, -3.0), np.full(2, 3.0)), {})
+    runs, lim = _runs_of({"kind": "path", "axes": ["j1", "j2"],
+                          "waypoints": [[0.0, 0.0], [1.0, 0.0], [1.2, 0.5], [2.0, 0.6]],
+                          "path_tolerance": 0.004, "jerk_limited": True}, cell)
     assert len(runs) == 1
     jplan = lim.jerk * PLAN_JERK_SHARE
     pieces = _geometry_pieces(runs[0], lim.velocity, lim.acceleration, jplan)
