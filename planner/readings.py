@@ -35,6 +35,9 @@ OPEN_POINTS: Mapping[str, tuple[str, ...]] = {
     "clock": ("sync", "own"),
 }
 
+# an XtrapulsPac's answer to controlword bit 4 before its PLL has locked (seed 003 gives only the 180 ms)
+EARLY_BIT4 = ("refused", "held")
+
 # what the master must know before a job (they change what the drive does with the stream); the others it
 # tolerates by design (docs/streamer.md)
 MUST_KNOW = ("fifo_count", "first_record", "clock")
@@ -131,10 +134,20 @@ class SimDriveOptions:
     home_switch: tuple[float, ...] | None = None
     limit_switches: tuple[float, ...] | None = None
     homing_travel: float = 0.0
+    # XtrapulsPac (seed 003 3.1.1.4 "At least 180 ms are necessary for the servo-drive to start the
+    # synchronisation"): how long its PLL needs SYNC before it locks (at least 180 ms), and what it does with
+    # controlword bit 4 before that: "refused" until bit 4 is seen low and set again, or "held" and taken
+    # at the lock (the manual says neither)
+    sync_lock_ms: float = 180.0
+    early_bit4: str = "refused"
 
     def __post_init__(self) -> None:
         for key in OPEN_POINTS:
             _choice("sim", key, getattr(self, key))
+        _float("sim", "sync_lock_ms", self.sync_lock_ms, 180.0, 60000.0)
+        if self.early_bit4 not in EARLY_BIT4:
+            raise PlanningError(CONFIG, f"sim.early_bit4 = {self.early_bit4!r}: must be one of "
+                                f"{', '.join(map(repr, EARLY_BIT4))}", path="sim.early_bit4")
         for key in ("home_switch", "limit_switches"):
             object.__setattr__(self, key, _pair("sim", key, getattr(self, key), infinite=key == "home_switch"))
         _float("sim", "homing_travel", self.homing_travel, 0.0, 1e12)

@@ -1,13 +1,14 @@
 """The XtrapulsPac family: Infranor's interpolated position mode, one set point per SYNC (seed 003 3.2.3.5),
 on the shared CiA 402 drive (bus/sim/device.py) and the cyclic part (bus/sim/cyclic_drive.py).
 
-Per SYNC k (`_after_sync_rpdos`): the PLL (0x2006) locks after 180 ms of steady SYNC, and while
-interpolating a jitter of half a period, a period off by 0.4 % or SYNC loss is error 49 (limits scaled by
-`sync_gap_factor`: in-process runtimes pass 3.0, their SYNC stamps carry Python's scheduling); a set point
-missing since SYNC k-1 is error 50; the interpolator latches 0x60C1:01 (and :02); interpolation starts
-with controlword bit 4 once the PLL is locked (before that the request is refused until bit 4 is seen
-low), from the current demand; the period's polynomial follows sub-mode 0x60C0. Set points in RPDO3,
-optionally 16-bit multiplexed (0x3350 = 1). docs/drive-model.md has every reading and its seed sentence.
+Per SYNC k (`_after_sync_rpdos`): the PLL (0x2006) locks after 180 ms of steady SYNC (`sim.sync_lock_ms`),
+and while interpolating a jitter of half a period, a period off by 0.4 % or SYNC loss is error 49 (limits
+scaled by `sync_gap_factor`: in-process runtimes pass 3.0, their SYNC stamps carry Python's scheduling); a
+set point missing since SYNC k-1 is error 50; the interpolator latches 0x60C1:01 (and :02); interpolation
+starts with controlword bit 4 once the PLL is locked (before that the request is refused until bit 4 is
+seen low, or held until the lock: `sim.early_bit4`), from the current demand; the period's polynomial
+follows sub-mode 0x60C0. Set points in RPDO3, optionally 16-bit multiplexed (0x3350 = 1).
+docs/drive-model.md has every reading and its seed sentence.
 """
 
 from __future__ import annotations
@@ -221,9 +222,11 @@ class XtrapulsDrive(CyclicDrive):
         if not wanted:
             self._ip_refused = False  # bit 4 low (or not enabled in mode 7): the next request is a new one
         elif not self._ip_active and not self._ip_refused and not self._locked:
-            # bit 4 before 180 ms of SYNC: refused, bit 12 stays low until bit 4 falls and rises again
-            self._ip_refused = True
-            self.ip_refusals += 1
+            # bit 4 before the lock: refused, bit 12 stays low until bit 4 falls and rises again (the "held"
+            # reading keeps the request and starts at the lock)
+            if self.options.early_bit4 == "refused":
+                self._ip_refused = True
+                self.ip_refusals += 1
         elif not self._ip_active and not self._ip_refused:
             self._ip_active = True
             self.counters.activations += 1
@@ -277,7 +280,8 @@ class XtrapulsDrive(CyclicDrive):
                 error = abs(ordered[len(ordered) // 2] - period_s)
                 if self._ip_active and len(fifo) == window and error >= self._period_tolerance * period_s - _EPS_S:
                     self._fault(codec.EMCY_SYNC_LOST, 0, t)  # error 49: "period accuracy ... (>=0.4%)"
-                self._locked = t - self._pll_since >= PLL_WINDOW_S - _EPS_S and error < self._sync_error_limit_s
+                lock_s = self.options.sync_lock_ms / 1000.0
+                self._locked = t - self._pll_since >= lock_s - _EPS_S and error < self._sync_error_limit_s
                 return
         if self._pll_since is None:
             self._pll_since = t  # the first SYNC of a run

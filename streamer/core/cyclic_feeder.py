@@ -60,6 +60,9 @@ class CyclicFeeder(AxisStateMachine):
         self.ready_sync: int | None = None  # the SYNC after which it got its first hold
         self.bit4_sync: int | None = None  # the SYNC after which it got controlword bit 4 (ip mode requested)
         self.bit4_sync_ran_ms = 0  # how long SYNC had run at the SYNC that applied bit 4
+        self.bit4_first_sync: int | None = None  # the first request's SYNC: the activation timeout runs from it
+        self.bit4_requests = 0  # rising edges of bit 4 sent (a refused request is dropped and asked again)
+        self.bit4_low_sync: int | None = None  # bit 4 dropped after this SYNC, to be raised again after the next
         self.active_sync: int | None = None  # the SYNC bit 12 was first seen set (ip mode active)
         self.holds_after_active = 0
         self.sent_index = -1  # the last set point index sent (-1: only holds so far)
@@ -83,6 +86,16 @@ class CyclicFeeder(AxisStateMachine):
         """Controlword bit 4 went out after SYNC m; SYNC had run `sync_ran_ms` at the SYNC that applies it."""
         self.bit4_sync = m
         self.bit4_sync_ran_ms = sync_ran_ms
+        self.bit4_low_sync = None
+        self.bit4_requests += 1
+        if self.bit4_first_sync is None:
+            self.bit4_first_sync = m
+
+    def ip_dropped(self, m: int) -> None:
+        """Bit 4 cleared after SYNC m, the request not taken: the drive sees it low at SYNC m + 1, and a new
+        rising edge goes out after that SYNC."""
+        self.bit4_sync = None
+        self.bit4_low_sync = m
 
     def seen_active(self, m: int) -> None:
         """Statusword bit 12 (ip mode active / following the set point) first seen at SYNC m, priming."""

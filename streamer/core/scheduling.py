@@ -26,6 +26,7 @@ from streamer.core.fifo_feeder import FifoFeeder
 from streamer.core.job_state import (
     ALL_FINISHED,
     ALL_PRIMED,
+    CW_ENABLE_OPERATION,
     CW_START_IP,
     EXTENDING,
     FEEDING,
@@ -36,6 +37,8 @@ from streamer.core.job_state import (
 )
 from streamer.core.open_stream import OpenStream
 from streamer.core.schedule import consumed_at, dry_run, target_prefix
+
+BIT4_RETRY_MIN_MS = 50.0  # a bit 4 request stands at least this long before it is dropped and raised again
 
 
 class Scheduler(OpenStream):
@@ -299,27 +302,44 @@ class Scheduler(OpenStream):
 
     def _prime_cyclic(self, f: CyclicFeeder, m: int) -> None:
         """PRIMING: PRIMED once ip mode was seen active at SYNC a and m >= a + HOLD_AFTER_ACTIVE (the holds
-        after a are latched); START_FAILED when it never comes."""
+        after a are latched); START_FAILED when it never comes.
+
+        An XtrapulsPac that does not take bit 4 within `_bit4_retry_ms` of it gets it dropped for one SYNC and
+        raised again, up to `activate_timeout_ms` after the first request. The manual (seed 003 3.1.1.4) says
+        the drive needs 180 ms of SYNC to synchronise and not what it does with bit 4 before: take it when
+        locked, or refuse it until it falls and rises again (the simulated drive). A host stall restarts the
+        drive's lock count where the master cannot see it; the new edge serves every reading."""
         if f.state is not FeederState.PRIMING:
             return
-        if f.spec.starts_with_bit4 and f.bit4_sync is None:
+        bit4 = f.spec.starts_with_bit4
+        if bit4 and f.bit4_sync is None and (f.bit4_low_sync is None or m > f.bit4_low_sync):
             self._request_ip(f, m)
             return
         if f.active_sync is not None:
             if m >= f.active_sync + HOLD_AFTER_ACTIVE:
                 f.fire(FeederInput.PRIMED)
             return
-        asked = f.bit4_sync if f.spec.starts_with_bit4 else f.ready_sync
+        asked = f.bit4_first_sync if bit4 else f.ready_sync
         if asked is not None and (m - asked) * self._period > self._settings.activate_timeout_ms:
-            what = "ip mode active (statusword bit 12)" if f.spec.starts_with_bit4 else \
-                "following the set point (statusword bit 12)"
-            why = (f"; SYNC had run {f.bit4_sync_ran_ms} ms at the SYNC that applied bit 4, the drive needs "
-                   f"{f.spec.sync_lock_ms} ms of it" if f.spec.starts_with_bit4 else "")
+            what = "ip mode active (statusword bit 12)" if bit4 else "following the set point (statusword bit 12)"
+            times = f"{f.bit4_requests} time{'s' if f.bit4_requests != 1 else ''}"
+            why = (f"; bit 4 raised {times}, SYNC had run {f.bit4_sync_ran_ms} ms at the SYNC "
+                   f"that applied the last, the drive needs {f.spec.sync_lock_ms} ms of it" if bit4 else "")
             self._fail(
                 oc.START_FAILED,
                 f"node {f.node_id}: not {what} {self._settings.activate_timeout_ms} ms after "
-                f"{'controlword bit 4' if f.spec.starts_with_bit4 else 'operation enabled'} (statusword "
+                f"{'controlword bit 4' if bit4 else 'operation enabled'} (statusword "
                 f"0x{f.last_statusword or 0:04X}{why})",
                 f.node_id,
-                {"statusword": f.last_statusword, "sync_ran_ms": f.bit4_sync_ran_ms},
+                {"statusword": f.last_statusword, "sync_ran_ms": f.bit4_sync_ran_ms, "bit4_requests": f.bit4_requests},
             )
+            return
+        if bit4 and f.bit4_sync is not None and (m - f.bit4_sync) * self._period >= self._bit4_retry_ms(f):
+            self._emit_cw(f, CW_ENABLE_OPERATION)  # not taken: low for the next SYNC, raised again after it
+            f.ip_dropped(m)
+
+    def _bit4_retry_ms(self, f: CyclicFeeder) -> float:
+        """How long a bit 4 request is left standing: the drive's lock time (a drive that takes bit 4 once
+        locked has then taken it) and three periods for its statusword to come back (TPDO latency up to 0.9
+        period), at least BIT4_RETRY_MIN_MS."""
+        return max(float(f.spec.sync_lock_ms), BIT4_RETRY_MIN_MS) + 3 * self._period

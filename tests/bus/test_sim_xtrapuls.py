@@ -27,6 +27,7 @@ from bus.sim.od import SdoAbort
 from bus.sim.virtual import VirtualCell
 from bus.sim.xtrapuls import XtrapulsDrive
 from planner.config import AxisConfig, CellConfig, DriveSettings
+from planner.errors import PlanningError
 from planner.readings import SimDriveOptions
 
 SETTINGS = DriveSettings(heartbeat_ms=0, heartbeat_timeout_ms=350)
@@ -534,6 +535,37 @@ def test_bit4_after_180_ms_of_sync_starts_at_once() -> None:
     r.setpoint(0)
     r.sync()
     assert r.m.ip_active and r.m.ip_refusals == 0
+
+
+def test_a_drive_that_needs_more_than_180_ms_locks_later() -> None:
+    """"At least 180 ms": `sim.sync_lock_ms` is the drive's own lock time."""
+    r = Rig(replace(xaxis(), sim=SimDriveOptions(sync_lock_ms=300.0)), initial_position=0.0)
+    r.enable()
+    r.sync(30)  # the 30th SYNC is 290 ms after the first
+    assert not r.m.pll_locked
+    r.sync()
+    assert r.m.pll_locked
+
+
+def test_the_held_reading_takes_an_early_bit4_at_the_lock() -> None:
+    """`sim.early_bit4 = "held"`: bit 4 set before the lock is kept and starts ip mode at the lock, no edge."""
+    r = Rig(replace(xaxis(), sim=SimDriveOptions(early_bit4="held")), initial_position=0.0)
+    r.enable()
+    r.cw(0x001F)
+    for _ in range(18):
+        r.setpoint(0)
+        r.sync()
+        assert not r.m.ip_active
+    r.setpoint(0)
+    r.sync()  # 180 ms after the first SYNC: locked, the standing request taken
+    assert r.m.pll_locked and r.m.ip_active and r.m.ip_refusals == 0
+
+
+def test_sim_options_for_the_lock_name_the_bad_value() -> None:
+    with pytest.raises(PlanningError, match=r"sim\.sync_lock_ms"):
+        SimDriveOptions(sync_lock_ms=100.0)
+    with pytest.raises(PlanningError, match=r"sim\.early_bit4 = 'later'"):
+        SimDriveOptions(early_bit4="later")
 
 
 def test_the_pll_needs_a_period_within_the_sync_error_limit() -> None:
