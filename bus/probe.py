@@ -32,6 +32,10 @@ OWN_CLOCK_PPM = 5000.0  # the probe's own bound on a drive clock: wider than any
 # SYNC-locked clock from an own one, and a TPDO lost or late can hide a fill change; the next run's
 # schedule is another draw
 TIMING_ATTEMPTS = 3
+# the rounding experiment: its one-count segment lasts at least this long, and a drive whose demand shows
+# the new count by this fraction of it rounds to nearest (from 0.5 on), later truncates (only at 1.0)
+ROUNDING_MIN_MS = 100
+ROUNDING_SPLIT = 0.75
 
 
 class Phase(Enum):
@@ -62,7 +66,8 @@ class NodeRecord:
     latencies_ms: list[float] = field(default_factory=list)
     timing: dict[int, tuple[bool, int]] = field(default_factory=dict)  # j (SYNC s + j) -> (ip active, fill)
     underflow_j: int | None = None  # SYNC s + j at which the underflow showed (EMCY or error bit)
-    rounding_demands: list[int] = field(default_factory=list)  # demands seen 0.55-0.95 into the count
+    # the one-count move: (j, ms since SYNC s by the SYNCs' stamps, position demand) per TPDO2
+    rounding_samples: list[tuple[int, float, int]] = field(default_factory=list)
     back_demand: int | None = None
     emcys: list[tuple[str, int]] = field(default_factory=list)  # (phase, code)
     tpdo1_seen: int = 0  # TPDO1s in the current phase (sequence attribution)
@@ -288,10 +293,8 @@ class StandstillProbe:
         else:
             answered = self._sync - self._step + r.tpdo2_seen  # the phase's k-th TPDO2 answers its k-th SYNC
         j = self._j(answered)
-        if self.phase is Phase.ROUNDING and j is not None and j >= 1:
-            frac = self._elapsed_true_ms(j) / self._rounding_time()
-            if 0.55 <= frac <= 0.95:
-                r.rounding_demands.append(demand)
+        if self.phase is Phase.ROUNDING and j is not None and j >= 0:
+            r.rounding_samples.append((j, self._elapsed_true_ms(j), demand))
         elif self.phase is Phase.ROUNDING_BACK and j is not None and j >= 0:
             r.back_demand = demand
 
@@ -316,10 +319,42 @@ class StandstillProbe:
         return None if self._start is None else sync - self._start
 
     def _rounding_time(self) -> int:
-        """The one-count segment: long enough that 0.55-0.95 of it holds two SYNCs that carry TPDO2 (where
-        the smoothstep is 0.58-0.99 of a count: nearest shows the count, toward zero not yet)."""
+        """The one-count segment: long enough that the SYNCs carrying TPDO2 split it finely (every 0.2 of it
+        at most) and that a SYNC late by a fifth of it (a loaded host) or a drive clock that does not count
+        from the SYNC the probe thinks leaves the verdict alone (`_rounding_verdict`)."""
         every = self.feedback.every if self.feedback is not None else 1
-        return max(20, math.ceil((every + 1) * self.period_ms / 0.4))
+        return max(ROUNDING_MIN_MS, math.ceil(every * self.period_ms / 0.2))
+
+    def _rounding_verdict(self, n: int, r: NodeRecord) -> tuple[str | None, str]:
+        """How node n rounds, from where its demand left the start count in the one-count move: the drive
+        interpolates a smoothstep over the segment, so rounding to nearest shows the new count from half
+        the segment, truncation only at its end. The verdict needs that on every clock the drive may run
+        (SYNC-counted or its own, as the timing experiment left it) and is taken at 0.75 of the segment, so
+        one SYNC misplaced or late by up to a fifth of the segment does not change it. Returns (reading or
+        None, evidence)."""
+        p0 = self._rounding_start.get(n, r.p0)
+        clocks = {sv[3] for sv in self._timing_survivors.get(n, [])} or set(OPEN_POINTS["clock"])
+        total = self._rounding_time()
+        samples = sorted(r.rounding_samples)
+        demands = sorted({d for _, _, d in samples})
+        step = 1 if p0 >= 0 else -1
+
+        def fracs(j: int, true_ms: float) -> list[float]:
+            return [(j * self.period_ms if c == "sync" else true_ms) / total for c in clocks]
+
+        moved = next(((j, t) for j, t, d in samples if d != p0), None)
+        stayed = [(j, t) for j, t, d in samples if d == p0]
+        where = "never" if moved is None else "at " + "/".join(f"{f:.2f}" for f in fracs(*moved))
+        evidence = (f"rounding: one-count move from {p0} over {total} ms, demands {demands}, the new count {where} "
+                    f"of the way (clock {'/'.join(sorted(clocks))})")
+        if not set(demands) <= {p0, p0 + step}:
+            return None, evidence
+        if moved is not None and all(f <= ROUNDING_SPLIT for f in fracs(*moved)):
+            return "nearest", evidence
+        if moved is not None and all(f >= ROUNDING_SPLIT for f in fracs(*moved)) and any(
+                all(f >= ROUNDING_SPLIT for f in fracs(j, t)) for j, t in stayed):
+            return "toward_zero", evidence  # (a drive that never reached the count moved nothing: no verdict)
+        return None, evidence
 
     def _next_phase(self) -> None:
         self._step = 0
@@ -447,20 +482,17 @@ class StandstillProbe:
                     evidence.append(f"underflow: reported at s{r.underflow_j:+d} (the last segment ends "
                                     f"{last_end} ms after s)")
             if Phase.ROUNDING in self.experiments:
-                p0 = self._rounding_start.get(n, r.p0)
-                demands = sorted(set(r.rounding_demands))
-                if demands == [p0]:
-                    kw["rounding"] = "toward_zero"
-                elif len(demands) == 1 and abs(demands[0] - p0) == 1:
-                    kw["rounding"] = "nearest"
+                verdict, seen = self._rounding_verdict(n, r)
+                if verdict is not None:
+                    kw["rounding"] = verdict
                 else:
-                    unexplained = unexplained or (f"the one-count move from {p0} showed demands {demands} "
-                                                  f"0.55-0.95 of the way")
-                evidence.append(f"rounding: demand {demands} 0.55-0.95 of the way from {p0} to one count past it")
+                    unexplained = unexplained or seen.replace("rounding: ", "no rounding explains the ", 1)
+                evidence.append(seen)
             if absent is not None and n in absent:
                 kw["absent"] = tuple(absent[n])
-            if r.emcys and Phase.UNDERFLOW not in self.experiments:
-                unexplained = unexplained or f"EMCY during the probe: {[(p, hex(c)) for p, c in r.emcys]}"
+            emcys = [(p, hex(c)) for p, c in r.emcys if p != Phase.UNDERFLOW.value]  # that one asks for its EMCY
+            if emcys:  # the cause comes first: what the drive showed after it is its fault reaction
+                unexplained = f"EMCY during the probe: {emcys}" + (f"; {unexplained}" if unexplained else "")
             out[n] = NodeResult(n, DriveReadings(**kw), tuple(evidence), unexplained)  # type: ignore[arg-type]
         return ProbeResult(out)
 

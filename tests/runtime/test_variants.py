@@ -208,3 +208,41 @@ def test_probe_runs_the_timing_experiment_again_when_the_schedule_left_a_reading
     result, _sim = probe_variant(name)
     for node in (1, 2):
         assert any("run 2 times" in e for e in result.nodes[node].evidence)
+
+
+@pytest.mark.parametrize("name", ["tpdo_latency", "rounding_toward_zero", "own_clock_fast", "tpdo_before_rpdo"])
+def test_probe_tells_the_rounding_with_the_syncs_of_the_one_count_move_late(
+        name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loaded host sends SYNCs 1-4 of the one-count move 4 ms late each (16 ms in all, every interval
+    within the drives' SYNC watch). A SYNC-counted drive is then 16 ms behind the SYNCs' stamps. The probe
+    judged the demands 0.55-0.95 of a 50 ms segment by the stamps and saw both counts ("the one-count move
+    from 0 showed demands [0, 1] 0.55-0.95 of the way", once in CI's real-time demo); it now judges where
+    the new count first shows in a 100 ms segment, on the clock the drive runs."""
+    original = StandstillProbe._interval_s
+
+    def late(self: StandstillProbe, step: int, count: int) -> float:
+        j = self._j(count)
+        extra = 0.004 if self.phase is Phase.ROUNDING and j is not None and 1 <= j <= 4 else 0.0
+        return original(self, step, count) + extra
+
+    monkeypatch.setattr(StandstillProbe, "_interval_s", late)
+    result, sim = probe_variant(name)
+    assert all(result.nodes[n].readings.rounding == sim.rounding for n in (1, 2))
+
+
+def test_an_emcy_in_the_one_count_move_leaves_the_drive_unexplained(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A SYNC 8 ms late in the one-count move (1.8 periods: the EPOS reports SYNC lost and stops) must not
+    pass as a drive that truncates. The probe ignored every EMCY when the underflow experiment (which asks
+    for one) was among its experiments, and its demand that never moved read as "toward_zero"."""
+    original = StandstillProbe._interval_s
+
+    def late(self: StandstillProbe, step: int, count: int) -> float:
+        extra = 0.008 if self.phase is Phase.ROUNDING and self._j(count) == 2 else 0.0
+        return original(self, step, count) + extra
+
+    monkeypatch.setattr(StandstillProbe, "_interval_s", late)
+    base, _job, traj = demo.prepare(axes=1)
+    vcell = VirtualCell(base, initial_positions=demo.start_positions(base, traj))
+    node = VirtualRuntime(base, vcell=vcell).probe(ALL_EXPERIMENTS).nodes[1]
+    assert node.readings.rounding is None
+    assert node.unexplained is not None and "EMCY during the probe: [('rounding'" in node.unexplained
