@@ -6,7 +6,9 @@ drives); building a recording is a few hundred ms of pure Python that would hold
 arrays, the plan's demand, the report) to one worker process, spawned (no fork of a threaded process) at
 nice 10, which builds the `JobRecording` and writes the MCAP file while the executor waits without the
 GIL. The worker starts with the service and is replaced if it died; `in_process=True` does the work on
-the calling thread (for tools with no SYNC to protect).
+the calling thread (for tools with no SYNC to protect). The worker ends with the service's process even
+when that one is killed (`_watch_parent`): a pool worker holds both ends of its call queue, so it would
+never see the queue close, and lived on idle after every killed service.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import concurrent.futures
 import contextlib
 import multiprocessing
 import os
+import threading
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -81,9 +85,21 @@ def as_recording(item: JobRecording | RecordingInputs, job_id: str, cell: str) -
     return replace(item, job_id=job_id, cell=cell)
 
 
-def _lower_priority() -> None:
+PARENT_POLL_S = 0.5  # how often the worker looks whether the process that started it still runs
+
+
+def _start_worker(parent: int) -> None:
     with contextlib.suppress(OSError):  # not allowed here: the worker still has its own GIL
         os.nice(WORKER_NICE)
+    threading.Thread(target=_watch_parent, args=(parent,), name="recording-writer-parent", daemon=True).start()
+
+
+def _watch_parent(parent: int) -> None:
+    """Exit the worker once its parent is gone (reparented: getppid changes). Polling, not PR_SET_PDEATHSIG:
+    portable, and half a second is soon enough for an idle process."""
+    while os.getppid() == parent:
+        time.sleep(PARENT_POLL_S)
+    os._exit(0)
 
 
 def _warm_up() -> int:
@@ -114,7 +130,8 @@ class RecordingWriter:
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
             self._pool = concurrent.futures.ProcessPoolExecutor(
-                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority)
+                max_workers=1, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
+                initargs=(os.getpid(),))
         return self._pool
 
     def start(self) -> None:

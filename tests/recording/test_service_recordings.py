@@ -196,3 +196,48 @@ def test_the_real_backend_records_the_job_it_streamed(service: Any, demo_cell: C
         assert backend.take_recording() is None  # handed over once
     finally:
         backend.close()
+
+
+@pytest.mark.wallclock
+def test_the_writer_worker_ends_when_the_service_process_is_killed(tmp_path: Path) -> None:
+    """A pool worker holds both ends of its call queue and never sees its parent go: after a killed service
+    it lived on, idle (two were found after CI runs). It now watches its parent and exits."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = (
+        "import os, sys\n"
+        "from pathlib import Path\n"
+        "from streamer.recording.files import RecordingFiles\n"
+        "from streamer.recording.writer import RecordingWriter\n"
+        f"w = RecordingWriter(RecordingFiles(Path({str(tmp_path)!r})))\n"
+        "w.start()\n"
+        "print(next(iter(w._pool._processes)), flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", script], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            cwd=str(Path(__file__).resolve().parents[2]))
+    try:
+        assert proc.stdout is not None
+        worker = int(proc.stdout.readline())
+        os.kill(worker, 0)  # running
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            with open(f"/proc/{worker}/stat") as f:  # a zombie waits for its reaper: it has ended
+                if f.read().split(") ")[1].startswith("Z"):
+                    break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            raise AssertionError(f"the writer's worker {worker} outlived its killed parent by 10 s")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
