@@ -57,6 +57,8 @@ class CyclicFeeder(AxisStateMachine):
         self.last_tpdo2 = -1
         self.first_status: int | None = None  # statusword of the first TPDO1 of the job
         self.first_demand: int | None = None
+        self.status_heard = -1  # the newest SYNC on the wire when first_status / first_demand arrived
+        self.demand_heard = -1
         self.ready_sync: int | None = None  # the SYNC after which it got its first hold
         self.bit4_sync: int | None = None  # the SYNC after which it got controlword bit 4 (ip mode requested)
         self.bit4_sync_ran_ms = 0  # how long SYNC had run at the SYNC that applied bit 4

@@ -203,7 +203,7 @@ class Feedback(Sending):
                        {"statusword": sw})
             return
         if self._state is JobState.CONFIGURING:
-            f.first_status = sw
+            f.first_status, f.status_heard = sw, self._heard(ev.sync_count)
             self._try_configure()
             return
         fs = f.state
@@ -277,7 +277,7 @@ class Feedback(Sending):
             self._fail(oc.PROTOCOL, f"node {node}: free size {ev.free_size} is outside 0..{self._fifo}", node)
             return
         if self._state is JobState.CONFIGURING:
-            f.first_status = (sw, bs, fill)
+            f.first_status, f.status_heard = (sw, bs, fill), self._heard(ev.sync_count)
             self._try_configure()
             return
         fs = f.state
@@ -371,7 +371,20 @@ class Feedback(Sending):
             self._feed(f, fill, ev.free_size)
         self._progress_job()
 
+    def _heard(self, sync_count: int | None) -> int:
+        """The newest SYNC on the wire when an answer arrived (the runtime's tag, else the last Sync fed)."""
+        return sync_count if sync_count is not None else (self._sync if self._sync is not None else -1)
+
+    def _fresh(self, heard: int) -> bool:
+        """Was an answer heard late enough that it cannot answer a SYNC before the job? An answer to one of
+        those (a drive within its stated latency, or a late one) comes at most the TPDO timeout after it; before
+        that, what it says of the drive may be what the drive was (its FIFO before the buffer clear)."""
+        first = self._first_sync
+        return first is None or heard >= first + self._settings.tpdo_timeout_syncs
+
     def _try_configure(self) -> None:
+        """The start checks on each axis' newest answers. A check that fails on an answer that may be stale
+        waits for a fresh one; one that passes does not wait (the job's own checks follow at once)."""
         for f in self._axes:
             if f.first_status is None or f.first_demand is None:
                 return
@@ -397,9 +410,12 @@ class Feedback(Sending):
                     why = "ip mode already active"
                 detail = {"statusword": sw}
             if why:
-                self._fail(oc.DRIVE_NOT_READY, f"node {node}: {why}", node, detail)
+                if self._fresh(f.status_heard):
+                    self._fail(oc.DRIVE_NOT_READY, f"node {node}: {why}", node, detail)
                 return
             if abs(f.first_demand - f.start_position) > tol:
+                if not self._fresh(f.demand_heard):
+                    return
                 self._fail(
                     oc.START_MISMATCH,
                     f"node {node}: position demand {f.first_demand} counts is not the "
@@ -445,7 +461,7 @@ class Feedback(Sending):
         self._t = ev.t
         self._feedback_log[f.node_id].position(m, demand, ev.position_actual)
         if self._state is JobState.CONFIGURING:
-            f.first_demand = demand
+            f.first_demand, f.demand_heard = demand, self._heard(ev.sync_count)
             self._try_configure()
             return
         self._track_actual(f.node_id, ev.position_actual, m)

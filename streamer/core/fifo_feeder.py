@@ -134,6 +134,8 @@ class FifoFeeder(AxisStateMachine):
         self.last_tpdo2 = -1
         self.first_status: tuple[int, int, int] | None = None  # (statusword, buffer status, fill)
         self.first_demand: int | None = None
+        self.status_heard = -1  # the newest SYNC on the wire when first_status / first_demand arrived
+        self.demand_heard = -1
         # telemetry
         self.frames_sent = 0
         self.resends = 0

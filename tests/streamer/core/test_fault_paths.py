@@ -488,3 +488,33 @@ def test_congested_bus_waits_instead_of_resending_and_fails_bus_overload() -> No
     assert outcome is not None and outcome.code == oc.BUS_OVERLOAD and outcome.node == 1
     assert rig.core.telemetry()[0].resends == 0
     assert rig.core.report().measured_bus_load_peak == pytest.approx(0.95)
+
+
+def test_a_stale_answer_from_before_the_job_does_not_fail_the_start_checks() -> None:
+    """A drive that answers late (within its stated latency or past it) can have its answer to a SYNC before
+    the job arrive after the job's first SYNC, showing the FIFO as it was before the buffer clear. A start
+    check that fails waits for an answer heard a TPDO timeout after the first SYNC (the stale one failed the
+    late-answers recording test DRIVE_NOT_READY, "FIFO holds 1 records"); a check still failing then fails."""
+    plan = make_plan(1, 1000, seed=16)
+    node = plan.node_ids[0]
+    settings = StreamerSettings(counts_per_rev={node: CPR})
+    timeout = settings.tpdo_timeout_syncs
+
+    def answer(core: Coordinator, m: int, fill: int) -> None:
+        start = core._by_node[node].start_position
+        core.handle(BufferStatus(node, 0x0037, 0, settings.fifo_size - fill, 0.01 * m + 0.009, sync_count=m))
+        core.handle(PositionFeedback(node, start, start, 0.01 * m + 0.009, sync_count=m))
+
+    for fresh_fill, failed in ((0, False), (1, True)):
+        core = Coordinator(plan, settings)
+        core.handle(Sync(0, 0.0))
+        answer(core, 0, 1)  # the answer to the SYNC before the job, late: one record before the clear
+        assert core.state is JobState.CONFIGURING
+        for m in range(1, timeout + 1):
+            core.handle(Sync(m, 0.01 * m))
+            answer(core, m, fresh_fill)
+        if failed:
+            assert core.outcome is not None and core.outcome.code == oc.DRIVE_NOT_READY
+            assert "FIFO holds 1 records" in core.outcome.message
+        else:
+            assert core.outcome is None and core.state is not JobState.CONFIGURING
