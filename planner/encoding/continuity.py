@@ -37,7 +37,7 @@ import dataclasses
 
 import numpy as np
 
-from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, within_contract
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, SEGMENT_TIME_MAX_MS, VELOCITY_SLACK, segment_cap, within_contract
 from planner.encoding.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
 from planner.jit import kernel
 from planner.motion.reference import FloatArray, IntArray, Reference
@@ -314,6 +314,8 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
     vlim, budget = _limits(scales)
     quantum = scales.counts_per_ms_per_rpm
     caps = np.maximum(jerk_limit * (1.0 + JERK_SLACK), np.abs(knot_steps(knots, scales)[0]).max(axis=1))
+    cap = segment_cap(scales, tol)  # a job's max_segment_ms (a short lead) holds for the moved times too
+    longest = SEGMENT_TIME_MAX_MS if cap is None else max(cap, int(np.diff(knots.times_ms).max()))
     for _round in range(REFINE_ROUNDS):
         steps = np.abs(knot_steps(Knots(times, pos, vel), scales)[1]) / jerk_limit[:, None]
         worst = steps.max(axis=0)  # per interior knot 1..n-1
@@ -329,7 +331,7 @@ def refine_times(ref: Reference, knots: Knots, scales: AxisScales, tol: float, j
             choice: tuple[IntArray, IntArray, IntArray] | None = None
             for shift in REFINE_SHIFTS:
                 t_new = int(times[k]) + shift
-                if not times[k - 1] < t_new < times[k + 1] or max(t_new - times[k - 1], times[k + 1] - t_new) > 255:
+                if not times[k - 1] < t_new < times[k + 1] or max(t_new - times[k - 1], times[k + 1] - t_new) > longest:
                     continue
                 wt = times[sl].copy()
                 wt[k - lo] = t_new

@@ -4,6 +4,7 @@ shortens the reaction when the segments are short enough; StreamerSettings.segme
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +35,14 @@ def test_segments_never_exceed_the_bound_and_the_plan_stays_within_tolerance(cap
     assert bounded.n_points > free.n_points
 
 
-def test_a_path_job_is_bounded_too() -> None:
-    job = load_job(ROOT / "configs" / "jobs" / "demo-path.toml", CELL)
+@pytest.mark.parametrize("jerk_limited", [False, True])
+def test_a_path_job_is_bounded_too(jerk_limited: bool) -> None:
+    """Both kinds of path; the jerk-limited one's knot-time moves (continuity.refine_times) once made a 30 ms
+    segment of a 24 ms bound."""
+    job = dataclasses.replace(load_job(ROOT / "configs" / "jobs" / "demo-path.toml", CELL), tolerance_counts=2)
+    job = dataclasses.replace(job, data=dataclasses.replace(job.data, jerk_limited=jerk_limited))
     traj = plan_job(job, CELL, max_segment_ms=24)
+    assert traj.info.get("jerk_limited", 0.0) == float(jerk_limited)
     assert traj.dt_ms.max() <= 24 and np.abs(traj.deviation()).max() <= traj.tolerance_counts
 
 
