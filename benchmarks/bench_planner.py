@@ -38,7 +38,16 @@ from planner.config import CellConfig, load_cell
 from planner.encoding.encoder import Knots, planned_demand, reconstruct
 from planner.encoding.uniform import coarsest_uniform
 from planner.errors import PlanningError
-from planner.job import Job, PathData, effective_limits, job_from_dict, job_to_dict, load_job, path_tolerance
+from planner.job import (
+    Job,
+    PathData,
+    effective_limits,
+    job_from_dict,
+    job_to_dict,
+    path_tolerance,
+    read_job_file,
+    with_jerk_limited,
+)
 from planner.plan import _merge_close, axis_configs, axis_scales, lines_geometry, plan_job, snap, warm_up
 from planner.trajectory import PvtTrajectory
 
@@ -48,18 +57,24 @@ KINDS = ("path", "path-sharp", "move", "timed", "pvt", "path-small")
 DURATION_BANDS = ((0.0, 5.0), (5.0, 10.0), (10.0, 20.0), (20.0, 1.0e9))
 
 
-def benchmark_path(cell: CellConfig, n_waypoints: int = 20, seed: int = 7) -> Job:
-    """A deterministic 6-axis path of `n_waypoints` waypoints: a random walk inside the joint limits."""
+def benchmark_path(cell: CellConfig, n_waypoints: int = 20, seed: int = 7, *, jerk_limited: bool | None = False) -> Job:
+    """A deterministic 6-axis path of `n_waypoints` waypoints: a random walk inside the joint limits; the
+    acceleration-only plan unless `jerk_limited` says otherwise (None: the default, jerk-limited)."""
     rng = np.random.default_rng(seed)
     lo = np.array([a.position_min for a in cell.axes]) * 0.6
     hi = np.array([a.position_max for a in cell.axes]) * 0.6
     wp = [np.zeros(len(cell.axes))]
     for _ in range(n_waypoints - 1):
         wp.append(np.clip(wp[-1] + rng.uniform(-0.45, 0.45, len(cell.axes)), lo, hi))
-    return job_from_dict(
-        {"kind": "path", "job_id": "bench-20", "axes": list(cell.axis_names()), "waypoints": np.array(wp).tolist()},
-        cell,
-    )
+    data = {"kind": "path", "job_id": "bench-20", "axes": list(cell.axis_names()), "waypoints": np.array(wp).tolist()}
+    return job_from_dict(with_jerk_limited(data, jerk_limited), cell)
+
+
+def example_jobs(cell: CellConfig, jerk_limited: bool | None = False) -> list[tuple[str, Job]]:
+    """The example jobs of configs/jobs/ by file name, their paths as the acceleration-only plan unless
+    `jerk_limited` says otherwise (None: as the file has it)."""
+    return [(p.name, job_from_dict(with_jerk_limited(read_job_file(p), jerk_limited), cell))
+            for p in sorted((ROOT / "configs" / "jobs").iterdir())]
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -302,7 +317,7 @@ def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]
     rows: list[dict[str, Any]] = []
     refused: list[str] = []
     for _ in range(count):
-        data = random_job(kind, rng, cell)
+        data = with_jerk_limited(random_job(kind, rng, cell), False)  # against raw toppra: no jerk limit
         try:
             rows.append(measure(job_from_dict(data, cell), cell))
         except PlanningError as e:
@@ -444,7 +459,9 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
     sets: list[tuple[str, Sequence[tuple[str, Job]]]] = [("examples", examples)]
     for k, kind in enumerate(("path", "path-sharp", "path-small")):
         rng = np.random.default_rng(seed + k)
-        sets.append((kind, [(str(i), job_from_dict(random_job(kind, rng, cell), cell)) for i in range(count)]))
+        # the jobs as their acceleration-only plan: jerk_measure plans each both ways from it
+        sets.append((kind, [(str(i), job_from_dict(with_jerk_limited(random_job(kind, rng, cell), False), cell))
+                            for i in range(count)]))
     for name, jobs in sets:
         s = jerk_corpus(cell, jobs)
         out.append({"corpus": name, **s})
@@ -589,7 +606,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     warm_up()  # the solvers' first import (~0.7 s) would otherwise count as the first path's planning
     cell = load_cell(ROOT / "configs" / "demo.toml")
     bench = benchmark_path(cell)
-    jobs = [(p.name, load_job(p, cell)) for p in sorted((ROOT / "configs" / "jobs").iterdir())]
+    jobs = example_jobs(cell)  # the acceleration-only plans (measured against raw toppra; jerk: print_jerk)
     jobs.append(("bench-20 (6 axes, 20 waypoints)", bench))
     rows = [{"job": name, **measure(job, cell)} for name, job in jobs]
 

@@ -75,7 +75,7 @@ MAX_TOLERANCE_COUNTS = 1_000_000
 GEOMETRIES: tuple[str, ...] = ("lines", "spline")
 # a path job without `jerk_limited` keeps the jerk limits when every axis of the job has one (every axis
 # of a cell states one: planner/config.py); False plans the acceleration-only optimum
-JERK_LIMITED_DEFAULT = False
+JERK_LIMITED_DEFAULT = True
 # the default `tolerance_counts` of a jerk-limited path: the drive's units need the room (docs/formats.md,
 # "jerk_limited"). A cruise between two whole rpm values keeps its acceleration continuous only by bowing
 # its position: step x bow >= q^2 / 4 (q counts/ms per rpm), 0.9-1.2 x the bound J x 1 ms on the demo
@@ -905,6 +905,11 @@ def job_to_dict(job: Job) -> dict[str, Any]:
 
 def load_job(path: str | Path, cell: CellConfig, *, max_rows: int = MAX_ROWS) -> Job:
     """Read a TOML (.toml) or JSON (anything else) job file and validate it."""
+    return job_from_dict(read_job_file(path), cell, max_rows=max_rows)
+
+
+def read_job_file(path: str | Path) -> Any:
+    """A TOML (.toml) or JSON (anything else) job file's data, not yet validated."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -923,7 +928,7 @@ def load_job(path: str | Path, cell: CellConfig, *, max_rows: int = MAX_ROWS) ->
             data = json.loads(text)
         except (json.JSONDecodeError, RecursionError) as e:
             raise PlanningError(SCHEMA, f"job file {str(p)!r} is not valid JSON: {e}", path="") from None
-    return job_from_dict(data, cell, max_rows=max_rows)
+    return data
 
 
 def path_tolerance(job: Job, cell: CellConfig) -> FloatArray:
@@ -933,6 +938,14 @@ def path_tolerance(job: Job, cell: CellConfig) -> FloatArray:
         return np.array(d.path_tolerance, dtype=np.float64)
     cfg = [cell.axis(a) for a in job.axes]
     return np.array([DEFAULT_PATH_TOLERANCE_SHARE * (c.position_max - c.position_min) for c in cfg])
+
+
+def with_jerk_limited(data: Any, value: bool | None) -> Any:
+    """A job's data with a path's `jerk_limited` set to `value` (None, or not a path: unchanged). On the data,
+    not the `Job`: a jerk-limited path's default tolerance (2 counts) is chosen when the data is read."""
+    if value is None or not isinstance(data, dict) or data.get("kind") != "path":
+        return data
+    return {**data, "jerk_limited": value}
 
 
 def jerk_limited(job: Job, cell: CellConfig) -> bool:

@@ -497,8 +497,9 @@ _WARM_AXIS = {"node_id": 1, "counts_per_unit": 65189.86, "counts_per_rev": 8192,
               "acceleration": 8.0, "jerk": 80.0, "position_min": -3.0, "position_max": 3.0,
               "max_profile_velocity_rpm": 8000, "max_acceleration": 12.0}
 _WARM_JOBS = (
-    {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4], [0.0, 0.0]]},
-    {"kind": "path", "axes": ["a"], "waypoints": [[0.0], [0.2]]},
+    {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4], [0.0, 0.0]],
+     "jerk_limited": False},
+    {"kind": "path", "axes": ["a"], "waypoints": [[0.0], [0.2]], "jerk_limited": False},
     {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4]], "jerk_limited": True},
     {"kind": "path", "axes": ["a", "b"], "waypoints": [[0.0, 0.0], [0.3, 0.1], [0.1, 0.4]], "jerk_limited": True,
      "geometry": "spline"},

@@ -24,31 +24,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_planner import KINDS, benchmark_path, random_job  # noqa: E402
+from benchmarks.bench_planner import KINDS, benchmark_path, example_jobs, random_job  # noqa: E402
 from planner.config import load_cell  # noqa: E402
 from planner.errors import PlanningError  # noqa: E402
-from planner.job import Job, PathData, job_from_dict, job_to_dict, load_job  # noqa: E402
+from planner.job import job_from_dict, with_jerk_limited  # noqa: E402
 from planner.plan import plan_job, warm_up  # noqa: E402
-
-
-def with_jerk_limited(job: Job, value: bool | None, cell: Any) -> Job:
-    """A path job with its `jerk_limited` field set to `value` (None: as the job file has it)."""
-    if value is None or not isinstance(job.data, PathData):
-        return job
-    d = job_to_dict(job)
-    d["jerk_limited"] = value
-    return job_from_dict(d, cell)
 
 
 def plan_all(per_kind: int, jerk_limited: bool | None = None) -> tuple[dict[str, Any], float]:
     """Plan the corpus; `jerk_limited` forces the path jobs' field (None: the jobs' own, or the default)."""
     cell = load_cell(ROOT / "configs" / "demo.toml")
-    jobs = [(p.name, load_job(p, cell)) for p in sorted((ROOT / "configs" / "jobs").iterdir())]
-    jobs.append(("bench-20", benchmark_path(cell)))
+    jobs = example_jobs(cell, jerk_limited)
+    jobs.append(("bench-20", benchmark_path(cell, jerk_limited=jerk_limited)))
     for k, kind in enumerate(KINDS):
         rng = np.random.default_rng(1000 + k)
-        jobs += [(f"{kind}-{i}", job_from_dict(random_job(kind, rng, cell), cell)) for i in range(per_kind)]
-    jobs = [(name, with_jerk_limited(job, jerk_limited, cell)) for name, job in jobs]
+        jobs += [(f"{kind}-{i}", job_from_dict(with_jerk_limited(random_job(kind, rng, cell), jerk_limited), cell))
+                 for i in range(per_kind)]
     plans: dict[str, Any] = {}
     cpu = 0.0
     for name, job in jobs:

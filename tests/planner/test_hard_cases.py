@@ -29,9 +29,18 @@ def _cell(base: CellConfig, overrides: dict[str, dict[str, float]]) -> CellConfi
     return dataclasses.replace(base, axes=axes)
 
 
+def _job(case: dict[str, Any], jerk_limited: bool) -> dict[str, Any]:
+    """The case's job; a path as the acceleration-only plan the cases were found on, or jerk-limited."""
+    job = dict(case["job"])
+    if job.get("kind") == "path":
+        job.setdefault("jerk_limited", jerk_limited)
+    return job
+
+
 @pytest.mark.parametrize("case", CASES, ids=[c["name"] for c in CASES])
 def test_hard_case(cell: CellConfig, case: dict[str, Any]) -> None:
     c = _cell(cell.with_axes(case.get("axis_count", len(cell.axes))), case.get("cell_axes", {}))
+    case = {**case, "job": _job(case, False)}
     expect = case["expect"]
     if expect not in ("ok", "noop"):
         with pytest.raises(PlanningError) as e:
@@ -59,3 +68,18 @@ def test_hard_case(cell: CellConfig, case: dict[str, Any]) -> None:
         # `time_scale` slower where the quantisation needed it, plus 1 ms per run of whole-ms re-timing
         bound = case["max_over_optimum"] * traj.info["time_scale"] * traj.info["optimal_s"]
         assert traj.duration_s <= bound + 0.001 * traj.info.get("runs", 1.0), (traj.duration_s, traj.info)
+
+
+PATH_CASES = [c for c in CASES if c["job"].get("kind") == "path" and c["expect"] == "ok"]
+
+
+@pytest.mark.parametrize("case", PATH_CASES, ids=[c["name"] for c in PATH_CASES])
+def test_hard_path_case_jerk_limited(cell: CellConfig, case: dict[str, Any]) -> None:
+    """The same paths planned with every axis' jerk limit (the default): every promise kept, never faster
+    than the acceleration-only optimum."""
+    c = _cell(cell.with_axes(case.get("axis_count", len(cell.axes))), case.get("cell_axes", {}))
+    traj = plan_job(job_from_dict(_job(case, True), c), c)
+    assert_invariants(traj, c)
+    assert traj.info["jerk_limited"] == 1.0
+    if "optimal_s" in traj.info:
+        assert traj.duration_s >= 0.999 * traj.info["optimal_s"]

@@ -15,7 +15,7 @@ from planner_checks import CONFIGS
 
 from planner.config import CellConfig
 from planner.errors import PlanningError
-from planner.job import Job, MoveData, PathData, job_from_dict, job_to_dict, load_job
+from planner.job import Job, MoveData, PathData, jerk_limited, job_from_dict, job_to_dict, load_job
 from planner.plan import plan_job
 
 AX3 = ["j1", "j2", "j3"]
@@ -269,8 +269,11 @@ def test_defaults_and_fields(cell: CellConfig) -> None:
     spline = job_from_dict(path(geometry="spline"), cell)
     assert isinstance(spline.data, PathData) and spline.data.geometry == "spline"
     assert job_to_dict(spline)["geometry"] == "spline"
-    plain = job_from_dict(path(), cell)
-    assert plain.tolerance_counts == 1 and plain.velocity_scale == (1.0, 1.0, 1.0)
+    plain = job_from_dict(path(), cell)  # every axis of the cell has a jerk limit: jerk-limited, 2 counts
+    assert plain.tolerance_counts == 2 and plain.velocity_scale == (1.0, 1.0, 1.0)
+    assert jerk_limited(plain, cell) and isinstance(plain.data, PathData) and plain.data.jerk_limited is None
+    off = job_from_dict(path(jerk_limited=False), cell)
+    assert off.tolerance_counts == 1 and not jerk_limited(off, cell)
     move = job_from_dict({"kind": "move", "axes": ["j1"], "target": [0.5]}, cell)
     assert isinstance(move.data, MoveData) and move.data.mode == "absolute" and move.data.start is None
 

@@ -40,8 +40,8 @@ for k, kind in enumerate(KINDS):
     jobs.append(job_from_dict(random_job(kind, np.random.default_rng(k), cell), cell))
 import dataclasses
 from planner.job import PathData
-jobs += [dataclasses.replace(j, data=dataclasses.replace(j.data, jerk_limited=True))
-         for j in jobs if isinstance(j.data, PathData)]
+jobs += [dataclasses.replace(j, data=dataclasses.replace(j.data, jerk_limited=flag))
+         for j in list(jobs) if isinstance(j.data, PathData) for flag in (False, True)]
 for job in jobs:
     plan_job(job, cell)
 print(json.dumps({"before": before, "after": signatures()}))

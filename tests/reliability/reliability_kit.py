@@ -74,10 +74,13 @@ def demo_traj() -> PvtTrajectory:
 
 @functools.cache
 def long_traj(min_s: float = 60.0) -> PvtTrajectory:
-    """The demo path cycled until the motion lasts at least `min_s` (time-optimal, rest to rest)."""
+    """The demo path cycled until the motion lasts at least `min_s` (time-optimal, rest to rest). The
+    acceleration-only plan: its 10-60 ms segments put 2-3 records in a 20 ms SYNC's batch, which the
+    scenarios of lost and swapped records within a batch need (the jerk-limited plan's are mostly longer)."""
     reps = 18
     while True:
-        body = {"kind": "path", "axes": ["j1", "j2", "j3"], "waypoints": _DEMO_WAYPOINTS * reps + [[0.0] * 3]}
+        body = {"kind": "path", "axes": ["j1", "j2", "j3"], "waypoints": _DEMO_WAYPOINTS * reps + [[0.0] * 3],
+                "jerk_limited": False}
         traj = plan_job(job_from_dict(body, cell3()), cell3())
         if traj.duration_s >= min_s:
             return traj

@@ -26,13 +26,13 @@ def test_the_demo_plans_for_the_rounding_of_the_drives_on_the_bus(tmp_path: Path
     plans for how they round, as measured on the bus. Before, it planned for its own in-process simulation
     (rounding to nearest) and missed the tolerance by a count on every axis."""
     channel = f"ext-{os.getpid()}"
-    base, _job, _traj = demo.prepare(axes=3)
+    base, _job, traj = demo.prepare(axes=3)
     truncating = dataclasses.replace(base, bus=BusConfig("ipc", channel, base.bus.bitrate), axes=tuple(
         dataclasses.replace(a, sim=SimDriveOptions(rounding="toward_zero")) for a in base.axes))
     with drives_process(truncating):
         status = pvt(["demo", "--external-drives", "--bus", f"ipc:{channel}", "--axes", "3", "--quiet",
                       "--out", str(tmp_path)])
     report = json.loads((tmp_path / "report.json").read_text())
-    assert guarantees(report, 1) == [], report["message"]
+    assert guarantees(report, traj.tolerance_counts) == [], report["message"]
     assert status == 0
     assert len({a["start_sync"] for a in report["axes"]}) == 1

@@ -24,7 +24,9 @@ def _path_job(cell: CellConfig, seed: int, rows: int, axes: int, tolerance: floa
     lo = np.array([cell.axis(a).position_min for a in names])
     hi = np.array([cell.axis(a).position_max for a in names])
     wp = lo + (hi - lo) * rng.uniform(0.2, 0.8, (rows, axes))
-    job: dict[str, Any] = {"kind": "path", "job_id": f"chain-{seed}", "axes": names, "waypoints": wp.tolist()}
+    # the chain is the acceleration-only plan's (a jerk-limited path has none)
+    job: dict[str, Any] = {"kind": "path", "job_id": f"chain-{seed}", "axes": names, "waypoints": wp.tolist(),
+                           "jerk_limited": False}
     if tolerance is not None:
         job["path_tolerance"] = tolerance
     return job_from_dict(job, cell)

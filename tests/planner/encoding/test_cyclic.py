@@ -99,18 +99,20 @@ def test_a_sub_mode_that_strays_is_refused_naming_what_would_meet_it() -> None:
     cell = _cell("mixed.toml")
     axes = tuple(replace(a, ip_submode="linear") if a.name == "j6" else a for a in cell.axes)
     cell = replace(cell, axes=axes)
+    job = load_job(DEMO_JOB, cell)
+    tol = job.tolerance_counts  # (2: the demo path is jerk-limited by default)
     with pytest.raises(PlanningError) as e:
-        plan_job(load_job(DEMO_JOB, cell), cell)
+        plan_job(job, cell)
     err = e.value
     assert err.code == INFEASIBLE and "'j6'" in err.message and "linear" in err.message
     d = err.detail
-    assert d["axis"] == "j6" and d["deviation_counts"] > 1 and d["tolerance_counts"] == 1
-    assert d["alternatives"]["pv"] <= 1 and "sub-mode 'pv'" in err.message
+    assert d["axis"] == "j6" and d["deviation_counts"] > tol and d["tolerance_counts"] == tol
+    assert d["alternatives"]["pv"] <= tol and "sub-mode 'pv'" in err.message
     assert d["period_that_meets_ms"] is not None and f"{d['period_that_meets_ms']} ms" in err.message
     # and the period it names does meet it
     cell2 = replace(cell, sync_period_ms=d["period_that_meets_ms"])
     traj = plan_job(load_job(DEMO_JOB, cell2), cell2)
-    assert traj.stats[5].max_deviation_counts <= 1
+    assert traj.stats[5].max_deviation_counts <= tol
 
 
 def test_a_16_bit_step_is_refused_naming_the_axis() -> None:

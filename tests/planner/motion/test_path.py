@@ -21,9 +21,11 @@ from planner.job import job_from_dict
 
 # random path 12 of benchmarks.bench_planner's corpus (seed 13): without the blends' margin of the first
 # solve (path.BLEND_MARGIN, which spares it the repair), its first chain overshoots by 0.1 %, and the
-# smallest slow-down of the ladder rounds to the same duration (3833 ms)
+# smallest slow-down of the ladder rounds to the same duration (3833 ms); the acceleration-only plan (the
+# chain and its repairs are that plan's)
 SAME_DURATION = {
     "kind": "path",
+    "jerk_limited": False,
     "job_id": "repair-same-duration",
     "axes": ["j3", "j6", "j4", "j1", "j5"],
     "waypoints": [
