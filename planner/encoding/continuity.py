@@ -37,8 +37,9 @@ import dataclasses
 
 import numpy as np
 
-from planner.encoding.encoder import ACC_EXCESS_LIMIT, SEGMENT_TIME_MAX_MS, VELOCITY_SLACK, segment_cap, within_contract
+from planner.encoding.encoder import ACC_EXCESS_LIMIT, VELOCITY_SLACK, segment_cap, within_contract
 from planner.encoding.reconstruction import AxisScales, Knots, planned_demand, segment_envelope
+from planner.encoding.record import SEGMENT_TIME_MAX_MS
 from planner.jit import kernel
 from planner.motion.reference import FloatArray, IntArray, Reference
 
