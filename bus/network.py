@@ -25,7 +25,7 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from bus import cob, codec
+from bus import cob, codec, virtual_can
 from bus.budget import cell_feedback_every
 from bus.engine import EngineBus, EngineSpec
 from bus.errors import (
@@ -47,6 +47,8 @@ from bus.probe import AbsentObject, WriteOnly
 from bus.profile import DriveProfile, FeedbackSchedule, SdoWrite, feedback_schedule, frame_to_event
 from planner.config import AxisConfig, BusConfig, CellConfig
 from planner.readings import OPTIONAL_OBJECTS
+
+virtual_can.register()  # python-can's virtual bus, delivering every frame in one order (bus/virtual_can.py)
 
 EventCallback = Callable[[Event], None]
 ABORT_NO_OBJECT = 0x06020000

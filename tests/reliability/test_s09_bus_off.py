@@ -97,7 +97,8 @@ def test_bus_off_in_real_time_on_the_virtual_bus() -> None:
                         settle_s=0.5)
         core = result.coordinator
         outcome = core.outcome
-        assert went_off and core.state is JobState.FAILED and outcome is not None
+        assert went_off, f"the job ended before 30 % of it: {core.state} {outcome}"
+        assert core.state is JobState.FAILED and outcome is not None
         assert outcome.code == oc.BUS_ERROR and "bus-off" in outcome.message, outcome
         time.sleep(0.3)  # the drives notice the missing SYNC and fault
         with sim.locked() as models:
