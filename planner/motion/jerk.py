@@ -192,9 +192,10 @@ def line_limits(
     length = float(np.max(np.abs(delta) / vlim))
     share = np.abs(delta) / length  # dq_j / ds
     moving = share > 0.0
-    v = float(np.min(vlim[moving] / share[moving]))
-    a = float(np.min(alim[moving] / share[moving]))
-    j = float(np.min(jlim[moving] / share[moving]))
+    with np.errstate(over="ignore"):  # an axis moving a denormal amount bounds nothing (inf); the longest bounds
+        v = float(np.min(vlim[moving] / share[moving]))
+        a = float(np.min(alim[moving] / share[moving]))
+        j = float(np.min(jlim[moving] / share[moving]))
     return length, v, a, j
 
 

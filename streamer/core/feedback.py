@@ -429,16 +429,13 @@ class Feedback(Sending):
                 f.fire(FeederInput.READY)
                 self._emit_cw(f, CW_ENABLE_OPERATION)
             else:
-                # the hold set point from now on (sent with the next SYNC's reaction, and this one now, so the
-                # SYNC that applies bit 4 finds one); an XtrapulsPac gets bit 4 (a rising edge: enable left it
-                # low) once SYNC has run long enough for its PLL, a CSP drive already follows its target
+                # the hold set point from the next SYNC's reaction on, and bit 4 for an XtrapulsPac (a rising
+                # edge: enable left it low) in that reaction once SYNC has run long enough for its PLL; a CSP
+                # drive already follows its target. Nothing cyclic goes out now: this answer may come late
+                # in the cycle, and a set point must precede its SYNC by 100 us (seed 003, error 50)
                 f.ready(self._sync)
-                if f.spec.starts_with_bit4 and self._sync is not None:
-                    self._request_ip(f, self._sync)
         self._set_state(JobState.PRIMING)
         self._positioning.start()
-        if self._cyclic and self._sync is not None:
-            self._send_setpoints(self._sync)
         # priming starts with the next SYNC, whose lockstep step reserves the budget for every axis
         self._lock_prev = self._lockstep = 0
 
