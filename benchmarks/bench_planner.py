@@ -24,7 +24,6 @@ and small paths: 2-200 counts between waypoints, as in fine positioning).
 from __future__ import annotations
 
 import argparse
-import itertools
 import logging
 import statistics
 import time
@@ -347,16 +346,13 @@ def corpus(cell: CellConfig, kind: str, count: int, seed: int) -> dict[str, Any]
 def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     """Duration (s) of the jerk-limited moves (ruckig, along the line) from waypoint to waypoint, stopping at
     every corner: what a user gets today who wants the jerk limits kept along a path."""
-    from planner.motion.jerk import move_reference
+    from planner.motion.stop_moves import stop_moves
 
     lim = effective_limits(job, cell)
     cpu = np.array([c.counts_per_unit for c in axis_configs(job.axes, cell)])
     wp = _merge_close(np.array(job.data.waypoints, dtype=np.float64), cpu)  # type: ignore[union-attr]
-    total = 0
-    for a, b in itertools.pairwise(wp):
-        total += move_reference(snap(a, cpu), snap(b, cpu), lim.velocity, lim.acceleration, lim.jerk,
-                                cpu).duration_ms
-    return total / 1000.0
+    wp = np.array([snap(w, cpu) for w in wp])
+    return stop_moves(wp, cpu, lim.velocity, lim.acceleration, lim.jerk).duration_ms / 1000.0
 
 
 def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> int | None:

@@ -132,6 +132,7 @@ def plan_job(
             runs = None
             chain = None
             jerk = jerk_limited(job, cell)
+            box = (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg]))
             if d.geometry == "lines":
                 from planner.motion.jerkpath import PLAN_JERK_SHARE
 
@@ -143,7 +144,7 @@ def plan_job(
                     path_tolerance(job, cell),
                     tol,
                     segment_bounds(scales, tol),
-                    (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg])),
+                    box,
                     info,
                     jerk=limits.jerk * PLAN_JERK_SHARE if jerk else None,
                 )
@@ -170,14 +171,20 @@ def plan_job(
                     info.update(path_info)
                     info["jerk_stops"] = 0.0
                     if runs is not None:
-                        # along the segments: stopping at every corner with jerk-limited moves, where faster
-                        from planner.motion.jerkpath import stop_at_corners
+                        # along the segments: jerk-limited moves from waypoint to waypoint, each stop at a
+                        # corner cut short within the tolerance where that is faster (the tolerance less
+                        # what the encoding may add, as for the blends); where faster than the blends
+                        from planner.motion.stop_moves import stop_moves
 
-                        stops = stop_at_corners(wp, cpu, limits.velocity, limits.acceleration,
-                                                limits.jerk, time_scale=f, max_duration_s=MAX_DURATION_S)
-                        if stops.duration_ms < ref.duration_ms:
+                        moves_info: dict[str, float] = {}
+                        free = np.maximum(path_tolerance(job, cell) - (tol + 1.0) / cpu, 0.0)
+                        moves = stop_moves(wp, cpu, limits.velocity, limits.acceleration, limits.jerk,
+                                           tolerance=free, box=box, time_scale=f,
+                                           max_duration_s=MAX_DURATION_S, info=moves_info)
+                        if moves.duration_ms < ref.duration_ms:
                             info["jerk_stops"] = 1.0
-                            return stops
+                            info.update(moves_info)
+                            return moves
                     return ref
                 # the smooth retry (the encoder failed on short pieces): a chain without short segments
                 spec = None if chain is None else dataclasses.replace(chain, short=not smooth)
@@ -319,16 +326,20 @@ def _smoothest(
     (continuity.smooth_values), the one whose drive keeps the jerk bound best (`worst_ratio`), its knot
     times then moved where that lowers the worst knot further (continuity.refine_times). Which placement
     wins depends on where short segments fall beside long ones: a knot between 20 and 135 ms moves its
-    step by 6/T^2 per count of the short one's neighbour. `info["jerk_placement"]`: the variant."""
+    step by 6/T^2 per count of the short one's neighbour. `info["jerk_placement"]`: the variant (`knots` are
+    the encoding's, of its `info["encode_variant"]`)."""
     from planner.encoding.continuity import refine_times, smooth_values, worst_ratio
     from planner.encoding.encoder import EncodingFailed, EncodingNeedsTime, encode
 
     best = smooth_values(ref, knots, scales, tol, jerk)
     score = worst_ratio(best, scales, jerk)
-    info["jerk_placement"] = 0.0
-    for variant in (1, 2):
+    first = int(info.get("encode_variant", 0.0))  # the placement the encoding took (the default, or one after)
+    info["jerk_placement"] = float(first)
+    for variant in (0, 1, 2):
         if score <= 1.0:
             break
+        if variant == first:
+            continue
         try:
             other, _rec = encode(ref, scales, tolerance=tol, variant=variant, uniform_fallback=True,
                                  start_positions=knots.positions[:, 0].copy(),

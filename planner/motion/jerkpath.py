@@ -14,8 +14,8 @@ continuous: no `breaks`; its `hints` are where a cubic piece of it ends). Per ru
    continuous. A forward and a backward pass lower the speeds no straight piece can connect (a
    jerk-limited change of speed is symmetric in time: `_change`, `_reach`). A corner whose blend is
    slower than stopping on its waypoint becomes a stop (`_choose_stops`, a Viterbi pass over the
-   corners). plan_job also compares the whole path with jerk-limited moves stopping at every waypoint
-   (`stop_at_corners`) and keeps the faster.
+   corners). plan_job also compares the whole path with jerk-limited moves from waypoint to waypoint whose
+   stops are cut short within the tolerance (planner/motion/stop_moves.py) and keeps the faster.
 2. Any other geometry (a spline: `plan_jerk_run`): TOPP-RA's acceleration-only optimum re-timed onto
    whole ms (path.Profile), then its path acceleration averaged over a sliding window of W ms
    (`fir_retime`: the FIR filter of Biagiotti & Melchiorri, "FIR filters for online trajectory
@@ -36,7 +36,6 @@ Why this method and what it costs, measured: docs/formats.md, "jerk_limited".
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -340,43 +339,6 @@ def plan_jerk_path(
         "topp_solves": float(sum(p.solves for p in plans)),
         "runs": float(len(plans)),
     }
-
-
-def stop_at_corners(
-    waypoints: FloatArray,
-    counts_per_unit: FloatArray,
-    vlim: FloatArray,
-    alim: FloatArray,
-    jlim: FloatArray,
-    *,
-    time_scale: float = 1.0,
-    max_duration_s: float = 900.0,
-) -> Reference:
-    """The jerk-limited moves along the straight line from waypoint to waypoint (planner/motion/jerk.py, ruckig),
-    each from rest to rest, one after the other: the polyline exactly, with every axis' jerk limit, and
-    the alternative a lines path takes where it is faster than the blended traversal (`plan_job`).
-    `waypoints` in user units (already snapped at the ends)."""
-    from planner.motion.jerk import move_reference
-
-    parts: list[Reference] = []
-    spent = 0.0
-    cpu = counts_per_unit
-    for a, b in itertools.pairwise(waypoints):
-        ref = move_reference(a, b, vlim, alim, jlim, cpu, time_scale=time_scale,
-                             max_duration_s=max_duration_s - spent / 1000.0)
-        spent += ref.duration_ms
-        parts.append(ref)
-    starts = np.concatenate([[0], np.cumsum([r.duration_ms for r in parts])]).astype(np.int64)
-
-    def joined(name: str) -> FloatArray:
-        arrays = [getattr(parts[0], name)] + [getattr(r, name)[:, 1:] for r in parts[1:]]
-        return np.concatenate(arrays, axis=1)
-
-    acc_r = np.concatenate([r.acc_right[:, :-1] for r in parts] + [parts[-1].acc_right[:, -1:]], axis=1)
-    hints = np.concatenate([r.hints + starts[k] for k, r in enumerate(parts)] + [starts[1:-1]])
-    breaks = np.concatenate([r.breaks + starts[k] for k, r in enumerate(parts)])
-    return Reference(joined("positions"), joined("velocities"), joined("acc_left"), acc_r,
-                     breaks.astype(np.int64), hints.astype(np.int64))
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -81,5 +81,7 @@ def test_hard_path_case_jerk_limited(cell: CellConfig, case: dict[str, Any]) -> 
     traj = plan_job(job_from_dict(_job(case, True), c), c)
     assert_invariants(traj, c)
     assert traj.info["jerk_limited"] == 1.0
-    if "optimal_s" in traj.info:
+    if "optimal_s" in traj.info and not traj.info.get("jerk_transitions"):
+        # (the acceleration-only optimum along the blends; moves whose corner stops are cut short take
+        # other corners within the same tolerance, and may be a little faster: planner/motion/stop_moves.py)
         assert traj.duration_s >= 0.999 * traj.info["optimal_s"]
