@@ -197,6 +197,7 @@ class JobCore:
         self._record_frames = 0
         self._control_frames = 0
         self._cancel_info: dict[str, Any] = {}
+        self._cancel_pending = False  # a cancel before the start, carried out in the next SYNC's reaction
         # the stream as (start ms, plan) pieces: the job's plan, then every change spliced in (a cyclic axis'
         # state at a time comes from the piece that covers it)
         self._pieces: list[tuple[int, StreamPlan]] = [(0, self._plan)]

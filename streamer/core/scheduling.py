@@ -165,6 +165,10 @@ class Scheduler(OpenStream):
             self._wire_times.pop(m - 64, None)
             if self._tpdo_overdue(m, ev.t):
                 return
+        if self._cancel_pending and self._state in (JobState.CONFIGURING, JobState.PRIMING):
+            self._cancel_pending = False
+            self._release_before_start()  # the last hold and bit 4 off, right after this SYNC
+            return
         if m == self._start_sync:
             for clock in self._clocks.values():
                 clock.start(m, ev.t)

@@ -49,7 +49,16 @@ class Splices(Sending):
     """Cancel, change, emergency stop and halt: one splice after what is queued."""
 
     def _cancel_before_start(self, ev: Cancel) -> None:
+        """Nothing moved yet: ip mode off where an XtrapulsPac already interpolates the hold, and the job ends
+        CANCELLED. Where set points flow, that last hold goes out in the next SYNC's reaction, as every set
+        point does (a cancel comes at any time in the cycle; a set point must precede its SYNC by 100 us)."""
         self._t = ev.t
+        if self._sync is not None and any(f.state is not FeederState.WAITING for f in self._cyclic):
+            self._cancel_pending = True
+            return
+        self._release_before_start()
+
+    def _release_before_start(self) -> None:
         for cf in self._cyclic:  # an XtrapulsPac may already interpolate the hold: ip mode off, one last hold
             if cf.state is not FeederState.WAITING and cf.spec.starts_with_bit4:
                 self._emit_cw(cf, CW_ENABLE_OPERATION)
@@ -286,7 +295,8 @@ class Splices(Sending):
 
     def _emergency_before_start(self, ev: EmergencyStop) -> None:
         self._emergency = {"method": "before_start", "reason": "the job had not started moving"}
-        self._cancel_before_start(Cancel(ev.t))
+        self._t = ev.t
+        self._release_before_start()  # at once (an emergency does not wait for the next SYNC)
         self._cancel_info["emergency"] = True
 
     def _emergency_in_motion(self, ev: EmergencyStop) -> None:

@@ -404,10 +404,16 @@ def test_cancel_before_the_start_switches_ip_mode_off_with_a_last_hold() -> None
         rig.sync()
     d = cyc(rig.drives[nodes[1]])  # type: ignore[index]
     assert rig.core.state is JobState.PRIMING and d.active  # the EPOS FIFO is still priming
+    sent = len(rig.sent)
     rig.feed(Cancel(rig.t))
+    # the cancel comes at any time in the cycle: the last hold and bit 4 off go out right after the next SYNC
+    assert rig.core.state is JobState.PRIMING and len(rig.sent) == sent
+    rig.sync()
     assert rig.core.state is JobState.CANCELLED
+    assert rig.core.report().cancel["stop"] == "before_start"
     rig.sync()
     assert not d.active and d.emcys == [] and d.cw == CW_ENABLE_OPERATION
+    assert rig.off_sync == []
 
 
 def test_the_budget_counts_the_set_point_frames() -> None:
