@@ -177,7 +177,7 @@ def plan_job(
                         from planner.motion.stop_moves import stop_moves
 
                         moves_info: dict[str, float] = {}
-                        free = np.maximum(path_tolerance(job, cell) - (tol + 1.0) / cpu, 0.0)
+                        free = np.maximum(path_tolerance(job, cell) - encoding_margin(tol, cpu), 0.0)
                         moves = stop_moves(wp, cpu, limits.velocity, limits.acceleration, limits.jerk,
                                            tolerance=free, box=box, time_scale=f,
                                            max_duration_s=MAX_DURATION_S, info=moves_info)
@@ -450,6 +450,12 @@ def _check_reference_positions(ref: Reference, cfg: Sequence[AxisConfig], axes: 
     )
 
 
+def encoding_margin(tolerance_counts: int, cpu: FloatArray) -> FloatArray:
+    """What the encoding may add to a path's deviation (user units per axis): the drive's rounded demand within
+    `tolerance_counts` of the rounded plan, half a count of rounding, half a count of snapping the end points."""
+    return (tolerance_counts + 1.0) / cpu
+
+
 def lines_geometry(
     wp: FloatArray,
     cpu: FloatArray,
@@ -478,8 +484,7 @@ def lines_geometry(
     from planner.motion.geometry import blended_runs
     from planner.motion.path import ChainSpec
 
-    margin = (tolerance_counts + 1.0) / cpu
-    free = path_tolerance - margin
+    free = path_tolerance - encoding_margin(tolerance_counts, cpu)
     runs, corners = blended_runs(
         wp, vlim, np.where(free > 0.0, BLEND_SHARE * free, free), alim, MIN_BLEND_SEGMENTS * segments[0], jerk
     )

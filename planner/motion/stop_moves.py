@@ -179,7 +179,7 @@ def _transition(
         saving = cut - (t.pos.shape[1] - 1)
         inside = bounds is None or bool(np.all((t.pos >= bounds[0][:, None]) & (t.pos <= bounds[1][:, None])))
         if saving > best_saving and inside and _within(t.pos, corner, tol):
-            best, best_saving = _Transition(i1, i2, t.pos, t.vel, t.acc, t.hints), saving
+            best, best_saving = t, saving
     return best
 
 
