@@ -270,7 +270,8 @@ class RuntimeBackend(MotionBackend):
                 self._positioning = {**self._positioning, **job_positioning(core)}
             if core.start_sync is None:
                 return  # the first running event marks the synchronous start (docs/api.md section 6)
-            if p - last[0] < 0.01 and not (p >= 1.0 > last[0]) and not moved:
+            first = last[0] < 0.0
+            if not first and p - last[0] < 0.01 and not (p >= 1.0 > last[0]) and not moved:
                 return
             last[0] = p
             state = core.state.value
@@ -280,6 +281,14 @@ class RuntimeBackend(MotionBackend):
             planned_ms = pc.duration_ms
             # a velocity move has no end to measure progress against: 0 until it has stopped, and how long it ran
             endless = bool(getattr(pc.traj, "open_ended", False))
+            if first and state not in ("cancelling", "halting"):
+                # the start itself, by construction: this thread may get to its first call some SYNCs after the
+                # start (a busy machine, or the engine fed the core ahead of the wire); the event is the start's
+                # all the same (progress 0, the job's axes in START), and the next one shows where they are now
+                start = {**self._positioning, **dict.fromkeys(names.values(), "START")}
+                pc.emit("running", {"progress": 0.0, "state": state, "positioning": start,
+                                    **({"endless": True, "elapsed_s": 0.0} if endless else {})})
+                return
             if state not in ("cancelling", "halting"):
                 progress = 1.0 if p >= 1.0 else 0.0 if endless else min(1.0, max(0.0, elapsed / planned_ms))
                 extra = {"endless": True, "elapsed_s": round(max(0.0, elapsed) / 1000.0, 3)} if endless else {}
