@@ -1,20 +1,33 @@
 """Jerk-limited moves from waypoint to waypoint of a lines path, each stop at a corner replaced, where the path
-tolerance leaves room, by a ruckig transition that does not stop (`stop_moves`).
+tolerance leaves room, by a transition that does not stop (`stop_moves`).
 
 Theory of operation. The plan a jerk-limited lines path falls back on (and the one plan_job takes where the
 blended traversal of planner/motion/jerkpath.py is slower) is the polyline itself: one rest-to-rest ruckig
 move per segment (planner/motion/jerk.py `move_reference`), every axis' velocity, acceleration and jerk
 limit kept. At an interior waypoint the axes need not come to rest: from the state of the arriving move
 some ms before its end (position, velocity, acceleration) to the state of the leaving move some ms after
-its start, ruckig gives the time-optimal jerk-limited motion between the two states (all axes
-time-synchronised, on whole ms, the jerk within `TRANSITION_JERK_SHARE` of each limit), the acceleration
-continuous at both joints. It replaces the two pieces when it is shorter, stays within the software
-position limits and the path tolerance of the polyline at every ms (each axis' deviation from the nearer
-of the two segments, through the tolerance-scaled projection) and passes the waypoint within it. The
-joints are tried on a ladder of distances from the corner, the largest share of the tolerance first; the
-transition that saves the most is kept. A corner's transition reaches at most half-way into the leaving
-move, so the next corner has the other half. The limits hold by construction (ruckig), the tolerance by the check, and a
-corner where no transition fits stays a stop: the plan is never slower than stopping at every corner.
+its start, a transition of three constant-jerk phases whose ends every axis shares (`_common_phases`: equal
+thirds on whole ms; each axis' three jerks are the one solution of its three end conditions, position,
+velocity and acceleration) joins them, the acceleration continuous at both joints; the shortest duration
+whose jerks, accelerations and velocities keep every axis' limits is taken. It replaces the two pieces
+when it is shorter, stays within the software position limits and the path tolerance of the polyline at
+every ms (each axis' deviation from the nearer of the two segments, through the tolerance-scaled
+projection) and passes the waypoint within it. The joints are tried on a ladder of distances from the
+corner, the largest share of the tolerance first; the transition that saves the most is kept. A corner's
+transition reaches at most half-way into the leaving move, so the next corner has the other half. The
+limits hold by construction, the tolerance by the check, and a corner where no transition fits stays a
+stop: the plan is never slower than stopping at every corner.
+
+Why shared phases rather than the time-optimal motion between the two states (ruckig, each axis its own
+seven phases), measured on the benchmark's random paths (bench_planner, 20 per corpus): the drive's
+cubic reproduces a constant-jerk phase exactly only between knots at its ends, and knots are shared by
+every axis, so each axis' own phases put knots 10-40 ms apart, where one count or one rpm of the drive's
+units is a large step of acceleration. ruckig's transitions needed half the jerk limit to keep the
+drive's in-segment jerk within 1.05 of it, and left the median path's largest knot step at 1.24 x the
+bound (J x 1 ms); three shared phases at the full limit make the paths shorter (1.066 against 1.087 x
+the acceleration-only optimum in median), leave that knot step at 0.97 and the drive's jerk within 1.047
+of the limit on every corpus, and call no solver that can end the process (ruckig 0.19.4 did on
+transitions between mirrored states).
 
 Where it stands against the blended traversal (constant speed through a blend shaped for it): on a sharp
 corner with a small tolerance the blend's jerk bound q''' v^3 <= J holds the speed near zero for the
@@ -25,31 +38,26 @@ milliseconds without the blend's slow crossing. Measured in docs/formats.md ("je
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from planner.errors import TOO_LARGE, PlanningError
-from planner.motion.jerk import CYCLE_S, move_reference, ruckig_input, sample_at, solve_ruckig
+from planner.motion.jerk import move_reference
 from planner.motion.reference import FloatArray, IntArray, Reference
 
 # the distances from the corner where a transition may join the moves, as shares of the largest the path
 # tolerance allows on the arriving (leaving) segment
 JOIN_SHARES = (1.0, 0.75, 0.55, 0.4, 0.28, 0.2, 0.14, 0.1, 0.07, 0.05)
 DEVIATION_SLACK = 1.0e-9  # of the tolerance (the check is on the same samples the plan is made of)
-# a transition's jerk, as a share of each axis' limit: its time-synchronised phases (7 per axis, each axis'
-# own) put knots 10-40 ms apart, where a count or an rpm of the drive's units is a large jerk; measured on the
-# benchmark's random paths (bench_planner, 20 per corpus), the drive's worst in-segment jerk / limit with
-# 1.0, 0.9, 0.75, 0.6, 0.5 of it: 2.02, 1.58, 1.29, 1.13, 1.05 (the moves and blends: 1.03), for durations
-# 1.046-1.087 x the acceleration-only optimum in median
-TRANSITION_JERK_SHARE = 0.5
-
-# ruckig 0.19.4 ends the process (a segmentation fault, no exception) on some inputs: seen on an axis that
-# reverses from (p, v, a) to (p, -v, a), which constant acceleration joins exactly (a transition between two
-# mirrored moves, joined at mirrored samples), with a on the limit and 0.2 % inside it; with a 1e-9 inside
-# the limit, or the target 1e-4 away, it did not. Such joints are left out of the ladder (`_crashes_ruckig`)
-ACC_EDGE = 1.0e-6
-MIRROR = 1.0e-6  # of the velocity: how near a reversal is to the exact mirror that crashed
+PHASES = 3  # a transition's constant-jerk phases, shared by every axis: three end conditions, one solution
+# the shortest phase tried, in turn: a phase is a segment of the drive's cubic, where each count or rpm of its
+# units is an acceleration step of 6 / T^2 or 4 / T at a knot; 35 ms first, any length where that finds none
+# (measured on the benchmark's random paths, median knot step / bound with 35 and 1 ms: 0.99 / 1.03 on paths,
+# 0.97 / 0.99 on sharp ones; on paths of a few counts 35 ms alone left most corners stopping)
+MIN_PHASE_MS = (35, 1)
+WITHIN_TRIES = 4  # durations tried at one pair of joints, shortest first, for one that keeps the tolerance
 
 # a stretch of the plan: positions, velocities, accelerations left and right of each ms, breaks, hints
 _Piece = tuple[FloatArray, FloatArray, FloatArray, FloatArray, IntArray, IntArray]
@@ -62,7 +70,7 @@ class _Transition:
     pos: FloatArray  # (n, T + 1), counts
     vel: FloatArray  # counts / ms
     acc: FloatArray  # counts / ms^2
-    hints: IntArray  # ms (from the transition's start) where a phase of some axis ends
+    hints: IntArray  # ms (from the transition's start) where its phases end (every axis' alike)
 
 
 def stop_moves(
@@ -92,8 +100,8 @@ def stop_moves(
         spent += ref.duration_ms
         parts.append(ref)
     scale = max(time_scale, 1.0)
-    # the moves are played this much slower; a transition's jerk keeps a share for the drive's units
-    limits = (vlim / scale, alim / scale**2, jlim * TRANSITION_JERK_SHARE / scale**3)
+    # the moves are played this much slower; the transitions keep the same limits, in counts per ms
+    limits = (vlim * cpu / (1.0e3 * scale), alim * cpu / (1.0e6 * scale**2), jlim * cpu / (1.0e9 * scale**3))
     tol_counts = None if tolerance is None else np.maximum(np.asarray(tolerance, dtype=np.float64) * cpu, 1e-9)
     bounds = None if box is None else (box[0] * cpu, box[1] * cpu)
     pieces: list[_Piece] = []
@@ -103,8 +111,8 @@ def stop_moves(
         last = part.positions.shape[1] - 1
         found = None
         if tol_counts is not None and k + 1 < len(parts):
-            found = _transition(part, first, parts[k + 1], waypoints[k:k + 3] * cpu[None, :], tol_counts, cpu,
-                                limits, bounds)
+            found = _transition(part, first, parts[k + 1], waypoints[k:k + 3] * cpu[None, :], tol_counts, limits,
+                                bounds)
         stop = last if found is None else found.start
         pieces.append(_window(part, first, stop))
         if found is None:
@@ -148,12 +156,25 @@ def _joined(pieces: list[_Piece]) -> Reference:
 
 
 def _transition(
-    arriving: Reference, first: int, leaving: Reference, corner: FloatArray, tol: FloatArray, cpu: FloatArray,
+    arriving: Reference, first: int, leaving: Reference, corner: FloatArray, tol: FloatArray,
     limits: tuple[FloatArray, FloatArray, FloatArray], bounds: tuple[FloatArray, FloatArray] | None,
 ) -> _Transition | None:
     """The transition that saves the most between the arriving move (from its sample `first`) and the leaving
     move, within `tol` (counts per axis) of the segments corner[0]->corner[1] and corner[1]->corner[2] (counts)
-    and within `bounds` (counts), or None (the corner stays a stop)."""
+    and within `bounds` (counts), with the longest phases of `MIN_PHASE_MS` that find one; None: the corner
+    stays a stop."""
+    for shortest in MIN_PHASE_MS:
+        found = _best_transition(arriving, first, leaving, corner, tol, limits, bounds, shortest)
+        if found is not None:
+            return found
+    return None
+
+
+def _best_transition(
+    arriving: Reference, first: int, leaving: Reference, corner: FloatArray, tol: FloatArray,
+    limits: tuple[FloatArray, FloatArray, FloatArray], bounds: tuple[FloatArray, FloatArray] | None, shortest: int,
+) -> _Transition | None:
+    """`_transition` with phases at least `shortest` ms long."""
     pa, pb = arriving.positions, leaving.positions
     end_a = pa.shape[1] - 1
     half_b = (pb.shape[1] - 1) // 2
@@ -173,44 +194,13 @@ def _transition(
         cut = (end_a - i1) + i2  # ms of the two moves the transition replaces
         if cut <= best_saving + 1:
             continue
-        t = _solve(arriving, i1, leaving, i2, cpu, limits)
-        if t is None:
-            continue
-        saving = cut - (t.pos.shape[1] - 1)
-        inside = bounds is None or bool(np.all((t.pos >= bounds[0][:, None]) & (t.pos <= bounds[1][:, None])))
-        if saving > best_saving and inside and _within(t.pos, corner, tol):
-            best, best_saving = t, saving
+        for t in itertools.islice(_common_phases(arriving, i1, leaving, i2, limits, shortest, cut - best_saving - 1),
+                                  WITHIN_TRIES):
+            inside = bounds is None or bool(np.all((t.pos >= bounds[0][:, None]) & (t.pos <= bounds[1][:, None])))
+            if inside and _within(t.pos, corner, tol):
+                best, best_saving = t, cut - (t.pos.shape[1] - 1)
+                break
     return best
-
-
-def _solve(a: Reference, i1: int, b: Reference, i2: int, cpu: FloatArray,
-           limits: tuple[FloatArray, FloatArray, FloatArray]) -> _Transition | None:
-    """ruckig's time-optimal motion from sample i1 of move a to sample i2 of move b (whole ms), in counts;
-    None when ruckig finds none."""
-    n = cpu.size
-    inp = ruckig_input(n, *limits)
-    c = cpu
-    p0, v0, a0 = a.positions[:, i1] / c, a.velocities[:, i1] * 1000.0 / c, a.acc_right[:, i1] * 1.0e6 / c
-    p1, v1, a1 = b.positions[:, i2] / c, b.velocities[:, i2] * 1000.0 / c, b.acc_left[:, i2] * 1.0e6 / c
-    if _crashes_ruckig(p0, v0, a0, p1, v1, a1, limits[1]):
-        return None
-    inp.current_position, inp.current_velocity, inp.current_acceleration = list(p0), list(v0), list(a0)
-    inp.target_position, inp.target_velocity, inp.target_acceleration = list(p1), list(v1), list(a1)
-    try:
-        traj = solve_ruckig(inp, n)
-    except PlanningError:
-        return None
-    steps = max(round(traj.duration / CYCLE_S), 1)
-    pos, vel, acc = sample_at(traj, n, np.arange(steps + 1, dtype=np.float64) * CYCLE_S)
-    cc = c[:, None]
-    pos, vel, acc = pos * cc, vel * cc / 1000.0, acc * cc / 1.0e6
-    # the joints exactly on the moves' samples
-    pos[:, 0], vel[:, 0], acc[:, 0] = a.positions[:, i1], a.velocities[:, i1], a.acc_right[:, i1]
-    pos[:, -1], vel[:, -1], acc[:, -1] = b.positions[:, i2], b.velocities[:, i2], b.acc_left[:, i2]
-    phase_ends = [np.cumsum([traj.profiles[0][i].t[k] for k in range(7)]) for i in range(n)]
-    hints = np.unique(np.round(np.concatenate(phase_ends) / CYCLE_S).astype(np.int64))
-    hints = hints[(hints > 0) & (hints < steps)]
-    return _Transition(i1, i2, pos, vel, acc, hints)
 
 
 def _within(pos: FloatArray, corner: FloatArray, tol: FloatArray) -> bool:
@@ -232,15 +222,45 @@ def _within(pos: FloatArray, corner: FloatArray, tol: FloatArray) -> bool:
     return bool(ok.all())
 
 
-def _crashes_ruckig(p0: FloatArray, v0: FloatArray, a0: FloatArray, p1: FloatArray, v1: FloatArray,
-                    a1: FloatArray, amax: FloatArray) -> bool:
-    """Is this transition of the kind that made ruckig end the process (see `ACC_EDGE`)? A joint on the
-    acceleration limit, or an axis whose target mirrors its start (same position and acceleration, the
-    velocity reversed)."""
-    edge = amax * (1.0 - ACC_EDGE)
-    if np.any(np.abs(a0) >= edge) or np.any(np.abs(a1) >= edge):
-        return True
-    scale = np.maximum(np.abs(v0), 1e-12)
-    mirror = ((np.abs(v0 + v1) <= MIRROR * scale) & (np.abs(a1 - a0) <= MIRROR * np.maximum(np.abs(a0), 1e-12))
-              & (np.abs(p1 - p0) * 1000.0 <= MIRROR * scale) & (np.abs(v0) > 0.0))
-    return bool(mirror.any())
+def _phase_powers(t: FloatArray, starts: FloatArray, ends: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """What a unit jerk on [starts, ends] (ms) adds to the position, velocity and acceleration at the times t:
+    t (..., 1) broadcast against the phases (..., k)."""
+    u = np.maximum(t - starts, 0.0)
+    w = np.maximum(t - ends, 0.0)
+    return (u**3 - w**3) / 6.0, (u**2 - w**2) / 2.0, u - w
+
+
+def _common_phases(a: Reference, i1: int, b: Reference, i2: int,
+                   limits: tuple[FloatArray, FloatArray, FloatArray], shortest: int, longest: int,
+                   ) -> Iterator[_Transition]:
+    """The motions from sample i1 of move a to sample i2 of move b made of `PHASES` constant-jerk phases whose
+    ends every axis shares (equal shares of the duration, on whole ms, each at least `shortest` ms), shortest
+    first, up to `longest` ms, that keep every axis' velocity, acceleration and jerk limits (counts per ms).
+    Each axis' jerks are the one solution of its end conditions (position, velocity and acceleration)."""
+    p0, v0, a0 = a.positions[:, i1], a.velocities[:, i1], a.acc_right[:, i1]
+    p1, v1, a1 = b.positions[:, i2], b.velocities[:, i2], b.acc_left[:, i2]
+    vmax, amax, jmax = limits
+    durations = np.arange(PHASES * max(shortest, 1), longest + 1, dtype=np.int64)
+    if durations.size == 0:
+        return
+    d = durations.astype(np.float64)[:, None]
+    ends = np.round(d * np.arange(PHASES + 1, dtype=np.float64)[None, :] / PHASES)  # (D, PHASES + 1), whole ms
+    m = np.stack(_phase_powers(d, ends[:, :-1], ends[:, 1:]), axis=1)  # (D, 3, PHASES): the end conditions
+    rhs = np.stack([p1[None, :] - p0[None, :] - v0[None, :] * d - a0[None, :] * d * d / 2.0,
+                    (v1 - v0)[None, :] - a0[None, :] * d,
+                    np.broadcast_to(a1 - a0, (d.size, a0.size))], axis=1)  # (D, 3, n)
+    jerk = np.linalg.solve(m, rhs)  # (D, PHASES, n); the phases are at least 1 ms, so m is regular
+    for k in np.nonzero(np.all(np.abs(jerk) <= jmax[None, None, :] * (1.0 + 1e-12), axis=(1, 2)))[0]:
+        steps = int(durations[k])
+        t = np.arange(steps + 1, dtype=np.float64)[:, None]
+        sp, sv, sa = _phase_powers(t, ends[k, :-1][None, :], ends[k, 1:][None, :])  # (T + 1, PHASES)
+        j = jerk[k]
+        vel = (v0[None, :] + a0[None, :] * t + sv @ j).T
+        acc = (a0[None, :] + sa @ j).T
+        if np.any(np.abs(vel) > vmax[:, None] * (1.0 + 1e-9)) or np.any(np.abs(acc) > amax[:, None] * (1.0 + 1e-9)):
+            continue
+        pos = (p0[None, :] + v0[None, :] * t + a0[None, :] * t * t / 2.0 + sp @ j).T
+        # the joints exactly on the moves' samples
+        pos[:, 0], vel[:, 0], acc[:, 0] = p0, v0, a0
+        pos[:, -1], vel[:, -1], acc[:, -1] = p1, v1, a1
+        yield _Transition(i1, i2, pos, vel, acc, ends[k, 1:-1].astype(np.int64))
