@@ -20,7 +20,7 @@ from bus import cob, codec
 from bus.codec import Frame
 from bus.profile import DriveProfile, FeedbackSchedule
 from planner.encoding import record
-from planner.readings import OPEN_POINTS, OPTIONAL_OBJECTS, DriveReadings
+from planner.readings import MUST_KNOW, OPEN_POINTS, OPTIONAL_OBJECTS, DriveReadings
 
 CW_ENABLE_OPERATION = 0x000F
 CW_START_IP = 0x001F
@@ -463,10 +463,18 @@ class StandstillProbe:
                     unexplained = ("no reading of the manuals explains its FIFO and ip mode reports in the "
                                    f"timing experiment (SYNC: ip mode/fill: {seen})")
                 else:
+                    left_open: list[str] = []
                     for i, key in enumerate(_TIMING_POINTS):
                         values = {sv[i] for sv in survivors}
                         if len(values) == 1:
                             kw[key] = values.pop()
+                        elif key in MUST_KNOW:  # the master cannot plan for either: no guess, a clear refusal
+                            left_open.append(f"{key} ({' or '.join(sorted(values))})")
+                    if left_open:
+                        unexplained = (f"the timing experiment left its {', '.join(left_open)} open after "
+                                       f"{self.timing_runs} runs: its SYNCs must come at the stretched intervals, "
+                                       f"and a busy host that holds them back undoes that (SYNC: ip mode/fill: "
+                                       f"{seen}); probe again, or state the reading in [axis.probed]")
                     runs = f" (run {self.timing_runs} times: a run left a reading open)" if self.timing_runs > 1 else ""
                     evidence.append(f"timing: records {self.plan.t1}/{self.plan.t2}/{self.plan.t3} ms of zero "
                                     f"motion, SYNC intervals {self.plan.stretched} x +{self.plan.stretch_ms:g} ms "

@@ -20,7 +20,7 @@ from typing import Any, NamedTuple, Protocol
 
 from bus.cob import SYNC_COB_ID, TIME_STAMP_COB_ID, classify
 from bus.codec import Frame, frame_bits
-from bus.errors import ProtocolError
+from bus.errors import PROBE, BusError, ProtocolError
 from bus.events import (
     AdapterError,
     BufferStatus,
@@ -551,7 +551,10 @@ class VirtualRuntime:
         if self._settings_given:
             return
         if any(r.needs_probe for n, r in self.known.items() if self.profiles[n].kind == "fifo"):
-            self.known = self.probe().complete(self.known)
+            try:  # as the real-time runtime says it: the job's configuration error, naming the drive
+                self.known = self.probe().complete(self.known)
+            except ProbeError as e:
+                raise BusError(PROBE, str(e)) from None
         self.settings = replace(self.settings, readings=dict(self.known))
 
     def idle(self, duration_s: float, *, on_sync: Callable[[int], None] | None = None) -> None:

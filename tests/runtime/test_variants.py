@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from bus.errors import MISSING_OBJECT, BusError
+from bus.errors import MISSING_OBJECT, PROBE, BusError
 from bus.probe import ALL_EXPERIMENTS, Phase, ProbeResult, StandstillProbe
 from bus.sim.virtual import VirtualCell
 from planner.config import CellConfig
@@ -208,6 +208,31 @@ def test_probe_runs_the_timing_experiment_again_when_the_schedule_left_a_reading
     result, _sim = probe_variant(name)
     for node in (1, 2):
         assert any("run 2 times" in e for e in result.nodes[node].evidence)
+
+
+def test_a_clock_the_timing_runs_leave_open_is_a_clear_refusal(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every timing run's SYNCs on the period (a host that held each stretched one back): SYNC-locked and own
+    clocks stay alike. The drive is reported unexplained, naming the reading left open, and configuration
+    stops with that message; before, the readings went on with the clock unknown and the runtime failed
+    later on a ValueError about its settings (the capacity benchmark at 18 axes)."""
+    original = StandstillProbe._interval_s
+
+    def unstretched(self: StandstillProbe, step: int, count: int) -> float:
+        if self.phase is Phase.TIMING and step > 0:
+            return self.period_ms / 1000.0
+        return original(self, step, count)
+
+    monkeypatch.setattr(StandstillProbe, "_interval_s", unstretched)
+    base, _job, traj = demo.prepare(axes=1)
+    vcell = VirtualCell(base, initial_positions=demo.start_positions(base, traj))
+    runtime = VirtualRuntime(base, vcell=vcell)
+    result = runtime.probe(ALL_EXPERIMENTS)
+    node = result.nodes[1]
+    assert node.readings.clock is None
+    assert node.unexplained is not None and "clock (own or sync) open after 3 runs" in node.unexplained, node
+    with pytest.raises(BusError) as e:
+        runtime.ensure_readings()
+    assert e.value.code == PROBE and "clock (own or sync) open" in e.value.message
 
 
 @pytest.mark.parametrize("name", [n for n in VARIANTS if n != "optional_objects_absent"])
