@@ -20,11 +20,14 @@ from planner.config import CellConfig, load_cell
 # 5-50 ms at times (benchmarks/bench_realtime.py's platform floor), so the cycle engine's SYNC then goes out
 # that late; a drive that follows the manual (a SYNC half a period late is lost: EMCY 0x8780) faults the job
 # for the machine's stall, not the master's. The simulated drives of the real-time tests (bus/sim/process.py,
-# which every `pvt` the tests start inherits) let a SYNC come up to 4 periods late. The benchmarks keep the
+# which every `pvt` the tests start inherits) let SYNCs come up to 6 periods apart. The benchmarks keep the
 # manual's 1.5 and count what this machine does to it.
+# 4 periods were not always enough: a fresh-clone CI run here failed test_family_demo_real_time[mixed] on an
+# XtrapulsPac's EMCY 0x8780 (its SYNC jitter limit, (factor - 1) periods, was 30 ms); 6 lets a SYNC be 50 ms
+# late, the worst stall measured here.
 # The same stalls hold the simulated drives' process up (measured: answers up to 3 SYNCs late at 10 ms):
 # the master's TPDO timeout waits at least REALTIME_HOST_STALL_MS (streamer/runtime/realtime.py).
-REALTIME_SYNC_GAP_FACTOR = 4.0
+REALTIME_SYNC_GAP_FACTOR = 6.0
 REALTIME_HOST_STALL_MS = 100
 os.environ.setdefault("PVT_SIM_SYNC_GAP_FACTOR", str(REALTIME_SYNC_GAP_FACTOR))
 os.environ.setdefault("PVT_HOST_STALL_MS", str(REALTIME_HOST_STALL_MS))
