@@ -44,6 +44,8 @@ START_DELAY_S = 0.003  # the first SYNC of a schedule: this long after the reque
 # SYNC-loss window of 1.5 periods, instead)
 MIN_GAP_AFTER_FRAMES_S = 150e-6
 POLL_S = 0.0005  # a bus without a file descriptor is polled this often
+# a one-off SYNC this late moves the ones queued after it (`sync_once`); less is the spin's overshoot and the send
+ONCE_LATE_S = 200e-6
 IDLE_WAIT_S = 0.05
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 _FLAG_EXT, _FLAG_RTR, _FLAG_ERR, _FLAG_OWN = 1, 2, 4, 8
@@ -351,7 +353,7 @@ class _Loop:
             self.out.send(("sync_started", self.t0, self.period, self.counter_pos))
         elif kind == "sync_once":  # one SYNC at an absolute time, outside a schedule (the standstill probe)
             self._set_counters(msg[2])
-            self.once.append(float(msg[1]))
+            self.once.extend(msg[1])
             self.once.sort()
         elif kind == "sync_stop":
             self.t0 = None
@@ -407,6 +409,12 @@ class _Loop:
                     self.once.pop(0)
                     self._read_bus()
                     self._send(SYNC_COB_ID, self._next_counter(), 0)
+                    # the one-off SYNCs after a late one keep their intervals to it: the probe's intervals
+                    # are its experiment, and catching up would shorten the one after the late SYNC (late:
+                    # when it left, a preemption in the send included)
+                    late = time.time() - due
+                    if late > ONCE_LATE_S:
+                        self.once = [t + late for t in self.once]
                     self._flush()
                     continue
                 wait -= self.spin_s
@@ -589,10 +597,14 @@ class EngineBus(can.BusABC):
         reply = self._reply("sync_started", timeout_s)
         return float(reply[1])
 
-    def sync_once(self, at: float, counters: Sequence[int] | None = None) -> None:
-        """One SYNC at time `at` (time.time() base), when no schedule runs; with `counters` it carries the
-        next of them (the counter runs on from the last SYNC sent)."""
-        self._command(("sync_once", float(at), [bytes([c]) for c in counters] if counters else None))
+    def sync_once(self, at: float | Sequence[float], counters: Sequence[int] | None = None) -> None:
+        """One SYNC at time `at` (time.time() base), or one at each of the times `at`, when no schedule runs;
+        with `counters` each carries the next of them (the counter runs on from the last SYNC sent). One that
+        goes out late moves every one-off SYNC queued after it as late: their intervals hold (the standstill
+        probe's experiments). Several times go over in one command, so none is sent before the rest are
+        queued to move with it."""
+        times = [float(at)] if isinstance(at, int | float) else [float(t) for t in at]
+        self._command(("sync_once", times, [bytes([c]) for c in counters] if counters else None))
 
     def stop_sync(self, timeout_s: float = 5.0) -> None:
         if self.schedule is None:

@@ -607,9 +607,9 @@ class MasterAdapter:
         except Exception as e:
             self._emit(SendFailed(f"time stamp: {type(e).__name__}: {e}", t))
 
-    def send_sync(self, counter: int | None = None, *, at: float | None = None) -> None:
-        """One SYNC now, or with the cycle engine at time `at` exactly (the probe paces SYNC itself; the
-        periodic SYNC must be stopped)."""
+    def send_sync(self, counter: int | None = None, *, at: float | Sequence[float] | None = None) -> None:
+        """One SYNC now, or with the cycle engine at time `at` exactly, or one at each of the times `at` (the
+        probe paces SYNC itself; the periodic SYNC must be stopped)."""
         if self.engine is not None and at is not None:
             self._check_open()  # the engine carries the SYNC counter on from the last SYNC it sent
             fb = self.feedback

@@ -321,9 +321,11 @@ class StandstillProbe:
     def _rounding_time(self) -> int:
         """The one-count segment: long enough that the SYNCs carrying TPDO2 split it finely (every 0.2 of it
         at most) and that a SYNC late by a fifth of it (a loaded host) or a drive clock that does not count
-        from the SYNC the probe thinks leaves the verdict alone (`_rounding_verdict`)."""
+        from the SYNC the probe thinks leaves the verdict alone (`_rounding_verdict`); one record at most
+        (255 ms: TPDO2 every 60 ms, a 24-axis cell at 10 ms, then splits it every 0.235, still one sample
+        between the 0.5 where rounding to nearest shows the count and the verdict's 0.75)."""
         every = self.feedback.every if self.feedback is not None else 1
-        return max(ROUNDING_MIN_MS, math.ceil(every * self.period_ms / 0.2))
+        return min(record.SEGMENT_TIME_MAX_MS, max(ROUNDING_MIN_MS, math.ceil(every * self.period_ms / 0.2)))
 
     def _rounding_verdict(self, n: int, r: NodeRecord) -> tuple[str | None, str]:
         """How node n rounds, from where its demand left the start count in the one-count move: the drive

@@ -278,10 +278,10 @@ class RealtimeRuntime:
                     probe.enabled(demands())
                 if adapter.engine is not None:
                     # the engine sends every SYNC the probe already knows at its time: while a drive
-                    # interpolates, no stall of this thread stretches a SYNC interval
+                    # interpolates, no stall of this thread stretches a SYNC interval (one command: a late
+                    # first SYNC moves the others with it, bus/engine.py `sync_once`)
                     times = probe.next_sync_times()
-                    for t_next in times:
-                        adapter.send_sync(at=t_next)
+                    adapter.send_sync(at=times)
                 else:  # this thread paces the SYNC, one at a time
                     t_next = probe.next_sync_time()
                     times = [t_next]

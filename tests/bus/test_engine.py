@@ -76,6 +76,23 @@ def test_the_sync_counter_runs_on_across_schedules_and_single_syncs(engine: Engi
     assert all(b == a % 5 + 1 for a, b in itertools.pairwise(got)), got
 
 
+def test_single_syncs_after_a_late_one_keep_their_intervals(engine: EngineBus, channel: str) -> None:
+    """The standstill probe hands the engine an experiment's SYNC times at once. When the first goes out late
+    (the master decided the start after its time: 2-7 ms at 18 axes here), the others keep their intervals
+    to it; before, the next one went out on its old time, 2.7-8.1 ms after the late one instead of 10, and
+    the 6 ms of stretch that tells a drive's own clock from a SYNC-locked one was undone (the probe left the
+    clock open at 18 axes)."""
+    with can.Bus(interface="ipc", channel=channel) as drive:
+        first = time.time() - 0.006  # already 6 ms late when the engine gets it
+        engine.sync_once([first + offset for offset in (0.0, 0.010, 0.023, 0.036)])  # one command, as the probe
+        got = [m.timestamp for m in _collect(drive, 0.2) if m.arbitration_id == 0x80]
+    assert len(got) == 4, got
+    intervals = [b - a for a, b in itertools.pairwise(got)]
+    # a stall of this machine can only make an interval longer; the late first SYNC must not make the next
+    # one shorter (it was 4 ms here)
+    assert min(intervals[0] - 0.010, intervals[1] - 0.013, intervals[2] - 0.013) > -0.0015, intervals
+
+
 def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel: str) -> None:
     with can.Bus(interface="ipc", channel=channel) as drive:
         t0 = engine.start_sync(PERIOD_S)

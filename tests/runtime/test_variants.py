@@ -235,6 +235,21 @@ def test_a_clock_the_timing_runs_leave_open_is_a_clear_refusal(monkeypatch: pyte
     assert e.value.code == PROBE and "clock (own or sync) open" in e.value.message
 
 
+@pytest.mark.parametrize("name", ["reference", "rounding_toward_zero", "own_clock_slow"])
+def test_probe_tells_the_rounding_with_tpdo2_every_sixth_sync(name: str) -> None:
+    """A 24-axis cell at 10 ms has TPDO2 every 6 SYNCs (bus/budget.py). The one-count move asked for a 300 ms
+    record, which its 8-bit time field cannot hold (EncodingRangeError: bench_realtime capacity at 24 axes);
+    it is now one record of 255 ms, and the verdict still holds on each rounding."""
+    base, _job, traj = demo.prepare(axes=2)
+    cell = dataclasses.replace(cell_with(base, [VARIANTS.get(name, {})]), feedback_every_syncs=6)
+    vcell = VirtualCell(cell, initial_positions=demo.start_positions(cell, traj))
+    runtime = VirtualRuntime(cell, vcell=vcell)
+    result = runtime.probe(ALL_EXPERIMENTS)
+    assert result.failures() == []
+    assert all(result.nodes[n].readings.rounding == cell.axes[0].sim.rounding for n in (1, 2))
+    assert all("over 255 ms" in " ".join(result.nodes[n].evidence) for n in (1, 2))
+
+
 @pytest.mark.parametrize("name", [n for n in VARIANTS if n != "optional_objects_absent"])
 def test_probe_tells_the_rounding_with_the_syncs_of_the_one_count_move_late(
         name: str, monkeypatch: pytest.MonkeyPatch) -> None:
