@@ -275,10 +275,6 @@ class RuntimeBackend(MotionBackend):
                 return
             last[0] = p
             state = core.state.value
-            # every axis: the job's as its core tracks them, the others as earlier jobs left them
-            positioning = {**self._positioning, **job_positioning(core)}
-            elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
-            planned_ms = pc.duration_ms
             # a velocity move has no end to measure progress against: 0 until it has stopped, and how long it ran
             endless = bool(getattr(pc.traj, "open_ended", False))
             if first and state not in ("cancelling", "halting"):
@@ -289,6 +285,10 @@ class RuntimeBackend(MotionBackend):
                 pc.emit("running", {"progress": 0.0, "state": state, "positioning": start,
                                     **({"endless": True, "elapsed_s": 0.0} if endless else {})})
                 return
+            # every axis: the job's as its core tracks them, the others as earlier jobs left them
+            positioning = {**self._positioning, **job_positioning(core)}
+            elapsed = p * core.stream_duration_ms - pc.t0_ms  # in the current piece
+            planned_ms = pc.duration_ms
             if state not in ("cancelling", "halting"):
                 progress = 1.0 if p >= 1.0 else 0.0 if endless else min(1.0, max(0.0, elapsed / planned_ms))
                 extra = {"endless": True, "elapsed_s": round(max(0.0, elapsed) / 1000.0, 3)} if endless else {}
