@@ -22,6 +22,7 @@ from bus.codec import Cia402State
 from bus.faults import FaultModel, FaultyBus
 from bus.network import MasterAdapter
 from bus.sim.node import SimulatedCell
+from bus.sim.process import DRIVES_SYNC_GAP_FACTOR  # the test suite's one margin (tests/conftest.py)
 from planner.config import CellConfig
 from planner.job import job_from_dict
 from planner.plan import plan_job
@@ -29,7 +30,6 @@ from planner.trajectory import PvtTrajectory
 from streamer.core import JobState
 from streamer.core import outcome as oc
 from streamer.core.coordinator import Coordinator
-from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
 from streamer.runtime.realtime import RealtimeRuntime
 from streamer.splice_planners import make_stop_planner
 
@@ -78,7 +78,7 @@ def test_bus_off_in_real_time_on_the_virtual_bus() -> None:
     cell = dataclasses.replace(cell3(), bus=dataclasses.replace(cell3().bus, channel=f"rel-busoff-{os.getpid()}"))
     traj = demo_traj()
     sim = SimulatedCell(cell, initial_positions=start_positions(traj),
-                        sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
+                        sync_gap_factor=DRIVES_SYNC_GAP_FACTOR).start()
     model = FaultModel([], seed=0)
     faulty = FaultyBus(can.Bus(interface="virtual", channel=cell.bus.channel, receive_own_messages=True), model)
     adapter = MasterAdapter(None, cell, bus=faulty)

@@ -14,9 +14,9 @@ import pytest
 from bus.codec import Cia402State, state_from_statusword
 from bus.network import MasterAdapter
 from bus.sim.node import SimulatedCell
+from bus.sim.process import DRIVES_SYNC_GAP_FACTOR  # the test suite's one margin (tests/conftest.py)
 from planner.config import BusConfig, CellConfig
 from planner.job import job_from_dict
-from streamer.demo import IN_PROCESS_SYNC_GAP_FACTOR
 from streamer.runtime.bus_backend import _RealtimePort
 from streamer.runtime.homing import SW_HOMING_ATTAINED, run_homing
 
@@ -37,7 +37,7 @@ def test_run_homing_in_real_time_on_simulated_drives(demo_cell: CellConfig) -> N
     assert cell.axes[0].sim.home_switch == (0.05, INF)
     job = job_from_dict({"kind": "home", "axes": ["j1", "j2"], "method": [19, 21], "search_speed": 0.2,
                          "zero_speed": 0.02, "acceleration": 2.0, "offset": [0.0, 0.01], "timeout_s": 30.0}, cell)
-    sim = SimulatedCell(cell, sync_gap_factor=IN_PROCESS_SYNC_GAP_FACTOR).start()
+    sim = SimulatedCell(cell, sync_gap_factor=DRIVES_SYNC_GAP_FACTOR).start()
     adapter = None
     try:
         adapter = MasterAdapter(None, cell)
