@@ -6,6 +6,8 @@ test_sim_faithfulness.py; here each timing branch is exact (time is an argument)
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 from bus_testkit import CPR, VDrive, make_axis, make_cell, ramp_records
 
@@ -59,6 +61,32 @@ def test_pdos_only_in_operational_and_nmt_addressing() -> None:
     d.frame(0, bytes((codec.NmtCommand.START, 1)))
     ids = [f.cob_id for f in d.sync()]
     assert ids == [cob.tpdo1_id(1), cob.tpdo2_id(1)]  # TPDO1 then TPDO2
+
+
+def test_inhibit_time_spaces_a_changing_event_tpdo_exactly() -> None:
+    """CiA 301 0x18xx:03 in the model's own time: never two within the inhibit time, and a change made
+    inside it goes out when it ends (test_sim_cia301.py drives the same through canopen in real time)."""
+    d = VDrive(configure=False)
+    tpdo3 = 0x380 + d.node
+    for index, sub, value in [(0x1802, 1, 0x8000_0000 | tpdo3), (0x1802, 2, 255), (0x1802, 3, 1000),
+                              (0x1802, 5, 0), (0x1A02, 0, 0), (0x1A02, 1, 0x6041_0010), (0x1A02, 0, 1),
+                              (0x1802, 1, tpdo3)]:  # statusword, event driven, 100 ms inhibit, no timer
+        d.sdo(index, sub, value)
+    d.frame(0, bytes((codec.NmtCommand.START, d.node)))
+    sent: list[tuple[float, bytes]] = []
+    flip = False
+    for ms in range(1, 800):
+        d.t = ms / 1000.0
+        out = d.model.advance(d.t)
+        if ms % 10 == 0 and ms <= 600:  # shutdown / disable voltage back and forth every 10 ms
+            out += d.sdo(0x6040, 0, 0x0006 if flip else 0x0000)
+            flip = not flip
+        sent += [(d.t, f.data) for f in out if f.cob_id == tpdo3]
+    times = [t for t, _ in sent]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert len(times) >= 6 and min(gaps) >= 0.1 - 1e-9, times
+    assert all(g <= 0.1 + 1e-9 for g in gaps[1:]), gaps  # every later change waited exactly its end
+    assert sent[-1][1] == d.model.statusword.to_bytes(2, "little")  # the last change went out
 
 
 def test_reset_node_restores_defaults_and_boots_again() -> None:
