@@ -227,9 +227,9 @@ def start_positions(cell: CellConfig, traj: PvtTrajectory) -> dict[int, float]:
 
 def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
              on_sync: Any = None, readings_out: dict[int, Any] | None = None,
-             on_start: Any = None) -> tuple[dict[str, Any], Any]:
+             on_start: Any = None, *, plot: bool = True) -> tuple[dict[str, Any], Any]:
     """The job in virtual time. `on_start(plan, core, trace)`: once, at the job's first SYNC (the live view
-    follows the trace from there)."""
+    follows the trace from there). `plot=False`: no motion.png (see `_finish`)."""
     from bus.sim.virtual import VirtualCell
 
     out.mkdir(parents=True, exist_ok=True)
@@ -260,21 +260,27 @@ def run_fast(cell: CellConfig, traj: PvtTrajectory, out: Path,
         readings_out.update(rt.settings.readings)
     epoch = wall0 + result.trace.sync_times.get(result.first_sync, 0.0)
     return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
-                   rt.settings.readings, epoch_s=epoch)
+                   rt.settings.readings, epoch_s=epoch, plot=plot)
 
 
 def _finish(cell: CellConfig, traj: PvtTrajectory, core: Coordinator, trace: Any, first: int, last: int,
-            out: Path, readings: Any = None, *, epoch_s: float | None = None) -> tuple[dict[str, Any], Any]:
+            out: Path, readings: Any = None, *, epoch_s: float | None = None,
+            plot: bool = True) -> tuple[dict[str, Any], Any]:
+    """report.json, motion.png (unless not `plot`: matplotlib's import and one drawing cost 2.5-3.7 s of CPU
+    here, most of a 3-axis job's own time; `pvt demo --no-plot`), job.mcap."""
     core_report = core.report()
     report_setpoints = {n: core.setpoints(n) for n in traj.node_ids}
     report = build_report(traj, core_report, trace, sync_period_ms=cell.sync_period_ms,
                           first_sync=first, last_sync=last, readings=readings, time_stamp=cell.time_stamp,
                           setpoints=report_setpoints)
     write_report(report, out / "report.json")
-    plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
-                underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
-                units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints,
-                feedback=core_report.feedback)
+    if not plot:
+        (out / "motion.png").unlink(missing_ok=True)  # not a plot of an earlier run beside this report
+    else:
+        plot_motion(traj, trace, report, out / "motion.png", sync_period_ms=cell.sync_period_ms,
+                    underflow_watermark=cell.drive.underflow_warning, overflow_watermark=cell.drive.overflow_warning,
+                    units=[cell.axis(name).unit for name in traj.axis_names], setpoints=report_setpoints,
+                    feedback=core_report.feedback)
     recording = build_recording(traj, trace, report, first_sync=first, start_sync=core_report.start_sync,
                                 sync_period_ms=cell.sync_period_ms, job_id="demo", cell=cell.name, epoch_s=epoch_s,
                                 underflow_watermark=cell.drive.underflow_warning,
@@ -308,7 +314,7 @@ def realtime_cell(cell: CellConfig, traj: PvtTrajectory | None = None, *,
 
 def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_drives: bool = False,
                  on_change: Any = None, cancel: threading.Event | None = None, job: Job | None = None,
-                 on_engine: Any = None, on_runtime: Any = None) -> tuple[dict[str, Any], Any]:
+                 on_engine: Any = None, on_runtime: Any = None, plot: bool = True) -> tuple[dict[str, Any], Any]:
     """The job in real time: the drives in a process of their own (or `external_drives` on the cell's bus),
     the cycle engine in another, the core here. The drives' readings are measured first (the standstill
     probe); when `job` is given and a drive rounds its demand otherwise than the plan assumed, the job is
@@ -345,4 +351,4 @@ def run_realtime(cell: CellConfig, traj: PvtTrajectory, out: Path, *, external_d
     traj = whole_stream(traj, kept.chunks, result.coordinator)
     time.sleep(0.05)
     return _finish(cell, traj, result.coordinator, result.trace, result.first_sync, result.last_sync, out,
-                   rt.settings.readings)
+                   rt.settings.readings, plot=plot)

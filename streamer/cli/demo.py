@@ -1,10 +1,11 @@
-"""`pvt demo`: plan the default 6-axis path and stream it to simulated drives, in one process.
+"""`pvt demo`: plan the default 6-axis path and stream it to simulated drives.
 
-Real time at the cell's SYNC period on python-can's `virtual` bus with the cell's simulated drives, a live
-progress bar of every FIFO; writes report.json, motion.png, bus.log (candump -L) and job.mcap to --out
-(default demo-out/). Exit 0 done with every guarantee met, 1 failed or a guarantee missed, 2 rejected.
---axes N runs the job on N axes. A velocity job runs until its chunk that brakes before the position
-limits; a home job is refused (`pvt serve --sim` runs it).
+Real time at the cell's SYNC period: the simulated drives in a process of their own on a private ipc bus (or
+the cell's bus, --bus), the cycle engine in another, a live progress bar of every FIFO; --fast runs the same
+core and drives in virtual time, in one process. Writes report.json, motion.png (not with --no-plot), bus.log
+(candump -L) and job.mcap to --out (default demo-out/). Exit 0 done with every guarantee met, 1 failed or a
+guarantee missed, 2 rejected. --axes N runs the job on N axes. A velocity job runs until its chunk that brakes
+before the position limits; a home job is refused (`pvt serve --sim` runs it).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--external-drives", action="store_true",
                    help="do not start simulated drives here (they run elsewhere, e.g. `pvt sim`)")
     p.add_argument("--quiet", action="store_true", help="no live display")
+    p.add_argument("--no-plot", dest="plot", action="store_false",
+                   help="write no motion.png (headless runs: drawing it costs about 3 s of CPU)")
     from streamer.cli.live_options import add_live_option
 
     add_live_option(p)
@@ -150,7 +153,8 @@ def run(args: argparse.Namespace) -> int:
                     def on_start(plan: Any, core: Any, trace: Any) -> None:
                         slot[0] = LiveJob(plan, core, trace, cell.sync_period_ms, epoch_s=wall0)
 
-                report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync, on_start=on_start)
+                report, _ = demo.run_fast(cell, traj, args.out, on_sync=display.on_sync, on_start=on_start,
+                                          plot=args.plot)
             else:
                 on_runtime = None
                 if live is not None:
@@ -163,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
                 # cycle engine in another (bus/engine.py)
                 report, _ = demo.run_realtime(cell, traj, args.out, external_drives=args.external_drives,
                                               job=job, on_change=display.on_change, on_engine=display.on_engine,
-                                              on_runtime=on_runtime)
+                                              on_runtime=on_runtime, plot=args.plot)
     except Exception as e:  # bus errors, timeouts: say what and where, do not dump a traceback on users
         from bus.errors import BusError
 
@@ -174,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if live is not None:
             live[0].stop()
-    _summary(console, report, args.out)
+    _summary(console, report, args.out, plot=args.plot)
     problems = guarantees(report, job.tolerance_counts)
     for p in problems:
         console.print(f"[red]guarantee missed:[/red] {escape(p)}")
@@ -263,7 +267,7 @@ class _Display:
         return t
 
 
-def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
+def _summary(console: Any, report: dict[str, Any], out: Path, *, plot: bool = True) -> None:
     from rich.text import Text
 
     from streamer.cli.tables import Col, fit_table
@@ -288,8 +292,8 @@ def _summary(console: Any, report: dict[str, Any], out: Path) -> None:
     console.print(fit_table(columns, rows, console.width, more=f"{out / 'report.json'}"), highlight=False)
     for f in report["faults"]:
         console.print(f"[red]fault[/red] {escape(str(f))}", highlight=False)
-    console.print(f"wrote {out / 'report.json'}, {out / 'motion.png'}, {out / 'bus.log'}, {out / 'job.mcap'}",
-                  highlight=False, markup=False)
+    names = ("report.json", "motion.png", "bus.log", "job.mcap") if plot else ("report.json", "bus.log", "job.mcap")
+    console.print("wrote " + ", ".join(str(out / name) for name in names), highlight=False, markup=False)
 
 
 def main() -> None:  # pragma: no cover - convenience for `python -m streamer.cli.demo`

@@ -152,7 +152,7 @@ def test_pvt_status_shows_positions_in_the_axis_unit(serve: Serve, tmp_path: Pat
 
 
 def test_pvt_demo_summary_fits_80_columns_with_units(tmp_path: Path) -> None:
-    out = pvt("demo", "--fast", "--out", str(tmp_path / "out"))
+    out = pvt("demo", "--fast", "--no-plot", "--out", str(tmp_path / "out"))
     assert out.returncode == 0, out.stdout + out.stderr
     assert_fits(out.stdout)
     said = flat(out.stdout)

@@ -15,5 +15,5 @@ def demo_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Any, Any, 
     """`pvt demo --fast` on 3 axes, once per session: (out dir, cell, trajectory, report)."""
     out = tmp_path_factory.mktemp("demo")
     cell, _job, traj = demo.prepare(axes=3)
-    report, _trace = demo.run_fast(cell, traj, out)
+    report, _trace = demo.run_fast(cell, traj, out, plot=False)
     return out, cell, traj, report

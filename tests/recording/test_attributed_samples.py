@@ -21,7 +21,7 @@ def test_recording_of_late_answers_matches_the_plan(tmp_path: Path) -> None:
     cell = demo.commission(dataclasses.replace(
         base, axes=tuple(dataclasses.replace(a, sim=SimDriveOptions(**TPDO_LATE, seed=7)) for a in base.axes)))
     traj = plan_job(job, cell)
-    report, _trace = demo.run_fast(cell, traj, tmp_path)
+    report, _trace = demo.run_fast(cell, traj, tmp_path, plot=False)
     assert report["result"] == "done", report["message"]
     recording = read_mcap(tmp_path / "job.mcap")
     tol = traj.tolerance_counts

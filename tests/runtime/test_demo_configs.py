@@ -30,7 +30,7 @@ def _check(out: Path, job: Path) -> dict:
     assert guarantees(report, loaded.tolerance_counts) == []
     # a job for some of the cell's axes moves those, no others
     assert [a["name"] for a in report["axes"]] == list(loaded.axes)
-    for name in ("motion.png", "bus.log", "job.mcap"):
+    for name in ("bus.log", "job.mcap"):  # motion.png: --no-plot (the plots: test_demo_guarantees.py)
         assert (out / name).stat().st_size > 0
     return report
 
@@ -39,7 +39,8 @@ def _check(out: Path, job: Path) -> dict:
 @pytest.mark.parametrize("job", JOBS, ids=lambda p: p.name)
 def test_every_job_plans_and_runs_in_the_fast_demo(job: Path, tmp_path: Path) -> None:
     assert pvt(["plan", str(job), "--config", str(DEMO)]) == 0
-    code = pvt(["demo", "--fast", "--quiet", "--config", str(DEMO), "--job", str(job), "--out", str(tmp_path)])
+    code = pvt(["demo", "--fast", "--quiet", "--no-plot", "--config", str(DEMO), "--job", str(job),
+                "--out", str(tmp_path)])
     if load_job(job, load_cell(DEMO)).kind == "home":
         assert code == 2  # a home job plans no motion: `pvt serve --sim` + `pvt submit` run it
         return
@@ -51,7 +52,7 @@ def test_every_job_plans_and_runs_in_the_fast_demo(job: Path, tmp_path: Path) ->
 @pytest.mark.parametrize("cell", CELLS, ids=lambda p: p.name)
 def test_every_cell_plans_and_runs_the_default_job_in_the_fast_demo(cell: Path, tmp_path: Path) -> None:
     assert pvt(["plan", str(demo.DEFAULT_JOB), "--config", str(cell)]) == 0
-    assert pvt(["demo", "--fast", "--quiet", "--config", str(cell), "--out", str(tmp_path)]) == 0
+    assert pvt(["demo", "--fast", "--quiet", "--no-plot", "--config", str(cell), "--out", str(tmp_path)]) == 0
 
 
 @pytest.mark.virtual  # virtual time only: `make test` runs it on every core
@@ -61,7 +62,7 @@ def test_fast_demo_judges_a_velocity_job_on_the_whole_stream(tmp_path: Path) -> 
     not its first chunk's (which once gave 182 counts and a final position error of 30,390 counts)."""
     cell, _job, first = demo.prepare(DEMO, CONFIGS / "jobs" / "velocity.toml", commissioned=True)
     assert first.open_ended
-    report, trace = demo.run_fast(cell, first, tmp_path)
+    report, trace = demo.run_fast(cell, first, tmp_path, plot=False)
     assert report["result"] == "done", report
     assert report["duration_s"] > 3 * first.duration_s  # the whole stream, many chunks
     for i, a in enumerate(report["axes"]):
@@ -75,7 +76,8 @@ def test_fast_demo_judges_a_velocity_job_on_the_whole_stream(tmp_path: Path) -> 
 @pytest.mark.parametrize("name", ["additive.toml", "velocity.toml"])
 def test_realtime_demo_runs_the_jobs_it_refused(name: str, tmp_path: Path) -> None:
     job = CONFIGS / "jobs" / name
-    assert pvt(["demo", "--quiet", "--config", str(DEMO), "--job", str(job), "--out", str(tmp_path)]) == 0
+    assert pvt(["demo", "--quiet", "--no-plot", "--config", str(DEMO), "--job", str(job),
+                "--out", str(tmp_path)]) == 0
     _check(tmp_path, job)
 
 
@@ -91,7 +93,8 @@ def test_a_jerk_limited_path_streams_on_every_cell(cell: Path, tmp_path: Path) -
     loaded = load_job(job, load_cell(cell))
     assert loaded.tolerance_counts == 2
     out = tmp_path / "out"
-    assert pvt(["demo", "--fast", "--quiet", "--config", str(cell), "--job", str(job), "--out", str(out)]) == 0
+    assert pvt(["demo", "--fast", "--quiet", "--no-plot", "--config", str(cell), "--job", str(job),
+                "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["result"] == "done", report
     assert guarantees(report, loaded.tolerance_counts) == []

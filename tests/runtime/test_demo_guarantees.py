@@ -48,7 +48,7 @@ def test_demo_virtual_time(tmp_path: Path, n_axes: int) -> None:
 @pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_demo_fifo_stays_within_watermarks_every_sync(tmp_path: Path) -> None:
     cell, _job, traj = demo.prepare(axes=6)
-    report, trace = demo.run_fast(cell, traj, tmp_path)
+    report, trace = demo.run_fast(cell, traj, tmp_path, plot=False)
     start = report["axes"][0]["start_sync"]
     knot_ms = traj.knot_times_ms
     low, high = cell.drive.underflow_warning, cell.drive.overflow_warning
@@ -80,6 +80,17 @@ def test_cli_demo_fast_writes_outputs(tmp_path: Path) -> None:
 
 
 @pytest.mark.virtual  # virtual time only: `make test` runs it on every core
+def test_cli_demo_no_plot_writes_the_rest_and_leaves_no_earlier_plot(tmp_path: Path, capsys) -> None:
+    (tmp_path / "motion.png").write_bytes(b"an earlier run's plot")
+    assert pvt(["demo", "--fast", "--quiet", "--no-plot", "--axes", "1", "--out", str(tmp_path)]) == 0
+    assert not (tmp_path / "motion.png").exists()  # not beside a report it does not show
+    for name in ("report.json", "bus.log", "job.mcap"):
+        assert (tmp_path / name).stat().st_size > 0
+    wrote = capsys.readouterr().out.replace("\n", "")
+    assert "report.json" in wrote and "motion.png" not in wrote
+
+
+@pytest.mark.virtual  # virtual time only: `make test` runs it on every core
 def test_cli_demo_rejects_bad_bus_spec(tmp_path: Path) -> None:
     assert pvt(["demo", "--fast", "--quiet", "--bus", "vcan0", "--out", str(tmp_path)]) == 2
 
@@ -88,5 +99,5 @@ def test_cli_demo_rejects_bad_bus_spec(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_demo_real_time_on_virtual_bus(tmp_path: Path) -> None:
     cell, _job, traj = demo.prepare(axes=6)
-    report, trace = demo.run_realtime(cell, traj, tmp_path)
+    report, trace = demo.run_realtime(cell, traj, tmp_path, plot=False)
     _check(report, traj, tmp_path, cell, trace)

@@ -30,7 +30,7 @@ def test_the_demo_plans_for_the_rounding_of_the_drives_on_the_bus(tmp_path: Path
     truncating = dataclasses.replace(base, bus=BusConfig("ipc", channel, base.bus.bitrate), axes=tuple(
         dataclasses.replace(a, sim=SimDriveOptions(rounding="toward_zero")) for a in base.axes))
     with drives_process(truncating):
-        status = pvt(["demo", "--external-drives", "--bus", f"ipc:{channel}", "--axes", "3", "--quiet",
+        status = pvt(["demo", "--external-drives", "--bus", f"ipc:{channel}", "--axes", "3", "--quiet", "--no-plot",
                       "--out", str(tmp_path)])
     report = json.loads((tmp_path / "report.json").read_text())
     assert guarantees(report, traj.tolerance_counts) == [], report["message"]

@@ -164,5 +164,5 @@ def test_each_cyclic_drive_stays_within_its_bound_at_every_internal_cycle(name: 
 @pytest.mark.parametrize("name", ["xtrapuls", "mixed"])
 def test_family_demo_real_time(tmp_path: Path, name: str) -> None:
     cell, _job, traj = demo.prepare(CONFIGS[name])
-    report, trace = demo.run_realtime(cell, traj, tmp_path)
+    report, trace = demo.run_realtime(cell, traj, tmp_path, plot=False)
     check_family_demo(report, traj, tmp_path, cell, trace)

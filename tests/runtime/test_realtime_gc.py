@@ -44,7 +44,7 @@ def test_the_heap_is_frozen_on_the_streaming_thread_while_a_job_runs_and_thawed_
         if not frozen:
             frozen.append(gc.get_freeze_count())
 
-    report, _trace = run_realtime(cell, traj, tmp_path, on_change=look)
+    report, _trace = run_realtime(cell, traj, tmp_path, on_change=look, plot=False)
     assert report["result"] == "done", report
     assert frozen and frozen[0] > 0
     assert gc.get_freeze_count() == 0

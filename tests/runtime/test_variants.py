@@ -69,7 +69,7 @@ def check_guarantees(report: dict[str, Any], traj: Any, cell: CellConfig, out: P
 
 def run_demo(cell: CellConfig, traj: Any, out: Path) -> tuple[dict[str, Any], dict[int, DriveReadings]]:
     seen: dict[int, DriveReadings] = {}
-    report, _ = demo.run_fast(cell, traj, out, readings_out=seen)
+    report, _ = demo.run_fast(cell, traj, out, readings_out=seen, plot=False)
     return report, seen
 
 

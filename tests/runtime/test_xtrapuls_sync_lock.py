@@ -130,7 +130,7 @@ def test_in_real_time_bit4_goes_out_after_180_ms_of_sync_and_every_drive_takes_i
     from bus.cob import SYNC_COB_ID, rpdo1_id
 
     cell, _job, traj = demo.prepare(ROOT / "configs" / "xtrapuls.toml")
-    report, _trace = demo.run_realtime(cell, traj, tmp_path)
+    report, _trace = demo.run_realtime(cell, traj, tmp_path, plot=False)
     assert "not ip mode active" not in str(report.get("message")), report  # no drive refused bit 4
     assert all(a["start_sync"] is not None for a in report["axes"]), report  # every axis started
     with can.LogReader(str(tmp_path / "bus.log")) as reader:

@@ -36,7 +36,7 @@ def vcan_demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
     channel = "vcan0"
     proc = subprocess.run(
         [sys.executable, "-m", "streamer.cli", "demo", "--config", str(CONFIG), "--bus", f"socketcan:{channel}",
-         "--quiet", "--out", str(out)],
+         "--quiet", "--no-plot", "--out", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=240,
     )
     print(proc.stdout[-3000:], proc.stderr[-3000:])
