@@ -355,11 +355,13 @@ def stop_at_corners_s(job: Job, cell: CellConfig) -> float:
     return stop_moves(wp, cpu, lim.velocity, lim.acceleration, lim.jerk).duration_ms / 1000.0
 
 
-def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> int | None:
+def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: int = 20) -> tuple[int, bool]:
     """Points of the coarsest uniform grid that meets the tolerance and keeps the same jerk bound as the
     encoding `traj` (its largest in-segment jerk or knot step over the limit, planner/encoding/continuity.py's
-    `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`);
-    None when none of the `tries` coarsest grids that meet the tolerance does."""
+    `worst_ratio`), its values chosen as the encoder's are for a jerk-limited plan (`smooth_values`), and True.
+    When none of the `tries` coarsest grids that meet the tolerance does: the points of the finest of them and
+    False (a grid that keeps the bound, if any does, is finer still: `traj`'s points over these are then an
+    upper bound of the ratio)."""
     from planner.encoding.continuity import smooth_values, worst_ratio
     from planner.encoding.uniform import uniform_knots
 
@@ -370,17 +372,19 @@ def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: 
     ref = traj.plan
     m = ref.duration_ms
     want = planned_demand(ref, scales.toward_zero)
+    finest = 0
     for dt in range(min(255, max(m, 1)), 0, -1):
         knots = uniform_knots(ref, scales, dt, first)
         if (np.abs(reconstruct(knots, scales).demand - want) > traj.tolerance_counts).any():
             continue
         tries -= 1
+        finest = int(knots.times_ms.size)
         smooth = smooth_values(ref, knots, scales, float(traj.tolerance_counts), jerk)
         if worst_ratio(smooth, scales, jerk) <= ours * (1.0 + 1e-9):
-            return int(knots.times_ms.size)
+            return finest, True
         if tries == 0:
             break
-    return None
+    return finest or m + 1, False  # no grid met the tolerance: every ms is the finest there is
 
 
 def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
@@ -396,7 +400,7 @@ def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
     acc_traj, _acc_s, _ = plans[False]
     traj, elapsed, jjob = plans[True]
     _dt, uniform = uniform_points(jjob, cell, traj)
-    same_jerk = uniform_jerk_points(jjob, cell, traj)
+    same_jerk, found = uniform_jerk_points(jjob, cell, traj)
     raw_s, _ = raw_toppra(job, cell, refine=False)
     return {
         "duration_s": traj.duration_s,
@@ -405,8 +409,8 @@ def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
         "points": traj.n_points,
         "uniform_points": uniform,
         "efficiency": traj.n_points / uniform,
-        "jerk_efficiency": traj.n_points / same_jerk if same_jerk else 0.0,
-        "no_uniform": same_jerk is None,
+        "jerk_efficiency": traj.n_points / same_jerk,  # an upper bound where not `found`
+        "no_uniform": not found,
         "time_ratio": elapsed / raw_s,
         "plan_jerk": max(s.planned_peak_jerk / s.jerk_limit for s in traj.stats),
         "drive_jerk": max(s.peak_jerk / s.jerk_limit for s in traj.stats),
@@ -445,8 +449,9 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
             f"{'plan jerk':>9} {'drive jerk':>10} {'knot step med':>13} {'worst':>6} {'(acc-only)':>10}")
     print("jerk-limited paths (jerk_limited = true) against, in the same run: the acceleration-only plan of the same "
           "job, jerk-limited moves stopping at every corner, the coarsest uniform grid meeting the tolerance on the "
-          "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: no uniform grid of "
-          "the 20 coarsest that meet the tolerance does, counted as 0), raw toppra's solve; jerk columns: worst "
+          "same plan (unif) and the coarsest that also keeps the same jerk bound (unif-jerk; none: the jobs where no "
+          "uniform grid of the 20 coarsest that meet the tolerance does; their ratio is over the finest of those 20, "
+          "an upper bound, as a grid that keeps the bound is finer still), raw toppra's solve; jerk columns: worst "
           "peak / limit (knot step: the largest acceleration step at a knot over the 1 ms tick / limit, per job: the "
           "median job's and the worst job's)")
     print(head)
