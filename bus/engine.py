@@ -268,6 +268,13 @@ class _Loop:
             self.last_frame_t = t
         return t
 
+    def _send_sync(self) -> float | None:
+        """SYNC with the next counter, its place in `heard` and the time before it left noted
+        (`_flush_in_wire_order` forwards what was on the wire before it first)."""
+        data = self._next_counter()
+        self.sync_mark = (len(self.heard), time.time())
+        return self._send(SYNC_COB_ID, data, 0)
+
     def _send_all(self, frames: Sequence[tuple[int, bytes, int]]) -> float | None:
         last = None
         for cob_id, data, flags in frames:
@@ -280,9 +287,7 @@ class _Loop:
         n = self.cycle
         due = self.t0 + n * self.period
         woke = time.time()
-        data = self._next_counter()
-        self.sync_mark = (len(self.heard), time.time())
-        t = self._send(SYNC_COB_ID, data, 0)
+        t = self._send_sync()
         if t is None:  # the bus refused SYNC: the schedule stops (as python-can's periodic task does)
             self.out.send(("sync_failed", n))
             self.t0 = None
@@ -430,8 +435,7 @@ class _Loop:
                     while time.time() < due:
                         pass
                     self.once.pop(0)
-                    self.sync_mark = (len(self.heard), time.time())
-                    self._send(SYNC_COB_ID, self._next_counter(), 0)
+                    self._send_sync()
                     # the one-off SYNCs after a late one keep their intervals to it: the probe's intervals
                     # are its experiment, and catching up would shorten the one after the late SYNC (late:
                     # when it left, a preemption in the send included)
