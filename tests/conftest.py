@@ -48,7 +48,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 # the folders whose tests run in virtual time only (no service, no wall-clock waits) unless marked otherwise:
-# `make test` runs them on every core at once, and everything that runs in wall-clock time alone after them
+# `make test` runs them on every core at once with the unmarked wall-clock tests (services, clients, CLI with
+# generous waits), and the ones marked realtime, wallclock or isolated alone after them
 VIRTUAL_TIME_FOLDERS = ("planner", "streamer", "reliability")
 WALL_CLOCK_MARKS = ("realtime", "isolated", "wallclock", "vcan")
 
