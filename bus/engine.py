@@ -256,13 +256,19 @@ class _Loop:
     def _send(self, cob_id: int, data: bytes, flags: int) -> float | None:
         msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=bool(flags & _FLAG_EXT),
                           is_remote_frame=bool(flags & _FLAG_RTR))
+        before = time.time()
         try:
             self.bus.send(msg)
         except can.CanError as e:
             self.stats.send_errors += 1
             self.out.send(("send_failed", cob_id, f"{type(e).__name__}: {e}"))
             return None
-        t = time.time()
+        # the frame's time on the wire: the bus's own stamp where it gives one (ipc: the stamp every drive
+        # sees), else now. A note taken after `send` returns can be later than the stamp (the engine preempted
+        # in its datagrams to the peers): in a failed run here, of a SYNC that left 1.2 ms late, a drive with
+        # its own clock reported a demand that put the SYNC at least 0.26 ms before the master's note, a tick
+        # "behind" it: PROTOCOL
+        t = msg.timestamp if msg.timestamp >= before else time.time()
         self.heard.append((t, cob_id, data, flags | _FLAG_OWN))
         if cob_id != SYNC_COB_ID:
             self.last_frame_t = t

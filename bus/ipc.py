@@ -323,7 +323,10 @@ class IpcBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """Send `msg` to every other instance on the channel (and back to this one with
-        receive_own_messages). Never blocks; `timeout` is accepted for python-can and ignored."""
+        receive_own_messages). Never blocks; `timeout` is accepted for python-can and ignored. `msg.timestamp`
+        is set to the stamp the frame carries, its time on the wire as every receiver sees it (the sender
+        may be preempted between the stamp and its last datagram: a time taken after `send` returns can be
+        later)."""
         if self._is_shutdown:
             raise can.CanOperationError(f"{self.channel_info} is shut down")
         data = bytes(msg.data or b"")
@@ -339,8 +342,9 @@ class IpcBus(can.BusABC):
             self._maybe_rescan()
             seq = self._seq
             self._seq = (seq + 1) % SEQ_MOD
+            stamp = time.time()
             datagram = HEADER.pack(MAGIC, VERSION, flags, dlc & 0xFF, 0, self._sender_id, seq,
-                                   msg.arbitration_id & 0xFFFFFFFF, time.time()) + data
+                                   msg.arbitration_id & 0xFFFFFFFF, stamp) + data
             if self.receive_own_messages:  # first: no peer's reply to this frame can overtake its echo
                 self._send_to(datagram, self._port)
             for port in list(self._peers):
@@ -348,6 +352,7 @@ class IpcBus(can.BusABC):
             self.stats.sent += 1
             if self._refused:
                 self._drop_refused()
+        msg.timestamp = stamp
 
     def _send_to(self, datagram: bytes, port: int) -> None:
         for _ in range(3):  # a refusal reported here belongs to an earlier datagram: retry

@@ -262,6 +262,47 @@ def test_the_sync_goes_out_before_the_bus_is_read_and_the_master_gets_the_wire_o
     assert kind == "rx" and [f[1] for f in heard] == [0x181, 0x182, SYNC_COB_ID, 0x301, 0x183]
 
 
+class _StampingBus(_FakeBus):
+    """A bus that stamps what it sends, then holds the sender 3 ms (a preemption in its sends to the peers)."""
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        msg.timestamp = time.time()
+        self.stamps.append(msg.timestamp)
+        time.sleep(0.003)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.stamps: list[float] = []
+
+
+def test_the_engine_notes_a_frame_at_the_stamp_the_bus_put_on_it() -> None:
+    """The master's SYNC time is the one the drives saw: a drive with its own clock (or timed by the SYNCs)
+    reported a demand a tick "behind" the master's note when it was taken after a preempted send."""
+    from bus.engine import SYNC_COB_ID, _Loop
+
+    bus, out = _StampingBus(), _FakeOut()
+    loop = _Loop(bus, None, out)  # type: ignore[arg-type]
+    loop.t0, loop.period, loop.cycle = time.time(), PERIOD_S, 0
+    loop.ring[0] = [(0x301, b"\x01", 0)]
+    loop._sync()
+    loop._flush_in_wire_order()
+    (kind, heard), = out.got
+    assert kind == "rx"
+    assert [f[1] for f in heard] == [SYNC_COB_ID, 0x301]
+    assert [f[0] for f in heard] == bus.stamps  # not the time each send returned, 3 ms later
+    assert loop.sync_sent_at[0] == bus.stamps[0]
+
+
+def test_a_bus_that_does_not_stamp_is_noted_when_the_send_returned() -> None:
+    from bus.engine import _Loop
+
+    bus, out = _FakeBus(), _FakeOut()
+    loop = _Loop(bus, None, out)  # type: ignore[arg-type]
+    before = time.time()
+    assert loop._send(0x301, b"\x01", 0) is not None
+    assert loop.heard[-1][0] >= before
+
+
 def test_the_engine_link_receives_into_one_buffer_not_a_fresh_megabyte_per_message() -> None:
     """`sock.recv(MAX_PACKET)` made a 1 MB object per command; in the engine's locked memory (mlockall) that cost
     330 us each (4 us into one buffer), a quarter of a core at 18 axes."""

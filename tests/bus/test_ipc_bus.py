@@ -166,6 +166,17 @@ def test_the_receive_stamp_is_the_senders_not_the_readers(open_bus: OpenBus) -> 
     assert read_at - got.timestamp >= 0.049
 
 
+def test_the_sent_message_carries_the_stamp_every_receiver_sees(open_bus: OpenBus) -> None:
+    """The cycle engine notes its SYNC's time on the wire from `msg.timestamp` after `send`: a time taken when
+    `send` returned can be later than the stamp the drives saw, when the sender was preempted in its
+    datagrams to the peers (bus/engine.py `_send`)."""
+    sender, receiver = open_bus(), open_bus()
+    m = msg(0x080)
+    sender.send(m)
+    got = receiver.recv(timeout=RECV_TIMEOUT_S)
+    assert got is not None and m.timestamp == got.timestamp
+
+
 def test_receive_own_messages_delivers_own_frames_in_send_order_with_the_wire_stamp(open_bus: OpenBus) -> None:
     echoing, peer = open_bus(receive_own_messages=True), open_bus()
     for i in range(5):
