@@ -5,7 +5,10 @@ SDO is redirected to the model, the only store of values (block upload served he
 `SdoBlockUploadServer`, as canopen's server lacks it); RPDOs come through canopen's callbacks, NMT, SYNC,
 time stamps and heartbeats through a raw listener (canopen's `NmtSlave` detached); the model's frames are
 sent as they are. A timer thread calls `model.advance` at each `next_deadline()`. One lock serialises all
-model access; time is `time.time()`; callback exceptions are kept and re-raised by `check()`/`stop()`.
+model access and the sends of what the models produced, so a drive's frames leave in the order it made them
+(sent after the lock, a drive's answers to two SYNCs once crossed: the timer thread released the first, the
+bus thread produced the second and sent it first, and the master rightly took that for records executed out
+of order); time is `time.time()`; callback exceptions are kept and re-raised by `check()`/`stop()`.
 """
 
 from __future__ import annotations
@@ -260,7 +263,7 @@ class SimulatedCell:
             for node_id in self.models:
                 self._refresh_pdos(node_id)
             self._update_sync_ids()
-        self._send_all(frames)
+            self._send_all(frames)
         self._timer = threading.Thread(target=self._run_timers, name="sim-cell-timers", daemon=True)
         self._timer.start()
         return self
@@ -328,7 +331,7 @@ class SimulatedCell:
     def _flush_pending(self) -> None:
         with self._lock:
             frames, self._pending = self._pending, []
-        self._send_all(frames)
+            self._send_all(frames)
 
     def _update_sync_ids(self) -> None:
         self._sync_ids = frozenset(m.sync_cob_id for m in self.models.values())
@@ -354,7 +357,7 @@ class SimulatedCell:
                 if cob_id == 0:
                     self._update_sync_ids()
                     self._kick.set()
-            self._send_all(frames)
+                self._send_all(frames)
         except Exception as e:
             self._record_error(f"frame 0x{cob_id:03X}", e)
 
@@ -365,7 +368,7 @@ class SimulatedCell:
             try:
                 with self._lock:
                     frames = model.on_frame(pdo_map.cob_id, bytes(pdo_map.data), pdo_map.timestamp)
-                self._send_all(frames)
+                    self._send_all(frames)
             except Exception as e:
                 self._record_error(f"RPDO 0x{pdo_map.cob_id:03X} of node {node_id}", e)
 
@@ -437,7 +440,7 @@ class SimulatedCell:
                         frames += model.advance(now)
                     pending = (m.next_deadline() for m in self.models.values())
                     deadlines = [d for d in pending if d is not None]
-                self._send_all(frames)
+                    self._send_all(frames)
                 wait = TIMER_MAX_SLEEP_S
                 if deadlines:
                     wait = max(0.0, min(wait, min(deadlines) - self.clock()))

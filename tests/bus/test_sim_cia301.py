@@ -151,3 +151,28 @@ def test_event_timer_written_on_a_running_tpdo_takes_effect(drive) -> None:
     assert len(times) >= 8, times  # CiA 301: one every 50 ms at standstill (10 in 0.5 s)
     gaps = [b - a for a, b in itertools.pairwise(times)]
     assert sorted(gaps)[len(gaps) // 2] == pytest.approx(0.050, abs=0.010), gaps
+
+
+def test_a_drives_frames_leave_under_the_lock_that_made_them(
+        drive: tuple[SimulatedCell, canopen.Network, canopen.RemoteNode]) -> None:
+    """The model's lock is held until what it produced is sent, by every thread that produces (the bus's, the
+    timer's, the SDO server's): sent after the lock, a drive's answers to two SYNCs once crossed on the wire
+    (the timer thread released the first, the bus thread made the second and sent it first), and the master
+    rightly took that for records executed out of order (bench_realtime --only epos, all readings at once)."""
+    sim, net, node = drive
+    assert sim._network is not None
+    real = sim._network.send_message
+    sends: list[tuple[int, str, bool]] = []
+
+    def send(cob_id: int, data: bytes) -> None:
+        sends.append((cob_id, threading.current_thread().name, sim._lock._is_owned()))  # type: ignore[attr-defined]
+        real(cob_id, data)
+
+    sim._network.send_message = send  # type: ignore[method-assign]
+    node.sdo[0x1017].raw = 20  # an SDO answer; then heartbeats from the timer thread
+    net.nmt.send_command(0x01)  # start: the NMT from the bus's thread
+    net.send_message(0x080, b"")  # a SYNC
+    assert wait_until(lambda: sum(1 for c, _, _ in sends if c == 0x701) >= 3, timeout_s=2.0)
+    node.sdo[0x1017].raw = 0
+    assert len({name for _, name, _ in sends}) >= 2  # more than one thread sent
+    assert all(owned for _, _, owned in sends), sends
