@@ -7,6 +7,13 @@ propagated with the SYNCs' own stamps and narrowed by every reported position de
 predicted demand matches bound tau to [min k, max k + 1)). In motion that pins tau to about a tick; at
 standstill it grows by the drift. Everything downstream is computed from [lo, hi]; for a SYNC-locked
 drive lo == hi. Pure: SYNC counts and times in, intervals out.
+
+When such a drive samples what it reports is its own affair: at the SYNC, or as late as its answer leaves
+(a busy drive, a reading of TPDO latency). The answer's own time on the wire (`sampled_by`) bounds it: the
+ticks an answer may show run from the interval's low end at the SYNC to its high end at that time, and what
+it shows narrows tau at the SYNC by no more than the ticks between the two. Judged at the SYNC alone, a drive
+that sampled 2 ms after it (measured here: the simulated drives' process on a loaded machine) showed 2
+ticks "too many", and the master failed a job that was right (PROTOCOL, `bench_realtime --only epos`).
 """
 
 from __future__ import annotations
@@ -61,8 +68,9 @@ class DriveTime:
     def started(self) -> bool:
         return self._start is not None
 
-    def bounds(self, sync: int, t: float) -> tuple[float, float]:
-        """[lo, hi] of the drive's interpolation time (ms) at SYNC `sync` sent at time `t`."""
+    def bounds(self, sync: int, t: float, sampled_by: float | None = None) -> tuple[float, float]:
+        """[lo, hi] of the drive's interpolation time (ms) at SYNC `sync` sent at time `t`; with `sampled_by`
+        (the time its answer left), of what the answer may show: hi runs on to that time."""
         s = self._start
         if s is None or sync <= s:
             return 0.0, 0.0
@@ -71,36 +79,42 @@ class DriveTime:
             return e, e
         dt_ms = max(0.0, (t - self._ref_t) * 1000.0)
         lo = max(0.0, self._lo + dt_ms * (1.0 - self.rho))
+        if sampled_by is not None:
+            dt_ms = max(dt_ms, (sampled_by - self._ref_t) * 1000.0)
         hi = max(lo, self._hi + dt_ms * (1.0 + self.rho))
         return lo, hi
 
-    def ticks(self, sync: int, t: float) -> tuple[int, int]:
-        """The whole ticks the drive may have run by SYNC `sync`: [floor(lo), floor(hi)]."""
-        lo, hi = self.bounds(sync, t)
+    def ticks(self, sync: int, t: float, sampled_by: float | None = None) -> tuple[int, int]:
+        """The whole ticks the drive may have run by SYNC `sync` (by `sampled_by`: see `bounds`):
+        [floor(lo), floor(hi)]."""
+        lo, hi = self.bounds(sync, t, sampled_by)
         return math.floor(lo + 1e-9), math.floor(hi + 1e-9)
 
-    def observe(self, sync: int, t: float, matching_ticks: Iterable[int]) -> None:
-        """The drive's report at SYNC `sync` is explained by these tick counts only: narrow tau."""
+    def observe(self, sync: int, t: float, matching_ticks: Iterable[int], sampled_by: float | None = None) -> None:
+        """The drive's report at SYNC `sync` (sampled by `sampled_by` at the latest) is explained by these tick
+        counts only: narrow tau at the SYNC (by the ticks it may have run since, less at the low end)."""
         if self.exact or self._start is None:
             return
         ks = list(matching_ticks)
         if not ks:
             return
         lo, hi = self.bounds(sync, t)
-        new_lo = max(lo, float(min(ks)))
+        late_ms = 0.0 if sampled_by is None else max(0.0, (sampled_by - t) * 1000.0) * (1.0 + self.rho)
+        new_lo = max(lo, float(min(ks)) - late_ms)
         new_hi = min(hi, float(max(ks) + 1) - 1e-6)
         if new_lo > new_hi:  # numerical edge: keep the observation, it is the stronger statement
-            new_lo, new_hi = float(min(ks)), float(max(ks) + 1) - 1e-6
+            new_lo, new_hi = float(min(ks)) - late_ms, float(max(ks) + 1) - 1e-6
         if new_hi - new_lo < hi - lo:
             self.narrowings += 1
         self._ref_sync, self._ref_t = sync, t
         self._lo, self._hi = new_lo, new_hi
 
     def matching(self, sync: int, t: float, predict: Callable[[int], Iterable[int]], demand: int,
-                 tolerance: int) -> tuple[list[int], int]:
-        """Ticks k in the current interval whose predicted demands (one per rounding reading) hit `demand`
-        exactly, and the smallest |demand - prediction| over the interval (for the tolerance check)."""
-        k_lo, k_hi = self.ticks(sync, t)
+                 tolerance: int, sampled_by: float | None = None) -> tuple[list[int], int]:
+        """Ticks k in the current interval (to `sampled_by`: see `bounds`) whose predicted demands (one per
+        rounding reading) hit `demand` exactly, and the smallest |demand - prediction| over the interval (for
+        the tolerance check)."""
+        k_lo, k_hi = self.ticks(sync, t, sampled_by)
         exact: list[int] = []
         best = math.inf
         for k in range(k_lo, k_hi + 1):

@@ -103,6 +103,12 @@ class Feedback(Sending):
             reach += 1
         return reach
 
+    def _answering(self, t: float) -> None:
+        """A TPDO that left at `t` is being handled: what it shows was sampled by then (the memos of the last
+        one were worked out for another time)."""
+        self._answer_t = t
+        self._memo_progress = self._memo_match = None
+
     def _progress_at(self, f: FifoFeeder, m: int, active: bool) -> tuple[bool, bool, int, int]:
         """(started, activated, least ms, most ms interpolated) of `f`'s drive at SYNC m, given whether it
         reports ip mode active there (the start SYNC's TPDO may be sampled before its controlword)."""
@@ -115,7 +121,7 @@ class Feedback(Sending):
         if not activated:
             out = started, False, 0, 0
         else:
-            lo_ms, hi_ms = self._clocks[f.node_id].ticks(m, self._sync_time(m))
+            lo_ms, hi_ms = self._clocks[f.node_id].ticks(m, self._sync_time(m), self._answer_t)
             out = started, True, lo_ms, hi_ms
         self._memo_progress = ((f.node_id, m, active), out)
         return out
@@ -172,7 +178,7 @@ class Feedback(Sending):
         if memo is not None and memo[0] == (f.node_id, m, demand):
             return memo[1]
         out = self._clocks[f.node_id].matching(m, self._sync_time(m), lambda k: f.demand_candidates(k, self._ends),
-                                               demand, self._settings.demand_tolerance_counts)
+                                               demand, self._settings.demand_tolerance_counts, self._answer_t)
         self._memo_match = ((f.node_id, m, demand), out)
         return out
 
@@ -241,6 +247,7 @@ class Feedback(Sending):
             return
         sw, bs, node = ev.statusword, ev.buffer_status, f.node_id
         fill = self._fifo - ev.free_size
+        self._answering(ev.t)
         m = self._attribute(f, 1, ev.sync_count, lambda k: self._status_fits(f, k, sw, bs, fill))
         if m is None or m <= f.last_tpdo1:
             return
@@ -450,6 +457,7 @@ class Feedback(Sending):
         if f is None:
             return
         demand = ev.position_demand
+        self._answering(ev.t)
         m = self._attribute(f, 2, ev.sync_count, lambda k: self._demand_fits_at(f, k, demand))
         if m is None or m <= f.last_tpdo2:
             return
@@ -502,7 +510,7 @@ class Feedback(Sending):
             return _DemandMiss(min(abs(demand - c) for c in candidates), expected, expected)
         t_m = self._sync_time(m)
         ticks, err = self._clock_match(f, m, demand)
-        clock.observe(m, t_m, ticks)
+        clock.observe(m, t_m, ticks, self._answer_t)
         lo_ms, _ = clock.ticks(m, t_m)
         expected = (f.demand_candidates(lo_ms, self._ends) or (demand,))[0]
         return _DemandMiss(err, expected, expected)

@@ -124,6 +124,9 @@ class JobCore:
         self._memo_demand: tuple[tuple[int, int], tuple[int, ...]] | None = None
         self._answered: int | None = None  # the SYNC the TPDO just handled answers (`answered_sync`)
         self._memo_match: tuple[tuple[int, int, int], tuple[list[int], int]] | None = None
+        # the time on the wire of the TPDO being handled: a drive with its own clock (or timed by the SYNCs)
+        # sampled what it shows at that time at the latest (streamer/core/drive_time.py)
+        self._answer_t: float | None = None
         for axis, node in enumerate(self._plan.node_ids):
             r = readings[node]
             start = self._plan.start_positions[axis]

@@ -1,0 +1,59 @@
+"""A drive's interpolation time as the master knows it (streamer/core/drive_time.py): an own clock (or one
+timed by the SYNCs) reports what it sampled at some time between the SYNC and its answer's time on the
+wire, and the master judges it over that whole span."""
+
+from __future__ import annotations
+
+import math
+
+from streamer.core.drive_time import DriveTime
+
+PERIOD_MS = 10
+
+
+def own_clock() -> DriveTime:
+    clock = DriveTime(PERIOD_MS, own_clock=True, ppm_max=200.0, time_stamped=False)
+    clock.start(100, 0.0)  # interpolation began at SYNC 100, on the wire at t = 0
+    return clock
+
+
+def ramp(k: int) -> list[int]:
+    return [10 * k]  # the plan's demand after k ms (10 counts per ms)
+
+
+def test_an_answer_sampled_after_its_sync_matches_up_to_its_time_on_the_wire() -> None:
+    """The simulated drives' process on a loaded machine sampled 2 ms after the SYNC: judged at the SYNC
+    alone the demand was 2 ticks "too many" (PROTOCOL, a false fault in bench_realtime --only epos)."""
+    clock = own_clock()
+    demand = ramp(42)[0]  # sampled 42 ms after the start SYNC: SYNC 104 (t = 40 ms), 2 ms late
+    at_sync, err = clock.matching(104, 0.040, ramp, demand, 0)
+    assert at_sync == [] and err == 20  # what the check saw before
+    ticks, err = clock.matching(104, 0.040, ramp, demand, 0, sampled_by=0.0425)
+    assert ticks == [42] and err == 0
+
+
+def test_a_late_sample_narrows_the_time_at_the_sync_only_by_what_it_proves() -> None:
+    clock = own_clock()
+    clock.observe(104, 0.040, [42], sampled_by=0.0425)
+    lo, hi = clock.bounds(104, 0.040)
+    assert lo <= 40.0 <= hi  # the drive's true time at SYNC 104 is still inside
+    assert hi <= 43.0  # and what the answer proves is kept: fewer than 43 ticks by then
+    # the next answer, sampled right at its SYNC, fits: had tau been pinned to 42 at SYNC 104, this prompt
+    # answer (50 ms) would have been 2 ticks "too few" at SYNC 105
+    ticks, err = clock.matching(105, 0.050, ramp, ramp(50)[0], 0, sampled_by=0.0503)
+    assert ticks == [50] and err == 0
+
+
+def test_an_answer_at_its_sync_narrows_as_before() -> None:
+    late, prompt = own_clock(), own_clock()
+    late.observe(104, 0.040, [40], sampled_by=0.040)
+    prompt.observe(104, 0.040, [40])
+    assert late.bounds(104, 0.040) == prompt.bounds(104, 0.040)
+    lo, hi = prompt.bounds(104, 0.040)
+    assert math.floor(lo) == 40 and hi < 41.0
+
+
+def test_a_sync_locked_drive_is_exact_whenever_it_answers() -> None:
+    clock = DriveTime(PERIOD_MS, own_clock=False, ppm_max=0.0, time_stamped=False)
+    clock.start(100, 0.0)
+    assert clock.ticks(104, 0.040, sampled_by=0.049) == (40, 40)
