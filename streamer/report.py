@@ -30,6 +30,16 @@ from streamer.core.settings import REFERENCE_READINGS
 from streamer.runtime.trace import JobTrace, positions_by_sync
 
 
+def own_clock_window(k: int, rho: float, late_us: int, last_ms: int) -> tuple[int, int]:
+    """The plan's ms [lo, hi] an own-clock drive's demand answering the SYNC at plan ms `k` may show: a tick
+    off its grid's phase plus what the drift (`rho`) added since the start, and ahead by the ticks it may
+    have run before it sampled, by the time its answer left `late_us` after the SYNC (the core's rule,
+    streamer/core/drive_time.py)."""
+    delta = 1 + math.ceil(rho * k)
+    ahead = math.ceil(late_us * 1e-3 * (1.0 + rho))
+    return max(0, k - delta), min(last_ms, k + delta + ahead)
+
+
 def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: int) -> int:
     if start_sync is None or sync <= start_sync:
         return 0
@@ -71,16 +81,16 @@ def build_report(
         rho = (min(r.clock_ppm_max, 50.0) if time_stamp else r.clock_ppm_max) * 1e-6
         sampled_dev = explained = unexplained = 0
         log = core.feedback.get(node)
-        for s, d in zip(log.sync if log is not None else (), log.demand if log is not None else (), strict=True):
+        for s, d, late_us in zip(log.sync if log is not None else (), log.demand if log is not None else (),
+                                 log.late if log is not None else (), strict=True):
             if core.start_sync is not None and s > core.start_sync + traj.duration_ms // sync_period_ms + 1:
                 break  # after the plan's end: the stop or hold is not the plan
             k = _plan_index(int(s), core.start_sync, sync_period_ms, traj.duration_ms)
             dev = abs(int(d) - int(planned[i, k]))
             sampled_dev = max(sampled_dev, dev)
             if own_clock:
-                # the drive may be a tick off its grid's phase plus what the drift added since the start
-                delta = 1 + math.ceil(rho * k)
-                window = planned[i, max(0, k - delta):min(traj.duration_ms, k + delta) + 1]
+                lo, hi = own_clock_window(k, rho, int(late_us), traj.duration_ms)
+                window = planned[i, lo:hi + 1]
                 bound = int(np.abs(window - planned[i, k]).max())
                 explained = max(explained, bound)
                 unexplained = max(unexplained, dev - bound - traj.tolerance_counts)

@@ -60,28 +60,32 @@ def attribute(upper: int, after: int, fits: Fits, *, reach: int = REACH,
 
 class FeedbackLog:
     """What one node's drive reported, per SYNC it answered (as attributed): position demand and actual from
-    TPDO2, and the last SYNC whose TPDO1 showed ip mode active. Kept by the coordinator; the job report
-    measures the deviation from it (never from arrival order). Compact columns (streamer/core/spool.py): one
-    job of minutes holds a few ten thousand samples per axis in memory; given a `store` (an endless job), the
-    columns keep one block each in memory and the rest in the store, and still read whole."""
+    TPDO2 and how long after that SYNC the answer left (us: a drive with its own clock may have sampled as
+    late as that, streamer/core/drive_time.py), and the last SYNC whose TPDO1 showed ip mode active. Kept by
+    the coordinator; the job report measures the deviation from it (never from arrival order). Compact
+    columns (streamer/core/spool.py): one job of minutes holds a few ten thousand samples per axis in memory;
+    given a `store` (an endless job), the columns keep one block each in memory and the rest in the store, and
+    still read whole."""
 
-    __slots__ = ("actual", "demand", "last_active_sync", "sync")
+    __slots__ = ("actual", "demand", "last_active_sync", "late", "sync")
 
     def __init__(self, store: StoreFactory | None = None) -> None:
         self.sync = Column("q", store)
         self.demand = Column("q", store)
         self.actual = Column("q", store)
+        self.late = Column("q", store)
         self.last_active_sync: int | None = None
 
     @property
     def held(self) -> int:
         """Samples held in memory (all of them without a store)."""
-        return self.sync.held + self.demand.held + self.actual.held
+        return self.sync.held + self.demand.held + self.actual.held + self.late.held
 
-    def position(self, sync: int, demand: int, actual: int) -> None:
+    def position(self, sync: int, demand: int, actual: int, late_us: int = 0) -> None:
         self.sync.append(sync)
         self.demand.append(demand)
         self.actual.append(actual)
+        self.late.append(late_us)
 
     def active(self, sync: int) -> None:
         if self.last_active_sync is None or sync > self.last_active_sync:

@@ -464,7 +464,8 @@ class Feedback(Sending):
         self._answered = m
         f.answered(2, m)
         self._t = ev.t
-        self._feedback_log[f.node_id].position(m, demand, ev.position_actual)
+        late_us = max(0, round((ev.t - self._sync_time(m)) * 1e6))
+        self._feedback_log[f.node_id].position(m, demand, ev.position_actual, late_us)
         if self._state is JobState.CONFIGURING:
             f.first_demand, f.demand_heard = demand, self._heard(ev.sync_count)
             self._try_configure()
