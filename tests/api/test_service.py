@@ -200,6 +200,7 @@ def test_put_submission_runs_and_put_rejections_are_published(serve: Serve) -> N
     assert served.backend.executed == ["by-put"]
 
 
+@pytest.mark.wallclock  # a rate: judged alone, not beside the suite on every core
 def test_telemetry_is_published_at_the_configured_rate(serve: Serve) -> None:
     served = serve(options=ServiceOptions(telemetry_hz=50.0))
     session = raw_session(served.endpoint)

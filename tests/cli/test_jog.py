@@ -40,14 +40,18 @@ def position(served: Served, axis: str) -> float:
 
 def test_jog_for_seconds_moves_the_axis_its_way_then_stops_and_leaves_the_queue_open(real: Served) -> None:
     before = position(real, "j2")
+    t0 = time.monotonic()
     out = pvt("jog", "j2", "-", "--speed", "0.2", "--for", "2.5", "--connect", real.endpoint)
+    ran_s = time.monotonic() - t0
     assert out.returncode == 0, out.stderr
     assert_fits(out.stdout)
     said = flat(out.stdout)
     assert "jogging j2 at -0.2 rad/s" in said and "stops after 2.5 s" in said and "j2 stopped at" in said
     moved = position(real, "j2") - before
-    # 2.5 s of motion at 0.2 (past the first chunk: ramp + 2 s), then the stop's reaction (what is queued) and braking
-    assert -0.2 * (2.5 + 1.0) < moved < -0.2 * 2.5 * 0.9, moved
+    # at least the 2.5 s the command waits once it sees the jog running (less the ramp), and no more than the
+    # command's whole run at 0.2: its --for is timed by the command, so a loaded machine (the halt's query late)
+    # stretches the motion, never past the command's own wall time (it waits until the jog has ended)
+    assert -0.2 * ran_s < moved < -0.2 * 2.5 * 0.9, (moved, ran_s)
     time.sleep(0.3)
     assert position(real, "j2") - before == moved  # at rest
     with real.client() as client:
