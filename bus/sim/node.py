@@ -220,6 +220,7 @@ class SimulatedCell:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._kick = threading.Event()
+        self._wake_at = 0.0  # when the timer thread means to run next (lock held to read or write)
         self._timer: threading.Thread | None = None
         self._versions: dict[int, int] = {}
         self._pending: list[Frame] = []
@@ -357,9 +358,19 @@ class SimulatedCell:
                 if cob_id == 0:
                     self._update_sync_ids()
                     self._kick.set()
+                else:
+                    self._kick_if_sooner()
                 self._send_all(frames)
         except Exception as e:
             self._record_error(f"frame 0x{cob_id:03X}", e)
+
+    def _kick_if_sooner(self) -> None:
+        """Wake the timer thread when a model now has something to do before it meant to run (lock held): a
+        SYNC's answers held for the drive's TPDO latency are due after the latency, not at the timer's next
+        wake (up to TIMER_MAX_SLEEP_S, or the SYNC watchdog's deadline, later)."""
+        soonest = min((d for m in self.models.values() if (d := m.next_deadline()) is not None), default=None)
+        if soonest is not None and soonest < self._wake_at:
+            self._kick.set()
 
     def _rpdo_callback(self, node_id: int) -> Callable[[Any], None]:
         model = self.models[node_id]
@@ -439,11 +450,10 @@ class SimulatedCell:
                     for model in self.models.values():
                         frames += model.advance(now)
                     pending = (m.next_deadline() for m in self.models.values())
-                    deadlines = [d for d in pending if d is not None]
+                    wake_at = self._wake_at = min((d for d in pending if d is not None),
+                                                  default=now + TIMER_MAX_SLEEP_S)
                     self._send_all(frames)
-                wait = TIMER_MAX_SLEEP_S
-                if deadlines:
-                    wait = max(0.0, min(wait, min(deadlines) - self.clock()))
+                wait = max(0.0, min(wake_at, now + TIMER_MAX_SLEEP_S) - self.clock())
             except Exception as e:
                 self._record_error("timer thread", e)
                 wait = TIMER_MAX_SLEEP_S

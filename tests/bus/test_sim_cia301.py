@@ -176,3 +176,40 @@ def test_a_drives_frames_leave_under_the_lock_that_made_them(
     node.sdo[0x1017].raw = 0
     assert len({name for _, name, _ in sends}) >= 2  # more than one thread sent
     assert all(owned for _, _, owned in sends), sends
+
+
+def test_a_sync_answer_held_for_the_latency_leaves_at_its_time_not_at_the_timers_next_wake() -> None:
+    """The TPDO-latency reading (docs/drive-model.md): a SYNC's answers go out within the drawn latency (up to 9 ms
+    here). The timer thread slept on to its previous deadline (the SYNC watchdog's, or 50 ms), so with SYNCs
+    40 ms apart (the probe's latency experiment) answers left 6-41 ms after their SYNC, and the probe reported a
+    latency of 41 ms for a drive of 9. Judged on the wire: every answer before the next SYNC, most within the
+    latency and a machine's scheduling margin."""
+    from dataclasses import replace
+
+    from planner.readings import SimDriveOptions
+
+    channel = unique_channel("latency")
+    base = make_cell(1, channel=channel)
+    cell = replace(base, axes=tuple(replace(a, sim=SimDriveOptions(tpdo_latency_ms=9.0)) for a in base.axes))
+    sim = SimulatedCell(cell).start()
+    try:
+        with remote_network(channel) as net:
+            answers = Stamps(0x181)
+            net.notifier.add_listener(answers)
+            node = net.add_node(1, str(EDS_PATH))
+            node.tpdo.read()
+            node.tpdo[1].trans_type = 1  # synchronous: an answer to every SYNC
+            node.tpdo[1].enabled = True
+            node.tpdo[1].save()
+            net.nmt.send_command(0x01)  # operational
+            syncs = []  # the virtual bus does not echo a sender's own frames: the time just before it is sent
+            for _ in range(12):
+                syncs.append(time.time())
+                net.send_message(cob.SYNC_COB_ID, b"")
+                time.sleep(0.040)
+            assert wait_until(lambda: len(answers.times) >= 12, timeout_s=2.0), answers.times
+    finally:
+        sim.stop()
+    late = [a - s for s, a in zip(syncs, answers.times, strict=False)]
+    assert all(0.0 <= x < 0.040 for x in late), late  # each before the next SYNC
+    assert sorted(late)[len(late) // 2] < 0.015, late  # the median within 9 ms and a scheduling margin
