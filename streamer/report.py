@@ -11,7 +11,6 @@ is measured the same two ways, from its set points (`decode_setpoints`).
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -26,18 +25,9 @@ from planner.encoding.record import PvtRecord, unpack
 from planner.readings import DriveReadings
 from planner.trajectory import PvtTrajectory
 from streamer.core.coordinator import JobReport
+from streamer.core.drive_time import DriveTime
 from streamer.core.settings import REFERENCE_READINGS
 from streamer.runtime.trace import JobTrace, positions_by_sync
-
-
-def own_clock_window(k: int, rho: float, late_us: int, last_ms: int) -> tuple[int, int]:
-    """The plan's ms [lo, hi] an own-clock drive's demand answering the SYNC at plan ms `k` may show: a tick
-    off its grid's phase plus what the drift (`rho`) added since the start, and ahead by the ticks it may
-    have run before it sampled, by the time its answer left `late_us` after the SYNC (the core's rule,
-    streamer/core/drive_time.py)."""
-    delta = 1 + math.ceil(rho * k)
-    ahead = math.ceil(late_us * 1e-3 * (1.0 + rho))
-    return max(0, k - delta), min(last_ms, k + delta + ahead)
 
 
 def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: int) -> int:
@@ -77,8 +67,10 @@ def build_report(
         planned, encoder_dev = by_rounding[tz]
         if r.rounding is None:
             encoder_dev = np.maximum(by_rounding[False][1], by_rounding[True][1])
-        own_clock = r.clock == "own"
-        rho = (min(r.clock_ppm_max, 50.0) if time_stamp else r.clock_ppm_max) * 1e-6
+        interp = traj.stats[i].interpolation
+        # the core's clock of the drive: its own, or timed by the SYNCs it receives (0x1006 absent), or locked
+        clock = DriveTime.of_reading(r, sync_period_ms, cyclic=interp != "pvt", time_stamped=time_stamp)
+        own_clock = not clock.exact
         sampled_dev = explained = unexplained = 0
         log = core.feedback.get(node)
         for s, d, late_us in zip(log.sync if log is not None else (), log.demand if log is not None else (),
@@ -89,12 +81,11 @@ def build_report(
             dev = abs(int(d) - int(planned[i, k]))
             sampled_dev = max(sampled_dev, dev)
             if own_clock:
-                lo, hi = own_clock_window(k, rho, int(late_us), traj.duration_ms)
+                lo, hi = clock.plan_window(k, int(late_us), traj.duration_ms)
                 window = planned[i, lo:hi + 1]
                 bound = int(np.abs(window - planned[i, k]).max())
                 explained = max(explained, bound)
                 unexplained = max(unexplained, dev - bound - traj.tolerance_counts)
-        interp = traj.stats[i].interpolation
         sent = (setpoints or {}).get(node)
         if interp != "pvt":
             # a cyclic axis: its drive interpolates the set points it was sent (up to a cancel's stop)

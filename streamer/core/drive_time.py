@@ -57,6 +57,17 @@ class DriveTime:
         return cls(period_ms, own_clock=(own or by_sync_time) and not cyclic,
                    ppm_max=r.clock_ppm_max if own else SYNC_TIMED_PPM, time_stamped=time_stamped)
 
+    def plan_window(self, k: int, late_us: int, last_ms: int) -> tuple[int, int]:
+        """The plan's ms [lo, hi] a demand answering the SYNC at plan ms `k` may show, known from the start
+        alone (the report's check, after the job, without the narrowings): `bounds`' rule in whole ms, a tick
+        off the grid's phase plus what the drift added since the start, and ahead by the ticks the drive may
+        have run before its answer left `late_us` after the SYNC. A SYNC-locked drive: k."""
+        if self.exact:
+            return k, k
+        delta = 1 + math.ceil(self.rho * k)
+        ahead = math.ceil(late_us * 1e-3 * (1.0 + self.rho))
+        return max(0, k - delta), min(last_ms, k + delta + ahead)
+
     def start(self, sync: int, t: float) -> None:
         """Interpolation began at SYNC `sync`, sent at time `t` (s)."""
         self._start = sync

@@ -5,8 +5,10 @@ wire, and the master judges it over that whole span."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from streamer.core.drive_time import DriveTime
+from streamer.core.settings import REFERENCE_READINGS
 
 PERIOD_MS = 10
 
@@ -62,9 +64,15 @@ def test_a_sync_locked_drive_is_exact_whenever_it_answers() -> None:
 def test_the_report_explains_a_late_sample_by_the_same_rule() -> None:
     """The report's "demand off the plan by more than its clock explains" judged a demand at the SYNC's plan
     ms alone: in 200 real-time jobs with a CPU hog it counted 1-2 missed guarantees on each own-clock reading
-    the core had found right. Its window now runs on by the ticks to the answer's time on the wire."""
-    from streamer.report import own_clock_window
-
-    assert own_clock_window(400, 200e-6, 0, 10_000) == (398, 402)  # a tick and the drift, as before
-    assert own_clock_window(400, 200e-6, 2_500, 10_000) == (398, 405)  # and 3 ticks it may have run since
-    assert own_clock_window(9_999, 200e-6, 2_500, 10_000) == (9_996, 10_000)  # within the plan
+    the core had found right. Its window (asked of the core's clock) runs on by the ticks to the answer's time
+    on the wire; a drive timed by the SYNCs it receives (0x1006 absent) is judged so too, a locked one at k (the
+    report asked the reading's clock == "own" and kept a drift rule of its own before)."""
+    own = DriveTime(PERIOD_MS, own_clock=True, ppm_max=200.0, time_stamped=False)
+    assert own.plan_window(400, 0, 10_000) == (398, 402)  # a tick and the drift, as before
+    assert own.plan_window(400, 2_500, 10_000) == (398, 405)  # and 3 ticks it may have run since
+    assert own.plan_window(9_999, 2_500, 10_000) == (9_996, 10_000)  # within the plan
+    sync_timed = DriveTime.of_reading(replace(REFERENCE_READINGS, absent=(0x1006,)), PERIOD_MS, cyclic=False,
+                                      time_stamped=False)
+    assert sync_timed.plan_window(400, 2_500, 10_000) == (398, 405)
+    locked = DriveTime.of_reading(REFERENCE_READINGS, PERIOD_MS, cyclic=False, time_stamped=False)
+    assert locked.plan_window(400, 2_500, 10_000) == (400, 400)
