@@ -199,7 +199,8 @@ def test_cancel_the_running_job_holds_the_queue_and_a_second_cancel_says_so(
         assert all(k == "cancelling" for k in kinds[cut:-1])
         cancelling = events[cut]
         assert cancelling.state == "cancelling" and cancelling.data["reason"] == "cancel requested"
-        assert 0.05 < (cancelling.progress or 0.0) < 0.6  # the true progress, not 1.0
+        # the true progress, not 1.0 (when: a `pvt cancel` process started 0.5 s into the 5 s job, on a loaded machine)
+        assert 0.05 < (cancelling.progress or 0.0) < 0.95
         assert status.progress == pytest.approx(cancelling.progress, abs=0.05)
         time.sleep(0.4)
         assert nxt.status().state == JobState.QUEUED  # held
@@ -246,7 +247,7 @@ def test_a_queued_job_after_a_cancel_ends_infeasible_with_the_axis_and_both_posi
         assert pvt("cancel", "cut-short", "--connect", served.endpoint).returncode == 0
         assert first.wait(timeout=10).state == JobState.CANCELLED
         stood = served.backend.current_positions()["j1"]
-        assert 0.1 < stood < 0.9
+        assert 0.1 < stood < 1.0  # cut short (where: a `pvt cancel` process started 0.6 s into the 4 s job)
         assert pvt("resume", "--connect", served.endpoint).returncode == 0
         with pytest.raises(JobFailedError) as info:
             after.wait(timeout=10)
