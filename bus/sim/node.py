@@ -368,9 +368,12 @@ class SimulatedCell:
         """Wake the timer thread when a model now has something to do before it meant to run (lock held): a
         SYNC's answers held for the drive's TPDO latency are due after the latency, not at the timer's next
         wake (up to TIMER_MAX_SLEEP_S, or the SYNC watchdog's deadline, later)."""
-        soonest = min((d for m in self.models.values() if (d := m.next_deadline()) is not None), default=None)
-        if soonest is not None and soonest < self._wake_at:
+        if any(d < self._wake_at for d in self._deadlines()):
             self._kick.set()
+
+    def _deadlines(self) -> list[float]:
+        """When each model next has something to do (`next_deadline`), of those that have (lock held)."""
+        return [d for m in self.models.values() if (d := m.next_deadline()) is not None]
 
     def _rpdo_callback(self, node_id: int) -> Callable[[Any], None]:
         model = self.models[node_id]
@@ -449,11 +452,9 @@ class SimulatedCell:
                     frames: list[Frame] = []
                     for model in self.models.values():
                         frames += model.advance(now)
-                    pending = (m.next_deadline() for m in self.models.values())
-                    wake_at = self._wake_at = min((d for d in pending if d is not None),
-                                                  default=now + TIMER_MAX_SLEEP_S)
+                    wake_at = self._wake_at = min([*self._deadlines(), now + TIMER_MAX_SLEEP_S])
                     self._send_all(frames)
-                wait = max(0.0, min(wake_at, now + TIMER_MAX_SLEEP_S) - self.clock())
+                wait = max(0.0, wake_at - self.clock())
             except Exception as e:
                 self._record_error("timer thread", e)
                 wait = TIMER_MAX_SLEEP_S
