@@ -388,24 +388,37 @@ def uniform_jerk_points(job: Job, cell: CellConfig, traj: PvtTrajectory, tries: 
 
 
 def jerk_measure(job: Job, cell: CellConfig) -> dict[str, Any]:
-    """One path job planned both ways: duration, points and CPU time; the jerk bounds of the drive's motion."""
+    """One path job planned three ways (acceleration-only, jerk-limited "smooth" and "fastest"): duration,
+    points and CPU time; the jerk bounds of the drive's motion (the fastest timing's: `fast_*`)."""
     d = job_to_dict(job)
     plans = {}
-    for flag in (False, True):
+    for key, flag, timing in (("acc", False, None), ("smooth", True, None), ("fastest", True, "fastest")):
         d["jerk_limited"] = flag
+        if timing is not None:
+            d["jerk_timing"] = timing
         j = job_from_dict(d, cell)
         t0 = time.thread_time()
         traj = plan_job(j, cell)
-        plans[flag] = (traj, time.thread_time() - t0, j)
-    acc_traj, _acc_s, _ = plans[False]
-    traj, elapsed, jjob = plans[True]
+        plans[key] = (traj, time.thread_time() - t0, j)
+    acc_traj, _acc_s, _ = plans["acc"]
+    traj, elapsed, jjob = plans["smooth"]
+    fast, fast_s, fjob = plans["fastest"]
     _dt, uniform = uniform_points(jjob, cell, traj)
+    _dt, fast_uniform = uniform_points(fjob, cell, fast)
     same_jerk, found = uniform_jerk_points(jjob, cell, traj)
     raw_s, _ = raw_toppra(job, cell, refine=False)
+    stops_s = stop_at_corners_s(job, cell)
     return {
         "duration_s": traj.duration_s,
         "acc_ratio": traj.duration_s / acc_traj.duration_s,
-        "stop_ratio": traj.duration_s / stop_at_corners_s(job, cell),
+        "stop_ratio": traj.duration_s / stops_s,
+        "fast_acc_ratio": fast.duration_s / acc_traj.duration_s,
+        "fast_smooth_ratio": fast.duration_s / traj.duration_s,
+        "fast_stop_ratio": fast.duration_s / stops_s,
+        "fast_efficiency": fast.n_points / fast_uniform,
+        "fast_time_ratio": fast_s / raw_s,
+        "fast_drive_jerk": max(s.peak_jerk / s.jerk_limit for s in fast.stats),
+        "fast_knot_step": max(s.knot_acceleration_step * 1000.0 / s.jerk_limit for s in fast.stats),
         "points": traj.n_points,
         "uniform_points": uniform,
         "efficiency": traj.n_points / uniform,
@@ -437,7 +450,8 @@ def jerk_corpus(cell: CellConfig, jobs: Sequence[tuple[str, Job]]) -> dict[str, 
     out: dict[str, Any] = {"jobs": len(jobs), "refused": len(refused), "refusals": refused[:3], "rows": rows}
     out["no_uniform"] = sum(1 for r in rows if r["no_uniform"])
     for key in ("acc_ratio", "stop_ratio", "efficiency", "jerk_efficiency", "time_ratio", "plan_jerk", "drive_jerk",
-                "knot_step", "acc_knot_step"):
+                "knot_step", "acc_knot_step", "fast_acc_ratio", "fast_smooth_ratio", "fast_stop_ratio",
+                "fast_efficiency", "fast_time_ratio", "fast_drive_jerk", "fast_knot_step"):
         out[key] = (med(key), worst(key))
     return out
 
@@ -463,6 +477,10 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
         # the jobs as their acceleration-only plan: jerk_measure plans each both ways from it
         sets.append((kind, [(str(i), job_from_dict(with_jerk_limited(random_job(kind, rng, cell), False), cell))
                             for i in range(count)]))
+    # the random paths again as splines through their waypoints (`geometry = "spline"`: the FIR re-timing)
+    splines = [{**job_to_dict(j), "geometry": "spline"} for _n, j in sets[1][1]]
+    sets.append(("path-spline", [(str(i), job_from_dict({k: v for k, v in d.items() if k != "path_tolerance"}, cell))
+                                 for i, d in enumerate(splines)]))
     for name, jobs in sets:
         s = jerk_corpus(cell, jobs)
         out.append({"corpus": name, **s})
@@ -476,6 +494,20 @@ def print_jerk(cell: CellConfig, examples: Sequence[tuple[str, Job]], count: int
             print(f"    refused: {r}")
     print("targets (issue 26): dur/acc-opt median <= 1.10, dur/stops < 1, pts/unif <= 0.5, jerk <= 1.05, knot step "
           "<= 1.05")
+    print()
+    head = (f"{'corpus':12} {'dur/acc-opt med':>15} {'worst':>6} {'dur/smooth med':>14} {'worst':>6} "
+            f"{'dur/stops med':>13} {'worst':>6} {'pts/unif med':>12} {'plan/toppra med':>15} {'worst':>6} "
+            f"{'drive jerk':>10} {'knot step med':>13} {'worst':>6}")
+    print('the same jobs planned with jerk_timing = "fastest" (the third-order time-optimal speed along the same '
+          'geometry, planner/motion/jerk_scp.py), against the same baselines and the "smooth" plan above')
+    print(head)
+    print("-" * len(head))
+    for s in out:
+        print(f"{s['corpus']:12} {s['fast_acc_ratio'][0]:15.3f} {s['fast_acc_ratio'][1]:6.3f} "
+              f"{s['fast_smooth_ratio'][0]:14.3f} {s['fast_smooth_ratio'][1]:6.3f} {s['fast_stop_ratio'][0]:13.3f} "
+              f"{s['fast_stop_ratio'][1]:6.3f} {s['fast_efficiency'][0]:12.3f} {s['fast_time_ratio'][0]:15.2f} "
+              f"{s['fast_time_ratio'][1]:6.2f} {s['fast_drive_jerk'][1]:10.3f} {s['fast_knot_step'][0]:13.2f} "
+              f"{s['fast_knot_step'][1]:6.2f}")
     return out
 
 

@@ -73,6 +73,8 @@ MAX_HOME_TIMEOUT_S = 3600.0
 MAX_DURATION_S = 900.0  # user timing (timed/pvt) longer than this is TOO_LARGE
 MAX_TOLERANCE_COUNTS = 1_000_000
 GEOMETRIES: tuple[str, ...] = ("lines", "spline")
+# a jerk-limited path's timing (docs/formats.md, "jerk_timing"): knots within the jerk bound, or shortest
+JERK_TIMINGS: tuple[str, ...] = ("smooth", "fastest")
 # a path job without `jerk_limited` keeps the jerk limits when every axis of the job has one (every axis
 # of a cell states one: planner/config.py); False plans the acceleration-only optimum
 JERK_LIMITED_DEFAULT = True
@@ -94,7 +96,7 @@ _COMMON = {
     "limits",
 }
 _KIND_FIELDS: dict[str, tuple[set[str], set[str]]] = {  # (required, optional) besides the common ones
-    "path": ({"waypoints"}, {"path_tolerance", "geometry", "jerk_limited"}),
+    "path": ({"waypoints"}, {"path_tolerance", "geometry", "jerk_limited", "jerk_timing"}),
     "move": (set(), {"target", "mode", "start", "velocity", "ramps"}),  # target or velocity: by mode
     "timed": ({"times", "positions"}, set()),
     "pvt": ({"times", "positions", "velocities"}, set()),
@@ -136,6 +138,7 @@ class PathData:
     scalar_tolerance: bool = False  # given as one number (kept for job_to_dict)
     # keep every axis' jerk limit (planner/motion/jerkpath.py); None: the default (`jerk_limited_default`)
     jerk_limited: bool | None = None
+    jerk_timing: Literal["smooth", "fastest"] | None = None  # a jerk-limited path's timing; None: "smooth"
 
 
 @dataclass(frozen=True)
@@ -284,6 +287,12 @@ def _check_path_options(data: PathData, axes: Sequence[str]) -> None:
         raise PlanningError(
             SCHEMA, f"geometry must be one of {list(GEOMETRIES)}, got {data.geometry!r}", path="geometry"
         )
+    if data.jerk_timing is not None and data.jerk_timing not in JERK_TIMINGS:
+        raise PlanningError(SCHEMA, f"jerk_timing must be one of {list(JERK_TIMINGS)}, got {data.jerk_timing!r}",
+                            path="jerk_timing")
+    if data.jerk_timing == "fastest" and data.jerk_limited is False:
+        raise PlanningError(SCHEMA, "jerk_timing applies to a jerk-limited path, and jerk_limited is false",
+                            path="jerk_timing")
     tol = data.path_tolerance
     if tol is None:
         return
@@ -420,9 +429,10 @@ def job_from_dict(data: Mapping[str, Any], cell: CellConfig, *, max_rows: int = 
             raise PlanningError(
                 TYPE, f"jerk_limited must be true or false, got {show(jerk_flag)}", path="jerk_limited"
             )
-        job_data = PathData(
-            _ro(wp), cast(Literal["lines", "spline"], geometry), tol, tol_scalar, jerk_flag
-        )
+        timing = data.get("jerk_timing")
+        if timing is not None and not isinstance(timing, str):
+            raise PlanningError(TYPE, f"jerk_timing must be a string, got {show(timing)}", path="jerk_timing")
+        job_data = PathData(_ro(wp), cast(Any, geometry), tol, tol_scalar, jerk_flag, cast(Any, timing))
     elif kind == "move":
         job_data = _move_data(data, axes, axis_cfg, limits, vscale, "acceleration_scale" in data)
     else:
@@ -853,6 +863,8 @@ def job_to_dict(job: Job) -> dict[str, Any]:
             out["path_tolerance"] = d.path_tolerance[0] if d.scalar_tolerance else list(d.path_tolerance)
         if d.jerk_limited is not None:
             out["jerk_limited"] = d.jerk_limited
+        if d.jerk_timing is not None:
+            out["jerk_timing"] = d.jerk_timing
     elif isinstance(d, MoveData):
         if d.velocity is not None:
             out["velocity"] = d.velocity.tolist()

@@ -23,7 +23,7 @@ from planner.config import AxisConfig, CellConfig
 from planner.encoding.cyclic import with_cyclic_stats
 from planner.encoding.encoder import ACC_EXCESS_LIMIT, load_kernels, segment_bounds
 from planner.encoding.reconstruction import AxisScales, Knots, Reconstruction, reconstruct
-from planner.errors import INFEASIBLE, LIMITS, POSITION_LIMIT, TOO_LARGE, PlanningError
+from planner.errors import INFEASIBLE, LIMITS, POSITION_LIMIT, SCHEMA, TOO_LARGE, PlanningError
 from planner.job import (
     MAX_DURATION_S,
     Job,
@@ -132,6 +132,10 @@ def plan_job(
             runs = None
             chain = None
             jerk = jerk_limited(job, cell)
+            fastest = d.jerk_timing == "fastest"
+            if fastest and not jerk:
+                raise PlanningError(SCHEMA, "jerk_timing applies to a jerk-limited path, and this one is not "
+                                    "(set jerk_limited = true)", path="jerk_timing")
             box = (np.array([c.position_min for c in cfg]), np.array([c.position_max for c in cfg]))
             if d.geometry == "lines":
                 from planner.motion.jerkpath import PLAN_JERK_SHARE
@@ -167,6 +171,7 @@ def plan_job(
                         limits.jerk,
                         time_scale=f,
                         max_duration_s=MAX_DURATION_S,
+                        fastest=fastest,
                     )
                     info.update(path_info)
                     info["jerk_stops"] = 0.0

@@ -71,6 +71,7 @@ def _powers(t: FloatArray, order: int) -> FloatArray:
 
 _D1 = np.array([5.0, 4.0, 3.0, 2.0, 1.0])  # d/ds of the quintic's terms, highest order first
 _D2 = np.array([20.0, 12.0, 6.0, 2.0])  # d2/ds2
+_D3 = np.array([60.0, 24.0, 6.0])  # d3/ds3
 _F, _G = _shape_coefficients(RHOS)
 # each shape on its own (a run's pieces: the product of one row is not always the bits of a row of the product)
 _ONE_SHAPE = [_shape_coefficients(RHOS[k : k + 1]) for k in range(RHOS.size)]
@@ -109,10 +110,11 @@ class PiecewisePath:
         # unknown, or a blend): where the time-optimal profile accelerates, toppra needs its gridpoints
         self.ramps = ramps if ramps is not None else np.full(blends.size, np.inf)
         self._dof = n_axes
-        # the coefficients of q, q' and q'' (user units; of (s - s_j)^(5-k), highest order first, as scipy's
+        # the coefficients of q, q', q'' and q''' (user units; of (s - s_j)^(5-k), highest order first, as scipy's
         # PPoly and its derivatives have them), evaluated by `_evaluate`
         c = np.ascontiguousarray(coefficients, dtype=np.float64)  # (6, P, n_axes)
-        self._coefficients = (c, c[:-1] * _D1[:, None, None], c[:-2] * _D2[:, None, None])
+        self._coefficients = (c, c[:-1] * _D1[:, None, None], c[:-2] * _D2[:, None, None],
+                              np.ascontiguousarray(c[:-3] * _D3[:, None, None]))
 
     @property
     def length(self) -> float:
@@ -127,7 +129,7 @@ class PiecewisePath:
         return self(self.breakpoints)
 
     def __call__(self, s: FloatArray, order: int = 0) -> FloatArray:
-        """q(s) (order 0), q'(s) or q''(s) at the path positions `s` (clipped to the path): (len(s), n)."""
+        """q(s) (order 0), q'(s), q''(s) or q'''(s) at the path positions `s` (clipped to the path): (len(s), n)."""
         x = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.length)
         return _evaluate(self._coefficients[order], self.breakpoints, np.ascontiguousarray(x.ravel()))
 

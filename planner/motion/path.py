@@ -71,6 +71,9 @@ class GeometricPath(Protocol):
 
     def __call__(self, s: FloatArray, order: int = 0) -> FloatArray: ...
 
+    @property
+    def breakpoints(self) -> FloatArray: ...  # s where q(s)'s pieces meet (0 and length included)
+
     def gridpoints(self) -> FloatArray: ...
 
     def merge_safe(self, s: FloatArray) -> NDArray[np.bool_]: ...
@@ -107,17 +110,23 @@ class SplineGeometry:
             self.spline = CubicSpline(self.ss, waypoints, bc_type="not-a-knot", axis=0)
         self.d1 = self.spline.derivative(1)
         self.d2 = self.spline.derivative(2)
+        self.d3 = self.spline.derivative(3)
 
     @property
     def length(self) -> float:
         return float(self.ss[-1])
 
     @property
+    def breakpoints(self) -> FloatArray:
+        """The waypoints' s: the ends of the cubic pieces, where the third derivative jumps."""
+        return self.ss
+
+    @property
     def dof(self) -> int:
         return int(self.waypoints.shape[1])
 
     def __call__(self, s: FloatArray, order: int = 0) -> FloatArray:
-        f = (self.spline, self.d1, self.d2)[order]
+        f = (self.spline, self.d1, self.d2, self.d3)[order]
         out: FloatArray = np.asarray(f(s), dtype=np.float64)
         return out
 

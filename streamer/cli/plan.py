@@ -182,6 +182,9 @@ def _print_table(s: dict[str, Any], units: list[str]) -> None:
     info = s.get("info", {})
     if info.get("optimal_s", 0.0) > 0.0:
         how = "jerk-limited" if info.get("jerk_limited", 0.0) == 1.0 else "acceleration-only"
+        if "jerk_fastest_runs" in info:  # jerk_timing = "fastest"
+            how += (f" (fastest: {info['jerk_fastest_runs']:.0f} of {info.get('runs', 0.0):.0f} run(s) at the "
+                    "third-order optimum)")
         console.print(Text(f"{how}: {s['duration_s']:.3f} s = {s['duration_s'] / info['optimal_s']:.3f} x the "
                            f"acceleration-only optimum ({info['optimal_s']:.3f} s)"))
     if info.get("jerk_limited", 0.0) == 1.0:

@@ -145,3 +145,19 @@ def test_plan_shows_the_jerk_against_its_limit_and_the_duration_against_the_opti
     for axis in summary["axes"]:
         assert axis["jerk_limit"] > 0 and 0 < axis["planned_peak_jerk"] <= axis["jerk_limit"] * (1 + 1e-6)
         assert axis["peak_jerk"] > 0 and axis["knot_acceleration_step"] >= 0
+
+
+def test_plan_says_when_a_path_is_timed_fastest(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`jerk_timing = "fastest"`: `pvt plan` says how many runs took the third-order optimum, and is shorter
+    than the same job's smooth timing."""
+    text = 'kind = "path"\naxes = ["j1", "j2"]\nwaypoints = [[0.0, 0.0], [0.6, 0.2], [0.9, -0.3], [0.2, 0.1]]\n'
+    durations = {}
+    for timing in ("smooth", "fastest"):
+        job = tmp_path / f"{timing}.toml"
+        job.write_text(text + f'jerk_timing = "{timing}"\n')
+        assert main(["plan", str(job), "--config", DEMO]) == 0
+        out = capsys.readouterr().out
+        assert ("(fastest: 1 of 1 run(s) at the third-order optimum)" in out) == (timing == "fastest"), out
+        assert main(["plan", str(job), "--config", DEMO, "--json"]) == 0
+        durations[timing] = json.loads(capsys.readouterr().out)["duration_s"]
+    assert durations["fastest"] < durations["smooth"]
