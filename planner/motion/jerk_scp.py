@@ -142,15 +142,16 @@ class _Problem:
 
     def feasible_scale(self, c: FloatArray) -> float:
         """The largest factor on c that keeps every constraint (velocity and acceleration scale with it,
-        the jerk with its 3/2 power)."""
-        lhs = self.static @ c
-        pos = lhs > 0.0
-        lam = float(np.min(self.static_rhs[pos] / lhs[pos])) if pos.any() else np.inf
-        root = np.sqrt(np.maximum(self.b0 @ c, 0.0))
-        for j, lj in enumerate(self.jerk):
-            peak = float(np.max(np.abs(lj @ c) * root))
-            if peak > 0.0:
-                lam = min(lam, (self.jsolve[j] / peak) ** (2.0 / 3.0))
+        the jerk with its 3/2 power); inf on a path too short for the limits to bind (solve_speed: none)."""
+        with np.errstate(over="ignore", divide="ignore"):
+            lhs = self.static @ c
+            pos = lhs > 0.0
+            lam = float(np.min(self.static_rhs[pos] / lhs[pos])) if pos.any() else np.inf
+            root = np.sqrt(np.maximum(self.b0 @ c, 0.0))
+            for j, lj in enumerate(self.jerk):
+                peak = float(np.max(np.abs(lj @ c) * root))
+                if peak > 0.0:
+                    lam = min(lam, (self.jsolve[j] / peak) ** (2.0 / 3.0))
         return lam
 
     def step(self, c: FloatArray, trust: float) -> FloatArray | None:
