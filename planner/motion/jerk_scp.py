@@ -22,7 +22,9 @@ gradient at b_k, within a trust region on the coefficients, is the objective. Ea
 (scipy's HiGHS; the rows no point of the trust region reaches are left out) from a point that keeps every
 limit to another that keeps them, kept only when it is faster; the iterations stop when one gains less
 than `GAIN` or the trust region has shrunk below `MIN_TRUST`. The start is B = 1 scaled down until every
-constraint holds (they are homogeneous in B: the scale has a closed form, `feasible_scale`).
+constraint holds (they are homogeneous in B: the scale has a closed form, `feasible_scale`). A run of many
+pieces (`COARSE_FROM` coefficients) is solved first on a coarse spline, whose solution, scaled into the
+fine problem's constraints, starts the fine one with a smaller trust region.
 
 The constraints hold at collocation points: `PER_SPAN` per knot span, `END_POINTS` toward each end, and
 either side of every end of a piece of the geometry (where q''' jumps). Between them b is smooth; the check
@@ -48,7 +50,8 @@ from planner.motion.reference import FloatArray
 
 SPANS_PER_PIECE = 8  # knot spans per piece of the geometry ...
 MIN_SPANS, MAX_SPANS = 40, 240  # ... within these
-COARSE_SPANS_PER_PIECE, COARSE_MIN_SPANS = 2, 10  # the first solve's (its solution starts the fine one)
+COARSE_SPANS_PER_PIECE, COARSE_MIN_SPANS = 2, 10  # the first solve's (its solution starts the fine one) ...
+COARSE_FROM = 100  # ... where the fine spline has this many coefficients
 END_NEAR = 1.0e-5  # collocation points toward each end, from this share of the path ...
 END_POINTS = 30  # ... to the first span, spaced geometrically
 PER_SPAN = 4  # collocation points per knot span
@@ -225,26 +228,33 @@ def solve_speed(geom: GeometricPath, vlim: FloatArray, alim: FloatArray, jlim: F
     the fine problem's constraints, starts the fine one: half the time of the fine solve from B = 1 on the
     example paths (0.5 against 1.1 s, 0.75 against 2.0), the same durations within 0.1 ms."""
     jsolve = jlim * JERK_MARGIN
+    fine = _Problem(geom, vlim, alim, jsolve)
+    if fine.nc < COARSE_FROM:  # a few pieces: the fine solve alone is quicker
+        start = _start(fine, np.ones(fine.nc))
+        if start is None:
+            return None
+        c, lps = _iterate(fine, start, TRUST)
+        return Speed(fine, c), lps
     coarse = _Problem(geom, vlim, alim, jsolve, COARSE_SPANS_PER_PIECE, COARSE_MIN_SPANS)
     start = _start(coarse, np.ones(coarse.nc))
     if start is None:
         return None
     c, lps = _iterate(coarse, start, TRUST)
-    fine = _Problem(geom, vlim, alim, jsolve)
     grev = np.array([fine.knots[i + 1 : i + 4].mean() for i in range(fine.nc)])
-    start = _start(fine, np.maximum(BSpline(coarse.knots, c, 3)(grev), 0.0))
+    start = _start(fine, np.maximum(BSpline(coarse.knots, c, 3)(grev), 0.0), up=False)
     if start is None:
         return None
     c, more = _iterate(fine, start, REFINE_TRUST)
     return Speed(fine, c), lps + more
 
 
-def _start(prob: _Problem, c: FloatArray) -> FloatArray | None:
-    """`c` scaled down (never up) until every constraint holds; None when no scale does."""
+def _start(prob: _Problem, c: FloatArray, *, up: bool = True) -> FloatArray | None:
+    """`c` scaled until the tightest constraint holds with equality (`up`; else only scaled down where one
+    fails); None when no scale does."""
     lam = prob.feasible_scale(c)
     if not np.isfinite(lam) or lam <= 0.0:
         return None
-    out: FloatArray = c * min(lam, 1.0) * (1.0 - 1.0e-9)
+    out: FloatArray = c * (lam if up else min(lam, 1.0)) * (1.0 - 1.0e-9)
     return out
 
 
