@@ -3,6 +3,7 @@ bounds of the plan over random paths (Hypothesis) and the example jobs."""
 
 from __future__ import annotations
 
+import itertools
 import os
 from typing import Any
 
@@ -555,7 +556,7 @@ def test_the_geometries_give_their_third_derivative(cell: CellConfig) -> None:
         b = np.asarray(geom.breakpoints)
         assert b[0] == 0.0 and b[-1] == pytest.approx(geom.length)
         # inside each piece (q''' jumps at the breakpoints): central differences of q''
-        s = np.concatenate([np.linspace(lo, hi, 7)[2:-2] for lo, hi in zip(b[:-1], b[1:], strict=True)])
+        s = np.concatenate([np.linspace(lo, hi, 7)[2:-2] for lo, hi in itertools.pairwise(b)])
         h = 1e-6 * geom.length
         numeric = (geom(s + h, 2) - geom(s - h, 2)) / (2 * h)
         assert np.allclose(geom(s, 3), numeric, rtol=1e-4, atol=1e-6 * np.abs(numeric).max())
