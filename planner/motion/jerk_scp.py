@@ -134,9 +134,13 @@ class _Problem:
         out: FloatArray = f0 * spline(s) if order == 0 else f1 * spline(s) + f0 * spline(s, 1)
         return out
 
-    def duration_s(self, c: FloatArray) -> tuple[float, FloatArray]:
-        """The run's duration at b (quadrature on the fine grid: b linear over each interval but the first and
-        the last, where b ~ s^(4/3) and the time is 3 h / sqrt(b(h)), not 2) and the time at every fine gridpoint."""
+    def duration_s(self, c: FloatArray) -> float:
+        """The run's duration at b (`timing`)."""
+        return float(self.timing(c)[0][-1])
+
+    def timing(self, c: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The time at every fine gridpoint (quadrature: b linear over each interval but the first and the
+        last, where b ~ s^(4/3) and the time is 3 h / sqrt(b(h)), not 2), and b there."""
         b = np.maximum(self.b(c, self.fine), 0.0)
         root = np.sqrt(b)
         h = np.diff(self.fine)
@@ -144,7 +148,7 @@ class _Problem:
         dt[0] = 3.0 * h[0] / max(root[1], 1e-300)
         dt[-1] = 3.0 * h[-1] / max(root[-2], 1e-300)
         t = np.concatenate([[0.0], np.cumsum(dt)])
-        return float(t[-1]), t
+        return t, b
 
     def feasible_scale(self, c: FloatArray) -> float:
         """The largest factor on c that keeps every constraint (velocity and acceleration scale with it,
@@ -190,21 +194,17 @@ class Speed:
     def __init__(self, prob: _Problem, coefficients: FloatArray):
         self.prob = prob
         self.c = coefficients
-
-    @property
-    def duration_s(self) -> float:
-        return self.prob.duration_s(self.c)[0]
+        self.t, self.b_fine = prob.timing(coefficients)  # at the fine gridpoints, for every replay
 
     def play(self, slow: float = 1.0) -> tuple[FloatArray, FloatArray, FloatArray]:
         """s, s_dot, s_ddot at every ms (per ms, per ms^2) of the path played `slow` times slower, stretched to
-        end on a whole ms: t(s) on the fine grid (`_Problem.duration_s`), inverted at every ms."""
-        prob, c = self.prob, self.c
-        dur_s, t = prob.duration_s(c)
+        end on a whole ms: t(s) on the fine grid (`_Problem.timing`), inverted at every ms."""
+        prob, c, t, b = self.prob, self.c, self.t, self.b_fine
+        dur_s = float(t[-1])
         m = max(1, int(np.ceil(dur_s * 1.0e3 * slow - 1e-9)))
         k = m / (dur_s * 1.0e3)  # ms of the played run per ms of b's
         tt = np.arange(m + 1) / k / 1.0e3
         fine = prob.fine
-        b = np.maximum(prob.b(c, fine), 0.0)
         root = np.sqrt(b)
         i = np.clip(np.searchsorted(t, tt, side="right") - 1, 0, fine.size - 2)
         tau = tt - t[i]
@@ -261,7 +261,7 @@ def _start(prob: _Problem, c: FloatArray, *, up: bool = True) -> FloatArray | No
 def _iterate(prob: _Problem, c: FloatArray, trust: float) -> tuple[FloatArray, int]:
     """The LPs from `c` (module docstring) until a step gains less than `GAIN`, the trust region is below
     `MIN_TRUST` or `MAX_ITERATIONS` were solved: the fastest point found and the LPs solved."""
-    best, _t = prob.duration_s(c)
+    best = prob.duration_s(c)
     solves = 0
     while solves < MAX_ITERATIONS and trust >= MIN_TRUST:
         nxt = prob.step(c, trust)
@@ -269,7 +269,7 @@ def _iterate(prob: _Problem, c: FloatArray, trust: float) -> tuple[FloatArray, i
         if nxt is None:
             trust *= 0.5
             continue
-        dur, _t = prob.duration_s(nxt)
+        dur = prob.duration_s(nxt)
         if dur < best * (1.0 - 1.0e-9):
             gain = (best - dur) / best
             c, best = nxt, dur
