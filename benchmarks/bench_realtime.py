@@ -1,6 +1,6 @@
 """Real time on a loaded machine (issue 22): late set points, the cycle's latency, EPOS readings, EPOS capacity.
 
-Run: `python -m benchmarks.bench_realtime [--only timing|epos|capacity] [--scale F] [--hogs 0,1,2]`. Every
+Run: `python -m benchmarks.bench_realtime [--only timing|epos|capacity|priority] [--scale F] [--hogs 0,1,2]`. Every
 figure is measured in this run, next to its baseline measured in the same run:
 
 - timing: XtrapulsPac cells (as many axes as the bus carries at the period, one RPDO each, sub-mode PV) at
@@ -17,6 +17,9 @@ figure is measured in this run, next to its baseline measured in the same run:
   and back) with one busy process beside them, the drives in their own process: false faults (a job not
   DONE) and missed guarantees (`pvt demo`'s); benchmarks/bench_drives.py `false-faults` is the baseline (the
   drives in the master's process, no engine).
+- priority: the streaming thread above the receive thread (as now) against below it (as before), alternating
+  runs of one cyclic job at 5 ms on an idle machine: the master's smallest lead per run as the cycle engine saw
+  it (`EngineStats.lead_us`), runs with a batch too late for its set point, runs done.
 - capacity: the most EPOS axes on 1 Mbit/s at 10 ms that run the demo path in real time with the drives out
   of process (target >= 24, the bus's figure from benchmarks/bench_drives.py), against the budget's figure.
 """
@@ -118,8 +121,10 @@ def late_setpoints(log: Path, cell: CellConfig, traj: Any, since_s: float | None
     return late, total, margins
 
 
-def _engine_run(cell: CellConfig, traj: Any, out: Path) -> tuple[dict[str, Any], Any]:
-    """The product's real-time path (drives out of process, the cycle engine) with the engine's statistics."""
+def _engine_run(cell: CellConfig, traj: Any, out: Path,
+                streaming_priority: int | None = None) -> tuple[dict[str, Any], Any]:
+    """The product's real-time path (drives out of process, the cycle engine) with the engine's statistics;
+    `streaming_priority` overrides the streaming thread's SCHED_FIFO priority (the `priority` comparison)."""
     from streamer import demo
 
     stats: dict[str, Any] = {}
@@ -139,7 +144,11 @@ def _engine_run(cell: CellConfig, traj: Any, out: Path) -> tuple[dict[str, Any],
 
     rt_module.RealtimeRuntime.close = closing  # type: ignore[method-assign]
     try:
-        report, _ = demo.run_realtime(cell, traj, out, on_engine=keep)
+        def runtime(rt: Any) -> None:
+            if streaming_priority is not None:
+                rt.streaming_priority = streaming_priority
+
+        report, _ = demo.run_realtime(cell, traj, out, on_engine=keep, on_runtime=runtime, plot=False)
     finally:
         rt_module.RealtimeRuntime.close = close  # type: ignore[method-assign]
     return report, stats.get("stats")
@@ -213,7 +222,8 @@ def timing(scale: float, hog_levels: list[int], periods: list[int]) -> None:
             delay = _pct(st.sync_delay_us) if st else "-"
             m1 = f"{1e3 * np.percentile(margins, 0.1):.2f} ms" if margins else "-"
             print(f"    {n} busy: engine {late} late of {total} cycles ({ok}); latency {lat}; SYNC delay {delay}; "
-                  f"margin p0.1 {m1}" + (f"; {report.get('message')}" if ok != "done" else ""), flush=True)
+                  f"margin p0.1 {m1}; the master's lead {_lead(st)}"
+                  + (f"; {report.get('message')}" if ok != "done" else ""), flush=True)
             base_traj = plan_job(shuttle_job(cell, max(1.0, cycles * period / 10000.0)), cell)
             with hogs(n), tempfile.TemporaryDirectory() as d:
                 try:
@@ -223,6 +233,44 @@ def timing(scale: float, hog_levels: list[int], periods: list[int]) -> None:
                 except Exception as e:  # the baseline may not even start at 1 ms
                     b_late, b_total, b_ok = 0, 0, f"error {type(e).__name__}: {e}"
             print(f"    {n} busy: baseline {b_late} late of {b_total} cycles ({b_ok})", flush=True)
+
+
+def _lead(st: Any) -> str:
+    """How far ahead of its SYNC each batch reached the engine (`EngineStats.lead_us`): p0.1 / min."""
+    if st is None or not st.lead_us:
+        return "-"
+    a = np.array(st.lead_us) / 1000.0
+    return f"p0.1 {np.percentile(a, 0.1):.1f} / min {a.min():.1f} ms"
+
+
+def priority(runs: int, period_ms: int = 5) -> None:
+    """The streaming thread above the receive thread (STREAMING_PRIORITY) against below it (50, the order before),
+    in alternating runs of the same cyclic job on an otherwise idle machine: the master's lead as the engine saw
+    it (a set point is late once a batch comes less than 100 us before the SYNC after its own), and the runs
+    done. The lead is the cell's cyclic default (`default_ahead_ms`)."""
+    from planner.plan import plan_job
+    from streamer.runtime.realtime import STREAMING_PRIORITY, default_ahead_ms
+
+    cell = dataclasses.replace(load_cell(XTRAPULS).with_axes(3), sync_period_ms=period_ms)
+    traj = plan_job(shuttle_job(cell, 6.0), cell)
+    print(f"priority: {runs} runs each, {len(cell.axes)} XtrapulsPac axes at {period_ms} ms, a {traj.duration_s:.0f} s "
+          f"job, lead {default_ahead_ms(cell):.0f} ms; the streaming thread at {STREAMING_PRIORITY} (above the "
+          f"receive thread) and at 50 (below it, as before), alternating")
+    seen: dict[int, list[tuple[float, str]]] = {STREAMING_PRIORITY: [], 50: []}
+    for _ in range(runs):
+        for prio in seen:
+            with tempfile.TemporaryDirectory() as d:
+                report, st = _engine_run(cell, traj, Path(d), streaming_priority=prio)
+            worst = min(st.lead_us) / 1000.0 if st and st.lead_us else float("nan")
+            seen[prio].append((worst, str(report["result"]) if report["result"] == "done" else
+                               str(report.get("message"))[:70]))
+    for prio, rows in seen.items():
+        leads = sorted(w for w, _ in rows)
+        late = sum(w < -(period_ms - 0.1) for w in leads)
+        done = sum(r == "done" for _, r in rows)
+        print(f"  streaming at {prio}: the master's smallest lead per run {', '.join(f'{w:.1f}' for w in leads)} ms "
+              f"(median {np.median(leads):.1f}); {late} of {runs} runs with a batch too late for its set point; "
+              f"{done} of {runs} done {[r for _, r in rows if r != 'done']}", flush=True)
 
 
 def _report(cell: CellConfig, traj: Any, result: Any, readings: Any) -> dict[str, Any]:
@@ -316,12 +364,13 @@ def capacity(max_axes: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--only", choices=("timing", "epos", "capacity"), default=None)
+    p.add_argument("--only", choices=("timing", "epos", "capacity", "priority"), default=None)
     p.add_argument("--scale", type=float, default=1.0, help="share of the cycle counts to run (timing)")
     p.add_argument("--hogs", default="0,1,2", help="busy processes beside the run, e.g. 0,1,2 (timing)")
     p.add_argument("--periods", default="1,2,5,10", help="SYNC periods in ms (timing)")
     p.add_argument("--jobs", type=int, default=200, help="real-time jobs per EPOS reading (epos)")
     p.add_argument("--max-axes", type=int, default=30, help="capacity: stop above this many axes")
+    p.add_argument("--runs", type=int, default=6, help="runs of each streaming priority (priority)")
     args = p.parse_args(argv or [])
     if args.only in (None, "timing"):
         timing(args.scale, [int(x) for x in args.hogs.split(",")], [int(x) for x in args.periods.split(",")])
@@ -329,6 +378,8 @@ def main(argv: list[str] | None = None) -> int:
         capacity(args.max_axes)
     if args.only in (None, "epos"):
         epos(args.jobs)
+    if args.only in (None, "priority"):
+        priority(args.runs)
     return 0
 
 

@@ -108,6 +108,10 @@ class EngineStats:
     sync_delay_us: list[int] = field(default_factory=list)
     cycle_latency_us: list[int] = field(default_factory=list)
     wake_delay_us: list[int] = field(default_factory=list)  # the loop saw the SYNC due this late
+    # per batch the master queued for a cycle of the schedule: how long before that cycle's SYNC was due it
+    # reached the engine (negative: after; a set point is late once this is below -period + 100 us). The
+    # master's own stalls show here, whatever the wire did
+    lead_us: list[int] = field(default_factory=list)
 
 
 def engine_spec(interface: str, channel: str, bitrate: int) -> EngineSpec | None:
@@ -250,6 +254,7 @@ class _Loop:
         self._delay = array("i")
         self._latency = array("i")
         self._woke = array("i")
+        self._lead = array("q")
         self.closing = False
 
     # ---- sending
@@ -363,6 +368,8 @@ class _Loop:
             self._send_all(msg[1])
         elif kind == "at":
             n, frames = msg[1], msg[2]
+            if self.t0 is not None:
+                self._lead.append(int((self.t0 + n * self.period - time.time()) * 1e6))
             if self.t0 is None:
                 self._send_all(frames)
             elif n < self.cycle:  # its SYNC is out already: send now, still in time while the next one is not
@@ -399,14 +406,16 @@ class _Loop:
             st.sync_delay_us = self._delay.tolist()
             st.cycle_latency_us = self._latency.tolist()
             st.wake_delay_us = self._woke.tolist()
+            st.lead_us = self._lead.tolist()
             self.out.send(("stats", st))
             if msg[1]:
                 self.stats = EngineStats()
                 self._delay = array("i")
                 self._latency = array("i")
                 self._woke = array("i")
+                self._lead = array("q")
             else:
-                st.sync_delay_us, st.cycle_latency_us, st.wake_delay_us = [], [], []
+                st.sync_delay_us, st.cycle_latency_us, st.wake_delay_us, st.lead_us = [], [], [], []
         elif kind == "close":
             self.closing = True
         else:

@@ -84,7 +84,8 @@ def open_engine(spec: EngineSpec) -> EngineBus:
                        detail={"interface": spec.interface, "channel": str(spec.channel)}) from e
 
 
-RECEIVE_PRIORITY = 60  # with the cycle engine: the receive thread's SCHED_FIFO priority (below the engine's 80)
+RECEIVE_PRIORITY = 60  # with the cycle engine: the receive thread's SCHED_FIFO priority (below the engine's 80 and the
+# streaming thread's 65, streamer/runtime/realtime.py STREAMING_PRIORITY, says why)
 
 
 class _MasterListener(can.Listener):

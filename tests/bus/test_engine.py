@@ -109,7 +109,10 @@ def test_a_cycles_frames_go_out_right_after_its_sync(engine: EngineBus, channel:
     before = [i for i in syncs if i < at[0]]
     assert before and before[-1] == at[0] - 1  # the SYNC just before them, nothing between
     assert syncs.index(before[-1]) == target  # and it is SYNC `target` (the drive heard every SYNC from the first)
-    assert engine.stats().late_batches == 0
+    st = engine.stats()
+    assert st.late_batches == 0
+    # the batch's lead as the engine saw it: queued 10-11 periods before its SYNC, the SYNC not out yet
+    assert len(st.lead_us) == 1 and 0 < st.lead_us[0] <= 11 * PERIOD_S * 1e6
 
 
 def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: EngineBus, channel: str) -> None:
@@ -144,6 +147,8 @@ def test_a_batch_after_the_next_sync_is_sent_at_once_and_reported_late(engine: E
     assert syncs_before == visible, (syncs_before, visible)
     st = engine.stats()
     assert (st.late_batches, st.late_frames) == (len(expected), len(expected))
+    # the lead of each batch: the one for a SYNC 3 periods gone came after it (more than 2 periods)
+    assert len(st.lead_us) == 2 and st.lead_us[0] < -2 * PERIOD_S * 1e6
 
 
 def test_the_engine_reports_its_priority_and_latency(engine: EngineBus) -> None:
@@ -178,6 +183,19 @@ def test_a_refused_priority_is_said_once_and_the_engine_runs_best_effort(monkeyp
     finally:
         notifier.stop()
         eb.shutdown()
+
+
+def test_the_thread_that_feeds_the_engine_outranks_the_one_that_receives() -> None:
+    """The streaming thread must feed the engine its lead; the receive thread has no deadline (what it hands
+    over keeps the bus's order, however late). Ranked below the receive thread and the simulated drives, the
+    streaming thread was held up 29-67 ms at 5 ms SYNC on an idle machine, past the cyclic lead (EMCY 0x8782).
+    The engine and the simulated drives (as hardware, they answer every SYNC) stay above it."""
+    from bus.engine import DEFAULT_PRIORITY
+    from bus.network import RECEIVE_PRIORITY
+    from bus.sim.process import DEFAULT_DRIVES_PRIORITY
+    from streamer.runtime.realtime import STREAMING_PRIORITY
+
+    assert RECEIVE_PRIORITY < STREAMING_PRIORITY < DEFAULT_DRIVES_PRIORITY < DEFAULT_PRIORITY
 
 
 def test_the_engine_leaves_the_bus_when_the_master_goes(channel: str) -> None:
