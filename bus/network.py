@@ -84,8 +84,9 @@ def open_engine(spec: EngineSpec) -> EngineBus:
                        detail={"interface": spec.interface, "channel": str(spec.channel)}) from e
 
 
-RECEIVE_PRIORITY = 60  # with the cycle engine: the receive thread's SCHED_FIFO priority (below the engine's 80 and the
-# streaming thread's 65, streamer/runtime/realtime.py STREAMING_PRIORITY, says why)
+# with the cycle engine: the receive thread's SCHED_FIFO priority, below the engine's 80 and the streaming thread's
+# 65 (streamer/runtime/realtime.py STREAMING_PRIORITY says why)
+RECEIVE_PRIORITY = 60
 
 
 class _MasterListener(can.Listener):
