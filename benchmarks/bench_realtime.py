@@ -47,6 +47,7 @@ XTRAPULS = ROOT / "configs" / "xtrapuls.toml"
 DEMO = ROOT / "configs" / "demo.toml"
 DEMO_JOB = ROOT / "configs" / "jobs" / "demo-path.toml"
 CYCLES = {1: 100_000, 2: 100_000, 5: 20_000, 10: 20_000}
+PRIORITY_BEFORE = 50  # the streaming thread's SCHED_FIFO priority before it ranked above the receive thread
 
 
 @contextlib.contextmanager
@@ -251,7 +252,7 @@ def _lead(st: Any) -> str:
 
 
 def priority(runs: int, period_ms: int = 5) -> None:
-    """The streaming thread above the receive thread (STREAMING_PRIORITY) against below it (50, the order before),
+    """The streaming thread above the receive thread (STREAMING_PRIORITY) against below it (PRIORITY_BEFORE, as before),
     in alternating runs of the same cyclic job on an otherwise idle machine: the master's lead as the engine saw
     it (a set point is late once a batch comes less than 100 us before the SYNC after its own), and the runs
     done. The lead is the cell's cyclic default (`default_ahead_ms`)."""
@@ -262,8 +263,8 @@ def priority(runs: int, period_ms: int = 5) -> None:
     traj = plan_job(shuttle_job(cell, 6.0), cell)
     print(f"priority: {runs} runs each, {len(cell.axes)} XtrapulsPac axes at {period_ms} ms, a {traj.duration_s:.0f} s "
           f"job, lead {default_ahead_ms(cell):.0f} ms; the streaming thread at {STREAMING_PRIORITY} (above the "
-          f"receive thread) and at 50 (below it, as before), alternating")
-    seen: dict[int, list[tuple[float, str]]] = {STREAMING_PRIORITY: [], 50: []}
+          f"receive thread) and at {PRIORITY_BEFORE} (below it, as before), alternating")
+    seen: dict[int, list[tuple[float, str]]] = {STREAMING_PRIORITY: [], PRIORITY_BEFORE: []}
     for _ in range(runs):
         for prio in seen:
             with tempfile.TemporaryDirectory() as d:
@@ -305,7 +306,11 @@ def epos(jobs: int, only: list[str] | None = None) -> None:
     base = load_cell(DEMO).with_axes(3)
     there = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.3, -0.2, 0.25], "mode": "absolute"}
     back = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.0, 0.0, 0.0], "mode": "absolute"}
-    for name, options in {"reference": {}, **VARIANTS}.items():
+    readings = {"reference": {}, **VARIANTS}
+    unknown = sorted(set(only or ()) - set(readings))
+    if unknown:
+        raise SystemExit(f"--readings: no reading {', '.join(unknown)} (known: {', '.join(readings)})")
+    for name, options in readings.items():
         if only and name not in only:
             continue
         cell = dataclasses.replace(base, axes=tuple(dataclasses.replace(a, sim=SimDriveOptions(**options))
@@ -316,20 +321,13 @@ def epos(jobs: int, only: list[str] | None = None) -> None:
         with hogs(1), demo.realtime_cell(cell) as adapter:
             rt = RealtimeRuntime(adapter.cell, adapter)
             try:
-                try:
-                    rt.ensure_readings()
-                except BusError as e:  # the probe failed (a drive faulted while measured): no job for this reading
-                    faults += 1
-                    reasons[f"probe: {e}"[:60]] = 1
-                    jobs_run = 0
-                else:
-                    jobs_run = jobs
-                planned = cell if not jobs_run else dataclasses.replace(cell, axes=tuple(
+                rt.ensure_readings()
+                planned = dataclasses.replace(cell, axes=tuple(
                     dataclasses.replace(a, probed=dataclasses.replace(a.probed, rounding=rt.known[a.node_id].rounding))
                     for a in cell.axes))
                 trajs = [plan_job(job_from_dict(there, planned), planned, start=[0.0] * 3),
                          plan_job(job_from_dict(back, planned), planned, start=[0.3, -0.2, 0.25])]
-                for k in range(jobs_run):
+                for k in range(jobs):
                     traj = trajs[k % 2]
                     result = rt.run(traj, stop_planner=make_stop_planner(planned, traj), settle_s=0.5)
                     report = _report(planned, traj, result, rt.settings.readings)
@@ -343,6 +341,9 @@ def epos(jobs: int, only: list[str] | None = None) -> None:
                         missed += 1
                         reasons[problems[0][:60]] = reasons.get(problems[0][:60], 0) + 1
                     done += 1
+            except BusError as e:  # the probe failed (a drive faulted while measured): no job for this reading
+                faults += 1
+                reasons[f"probe: {e}"[:60]] = 1
             finally:
                 rt.close()
         print(f"  {name:24s} {done}/{jobs} jobs done, {faults} false faults, {missed} missed guarantees "

@@ -368,11 +368,11 @@ class _Loop:
             self._send_all(msg[1])
         elif kind == "at":
             n, frames = msg[1], msg[2]
-            if self.t0 is not None:
-                self._lead.append(int((self.t0 + n * self.period - time.time()) * 1e6))
             if self.t0 is None:
                 self._send_all(frames)
-            elif n < self.cycle:  # its SYNC is out already: send now, still in time while the next one is not
+                return
+            self._lead.append(int((self.t0 + n * self.period - time.time()) * 1e6))
+            if n < self.cycle:  # its SYNC is out already: send now, still in time while the next one is not
                 self._send_all(frames)
                 if n < self.cycle - 1:  # the next SYNC is out too: too late for a synchronous frame; say so
                     sent = self.sync_sent_at.get(n + 1)
