@@ -134,6 +134,7 @@ class Rig:
     wire: list[WireFrame] = field(default_factory=list)
     queued: list[WireFrame] = field(default_factory=list)  # what the master queued, at its queue time
     ticks_at: dict[int, dict[int, int]] = field(default_factory=dict)  # SYNC -> node -> drive ticks run
+    activated_at: dict[int, int] = field(default_factory=dict)  # node -> drive ticks run when ip mode began
     variant: dict[str, Any] = field(default_factory=dict)  # simulated drives' readings (with_variant)
 
     def stream(self, i: int) -> list[PvtRecord]:
@@ -175,7 +176,7 @@ class Rig:
     def _instrument(self, node: int, m: EposDrive) -> None:
         entered = self.entered.setdefault(node, [])
         ticks = self.demand_ms.setdefault(node, {})
-        append, integrate = m._append_record, m._integrate
+        append, integrate, activate = m._append_record, m._integrate, m._activate
 
         def on_record(rec: PvtRecord) -> None:
             rejected = m.counters.records_rejected
@@ -191,8 +192,13 @@ class Rig:
                 ticks[t0 + i + 1] = lst[i]
             return done
 
+        def on_activate() -> None:
+            self.activated_at[node] = m.counters.ticks
+            activate()
+
         m._append_record = on_record  # type: ignore[method-assign]
         m._integrate = on_ticks  # type: ignore[method-assign]
+        m._activate = on_activate  # type: ignore[method-assign]
 
     def _log(self, t: float, cob_id: int, data: bytes) -> None:
         self.wire.append(WireFrame(t, cob_id, bytes(data)))
@@ -230,11 +236,14 @@ class Rig:
         return self.result.coordinator
 
     def _demand_rows(self) -> Iterable[tuple[int, int, dict[int, int], int]]:
-        """(axis index, node, drive demand per tick, the tick at the start SYNC) per axis."""
+        """(axis index, node, drive demand per tick, the ticks the drive had run when its ip mode began: plan
+        ms k is its k-th tick after that) per axis. The ticks seen at the start SYNC's hook are the same for a
+        drive locked to SYNC; a drive with its own clock ticks between SYNCs, and how many it had run when the
+        hook looked depends on the frames handled before it."""
         s = self.core.start_sync
         assert s is not None, self.describe()
         for i, node in enumerate(self.traj.node_ids):
-            yield i, node, self.demand_ms[node], self.ticks_at[s][node]
+            yield i, node, self.demand_ms[node], self.activated_at.get(node, self.ticks_at[s][node])
 
     def ms_deviation(self) -> dict[int, int]:
         """max |drive position demand - plan| over every interpolated ms of the plan, per node (counts).

@@ -27,11 +27,23 @@ def test_an_answer_sampled_after_its_sync_matches_up_to_its_time_on_the_wire() -
     """The simulated drives' process on a loaded machine sampled 2 ms after the SYNC: judged at the SYNC
     alone the demand was 2 ticks "too many" (PROTOCOL, a false fault in bench_realtime --only epos)."""
     clock = own_clock()
-    demand = ramp(42)[0]  # sampled 42 ms after the start SYNC: SYNC 104 (t = 40 ms), 2 ms late
+    demand = ramp(43)[0]  # sampled 43 ms after the start SYNC: SYNC 104 (t = 40 ms), 3 ms late
     at_sync, err = clock.matching(104, 0.040, ramp, demand, 0)
-    assert at_sync == [] and err == 20  # what the check saw before
-    ticks, err = clock.matching(104, 0.040, ramp, demand, 0, sampled_by=0.0425)
-    assert ticks == [42] and err == 0
+    assert at_sync == [] and err == 20  # judged at the SYNC: 41 ticks at most (the grid's phase unknown)
+    ticks, err = clock.matching(104, 0.040, ramp, demand, 0, sampled_by=0.0435)
+    assert ticks == [43] and err == 0
+
+
+def test_the_grid_phase_against_the_start_sync_is_learnt_from_the_drive() -> None:
+    """Where a drive's 1 ms grid stands against the enabling SYNC is its own affair: the window starts a tick
+    wide on either side (a drive timed by the SYNCs it receives runs ahead by the remainder it kept, one that
+    begins the segment at its first tick after the SYNC is behind by up to a tick), and the first demands in
+    motion pin it to the drive's own phase."""
+    clock = own_clock()
+    assert clock.ticks(104, 0.040) == (38, 41)  # 40 ms, a tick either way (and the anchor's 0.25 ms)
+    clock.observe(104, 0.040, [41])  # this drive is ahead by its remainder
+    lo, hi = clock.bounds(105, 0.050)
+    assert 50.99 < lo <= hi < 51.3  # pinned within a tick: 51 at SYNC 105, give or take the drift
 
 
 def test_a_late_sample_narrows_the_time_at_the_sync_only_by_what_it_proves() -> None:
