@@ -200,17 +200,27 @@ def _pct(values: list[int]) -> str:
     return f"{np.percentile(a, 50):.0f} / {np.percentile(a, 99.9):.0f} / {a.max():.0f} us"
 
 
+def _margins() -> str:
+    """What this machine's margins, where set, change (README, "Real-time priority": a machine that freezes a CPU
+    for tens of ms), or "" where none is set."""
+    from streamer.runtime.realtime import HOST_STALL_MS
+
+    margins_set = {k: os.environ[k] for k in ("PVT_HOST_STALL_MS", "PVT_SIM_SYNC_GAP_FACTOR") if k in os.environ}
+    if not margins_set:
+        return ""
+    return (f"with this machine's margins {margins_set}: the simulated drives take SYNCs up to "
+            f"{os.environ.get('PVT_SIM_SYNC_GAP_FACTOR', '1.5')} periods apart, the master waits {HOST_STALL_MS:.0f} "
+            "ms for an answer and runs that far ahead")
+
+
 def timing(scale: float, hog_levels: list[int], periods: list[int]) -> None:
     from planner.plan import plan_job
-    from streamer.runtime.realtime import HOST_STALL_MS
 
     print("timing: cycles whose set point reached the bus less than 100 us before its SYNC (or not at all), from "
           "the bus; the engine's SYNC -> last frame of the cycle, and its SYNC delay, p50 / p99.9 / max")
-    margins_set = {k: os.environ[k] for k in ("PVT_HOST_STALL_MS", "PVT_SIM_SYNC_GAP_FACTOR") if k in os.environ}
-    if margins_set:  # a machine that freezes a CPU for tens of ms: its margins (README, "Real-time priority")
-        print(f"  with this machine's margins {margins_set}: the simulated drives take SYNCs up to "
-              f"{os.environ.get('PVT_SIM_SYNC_GAP_FACTOR', '1.5')} periods apart, the master waits {HOST_STALL_MS:.0f} "
-              "ms for an answer and runs that far ahead; a set point's 100 us before its SYNC is judged as always")
+    margins = _margins()
+    if margins:
+        print(f"  {margins}; a set point's 100 us before its SYNC is judged as always")
     for period in periods:
         cell = cyclic_cell(period)
         cycles = int(CYCLES[period] * scale)
@@ -303,6 +313,8 @@ def epos(jobs: int, only: list[str] | None = None) -> None:
 
     print(f"epos: {jobs} real-time jobs per reading at 10 ms, 3 axes (a move there and back), one busy process "
           "beside them, the drives in a process of their own, the cycle engine")
+    if _margins():
+        print(f"  {_margins()}")
     base = load_cell(DEMO).with_axes(3)
     there = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.3, -0.2, 0.25], "mode": "absolute"}
     back = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.0, 0.0, 0.0], "mode": "absolute"}
