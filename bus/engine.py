@@ -149,9 +149,17 @@ def request_realtime(priority: int | None, lock_memory: bool) -> RealtimeStatus:
     return RealtimeStatus(fifo, priority if fifo else None, locked, message)
 
 
+# a message longer than a packet goes in pieces: each starts with this byte (a pickle starts with its PROTO
+# opcode, 0x80), then 1 on the last piece, else 0
+_PIECE = 0x00
+_PIECE_DATA = MAX_PACKET - 2
+
+
 class _Channel:
-    """One direction of the engine's link: pickled messages, one SOCK_SEQPACKET packet each. The engine's
-    outgoing side never blocks (`backlog`); the master's side blocks on receive."""
+    """One direction of the engine's link: pickled messages, one SOCK_SEQPACKET packet each, or pieces of one
+    packet each where a message is longer than MAX_PACKET (the engine's statistics of a long job at 1 ms: one
+    figure per cycle, four series, over 2 MB; cut at the receive buffer, it failed the run with "pickle data was
+    truncated"). The engine's outgoing side never blocks (`backlog`); the master's side blocks on receive."""
 
     def __init__(self, sock: socket.socket, *, nonblocking_send: bool = False):
         self.sock = sock
@@ -172,13 +180,17 @@ class _Channel:
 
     def send(self, msg: object) -> None:
         data = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
+        packets = [data] if len(data) <= MAX_PACKET else [
+            bytes((_PIECE, int(i + _PIECE_DATA >= len(data)))) + data[i:i + _PIECE_DATA]
+            for i in range(0, len(data), _PIECE_DATA)]
         if self.sock.getblocking():
-            self.sock.sendall(data)
+            for packet in packets:
+                self.sock.sendall(packet)
             return
-        if len(self.backlog) >= BACKLOG_LIMIT:
+        if len(self.backlog) + len(packets) > BACKLOG_LIMIT:
             self.dropped += 1
             return
-        self.backlog.append(data)
+        self.backlog.extend(packets)
         self.flush()
 
     def flush(self) -> None:
@@ -197,10 +209,18 @@ class _Channel:
 
     def recv(self) -> Any:
         with self._recv_lock:
-            n = self.sock.recv_into(self._buffer)
-            if not n:
-                raise EOFError("the other end closed")
-            return pickle.loads(self._view[:n])  # copies what it builds: the buffer is free again
+            pieces: list[bytes] = []
+            while True:
+                n = self.sock.recv_into(self._buffer)
+                if not n:
+                    raise EOFError("the other end closed")
+                if self._buffer[0] != _PIECE:
+                    if pieces:
+                        raise EOFError("a message in pieces was cut short by another message")
+                    return pickle.loads(self._view[:n])  # copies what it builds: the buffer is free again
+                pieces.append(bytes(self._view[2:n]))
+                if self._buffer[1]:
+                    return pickle.loads(b"".join(pieces))
 
     def close(self) -> None:
         self.sock.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import pickle
 import time
 import uuid
 from collections.abc import Iterator
@@ -341,6 +342,33 @@ def test_the_engine_link_receives_into_one_buffer_not_a_fresh_megabyte_per_messa
         tracemalloc.stop()
         assert [g[1] for g in got] == list(range(50)) and got[-1][2] == [(0x301, bytes(8), 0)] * 6
         assert peak < 100_000, peak  # a fresh MAX_PACKET per message: over 1 MB
+    finally:
+        a.close()
+        b.close()
+
+
+def test_the_engine_link_carries_a_message_longer_than_its_packet_in_pieces() -> None:
+    """The engine's statistics of a 119 s job at 1 ms (one figure per cycle, four series) pickle to over 2 MB;
+    the receive buffer is MAX_PACKET (1 MB), which cut the packet and failed the run ("pickle data was
+    truncated", bench_realtime --only timing at 1 ms with margins). Longer messages now go in pieces, in
+    order with the messages around them, from the engine's non-blocking side too."""
+    import socket
+
+    from bus.engine import MAX_PACKET, _Channel
+
+    a, b = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    for sk in (a, b):  # as EngineBus sets them
+        sk.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 22)
+        sk.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    try:
+        stats = ("stats", [list(range(130_000)) for _ in range(4)])
+        assert len(pickle.dumps(stats, protocol=pickle.HIGHEST_PROTOCOL)) > 1.9 * MAX_PACKET  # two pieces
+        for sender in (_Channel(a), _Channel(a, nonblocking_send=True)):
+            receiver = _Channel(b)
+            sender.send(("rx", [1]))
+            sender.send(stats)
+            sender.send(("rx", [2]))
+            assert [receiver.recv(), receiver.recv(), receiver.recv()] == [("rx", [1]), stats, ("rx", [2])]
     finally:
         a.close()
         b.close()
