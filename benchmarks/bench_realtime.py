@@ -313,8 +313,9 @@ def epos(jobs: int, only: list[str] | None = None) -> None:
 
     print(f"epos: {jobs} real-time jobs per reading at 10 ms, 3 axes (a move there and back), one busy process "
           "beside them, the drives in a process of their own, the cycle engine")
-    if _margins():
-        print(f"  {_margins()}")
+    margins = _margins()
+    if margins:
+        print(f"  {margins}")
     base = load_cell(DEMO).with_axes(3)
     there = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.3, -0.2, 0.25], "mode": "absolute"}
     back = {"kind": "move", "axes": ["j1", "j2", "j3"], "target": [0.0, 0.0, 0.0], "mode": "absolute"}

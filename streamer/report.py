@@ -11,7 +11,6 @@ is measured the same two ways, from its set points (`decode_setpoints`).
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -37,19 +36,15 @@ def _plan_index(sync: int, start_sync: int | None, period_ms: int, duration_ms: 
     return min((sync - start_sync) * period_ms, duration_ms)
 
 
-def _clock_window(clock: DriveTime, sync: int, start_sync: int | None, sync_times: Mapping[int, float], k: int,
-                  late_us: int, duration_ms: int) -> tuple[int, int]:
-    """The plan ms a drive with its own clock (or one timed by the SYNCs it receives) may show at SYNC `sync`:
-    `DriveTime.plan_window` around the time that SYNC left after the start SYNC (such a drive runs on time,
-    not on SYNC counts: a SYNC 4 ms late found it 4 ticks further on, which the SYNC count's window missed by
-    19-70 counts in virtual time and bench_realtime counted as a missed guarantee), else around plan ms k."""
-    t, t0 = sync_times.get(sync), sync_times.get(start_sync) if start_sync is not None else None
-    if t is None or t0 is None:
-        return clock.plan_window(k, late_us, duration_ms)
-    elapsed_ms = min(max(0.0, (t - t0) * 1000.0), float(duration_ms))
-    lo, _ = clock.plan_window(math.floor(elapsed_ms), late_us, duration_ms)
-    _, hi = clock.plan_window(math.ceil(elapsed_ms), late_us, duration_ms)
-    return lo, hi
+def _clock_ms(sync: int, k: int, t_start: float | None, sync_times: Mapping[int, float], duration_ms: int) -> float:
+    """The plan ms a drive with its own clock (or one timed by the SYNCs it receives) has reached at SYNC `sync`:
+    the time that SYNC left after the start SYNC (such a drive runs on time, not on SYNC counts: a SYNC 4 ms late
+    found it 4 ticks further on, which the SYNC count's plan ms missed by 19-70 counts in virtual time and
+    bench_realtime counted as a missed guarantee), else the SYNC count's plan ms k."""
+    t = sync_times.get(sync)
+    if t is None or t_start is None:
+        return float(k)
+    return min(max(0.0, (t - t_start) * 1000.0), float(duration_ms))
 
 
 def build_report(
@@ -74,6 +69,7 @@ def build_report(
     by_rounding = {tz: (traj.planned_demand(tz), np.abs(traj.deviation(tz)).max(axis=1)) for tz in (False, True)}
     axes_out: list[dict[str, Any]] = []
     telemetry = {t.node_id: t for t in core.axes}
+    t_start = trace.sync_times.get(core.start_sync) if core.start_sync is not None else None
     for i, (name, node) in enumerate(zip(traj.axis_names, traj.node_ids, strict=True)):
         ax = trace.axes[node]
         tel = telemetry.get(node)
@@ -97,8 +93,8 @@ def build_report(
             dev = abs(int(d) - int(planned[i, k]))
             sampled_dev = max(sampled_dev, dev)
             if own_clock:
-                lo, hi = _clock_window(clock, int(s), core.start_sync, trace.sync_times, k, int(late_us),
-                                       traj.duration_ms)
+                lo, hi = clock.plan_window(_clock_ms(int(s), k, t_start, trace.sync_times, traj.duration_ms),
+                                           int(late_us), traj.duration_ms)
                 window = planned[i, lo:hi + 1]
                 explained = max(explained, int(np.abs(window - planned[i, k]).max()))
                 outside = max(0, int(window.min()) - int(d), int(d) - int(window.max()))

@@ -66,16 +66,19 @@ class DriveTime:
         return cls(period_ms, own_clock=(own or by_sync_time) and not cyclic,
                    ppm_max=r.clock_ppm_max if own else SYNC_TIMED_PPM, time_stamped=time_stamped)
 
-    def plan_window(self, k: int, late_us: int, last_ms: int) -> tuple[int, int]:
+    def plan_window(self, k: float, late_us: int, last_ms: int) -> tuple[int, int]:
         """The plan's ms [lo, hi] a demand answering the SYNC at plan ms `k` may show, known from the start
         alone (the report's check, after the job, without the narrowings): `bounds`' rule in whole ms, a tick
         off the grid's phase plus what the drift added since the start, and ahead by the ticks the drive may
-        have run before its answer left `late_us` after the SYNC. A SYNC-locked drive: k."""
+        have run before its answer left `late_us` after the SYNC. A drive not locked to the SYNC count runs on
+        time: its `k` is the ms since the start SYNC by the SYNCs' times, which need not be whole. A SYNC-locked
+        drive: k."""
+        lo_k, hi_k = math.floor(k), math.ceil(k)
         if self.exact:
-            return k, k
-        delta = 1 + math.ceil(self.rho * k)
+            return lo_k, hi_k
         ahead = math.ceil(late_us * 1e-3 * (1.0 + self.rho))
-        return max(0, k - delta), min(last_ms, k + delta + ahead)
+        return (max(0, lo_k - 1 - math.ceil(self.rho * lo_k)),
+                min(last_ms, hi_k + 1 + math.ceil(self.rho * hi_k) + ahead))
 
     def start(self, sync: int, t: float) -> None:
         """Interpolation began at SYNC `sync`, sent at time `t` (s)."""
